@@ -1,0 +1,163 @@
+"""The ``ofrl-drake`` command-line tool.
+
+Subcommands::
+
+    ofrl-drake run SCENARIO --out DIR              simulate, write logs, figures, graph
+    ofrl-drake design-observer SCENARIO --out F    certified observer gains as JSON
+
+Bad input prints one line (``error: ...``) and exits 2; nothing partial is
+written: outputs are built in a temporary sibling and renamed into place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+__all__ = ["main"]
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_BAD_INPUT = 2
+
+
+@contextlib.contextmanager
+def atomic_directory(target: Path) -> Iterator[Path]:
+    """Yield a temporary directory that replaces ``target`` only on success."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    backup = None
+    if target.exists():
+        backup = target.with_name(f".{target.name}.old")
+        shutil.rmtree(backup, ignore_errors=True)
+        target.rename(backup)
+    tmp.rename(target)
+    if backup is not None:
+        shutil.rmtree(backup, ignore_errors=True)
+
+
+def atomic_write_text(target: Path, text: str) -> None:
+    """Write ``text`` to ``target`` via a temporary file and a rename."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from ofrl_drake.diagram import build_closed_loop
+    from ofrl_drake.graph import render_diagram
+    from ofrl_drake.plotting import save_figures
+    from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.simulation import simulate
+
+    scenario = load_scenario(args.scenario)
+    loop = build_closed_loop(scenario)
+    result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
+    out = Path(args.out)
+    with atomic_directory(out) as tmp:
+        result.save(tmp)
+        save_figures(
+            result,
+            tmp / "figures",
+            input_bound=scenario.input_bound,
+            weight_labels=loop.parts.basis.labels(),
+        )
+        if loop.design is not None:
+            (tmp / "observer_design.json").write_text(
+                json.dumps(loop.design.to_dict(), indent=2) + "\n"
+            )
+        graph = render_diagram(loop.diagram, tmp)
+    if graph.suffix == ".dot":
+        print(
+            f"note: Graphviz 'dot' not found; wrote {out / graph.name} instead of "
+            "diagram.svg (install with `apt-get install -y graphviz`)."
+        )
+    if result.validity is not None and not result.validity.valid:
+        print(result.validity.warning(), file=sys.stderr)
+    s = result.summary()
+    print(
+        f"wrote {out}: |x(T)| = {s['final_state_norm']:.3g}, "
+        f"|e(T)| = {s['final_estimation_error_norm']:.3g}, J(T) = {s['final_cost']:.4g}, "
+        f"{s['wall_time']:.2f} s"
+    )
+    return EXIT_OK
+
+
+def _cmd_design_observer(args: argparse.Namespace) -> int:
+    from ofrl_drake.diagram import design_for
+    from ofrl_drake.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    design = design_for(scenario)
+    atomic_write_text(Path(args.out), json.dumps(design.to_dict(), indent=2) + "\n")
+    worst = max(v for _, v in design.certificate())
+    print(
+        f"wrote {args.out}: alpha = {design.alpha}, ||L|| = "
+        f"{float(__import__('numpy').linalg.norm(design.L, 2)):.4g}, "
+        f"max certificate eigenvalue = {worst:.3g}"
+    )
+    return EXIT_OK
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ofrl-drake",
+        description="Output-feedback model-based RL control as Drake block diagrams.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="simulate a scenario; write logs, figures and graph")
+    run.add_argument("scenario", help="scenario YAML file, e.g. diagrams/two_state_paper.yaml")
+    run.add_argument("--out", required=True, help="output directory (replaced atomically)")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=_cmd_run)
+
+    design = sub.add_parser("design-observer", help="certified observer gains as JSON")
+    design.add_argument("scenario", help="scenario YAML file")
+    design.add_argument("--out", required=True, help="output JSON file")
+    design.set_defaults(func=_cmd_design_observer)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``ofrl-drake``; returns the exit code."""
+    from ofrl_drake.errors import OfrlError
+
+    args = _parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except OfrlError as err:
+        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("error: interrupted; no output written", file=sys.stderr)
+        return 130
+    except Exception as err:  # noqa: BLE001 - one line, no traceback, by design
+        msg = " ".join(str(err).split())
+        print(f"internal error: {type(err).__name__}: {msg}", file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,292 @@
+"""Wire the closed loop as a Drake ``Diagram``.
+
+Blocks are connected **by port name**: every input port named in
+:data:`SIGNALS` is fed by the output port of the same name on the block that
+owns that signal. A replacement block therefore only has to use the same port
+names, e.g. a full-state "observer" may declare an input ``state`` and output
+``estimated_state``. Every block's inputs must all be fed, otherwise
+:class:`~ofrl_drake.errors.SwapError` names the port.
+
+.. code-block:: text
+
+    plant --y-------------------> observer --estimated_state--> controller --u--+
+      ^                              ^                              ^            |
+      +------------------ u ---------+-------------------------------------------+
+    critic --weights--> bellman --critic_sum--> critic;  bellman --gain_sum--> gamma
+    gamma --gamma--> critic;  plant --state--, controller --u--> running_cost
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Union
+
+import numpy as np
+from pydrake.systems.framework import Diagram, DiagramBuilder, System
+from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
+
+from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.bellman import PointFeatures, point_features
+from ofrl_drake.errors import SwapError
+from ofrl_drake.examples import make_system
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer import ObserverGains
+from ofrl_drake.points import grid_points, uniform_points
+from ofrl_drake.scenario import Scenario, validate_scenario
+from ofrl_drake.systems import (
+    BellmanExtrapolator,
+    ControlAffinePlant,
+    CriticWeights,
+    GammaGain,
+    RunningCost,
+    SaturatedController,
+    ThreeGainObserver,
+)
+
+__all__ = [
+    "SLOTS",
+    "SIGNALS",
+    "LOGGED",
+    "ClosedLoop",
+    "ClosedLoopParts",
+    "build_closed_loop",
+    "design_for",
+    "extrapolation_points",
+]
+
+#: The block slots of the closed loop, in build order.
+SLOTS = ("plant", "observer", "controller", "critic", "gamma", "bellman", "running_cost")
+
+#: Signal name -> the slot whose output port of that name provides it.
+SIGNALS = {
+    "y": "plant",
+    "state": "plant",
+    "estimated_state": "observer",
+    "u": "controller",
+    "weights": "critic",
+    "gamma": "gamma",
+    "critic_sum": "bellman",
+    "gain_sum": "bellman",
+    "learning_condition": "bellman",
+    "cost": "running_cost",
+}
+
+#: Log key -> signal name. Every variant logs these.
+LOGGED = {
+    "x": "state",
+    "xhat": "estimated_state",
+    "W": "weights",
+    "Gamma": "gamma",
+    "u": "u",
+    "learning_condition": "learning_condition",
+    "cost": "cost",
+}
+
+
+@dataclass(frozen=True)
+class ClosedLoopParts:
+    """What a block factory may need to build a replacement block."""
+
+    scenario: Scenario
+    system: ControlAffineSystem
+    basis: PolynomialBasis
+    features: PointFeatures
+    design: Any
+    Q: np.ndarray
+    r: np.ndarray
+
+
+@dataclass
+class ClosedLoop:
+    """A built closed loop: the diagram and handles to its named blocks."""
+
+    diagram: Diagram
+    parts: ClosedLoopParts
+    blocks: dict[str, System]
+    loggers: dict[str, VectorLogSink] = field(default_factory=dict)
+
+    def __getattr__(self, name: str) -> System:
+        blocks = self.__dict__.get("blocks", {})
+        if name in blocks:
+            return blocks[name]
+        raise AttributeError(name)
+
+    @property
+    def design(self) -> Any:
+        """The ``ObserverDesign`` used by the observer (None if not designed)."""
+        return self.parts.design
+
+
+Swap = Union[System, Callable[[ClosedLoopParts], System]]
+
+
+def extrapolation_points(scenario: Scenario) -> np.ndarray:
+    """The scenario's Bellman-extrapolation points, shape ``(n, N)``."""
+    p = scenario.points
+    if p.kind == "grid":
+        return grid_points(p.lower, p.upper, p.counts)
+    return uniform_points(p.lower, p.upper, p.number, p.seed)
+
+
+def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> Any:
+    """The observer design of ``scenario``: certified by LMI unless gains are pinned.
+
+    Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
+    certificate, which reports honestly whether they satisfy the LMI.
+    """
+    from ofrl_drake.design import ObserverDesign, design_observer
+
+    system = system or make_system(scenario.system)
+    o = scenario.observer
+    box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    if o.L is not None:
+        return ObserverDesign.from_gains(
+            system,
+            box,
+            scenario.input_bound,
+            o.alpha,
+            L=np.asarray(o.L, float),
+            H=np.asarray(o.H, float),
+            K=np.asarray(o.K, float),
+            jacobian_method=o.jacobian_method,
+        )
+    return design_observer(
+        system,
+        box,
+        scenario.input_bound,
+        o.alpha,
+        jacobian_method=o.jacobian_method,
+        solver=o.solver,
+    )
+
+
+def _default_block(slot: str, parts: ClosedLoopParts) -> System:
+    s, c = parts.scenario, parts.scenario.critic
+    if slot == "plant":
+        return ControlAffinePlant(parts.system, initial_state=s.x0)
+    if slot == "observer":
+        gains = ObserverGains.from_design(parts.system, parts.design)
+        return ThreeGainObserver(parts.system, gains, initial_state=s.xhat0)
+    if slot == "controller":
+        return SaturatedController(parts.system, parts.basis, parts.r, s.input_bound)
+    if slot == "critic":
+        return CriticWeights(c.W0, c.kc)
+    if slot == "gamma":
+        return GammaGain(np.asarray(c.Gamma0, float), c.kc, c.beta)
+    if slot == "bellman":
+        return BellmanExtrapolator(parts.features, parts.r, s.input_bound, c.nu)
+    if slot == "running_cost":
+        return RunningCost(parts.Q, parts.r, s.input_bound)
+    raise AssertionError(slot)  # pragma: no cover
+
+
+def build_closed_loop(
+    scenario: Scenario,
+    *,
+    design: Any = None,
+    log_period: float | None = None,
+    **swaps: Swap,
+) -> ClosedLoop:
+    """Build the closed-loop ``Diagram`` of ``scenario``.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        A validated scenario (see :func:`ofrl_drake.load_scenario`).
+    design : ObserverDesign, optional
+        Observer design to use; by default :func:`design_for` computes it. Not
+        computed at all when the ``observer`` slot is swapped.
+    log_period : float, optional
+        Logging period in seconds; defaults to ``scenario.simulation.log_period``.
+    **swaps : System or callable
+        Replace a slot (one of :data:`SLOTS`) with another block that has the
+        same port names, or with a factory ``f(parts) -> System`` called with
+        the :class:`ClosedLoopParts`.
+
+    Returns
+    -------
+    ClosedLoop
+        The diagram, its blocks by slot name (``loop.observer`` ...) and its
+        loggers by key (:data:`LOGGED`).
+
+    Raises
+    ------
+    SwapError
+        If a swap names an unknown slot or its block's ports do not fit.
+
+    Examples
+    --------
+    >>> loop = build_closed_loop(scenario)                       # doctest: +SKIP
+    >>> loop = build_closed_loop(scenario, critic=CriticWeights(W0, kc=0.0))  # doctest: +SKIP
+    """
+    unknown = sorted(set(swaps) - set(SLOTS))
+    if unknown:
+        raise SwapError(f"{unknown[0]}: unknown slot; swap one of {list(SLOTS)}.")
+    validate_scenario(scenario)
+    system = make_system(scenario.system)
+    basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
+    Q = np.asarray(scenario.cost.Q, dtype=float)
+    r = np.asarray(scenario.cost.R, dtype=float)
+    features = point_features(system, basis, extrapolation_points(scenario), Q)
+    if design is None and "observer" not in swaps:
+        design = design_for(scenario, system)
+    parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r)
+
+    builder = DiagramBuilder()
+    blocks: dict[str, System] = {}
+    for slot in SLOTS:
+        swap = swaps.get(slot)
+        if swap is None:
+            block = _default_block(slot, parts)
+        elif isinstance(swap, System):
+            block = swap
+        elif callable(swap):
+            block = swap(parts)
+        else:
+            raise SwapError(
+                f"{slot}: a swap must be a Drake System or a factory f(parts) -> System; "
+                f"got {type(swap).__name__}."
+            )
+        block.set_name(slot)
+        blocks[slot] = builder.AddSystem(block)
+
+    _connect_by_name(builder, blocks)
+
+    period = scenario.simulation.log_period if log_period is None else log_period
+    loggers = {}
+    for key, signal in LOGGED.items():
+        source = blocks[SIGNALS[signal]]
+        logger = LogVectorOutput(source.GetOutputPort(signal), builder, period)
+        logger.set_name(f"log_{key}")
+        loggers[key] = logger
+    diagram = builder.Build()
+    diagram.set_name(f"closed_loop_{scenario.name}")
+    return ClosedLoop(diagram=diagram, parts=parts, blocks=blocks, loggers=loggers)
+
+
+def _connect_by_name(builder: DiagramBuilder, blocks: dict[str, System]) -> None:
+    for signal, source_slot in SIGNALS.items():
+        source = blocks[source_slot]
+        if not source.HasOutputPort(signal):
+            raise SwapError(
+                f"{source_slot}: the block must have an output port named {signal!r}; "
+                f"{source.get_name()} has none."
+            )
+    for slot, block in blocks.items():
+        for i in range(block.num_input_ports()):
+            port = block.get_input_port(i)
+            name = port.get_name()
+            source_slot = SIGNALS.get(name)
+            if source_slot is None:
+                raise SwapError(
+                    f"{slot}: input port {name!r} matches no signal of the loop; "
+                    f"input ports must be named one of {sorted(SIGNALS)}."
+                )
+            out = blocks[source_slot].GetOutputPort(name)
+            if out.size() != port.size():
+                raise SwapError(
+                    f"{slot}: input port {name!r} has size {port.size()}, but "
+                    f"{source_slot}'s output {name!r} has size {out.size()}."
+                )
+            builder.Connect(out, port)

@@ -1,0 +1,159 @@
+"""Publication-ready figures of a closed-loop run (the paper's Figs. 1-5 and c(t)).
+
+Every function takes a :class:`~ofrl_drake.SimulationResult` and returns a
+matplotlib ``Figure``; :func:`save_figures` writes them all as PNG.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.figure import Figure
+
+__all__ = [
+    "plot_state",
+    "plot_estimation_error",
+    "plot_weights",
+    "plot_input",
+    "plot_learning_condition",
+    "plot_cost",
+    "plot_comparison",
+    "plot_gain_schedule",
+    "save_figures",
+]
+
+_STYLE = {
+    "figure.figsize": (6.0, 3.4),
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "font.size": 10,
+    "legend.frameon": False,
+}
+
+
+def _axes(title: str | None = None) -> tuple[Figure, plt.Axes]:
+    with plt.rc_context(_STYLE):
+        fig, ax = plt.subplots(constrained_layout=True)
+    if title:
+        ax.set_title(title)
+    ax.set_xlabel(r"time $t$ [s]")
+    return fig, ax
+
+
+def plot_state(result, i: int) -> Figure:
+    """``x_i`` and ``xhat_i`` against time (the paper's Figs. 1 and 2)."""
+    fig, ax = _axes()
+    ax.plot(result.t, result.x[:, i], lw=1.6, label=rf"$x_{i + 1}$")
+    ax.plot(result.t, result.xhat[:, i], lw=1.4, ls="--", label=rf"$\hat{{x}}_{i + 1}$")
+    ax.set_ylabel(rf"state $x_{i + 1}$")
+    ax.legend()
+    return fig
+
+
+def plot_estimation_error(result) -> Figure:
+    """``e = x - xhat`` per component (the paper's Fig. 3)."""
+    fig, ax = _axes()
+    for i in range(result.x.shape[1]):
+        ax.plot(result.t, result.e[:, i], lw=1.4, label=rf"$e_{i + 1}$")
+    ax.set_ylabel(r"estimation error $x - \hat{x}$")
+    ax.legend(ncol=min(4, result.x.shape[1]))
+    return fig
+
+
+def plot_weights(result, labels: Sequence[str] | None = None) -> Figure:
+    """Critic weights ``W(t)`` (the paper's Fig. 4)."""
+    fig, ax = _axes()
+    L = result.W.shape[1]
+    for k in range(L):
+        name = labels[k] if labels is not None else None
+        label = rf"$\hat{{W}}_{k + 1}$" + (f" ({name})" if name else "")
+        ax.plot(result.t, result.W[:, k], lw=1.4, label=label)
+    ax.set_ylabel(r"critic weights $\hat{W}_c$")
+    ax.legend(ncol=min(3, L), fontsize=8)
+    return fig
+
+
+def plot_input(result, input_bound: float | None = None) -> Figure:
+    """The saturated input ``u(t)`` (the paper's Fig. 5), with the bound."""
+    fig, ax = _axes()
+    for k in range(result.u.shape[1]):
+        ax.plot(result.t, result.u[:, k], lw=1.4, label=rf"$u_{k + 1}$")
+    if input_bound is not None:
+        for s in (-1, 1):
+            ax.axhline(s * input_bound, color="k", lw=0.8, ls=":")
+    ax.set_ylabel(r"control input $u$")
+    ax.legend()
+    return fig
+
+
+def plot_learning_condition(result) -> Figure:
+    """``c(t) = lambda_min((1/N) sum omega omega^T / rho^2)`` (Assumption 2)."""
+    fig, ax = _axes()
+    ax.plot(result.t, result.learning_condition, lw=1.4, color="C3")
+    ax.set_ylabel(r"learning condition $c(t)$")
+    ax.set_ylim(bottom=0)
+    return fig
+
+
+def plot_cost(result) -> Figure:
+    """Accumulated cost ``J(t)``."""
+    fig, ax = _axes()
+    ax.plot(result.t, result.cost, lw=1.4, color="C4")
+    ax.set_ylabel(r"cost $J(t)=\int_0^t Q(x)+U(u)\,d\tau$")
+    return fig
+
+
+def plot_comparison(results: dict, key: str = "x", component: int = 0) -> Figure:
+    """One signal of several runs in one plot, e.g. a block swap against the baseline."""
+    fig, ax = _axes()
+    for label, result in results.items():
+        data = getattr(result, key)
+        y = data if data.ndim == 1 else data[:, component]
+        ax.plot(result.t, y, lw=1.4, label=label)
+    suffix = "" if getattr(next(iter(results.values())), key).ndim == 1 else f"_{component + 1}"
+    ax.set_ylabel(f"${key}{suffix}$")
+    ax.legend()
+    return fig
+
+
+def plot_gain_schedule(t: np.ndarray, gains: np.ndarray, failed: np.ndarray) -> Figure:
+    """Scheduled observer gains over time; failed re-solves marked with crosses."""
+    fig, ax = _axes()
+    for k in range(gains.shape[1]):
+        ax.step(t, gains[:, k], where="post", lw=1.4, label=rf"$L_{{{k + 1}}}$")
+    if np.any(failed):
+        ax.plot(t[failed], gains[failed, 0], "kx", label="re-solve failed")
+    ax.set_ylabel("observer gain $L$")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def save_figures(
+    result,
+    directory: str | Path,
+    *,
+    input_bound: float | None = None,
+    weight_labels: Sequence[str] | None = None,
+    dpi: int = 200,
+) -> list[Path]:
+    """Write every figure of ``result`` as PNG into ``directory``; return the paths."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    figures = {f"state_{i + 1}": plot_state(result, i) for i in range(result.x.shape[1])}
+    figures["estimation_error"] = plot_estimation_error(result)
+    figures["critic_weights"] = plot_weights(result, weight_labels)
+    figures["control_input"] = plot_input(result, input_bound)
+    figures["learning_condition"] = plot_learning_condition(result)
+    figures["cost"] = plot_cost(result)
+    paths = []
+    for name, fig in figures.items():
+        path = directory / f"{name}.png"
+        fig.savefig(path, dpi=dpi)
+        plt.close(fig)
+        paths.append(path)
+    return paths

@@ -1,0 +1,378 @@
+"""Scenario files: every parameter of one closed-loop experiment.
+
+A scenario is a YAML file (see ``diagrams/two_state_paper.yaml``) loaded with
+Drake's :func:`pydrake.common.yaml.yaml_load_typed` into the dataclasses
+below. Before that, the raw YAML is walked against the schema so that unknown
+keys, missing keys and values of the wrong type are reported with their full
+key path (``critic.kc``). :func:`validate_scenario` then checks values and
+dimensions against the named system.
+
+Keys marked *optional* in a dataclass docstring may be omitted; every other key
+is required.
+"""
+
+# No "from __future__ import annotations": Drake reads the field types at run time.
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+from pydrake.common.yaml import yaml_load, yaml_load_typed
+from pydrake.systems.analysis import GetIntegrationSchemes
+
+from ofrl_drake.errors import ScenarioError
+
+__all__ = [
+    "BoxConfig",
+    "CostConfig",
+    "CriticConfig",
+    "ObserverConfig",
+    "PointsConfig",
+    "Scenario",
+    "SimulationConfig",
+    "load_scenario",
+    "validate_scenario",
+]
+
+_OPTIONAL = {"optional": True}
+
+
+@dataclass
+class BoxConfig:
+    """An axis-aligned box ``lower <= x <= upper``."""
+
+    lower: list[float] = field(default_factory=list)
+    upper: list[float] = field(default_factory=list)
+
+
+@dataclass
+class CostConfig:
+    """``Q(x) = x^T Q x`` and ``R = diag(R)`` of the saturated input cost."""
+
+    Q: list[list[float]] = field(default_factory=list)
+    R: list[float] = field(default_factory=list)
+
+
+@dataclass
+class CriticConfig:
+    """Value-function basis, initial weights and the learning gains.
+
+    ``Gamma0`` is the full initial least-squares gain (symmetric positive
+    definite). ``nu`` is the paper's normalization gain (its ``gamma``).
+    """
+
+    basis_degrees: list[int] = field(default_factory=lambda: [2])
+    W0: list[float] = field(default_factory=list)
+    Gamma0: list[list[float]] = field(default_factory=list)
+    kc: float = 0.01
+    nu: float = 0.7
+    beta: float = 0.2
+
+
+@dataclass
+class PointsConfig:
+    """Bellman-error extrapolation points.
+
+    ``kind`` is ``grid`` (uses ``counts``) or ``uniform`` (uses ``number`` and
+    ``seed``). ``counts``, ``number`` and ``seed`` are optional.
+    """
+
+    kind: str = "grid"
+    lower: list[float] = field(default_factory=list)
+    upper: list[float] = field(default_factory=list)
+    counts: list[int] = field(default_factory=list, metadata=_OPTIONAL)
+    number: int = field(default=100, metadata=_OPTIONAL)
+    seed: int = field(default=0, metadata=_OPTIONAL)
+
+
+@dataclass
+class ObserverConfig:
+    """Observer design: decay rate ``alpha`` and the box of the Jacobian bounds.
+
+    Optional: ``L``, ``H``, ``K`` pin the gains (all three or none);
+    ``jacobian_method`` (``sampled`` or ``certified``), ``solver``.
+    """
+
+    alpha: float = 2.0
+    box: BoxConfig = field(default_factory=BoxConfig)
+    jacobian_method: str = field(default="sampled", metadata=_OPTIONAL)
+    solver: str = field(default="clarabel", metadata=_OPTIONAL)
+    L: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
+    H: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
+    K: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
+
+
+@dataclass
+class SimulationConfig:
+    """Horizon and Drake integrator settings.
+
+    ``integrator`` is a Drake scheme name (``runge_kutta3``, ``radau3``, ...);
+    ``accuracy`` its error-control target; ``max_step`` its largest step;
+    ``log_period`` the sampling period of the logs (optional, default 0.01 s).
+    """
+
+    duration: float = 30.0
+    integrator: str = "runge_kutta3"
+    accuracy: float = 1e-6
+    max_step: float = 0.1
+    log_period: float = field(default=0.01, metadata=_OPTIONAL)
+
+
+@dataclass
+class Scenario:
+    """One closed-loop experiment. ``name`` is optional."""
+
+    system: str = ""
+    x0: list[float] = field(default_factory=list)
+    xhat0: list[float] = field(default_factory=list)
+    input_bound: float = 1.0
+    cost: CostConfig = field(default_factory=CostConfig)
+    critic: CriticConfig = field(default_factory=CriticConfig)
+    points: PointsConfig = field(default_factory=PointsConfig)
+    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    simulation: SimulationConfig = field(default_factory=SimulationConfig)
+    name: str = field(default="scenario", metadata=_OPTIONAL)
+
+
+# --------------------------------------------------------------------------
+# Raw-YAML checks: unknown, missing and mistyped keys, named by their path.
+# --------------------------------------------------------------------------
+def _strip_optional(tp: Any) -> tuple[Any, bool]:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return args[0], True
+    return tp, False
+
+
+def _check_value(path: str, tp: Any, value: Any) -> None:
+    tp, nullable = _strip_optional(tp)
+    if value is None:
+        if nullable:
+            return
+        raise ScenarioError(f"{path}: a value is required; got null.")
+    if dataclasses.is_dataclass(tp):
+        _check_mapping(path, tp, value)
+        return
+    origin = typing.get_origin(tp)
+    if origin is list:
+        if not isinstance(value, list):
+            raise ScenarioError(f"{path}: expected a list; got {value!r}.")
+        (item_tp,) = typing.get_args(tp)
+        for i, item in enumerate(value):
+            _check_value(f"{path}[{i}]", item_tp, item)
+        return
+    if tp is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        kind = "a number"
+    elif tp is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+        kind = "an integer"
+    elif tp is str:
+        ok = isinstance(value, str)
+        kind = "a string"
+    else:  # pragma: no cover - schema types are all listed above
+        ok, kind = True, str(tp)
+    if not ok:
+        raise ScenarioError(f"{path}: expected {kind}; got {value!r}.")
+
+
+def _check_mapping(path: str, schema: type, data: Any) -> None:
+    where = path or "scenario"
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{where}: expected a mapping of keys; got {data!r}.")
+    hints = typing.get_type_hints(schema)
+    fields = {f.name: f for f in dataclasses.fields(schema)}
+    prefix = f"{path}." if path else ""
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ScenarioError(
+            f"{prefix}{unknown[0]}: unknown key in {where}; allowed keys are "
+            f"{sorted(fields)}."
+        )
+    for name, f in fields.items():
+        if name not in data:
+            if not f.metadata.get("optional", False):
+                raise ScenarioError(f"{prefix}{name}: missing required key in {where}.")
+            continue
+        _check_value(prefix + name, hints[name], data[name])
+
+
+# --------------------------------------------------------------------------
+# Value and dimension checks.
+# --------------------------------------------------------------------------
+def _vector(path: str, value: list[float], size: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (size,):
+        raise ScenarioError(f"{path}: expected {size} entries; got {len(value)}.")
+    if not np.all(np.isfinite(arr)):
+        raise ScenarioError(f"{path}: entries must be finite; got {value}.")
+    return arr
+
+
+def _matrix(path: str, value: list[list[float]], shape: tuple[int, int]) -> np.ndarray:
+    if any(len(row) != len(value[0]) for row in value) if value else True:
+        raise ScenarioError(f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {value}.")
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != shape:
+        raise ScenarioError(
+            f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {arr.shape[0]}x"
+            f"{arr.shape[1]}."
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ScenarioError(f"{path}: entries must be finite; got {value}.")
+    return arr
+
+
+def _positive(path: str, value: float, *, allow_zero: bool = False) -> None:
+    bad = value < 0 if allow_zero else value <= 0
+    if bad or not np.isfinite(value):
+        need = ">= 0" if allow_zero else "> 0"
+        raise ScenarioError(f"{path}: must be {need}; got {value}.")
+
+
+def _spd(path: str, M: np.ndarray, *, semi: bool = False) -> None:
+    if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
+        raise ScenarioError(f"{path}: must be symmetric; got {M.tolist()}.")
+    lam = np.linalg.eigvalsh(M)[0]
+    if (lam < 0) if semi else (lam <= 0):
+        kind = "positive semidefinite" if semi else "positive definite"
+        raise ScenarioError(
+            f"{path}: must be symmetric {kind}; its smallest eigenvalue is {lam:.6g}."
+        )
+
+
+def validate_scenario(scenario: Scenario) -> None:
+    """Check every value of ``scenario`` against its system's dimensions.
+
+    Raises
+    ------
+    ScenarioError
+        Naming the first bad key, its value and what is expected.
+    """
+    # Imported here: the registry imports model code, the scenario does not need it
+    # for parsing.
+    from ofrl_drake.basis import PolynomialBasis
+    from ofrl_drake.examples import make_system
+
+    system = make_system(scenario.system)
+    n, m, q = system.n, system.m, system.q
+    _vector("x0", scenario.x0, n)
+    _vector("xhat0", scenario.xhat0, n)
+    _positive("input_bound", scenario.input_bound)
+
+    Q = _matrix("cost.Q", scenario.cost.Q, (n, n))
+    _spd("cost.Q", Q, semi=True)
+    R = _vector("cost.R", scenario.cost.R, m)
+    if np.any(R <= 0):
+        raise ScenarioError(f"cost.R: entries must be > 0; got {scenario.cost.R}.")
+
+    c = scenario.critic
+    try:
+        basis = PolynomialBasis(n, c.basis_degrees)
+    except ValueError as err:
+        raise ScenarioError(f"critic.basis_degrees: {err}") from None
+    L = basis.size
+    _vector("critic.W0", c.W0, L)
+    Gamma0 = _matrix("critic.Gamma0", c.Gamma0, (L, L))
+    _spd("critic.Gamma0", Gamma0)
+    _positive("critic.kc", c.kc)
+    _positive("critic.nu", c.nu)
+    _positive("critic.beta", c.beta, allow_zero=True)
+
+    p = scenario.points
+    if p.kind not in ("grid", "uniform"):
+        raise ScenarioError(f"points.kind: must be 'grid' or 'uniform'; got {p.kind!r}.")
+    lo = _vector("points.lower", p.lower, n)
+    hi = _vector("points.upper", p.upper, n)
+    if np.any(lo >= hi):
+        raise ScenarioError(
+            f"points.upper: must exceed points.lower element-wise; got lower={p.lower}, "
+            f"upper={p.upper}."
+        )
+    if p.kind == "grid":
+        if len(p.counts) != n or min(p.counts) < 1:
+            raise ScenarioError(
+                f"points.counts: expected {n} positive integers for a grid; got {p.counts}."
+            )
+    elif p.number < 1:
+        raise ScenarioError(f"points.number: must be >= 1; got {p.number}.")
+
+    o = scenario.observer
+    _positive("observer.alpha", o.alpha)
+    blo = _vector("observer.box.lower", o.box.lower, n)
+    bhi = _vector("observer.box.upper", o.box.upper, n)
+    if np.any(blo >= bhi):
+        raise ScenarioError(
+            f"observer.box.upper: must exceed observer.box.lower element-wise; got "
+            f"lower={o.box.lower}, upper={o.box.upper}."
+        )
+    if o.jacobian_method not in ("sampled", "certified"):
+        raise ScenarioError(
+            f"observer.jacobian_method: must be 'sampled' or 'certified'; got "
+            f"{o.jacobian_method!r}."
+        )
+    if o.solver not in ("clarabel", "scs", "csdp", "mosek"):
+        raise ScenarioError(
+            f"observer.solver: must be one of clarabel, scs, csdp, mosek; got {o.solver!r}."
+        )
+    pinned = [k for k in ("L", "H", "K") if getattr(o, k) is not None]
+    if pinned and len(pinned) != 3:
+        missing = sorted({"L", "H", "K"} - set(pinned))
+        raise ScenarioError(
+            f"observer.{missing[0]}: pin all of L, H and K or none; got only {pinned}."
+        )
+    for k in pinned:
+        _matrix(f"observer.{k}", getattr(o, k), (n, q))
+
+    s = scenario.simulation
+    _positive("simulation.duration", s.duration)
+    _positive("simulation.accuracy", s.accuracy)
+    _positive("simulation.max_step", s.max_step)
+    _positive("simulation.log_period", s.log_period)
+    if s.integrator not in GetIntegrationSchemes():
+        raise ScenarioError(
+            f"simulation.integrator: unknown scheme {s.integrator!r}; choose one of "
+            f"{sorted(GetIntegrationSchemes())}."
+        )
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load and validate a scenario YAML file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+
+    Returns
+    -------
+    Scenario
+
+    Raises
+    ------
+    ScenarioError
+        If the file is missing or unreadable, or a key is unknown, missing or bad.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ScenarioError(f"{path}: no such scenario file.")
+    try:
+        raw = yaml_load(filename=str(path))
+    except Exception as err:  # noqa: BLE001 - YAML syntax errors vary by parser
+        raise ScenarioError(f"{path}: not valid YAML: {err}".replace("\n", " ")) from None
+    try:
+        _check_mapping("", Scenario, raw)
+    except ScenarioError as err:
+        raise ScenarioError(f"{path}: {err}") from None
+    scenario = yaml_load_typed(
+        schema=Scenario, filename=str(path), allow_schema_with_no_yaml=True
+    )
+    try:
+        validate_scenario(scenario)
+    except ScenarioError as err:
+        raise ScenarioError(f"{path}: {err}") from None
+    return scenario

@@ -1,0 +1,19 @@
+"""Drake blocks of the closed loop; each is a thin wrapper over a math module."""
+
+from ofrl_drake.systems.bellman import BellmanExtrapolator
+from ofrl_drake.systems.controller import SaturatedController
+from ofrl_drake.systems.cost import RunningCost
+from ofrl_drake.systems.critic import CriticWeights
+from ofrl_drake.systems.gamma import GammaGain
+from ofrl_drake.systems.observer import ThreeGainObserver
+from ofrl_drake.systems.plant import ControlAffinePlant
+
+__all__ = [
+    "BellmanExtrapolator",
+    "ControlAffinePlant",
+    "CriticWeights",
+    "GammaGain",
+    "RunningCost",
+    "SaturatedController",
+    "ThreeGainObserver",
+]

@@ -1,0 +1,78 @@
+"""The saturated controller block (u_app)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.systems.framework import LeafSystem
+
+from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.policy import saturated_policy
+
+__all__ = ["SaturatedController"]
+
+
+class SaturatedController(LeafSystem):
+    """``u = -lbar tanh((1/(2 lbar)) R^{-1} g(xhat)^T grad sigma(xhat)^T W)``.
+
+    Stateless, with direct feedthrough from both inputs.
+
+    .. pydrake_system::
+
+        name: SaturatedController
+        input_ports:
+        - estimated_state
+        - weights
+        output_ports:
+        - u
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    basis : PolynomialBasis
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar > 0.
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        basis: PolynomialBasis,
+        r: np.ndarray,
+        input_bound: float,
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.basis = basis
+        self.r = r
+        self.input_bound = input_bound
+        self._r = np.asarray(r, dtype=float)
+        self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
+        self._weights_port = self.DeclareVectorInputPort("weights", basis.size)
+        self._u_port = self.DeclareVectorOutputPort(
+            "u",
+            system.m,
+            self._calc_u,
+            prerequisites_of_calc={self._xhat_port.ticket(), self._weights_port.ticket()},
+        )
+
+    def get_estimated_state_input_port(self):
+        """The state estimate xhat (size n)."""
+        return self._xhat_port
+
+    def get_weights_input_port(self):
+        """Critic weights W (size L)."""
+        return self._weights_port
+
+    def get_u_output_port(self):
+        """The saturated input u (size m)."""
+        return self._u_port
+
+    def _calc_u(self, context, output) -> None:
+        xhat = self._xhat_port.Eval(context)
+        W = self._weights_port.Eval(context)
+        grad = self.basis.gradient(xhat)
+        g = np.asarray(self.system.g(xhat), dtype=float)
+        output.SetFromVector(saturated_policy(grad, g, W, self._r, self.input_bound))

@@ -1,0 +1,64 @@
+"""The accumulated-cost block ``J(t) = int Q(x) + U(u) dt``."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ofrl_drake.cost import input_cost, state_cost
+
+__all__ = ["RunningCost"]
+
+
+class RunningCost(LeafSystem):
+    """Integrates the stage cost along the closed-loop trajectory.
+
+    .. pydrake_system::
+
+        name: RunningCost
+        input_ports:
+        - state
+        - u
+        output_ports:
+        - cost
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, n)
+        State weight.
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar.
+    """
+
+    def __init__(self, Q: np.ndarray, r: np.ndarray, input_bound: float) -> None:
+        super().__init__()
+        self.Q = Q
+        self.r = r
+        self.input_bound = input_bound
+        self._Q = np.asarray(Q, dtype=float)
+        self._r = np.asarray(r, dtype=float)
+        n, m = self._Q.shape[0], self._r.size
+        self._state_index = self.DeclareContinuousState(BasicVector(np.zeros(1)))
+        self._x_port = self.DeclareVectorInputPort("state", n)
+        self._u_port = self.DeclareVectorInputPort("u", m)
+        self._cost_port = self.DeclareStateOutputPort("cost", self._state_index)
+
+    def get_state_input_port(self):
+        """The true state x (size n)."""
+        return self._x_port
+
+    def get_u_input_port(self):
+        """The applied input u (size m)."""
+        return self._u_port
+
+    def get_cost_output_port(self):
+        """The accumulated cost J (size 1)."""
+        return self._cost_port
+
+    def DoCalcTimeDerivatives(self, context, derivatives) -> None:
+        x = self._x_port.Eval(context)
+        u = self._u_port.Eval(context)
+        rate = state_cost(x, self._Q) + input_cost(u, self._r, self.input_bound)
+        derivatives.SetFromVector(np.atleast_1d(rate))

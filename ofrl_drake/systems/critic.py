@@ -1,0 +1,63 @@
+"""The critic-weight block, update law (W_c)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+__all__ = ["CriticWeights"]
+
+
+class CriticWeights(LeafSystem):
+    """Critic weights W with ``W' = -k_c Gamma critic_sum``.
+
+    ``critic_sum = (1/N) sum_i omega_i delta_i / rho_i`` comes from the
+    Bellman-extrapolation block, so this is (W_c) exactly.
+
+    .. pydrake_system::
+
+        name: CriticWeights
+        input_ports:
+        - critic_sum
+        - gamma
+        output_ports:
+        - weights
+
+    Parameters
+    ----------
+    initial_weights : array_like, shape (L,)
+        W(0); also fixes L.
+    kc : float
+        Adaptation gain k_c > 0.
+    """
+
+    def __init__(self, initial_weights: Sequence[float], kc: float) -> None:
+        super().__init__()
+        self.initial_weights = initial_weights
+        self.kc = kc
+        W0 = np.asarray(initial_weights, dtype=float)
+        size = W0.size
+        self._size = size
+        self._state_index = self.DeclareContinuousState(BasicVector(W0))
+        self._critic_sum_port = self.DeclareVectorInputPort("critic_sum", size)
+        self._gamma_port = self.DeclareVectorInputPort("gamma", size * size)
+        self._weights_port = self.DeclareStateOutputPort("weights", self._state_index)
+
+    def get_critic_sum_input_port(self):
+        """``(1/N) sum omega delta / rho`` (size L)."""
+        return self._critic_sum_port
+
+    def get_gamma_input_port(self):
+        """Gamma, flattened row-major (size L*L)."""
+        return self._gamma_port
+
+    def get_weights_output_port(self):
+        """The weights W (size L)."""
+        return self._weights_port
+
+    def DoCalcTimeDerivatives(self, context, derivatives) -> None:
+        Gamma = self._gamma_port.Eval(context).reshape(self._size, self._size)
+        s = self._critic_sum_port.Eval(context)
+        derivatives.SetFromVector(-self.kc * (Gamma @ s))

@@ -1,0 +1,61 @@
+"""The least-squares gain block, update law (gamma)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+__all__ = ["GammaGain"]
+
+
+class GammaGain(LeafSystem):
+    """Least-squares gain with forgetting: ``Gamma' = beta Gamma - k_c Gamma S Gamma``.
+
+    ``S = gain_sum = (1/N) sum omega_i omega_i^T / rho_i^2``. Gamma is stored
+    flattened row-major; its symmetric part is used and the derivative is
+    symmetrized, so Gamma stays symmetric to round-off.
+
+    .. pydrake_system::
+
+        name: GammaGain
+        input_ports:
+        - gain_sum
+        output_ports:
+        - gamma
+
+    Parameters
+    ----------
+    initial_gamma : array_like, shape (L, L)
+        Gamma(0), symmetric positive definite.
+    kc : float
+        Adaptation gain k_c.
+    beta : float
+        Forgetting factor beta. ``beta = 0`` and ``kc = 0`` give a constant gain.
+    """
+
+    def __init__(self, initial_gamma: np.ndarray, kc: float, beta: float) -> None:
+        super().__init__()
+        self.initial_gamma = initial_gamma
+        self.kc = kc
+        self.beta = beta
+        G0 = np.asarray(initial_gamma, dtype=float)
+        self._size = G0.shape[0]
+        self._state_index = self.DeclareContinuousState(BasicVector(G0.ravel()))
+        self._gain_sum_port = self.DeclareVectorInputPort("gain_sum", G0.size)
+        self._gamma_port = self.DeclareStateOutputPort("gamma", self._state_index)
+
+    def get_gain_sum_input_port(self):
+        """``(1/N) sum omega omega^T / rho^2``, flattened (size L*L)."""
+        return self._gain_sum_port
+
+    def get_gamma_output_port(self):
+        """Gamma, flattened row-major (size L*L)."""
+        return self._gamma_port
+
+    def DoCalcTimeDerivatives(self, context, derivatives) -> None:
+        n = self._size
+        G = context.get_continuous_state_vector().CopyToVector().reshape(n, n)
+        G = 0.5 * (G + G.T)
+        S = self._gain_sum_port.Eval(context).reshape(n, n)
+        dG = self.beta * G - self.kc * (G @ S @ G)
+        derivatives.SetFromVector((0.5 * (dG + dG.T)).ravel())

@@ -1,0 +1,74 @@
+"""The plant block ``x' = f(x) + g(x) u``, ``y = C x``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ofrl_drake.model import ControlAffineSystem
+
+__all__ = ["ControlAffinePlant"]
+
+
+class ControlAffinePlant(LeafSystem):
+    """A :class:`~ofrl_drake.model.ControlAffineSystem` as a Drake block.
+
+    .. pydrake_system::
+
+        name: ControlAffinePlant
+        input_ports:
+        - u
+        output_ports:
+        - y
+        - state
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The model; its ``f`` and ``g`` are evaluated in double precision.
+    initial_state : array_like, shape (n,), optional
+        Default value of the continuous state x (zeros if omitted).
+
+    Notes
+    -----
+    ``y`` depends on the state only (no direct feedthrough), so a controller
+    that reads ``y`` closes no algebraic loop.
+    """
+
+    def __init__(
+        self, system: ControlAffineSystem, initial_state: Sequence[float] | None = None
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.initial_state = initial_state
+        x0 = np.zeros(system.n) if initial_state is None else np.asarray(initial_state, float)
+        self._C = system.output_matrix
+        self._state_index = self.DeclareContinuousState(BasicVector(x0))
+        self._u_port = self.DeclareVectorInputPort("u", system.m)
+        self._state_port = self.DeclareStateOutputPort("state", self._state_index)
+        self._y_port = self.DeclareVectorOutputPort(
+            "y", system.q, self._calc_y, prerequisites_of_calc={self.xc_ticket()}
+        )
+
+    def get_u_input_port(self):
+        """The input ``u`` (size m)."""
+        return self._u_port
+
+    def get_y_output_port(self):
+        """The measured output ``y = C x`` (size q)."""
+        return self._y_port
+
+    def get_state_output_port(self):
+        """The true state ``x`` (size n)."""
+        return self._state_port
+
+    def _calc_y(self, context, output) -> None:
+        x = context.get_continuous_state_vector().CopyToVector()
+        output.SetFromVector(self._C @ x)
+
+    def DoCalcTimeDerivatives(self, context, derivatives) -> None:
+        x = context.get_continuous_state_vector().CopyToVector()
+        u = self._u_port.Eval(context)
+        derivatives.SetFromVector(self.system.dynamics(x, u))
