@@ -94,9 +94,7 @@ class PolynomialBasis:
         names = list(names) if names is not None else [f"x{j + 1}" for j in range(self.n)]
         out = []
         for row in self.exponents:
-            parts = [
-                names[j] if p == 1 else f"{names[j]}^{p}" for j, p in enumerate(row) if p
-            ]
+            parts = [names[j] if p == 1 else f"{names[j]}^{p}" for j, p in enumerate(row) if p]
             out.append(" ".join(parts))
         return out
 

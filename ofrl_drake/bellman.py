@@ -34,11 +34,11 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.policy import policy_argument
 
 __all__ = [
-    "PointFeatures",
     "BellmanExtrapolation",
-    "point_features",
+    "PointFeatures",
     "extrapolate",
     "learning_condition",
+    "point_features",
 ]
 
 
@@ -107,9 +107,7 @@ def point_features(
     """Precompute everything at ``points`` (shape ``(n, N)``) that does not depend on W."""
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[0] != system.n:
-        raise ValueError(
-            f"points must have shape (n, N) = ({system.n}, N); got {points.shape}."
-        )
+        raise ValueError(f"points must have shape (n, N) = ({system.n}, N); got {points.shape}.")
     grad = basis.gradient(points)  # (L, n, N)
     f = system.f_batch(points)  # (n, N)
     g = system.g_batch(points)  # (n, m, N)

@@ -153,7 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted; no output written", file=sys.stderr)
         return 130
-    except Exception as err:  # noqa: BLE001 - one line, no traceback, by design
+    except Exception as err:
         msg = " ".join(str(err).split())
         print(f"internal error: {type(err).__name__}: {msg}", file=sys.stderr)
         return EXIT_INTERNAL

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["state_cost", "log_cosh", "input_cost_from_D", "input_cost", "stage_cost"]
+__all__ = ["input_cost", "input_cost_from_D", "log_cosh", "stage_cost", "state_cost"]
 
 _LOG2 = float(np.log(2.0))
 
@@ -28,7 +28,12 @@ def state_cost(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
 def log_cosh(D: np.ndarray) -> np.ndarray:
     """``ln cosh D``, exact and finite for every real ``D``."""
     a = np.abs(D)
-    return a + np.log1p(np.exp(-2.0 * a)) - _LOG2
+    # Near zero, ln cosh a = log1p(2 sinh^2(a/2)) avoids cancellation; far from
+    # zero, a + log1p(exp(-2a)) - ln 2 avoids overflow of cosh.
+    with np.errstate(over="ignore"):
+        small = np.log1p(2.0 * np.sinh(np.minimum(a, 1.0) / 2.0) ** 2)
+    large = a + np.log1p(np.exp(-2.0 * a)) - _LOG2
+    return np.where(a < 1.0, small, large)
 
 
 def input_cost_from_D(D: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder, System
@@ -33,7 +33,7 @@ from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.points import grid_points, uniform_points
-from ofrl_drake.scenario import Scenario, validate_scenario
+from ofrl_drake.scenario import Scenario, validate_scenario, variant_choices
 from ofrl_drake.systems import (
     BellmanExtrapolator,
     ControlAffinePlant,
@@ -45,9 +45,9 @@ from ofrl_drake.systems import (
 )
 
 __all__ = [
-    "SLOTS",
-    "SIGNALS",
     "LOGGED",
+    "SIGNALS",
+    "SLOTS",
     "ClosedLoop",
     "ClosedLoopParts",
     "build_closed_loop",
@@ -118,7 +118,7 @@ class ClosedLoop:
         return self.parts.design
 
 
-Swap = Union[System, Callable[[ClosedLoopParts], System]]
+Swap = System | Callable[[ClosedLoopParts], System]
 
 
 def extrapolation_points(scenario: Scenario) -> np.ndarray:
@@ -202,7 +202,8 @@ def build_closed_loop(
     **swaps : System or callable
         Replace a slot (one of :data:`SLOTS`) with another block that has the
         same port names, or with a factory ``f(parts) -> System`` called with
-        the :class:`ClosedLoopParts`.
+        the :class:`ClosedLoopParts`. Swaps apply on top of the scenario's
+        ``variant`` choices (:mod:`ofrl_drake.variants`).
 
     Returns
     -------
@@ -229,9 +230,13 @@ def build_closed_loop(
     Q = np.asarray(scenario.cost.Q, dtype=float)
     r = np.asarray(scenario.cost.R, dtype=float)
     features = point_features(system, basis, extrapolation_points(scenario), Q)
-    if design is None and "observer" not in swaps:
+    choices = variant_choices(scenario)
+    if design is None and "observer" not in swaps and choices["observer"] == "three_gain":
         design = design_for(scenario, system)
     parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r)
+    from ofrl_drake.variants import variant_blocks
+
+    swaps = {**variant_blocks(choices, parts), **swaps}
 
     builder = DiagramBuilder()
     blocks: dict[str, System] = {}

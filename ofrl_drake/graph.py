@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pydrake.systems.framework import Diagram
 
-__all__ = ["diagram_dot", "diagram_svg", "render_diagram", "dot_available"]
+__all__ = ["diagram_dot", "diagram_svg", "dot_available", "render_diagram"]
 
 
 def diagram_dot(diagram: Diagram, max_depth: int = 1) -> str:

@@ -116,7 +116,7 @@ class ControlAffineSystem:
     def _call(self, name: str, fn: ArrayFunction, x: np.ndarray) -> np.ndarray:
         try:
             value = np.asarray(fn(x), dtype=float)
-        except Exception as err:  # noqa: BLE001 - re-raised with context
+        except Exception as err:
             raise ValueError(
                 f"{name}(x) failed at the probe point x = {x.tolist()}: {err}"
             ) from err
@@ -135,7 +135,7 @@ class ControlAffineSystem:
             ok = fX.shape == (self.n, 2) and gX.shape == (self.n, self.m, 2)
             ok = ok and np.allclose(fX[:, 0], self._call("f", self.f, X[:, 0]))
             ok = ok and np.allclose(gX[..., 1], self._call("g", self.g, X[:, 1]))
-        except Exception:  # noqa: BLE001 - any failure means "not vectorized"
+        except Exception:
             ok = False
         if not ok:
             warnings.warn(
@@ -161,9 +161,7 @@ class ControlAffineSystem:
     def g_batch(self, X: np.ndarray) -> np.ndarray:
         """Input matrix at each column of ``X``: shape ``(n, m, N)``."""
         if self.vectorized:
-            return np.asarray(self.g(X), dtype=float).reshape(
-                self.n, self.m, X.shape[1]
-            )
+            return np.asarray(self.g(X), dtype=float).reshape(self.n, self.m, X.shape[1])
         return np.stack([np.asarray(self.g(x), float) for x in X.T], axis=-1)
 
     def dynamics(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:

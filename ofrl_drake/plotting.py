@@ -14,14 +14,14 @@ import numpy as np
 from matplotlib.figure import Figure
 
 __all__ = [
-    "plot_state",
+    "plot_comparison",
+    "plot_cost",
     "plot_estimation_error",
-    "plot_weights",
+    "plot_gain_schedule",
     "plot_input",
     "plot_learning_condition",
-    "plot_cost",
-    "plot_comparison",
-    "plot_gain_schedule",
+    "plot_state",
+    "plot_weights",
     "save_figures",
 ]
 

@@ -39,7 +39,7 @@ def grid_points(
         raise ValueError(
             f"points.counts must hold {lo.size} positive integers; got {list(counts)}."
         )
-    axes = [np.linspace(a, b, c) for a, b, c in zip(lo, hi, counts)]
+    axes = [np.linspace(a, b, c) for a, b, c in zip(lo, hi, counts, strict=True)]
     mesh = np.meshgrid(*axes, indexing="ij")
     return np.stack([m.ravel() for m in mesh], axis=0)
 

@@ -34,8 +34,10 @@ __all__ = [
     "PointsConfig",
     "Scenario",
     "SimulationConfig",
+    "VariantConfig",
     "load_scenario",
     "validate_scenario",
+    "variant_choices",
 ]
 
 _OPTIONAL = {"optional": True}
@@ -123,8 +125,21 @@ class SimulationConfig:
 
 
 @dataclass
+class VariantConfig:
+    """One choice per ablation slot (see :mod:`ofrl_drake.variants`); all optional.
+
+    ``points`` defaults to the scenario's ``points.kind``.
+    """
+
+    observer: str = field(default="three_gain", metadata=_OPTIONAL)
+    controller: str = field(default="learned", metadata=_OPTIONAL)
+    points: str = field(default="", metadata=_OPTIONAL)
+    gamma: str = field(default="least_squares", metadata=_OPTIONAL)
+
+
+@dataclass
 class Scenario:
-    """One closed-loop experiment. ``name`` is optional."""
+    """One closed-loop experiment. ``name`` and ``variant`` are optional."""
 
     system: str = ""
     x0: list[float] = field(default_factory=list)
@@ -136,6 +151,7 @@ class Scenario:
     observer: ObserverConfig = field(default_factory=ObserverConfig)
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     name: str = field(default="scenario", metadata=_OPTIONAL)
+    variant: VariantConfig = field(default_factory=VariantConfig, metadata=_OPTIONAL)
 
 
 # --------------------------------------------------------------------------
@@ -190,8 +206,7 @@ def _check_mapping(path: str, schema: type, data: Any) -> None:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ScenarioError(
-            f"{prefix}{unknown[0]}: unknown key in {where}; allowed keys are "
-            f"{sorted(fields)}."
+            f"{prefix}{unknown[0]}: unknown key in {where}; allowed keys are {sorted(fields)}."
         )
     for name, f in fields.items():
         if name not in data:
@@ -219,8 +234,7 @@ def _matrix(path: str, value: list[list[float]], shape: tuple[int, int]) -> np.n
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape:
         raise ScenarioError(
-            f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {arr.shape[0]}x"
-            f"{arr.shape[1]}."
+            f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {arr.shape[0]}x{arr.shape[1]}."
         )
     if not np.all(np.isfinite(arr)):
         raise ScenarioError(f"{path}: entries must be finite; got {value}.")
@@ -328,6 +342,15 @@ def validate_scenario(scenario: Scenario) -> None:
     for k in pinned:
         _matrix(f"observer.{k}", getattr(o, k), (n, q))
 
+    from ofrl_drake.variants import VARIANT_FACTORIES
+
+    for slot, choice in variant_choices(scenario).items():
+        if choice not in VARIANT_FACTORIES[slot]:
+            raise ScenarioError(
+                f"variant.{slot}: unknown choice {choice!r}; choose one of "
+                f"{sorted(VARIANT_FACTORIES[slot])}."
+            )
+
     s = scenario.simulation
     _positive("simulation.duration", s.duration)
     _positive("simulation.accuracy", s.accuracy)
@@ -338,6 +361,17 @@ def validate_scenario(scenario: Scenario) -> None:
             f"simulation.integrator: unknown scheme {s.integrator!r}; choose one of "
             f"{sorted(GetIntegrationSchemes())}."
         )
+
+
+def variant_choices(scenario: Scenario) -> dict[str, str]:
+    """The slot choices of ``scenario``, with ``points`` defaulting to ``points.kind``."""
+    v = scenario.variant
+    return {
+        "observer": v.observer,
+        "controller": v.controller,
+        "points": v.points or scenario.points.kind,
+        "gamma": v.gamma,
+    }
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -362,15 +396,13 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f"{path}: no such scenario file.")
     try:
         raw = yaml_load(filename=str(path))
-    except Exception as err:  # noqa: BLE001 - YAML syntax errors vary by parser
+    except Exception as err:
         raise ScenarioError(f"{path}: not valid YAML: {err}".replace("\n", " ")) from None
     try:
         _check_mapping("", Scenario, raw)
     except ScenarioError as err:
         raise ScenarioError(f"{path}: {err}") from None
-    scenario = yaml_load_typed(
-        schema=Scenario, filename=str(path), allow_schema_with_no_yaml=True
-    )
+    scenario = yaml_load_typed(schema=Scenario, filename=str(path), allow_schema_with_no_yaml=True)
     try:
         validate_scenario(scenario)
     except ScenarioError as err:

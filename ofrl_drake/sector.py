@@ -18,12 +18,10 @@ import itertools
 
 import numpy as np
 
-__all__ = ["input_sector", "paper_input_sector", "input_vertices"]
+__all__ = ["input_sector", "input_vertices", "paper_input_sector"]
 
 
-def input_sector(
-    Mg1: np.ndarray, Mg2: np.ndarray, u: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def input_sector(Mg1: np.ndarray, Mg2: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(M_ug1(u), M_ug2(u))``, each of shape ``(n, n)``.
 
     Parameters

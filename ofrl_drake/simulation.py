@@ -13,11 +13,11 @@ from typing import Any
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
 
-from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
+from ofrl_drake.diagram import ClosedLoop, build_closed_loop
 from ofrl_drake.scenario import Scenario
 from ofrl_drake.validity import ValidityReport, validity_report
 
-__all__ = ["SimulationResult", "simulate", "simulator_config", "TRAJECTORY_KEYS"]
+__all__ = ["TRAJECTORY_KEYS", "SimulationResult", "simulate", "simulator_config"]
 
 #: Keys of ``trajectories.npz``, in order.
 TRAJECTORY_KEYS = ("t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost")
@@ -129,7 +129,7 @@ def simulator_config(scenario: Scenario) -> SimulatorConfig:
 
 def _progress(fraction: float, start: float) -> None:
     width = 30
-    done = int(round(width * fraction))
+    done = round(width * fraction)
     elapsed = time.perf_counter() - start
     sys.stderr.write(
         f"\r[{'#' * done}{'.' * (width - done)}] {100 * fraction:5.1f}%  {elapsed:6.1f} s"

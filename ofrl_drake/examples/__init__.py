@@ -14,7 +14,7 @@ from ofrl_drake.examples.coupled_two_state import coupled_two_state
 from ofrl_drake.examples.two_state import two_state
 from ofrl_drake.model import ControlAffineSystem
 
-__all__ = ["EXAMPLES", "make_system", "register", "two_state", "coupled_two_state"]
+__all__ = ["EXAMPLES", "coupled_two_state", "make_system", "register", "two_state"]
 
 EXAMPLES: dict[str, Callable[[], ControlAffineSystem]] = {
     "two_state": two_state,

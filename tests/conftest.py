@@ -1,0 +1,41 @@
+"""Shared fixtures. Figures render off-screen."""
+
+import os
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER_SCENARIO = ROOT / "diagrams" / "two_state_paper.yaml"
+MIMO_SCENARIO = ROOT / "diagrams" / "coupled_two_state.yaml"
+
+
+@pytest.fixture(scope="session")
+def paper_scenario():
+    from ofrl_drake import load_scenario
+
+    return load_scenario(PAPER_SCENARIO)
+
+
+@pytest.fixture(scope="session")
+def mimo_scenario():
+    from ofrl_drake import load_scenario
+
+    return load_scenario(MIMO_SCENARIO)
+
+
+@pytest.fixture(scope="session")
+def paper_design(paper_scenario):
+    from ofrl_drake.diagram import design_for
+
+    return design_for(paper_scenario)
+
+
+@pytest.fixture(scope="session")
+def paper_result(paper_scenario, paper_design):
+    from ofrl_drake import simulate
+
+    return simulate(paper_scenario, design=paper_design, progress=False)

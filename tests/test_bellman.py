@@ -1,0 +1,124 @@
+"""Bellman extrapolation: vectorized math against a per-point reference."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ofrl_drake import PolynomialBasis
+from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.examples import make_system
+from ofrl_drake.points import grid_points, uniform_points
+from ofrl_drake.policy import saturated_policy
+
+LBAR, NU = 3.0, 0.7
+
+
+def _reference(system, basis, X, W, Q, r):
+    """Per-point loop, written straight from (BE1_i), (u_app), (W_c), (gamma)."""
+    N = X.shape[1]
+    s1 = np.zeros(basis.size)
+    S2 = np.zeros((basis.size, basis.size))
+    deltas = []
+    for i in range(N):
+        x = X[:, i]
+        grad = basis.gradient(x)
+        g = system.g(x)
+        D = (1 / (2 * LBAR)) * np.diag(1 / r) @ g.T @ grad.T @ W
+        u = -LBAR * np.tanh(D)
+        omega = grad @ (system.f(x) + g @ u)
+        U = np.sum(
+            2 * r * LBAR * (u * np.arctanh(u / LBAR) + LBAR / 2 * np.log(1 - u**2 / LBAR**2))
+        )
+        delta = W @ omega + x @ Q @ x + U
+        rho = 1 + NU * omega @ omega
+        s1 += omega * delta / rho / N
+        S2 += np.outer(omega, omega) / rho**2 / N
+        deltas.append(delta)
+    return s1, S2, np.array(deltas)
+
+
+@pytest.mark.parametrize(
+    ("name", "W"),
+    [("two_state", [0.4, 0.2, 0.8]), ("two_state", [-1.0, 3.0, 0.1]), ("coupled_two_state", None)],
+)
+def test_vectorized_matches_per_point_reference(name, W):
+    system = make_system(name)
+    basis = PolynomialBasis(system.n)
+    X = uniform_points(-np.ones(system.n), np.ones(system.n), 40, seed=3)
+    W = np.linspace(0.1, 0.9, basis.size) if W is None else np.asarray(W)
+    Q, r = 5 * np.eye(system.n), np.linspace(1.0, 2.0, system.m)
+    out = extrapolate(point_features(system, basis, X, Q), W, r, LBAR, NU)
+    s1, S2, deltas = _reference(system, basis, X, W, Q, r)
+    np.testing.assert_allclose(out.delta, deltas, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(out.critic_sum, s1, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(out.gain_sum, S2, rtol=1e-10, atol=1e-14)
+    assert out.learning_condition == pytest.approx(np.linalg.eigvalsh(S2)[0], rel=1e-9)
+    assert out.omega.shape == (basis.size, 40) and out.u.shape == (system.m, 40)
+
+
+def test_delta_gradient_in_W_is_omega():
+    """dU/du cancels the policy term, so d(delta_i)/dW = omega_i exactly (NOTES.md)."""
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    F = point_features(system, basis, grid_points([-1, -1], [1, 1], [5, 5]), 5 * np.eye(2))
+    W, r, h = np.array([0.4, 0.2, 0.8]), np.array([1.0]), 1e-6
+    base = extrapolate(F, W, r, LBAR, NU)
+    for k in range(3):
+        dW = np.zeros(3)
+        dW[k] = h
+        fd = (
+            extrapolate(F, W + dW, r, LBAR, NU).delta - extrapolate(F, W - dW, r, LBAR, NU).delta
+        ) / (2 * h)
+        np.testing.assert_allclose(fd, base.omega[k], rtol=1e-6, atol=1e-7)
+
+
+def test_policy_matches_extrapolation_at_a_point():
+    system = make_system("coupled_two_state")
+    basis = PolynomialBasis(4)
+    x = np.array([0.3, -0.2, 0.5, 0.1])
+    W, r = np.linspace(-1, 1, basis.size), np.array([1.0, 2.0])
+    u = saturated_policy(basis.gradient(x), system.g(x), W, r, LBAR)
+    out = extrapolate(point_features(system, basis, x[:, None], np.eye(4)), W, r, LBAR, NU)
+    np.testing.assert_allclose(u, out.u[:, 0], rtol=1e-13)
+
+
+@settings(max_examples=40, deadline=None)
+@given(scale=st.floats(1e-3, 1e6), seed=st.integers(0, 1000))
+def test_sums_stay_finite_for_huge_weights(scale, seed):
+    """|D| up to about 1e4 and beyond: U and both sums stay finite."""
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    F = point_features(system, basis, grid_points([-1, -1], [1, 1], [10, 10]), 5 * np.eye(2))
+    W = scale * np.random.default_rng(seed).normal(size=3)
+    out = extrapolate(F, W, np.array([1.0]), LBAR, NU)
+    assert np.all(np.isfinite(out.critic_sum)) and np.all(np.isfinite(out.gain_sum))
+    assert np.all(np.abs(out.u) <= LBAR)
+
+
+def test_large_D_reaches_1e4():
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    F = point_features(system, basis, grid_points([-1, -1], [1, 1], [10, 10]), 5 * np.eye(2))
+    out = extrapolate(F, np.array([0.0, 0.0, 1e4]), np.array([1.0]), LBAR, NU)
+    assert np.max(np.abs(out.D)) >= 1e3
+    assert np.all(np.isfinite(out.delta))
+
+
+def test_learning_condition_is_min_eigenvalue():
+    S = np.array([[2.0, 0.5], [0.5, 1.0]])
+    assert learning_condition(S) == pytest.approx(np.min(np.linalg.eigvalsh(S)), rel=1e-15)
+
+
+def test_paper_grid_is_10_by_10_on_unit_square():
+    X = grid_points([-1, -1], [1, 1], [10, 10])
+    assert X.shape == (2, 100)
+    np.testing.assert_allclose(np.unique(X[0]), np.linspace(-1, 1, 10), rtol=1e-15)
+
+
+def test_points_must_match_system_dimension():
+    system = make_system("two_state")
+    with pytest.raises(
+        ValueError, match=r"points must have shape \(n, N\) = \(2, N\); got \(3, 4\)"
+    ):
+        point_features(system, PolynomialBasis(2), np.zeros((3, 4)), np.eye(2))

@@ -1,0 +1,83 @@
+"""The ofrl-drake command line: outputs, exit codes, and no partial files."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_dump, yaml_load
+
+from .conftest import PAPER_SCENARIO
+
+
+def _cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=900,
+    )
+
+
+def _short_scenario(tmp_path, duration=2.0, **edits):
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["simulation"]["duration"] = duration
+    for key, value in edits.items():
+        data[key] = value
+    path = tmp_path / "scenario.yaml"
+    path.write_text(yaml_dump(data))
+    return path
+
+
+def test_run_writes_every_output(tmp_path):
+    out = tmp_path / "out"
+    proc = _cli("run", _short_scenario(tmp_path), "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    data = np.load(out / "trajectories.npz")
+    assert set(data.files) == {"t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["final_time"] == pytest.approx(2.0)
+    figures = {p.name for p in (out / "figures").iterdir()}
+    for name in (
+        "state_1.png",
+        "state_2.png",
+        "estimation_error.png",
+        "critic_weights.png",
+        "control_input.png",
+        "learning_condition.png",
+    ):
+        assert name in figures
+    from matplotlib.image import imread
+
+    height = imread(out / "figures" / "state_1.png").shape[0]
+    assert height >= 3.4 * 150  # figure height in inches times at least 150 dpi
+    if shutil.which("dot"):
+        assert (out / "diagram.svg").read_text().lstrip().startswith(("<?xml", "<svg"))
+    else:
+        assert (out / "diagram.dot").is_file()
+        assert "diagram.dot" in proc.stdout
+    design = json.loads((out / "observer_design.json").read_text())
+    assert {"P", "L", "H", "K", "certificate"} <= set(design)
+    assert not list(tmp_path.glob(".out.*"))  # no temporary folder left behind
+
+
+def test_bad_scenario_exits_2_with_one_line_and_no_output(tmp_path):
+    out = tmp_path / "out"
+    proc = _cli("run", _short_scenario(tmp_path, input_bound=-3.0), "--out", out)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "input_bound: must be > 0; got -3.0" in lines[0]
+    assert "Traceback" not in proc.stderr
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == [tmp_path / "scenario.yaml"]
+
+
+def test_missing_scenario_exits_2(tmp_path):
+    proc = _cli("run", tmp_path / "nope.yaml", "--out", tmp_path / "out")
+    assert proc.returncode == 2
+    assert "no such scenario file" in proc.stderr
+    assert not (tmp_path / "out").exists()

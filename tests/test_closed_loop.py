@@ -1,0 +1,174 @@
+"""The closed loop on the paper's scenario and the MIMO example."""
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from ofrl_drake import SimulationResult, SwapError, build_closed_loop, simulate
+from ofrl_drake.diagram import LOGGED
+from ofrl_drake.systems import CriticWeights
+
+
+def _critic_gamma_reference(scenario, t_eval):
+    """W and Gamma from (W_c) and (gamma), integrated by scipy, written from the paper.
+
+    The learning laws sum over the extrapolation points only, so W and Gamma do
+    not depend on the plant or the observer (NOTES.md).
+    """
+    lbar, kc, nu, beta = (
+        scenario.input_bound,
+        scenario.critic.kc,
+        scenario.critic.nu,
+        scenario.critic.beta,
+    )
+    g1 = np.linspace(-1, 1, 10)
+    X1, X2 = (a.ravel() for a in np.meshgrid(g1, g1, indexing="ij"))
+    N = X1.size
+    c = np.cos(2 * X1) + 2
+    f1, f2 = -X1 + X2, -X1 - 0.5 * X2 * (1 - c**2)
+    # grad sigma for sigma = [x1^2, x1 x2, x2^2]: rows are d sigma_l / d(x1, x2).
+    dsig_dx1 = np.array([2 * X1, X2, 0 * X1])
+    dsig_dx2 = np.array([0 * X1, X1, 2 * X2])
+    Qx = 5 * (X1**2 + X2**2)
+
+    def rhs(_, z):
+        W, G = z[:3], z[3:].reshape(3, 3)
+        gradV2 = W @ dsig_dx2  # dV/dx2 at each point; g has only a second row
+        D = c * gradV2 / (2 * lbar)
+        u = -lbar * np.tanh(D)
+        omega = dsig_dx1 * f1 + dsig_dx2 * (f2 + c * u)
+        U = 2 * lbar * (u * np.arctanh(u / lbar) + lbar / 2 * np.log(1 - u**2 / lbar**2))
+        delta = W @ omega + Qx + U
+        rho = 1 + nu * np.sum(omega**2, axis=0)
+        dW = -(kc / N) * G @ (omega @ (delta / rho))
+        dG = beta * G - (kc / N) * G @ ((omega / rho**2) @ omega.T) @ G
+        return np.concatenate([dW, dG.ravel()])
+
+    z0 = np.concatenate([scenario.critic.W0, np.ravel(scenario.critic.Gamma0)])
+    sol = solve_ivp(
+        rhs, (0, t_eval[-1]), z0, method="DOP853", rtol=1e-12, atol=1e-12, t_eval=t_eval
+    )
+    assert sol.success
+    return sol.y[:3].T, sol.y[3:].T.reshape(-1, 3, 3)
+
+
+def test_paper_scenario_converges(paper_result):
+    r = paper_result
+    assert r.t[-1] == pytest.approx(30.0, abs=1e-9)
+    assert np.linalg.norm(r.x[-1]) < 1e-3
+    assert np.linalg.norm(r.x[-1] - r.xhat[-1]) < 1e-3
+    assert np.all(np.abs(r.u) <= 3.0)
+
+
+def test_paper_weights_match_independent_scipy_integration(paper_scenario, paper_result):
+    times = np.array([1.0, 5.0, 10.0, 30.0])
+    W_ref, Gamma_ref = _critic_gamma_reference(paper_scenario, times)
+    for k, t in enumerate(times):
+        np.testing.assert_allclose(paper_result.at("W", t), W_ref[k], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(paper_result.at("Gamma", t), Gamma_ref[k], rtol=1e-5, atol=1e-4)
+
+
+def test_paper_learning_condition_and_cost(paper_result):
+    r = paper_result
+    assert np.min(r.learning_condition) > 0.0
+    assert np.all(np.diff(r.cost) >= -1e-12)  # J is an integral of a nonnegative rate
+    assert r.cost[0] == pytest.approx(0.0, abs=1e-12)
+    G = r.Gamma[-1]
+    np.testing.assert_allclose(G, G.T, rtol=0, atol=1e-10)
+    assert np.all(np.linalg.eigvalsh(G) > 0)
+
+
+def test_result_shapes_and_summary(paper_result, tmp_path):
+    r = paper_result
+    T = r.t.size
+    assert r.x.shape == r.xhat.shape == (T, 2)
+    assert r.W.shape == (T, 3) and r.Gamma.shape == (T, 3, 3)
+    assert r.u.shape == (T, 1) and r.learning_condition.shape == r.cost.shape == (T,)
+    r.save(tmp_path)
+    data = np.load(tmp_path / "trajectories.npz")
+    assert set(data.files) == {"t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost"}
+    import json
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    for key in (
+        "final_state",
+        "final_estimation_error",
+        "final_weights",
+        "final_gamma_eigenvalues",
+        "min_learning_condition",
+        "final_cost",
+        "wall_time",
+        "integrator",
+        "validity",
+    ):
+        assert key in summary, key
+    assert summary["integrator"]["num_derivative_evaluations"] > 0
+    assert summary["final_cost"] == pytest.approx(r.cost[-1])
+
+
+def test_mimo_scenario_runs_with_right_shapes(mimo_scenario):
+    import dataclasses
+
+    short = dataclasses.replace(
+        mimo_scenario, simulation=dataclasses.replace(mimo_scenario.simulation, duration=3.0)
+    )
+    r = simulate(short, progress=False)
+    assert isinstance(r, SimulationResult)
+    T = r.t.size
+    assert (
+        r.x.shape == (T, 4)
+        and r.u.shape == (T, 2)
+        and r.W.shape == (T, 10)
+        and r.Gamma.shape == (T, 10, 10)
+    )
+    assert np.all(np.isfinite(r.x)) and np.all(np.abs(r.u) <= 3.0 + 1e-12)
+    assert np.linalg.norm(r.e[-1]) < np.linalg.norm(r.e[0])
+
+
+def test_build_returns_named_handles(paper_scenario, paper_design):
+    loop = build_closed_loop(paper_scenario, design=paper_design)
+    for slot in ("plant", "observer", "controller", "critic", "gamma", "bellman", "running_cost"):
+        assert getattr(loop, slot).get_name() == slot
+    assert set(loop.loggers) == set(LOGGED)
+    assert "observer" in loop.diagram.GetGraphvizString()
+
+
+def test_swap_frozen_critic(paper_scenario, paper_design):
+    import dataclasses
+
+    short = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, duration=2.0)
+    )
+    frozen = CriticWeights(paper_scenario.critic.W0, kc=0.0)
+    r = simulate(short, design=paper_design, critic=frozen, progress=False)
+    np.testing.assert_allclose(
+        r.W, np.tile(paper_scenario.critic.W0, (r.t.size, 1)), rtol=0, atol=0
+    )
+
+
+def test_swap_with_a_factory(paper_scenario, paper_design):
+    loop = build_closed_loop(
+        paper_scenario,
+        design=paper_design,
+        critic=lambda parts: CriticWeights(np.zeros(parts.basis.size), 0.01),
+    )
+    context = loop.diagram.CreateDefaultContext()
+    np.testing.assert_array_equal(
+        loop.critic.get_weights_output_port().Eval(loop.critic.GetMyContextFromRoot(context)),
+        np.zeros(3),
+    )
+
+
+def test_bad_swaps_raise(paper_scenario, paper_design):
+    with pytest.raises(SwapError, match=r"nonsense: unknown slot"):
+        build_closed_loop(paper_scenario, design=paper_design, nonsense=CriticWeights([0.0], 0.1))
+    with pytest.raises(
+        SwapError,
+        match=r"critic: input port 'critic_sum' has size 2, but bellman's output "
+        r"'critic_sum' has size 3",
+    ):
+        build_closed_loop(
+            paper_scenario, design=paper_design, critic=CriticWeights([0.0, 0.0], 0.1)
+        )
+    with pytest.raises(SwapError, match=r"must be a Drake System or a factory"):
+        build_closed_loop(paper_scenario, design=paper_design, critic=42)

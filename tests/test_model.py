@@ -1,0 +1,116 @@
+"""ControlAffineSystem: dimensions, shape errors and scalar types."""
+
+import numpy as np
+import pytest
+from pydrake.autodiffutils import ExtractGradient, InitializeAutoDiff
+from pydrake.symbolic import Expression, MakeVectorVariable
+
+from ofrl_drake import ControlAffineSystem
+from ofrl_drake.errors import ScenarioError
+from ofrl_drake.examples import EXAMPLES, make_system
+
+
+def _f(x):
+    return np.array([x[1], -x[0]])
+
+
+def _g(x):
+    return np.array([[0 * x[0]], [1 + 0 * x[0]]])
+
+
+@pytest.mark.parametrize(
+    ("name", "dims"), [("two_state", (2, 1, 1)), ("coupled_two_state", (4, 2, 2))]
+)
+def test_example_dimensions(name, dims):
+    system = make_system(name)
+    assert (system.n, system.m, system.q) == dims
+    assert system.vectorized
+
+
+def test_two_state_matches_paper_equations():
+    system = make_system("two_state")
+    x = np.array([0.3, -0.7])
+    c = np.cos(2 * x[0]) + 2
+    expected_f = [-x[0] + x[1], -x[0] - 0.5 * x[1] * (1 - c**2)]
+    np.testing.assert_allclose(system.f(x), expected_f, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(system.g(x), [[0.0], [c]], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(system.output_matrix, [[0.0, 1.0]])
+
+
+def test_coupled_example_structure():
+    system = make_system("coupled_two_state")
+    base = make_system("two_state")
+    x = np.array([0.3, -0.7, -0.2, 0.5])
+    fx = system.f(x)
+    a, b = base.f(x[:2]), base.f(x[2:])
+    np.testing.assert_allclose(
+        fx, [a[0] + 0.1 * (x[2] - x[0]), a[1], b[0] + 0.1 * (x[0] - x[2]), b[1]], atol=1e-15
+    )
+    gx = system.g(x)
+    np.testing.assert_allclose(gx[[0, 2]], 0.0, atol=0)
+    np.testing.assert_allclose(gx[1], [np.cos(2 * x[0]) + 2, 0.0], atol=1e-15)
+    np.testing.assert_allclose(gx[3], [0.0, np.cos(2 * x[2]) + 2], atol=1e-15)
+    np.testing.assert_array_equal(system.output_matrix, [[0, 1, 0, 0], [0, 0, 0, 1]])
+
+
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_batch_matches_pointwise(name):
+    system = make_system(name)
+    X = np.random.default_rng(0).uniform(-2, 2, size=(system.n, 7))
+    fX, gX = system.f_batch(X), system.g_batch(X)
+    for i in range(X.shape[1]):
+        np.testing.assert_allclose(fX[:, i], system.f(X[:, i]), rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(gX[..., i], system.g(X[:, i]), rtol=1e-14, atol=1e-14)
+
+
+def test_same_function_runs_on_autodiff_and_symbolic():
+    system = make_system("two_state")
+    x = np.array([0.4, -0.3])
+    J = ExtractGradient(system.f(InitializeAutoDiff(x).flatten()))
+    c, s = np.cos(2 * x[0]) + 2, np.sin(2 * x[0])
+    np.testing.assert_allclose(J, [[-1, 1], [-1 - 2 * x[1] * c * s, -0.5 * (1 - c**2)]], atol=1e-14)
+    fs = system.f(MakeVectorVariable(2, "x"))
+    assert all(isinstance(e, Expression) for e in fs)
+
+
+def test_scalar_constants_fall_back_with_warning():
+    with pytest.warns(UserWarning, match="do not accept a batch"):
+        system = ControlAffineSystem(_f, lambda x: np.array([[0.0], [1.0]]), [[1.0, 0.0]])
+    assert not system.vectorized
+    assert system.g_batch(np.zeros((2, 3))).shape == (2, 1, 3)
+
+
+@pytest.mark.parametrize(
+    ("f", "g", "C", "match"),
+    [
+        (
+            lambda x: np.array([x[0], x[1], x[0]]),
+            _g,
+            [[1.0, 0.0]],
+            r"f\(x\) must return shape \(n,\) = \(2,\).*got shape \(3,\)",
+        ),
+        (
+            _f,
+            lambda x: np.array([0 * x[0], 1 + 0 * x[0]]),
+            [[1.0, 0.0]],
+            r"g\(x\) must return shape \(n, m\) = \(2, m\).*got shape \(2,\)",
+        ),
+        (_f, _g, [1.0, 0.0], r"C must be a 2-D array of shape \(q, n\); got shape \(2,\)"),
+        (_f, _g, [[1.0, 0.0, 0.0]], r"f\(x\) must return shape \(n,\) = \(3,\)"),
+        (
+            lambda x: np.array([np.inf * x[0], x[1]]),
+            _g,
+            [[1.0, 0.0]],
+            r"f\(x\) returned non-finite",
+        ),
+        (_f, _g, [[np.nan, 1.0]], r"C must be finite"),
+    ],
+)
+def test_bad_models_raise(f, g, C, match):
+    with pytest.raises(ValueError, match=match):
+        ControlAffineSystem(f, g, C)
+
+
+def test_unknown_example_names_choices():
+    with pytest.raises(ScenarioError, match=r"unknown example 'nope'.*two_state"):
+        make_system("nope")

@@ -1,0 +1,226 @@
+"""Each Drake block: ports, state counts, and derivatives against closed forms."""
+
+import numpy as np
+import pytest
+
+from ofrl_drake import PolynomialBasis
+from ofrl_drake.bellman import point_features
+from ofrl_drake.examples import make_system
+from ofrl_drake.observer import ObserverGains
+from ofrl_drake.points import grid_points
+from ofrl_drake.systems import (
+    BellmanExtrapolator,
+    ControlAffinePlant,
+    CriticWeights,
+    GammaGain,
+    RunningCost,
+    SaturatedController,
+    ThreeGainObserver,
+)
+
+GRID = [np.array([a, b]) for a in (-1.5, -0.2, 0.0, 0.7, 1.9) for b in (-1.0, 0.3, 1.6)]
+
+
+def _ports(system):
+    ins = {
+        system.get_input_port(i).get_name(): system.get_input_port(i).size()
+        for i in range(system.num_input_ports())
+    }
+    outs = {
+        system.get_output_port(i).get_name(): system.get_output_port(i).size()
+        for i in range(system.num_output_ports())
+    }
+    return ins, outs
+
+
+def _gains(system, seed=0):
+    rng = np.random.default_rng(seed)
+    n, m, q = system.n, system.m, system.q
+    Mg1 = -rng.uniform(0, 2, (n, n, m))
+    return ObserverGains.from_arrays(
+        system,
+        L=rng.normal(size=(n, q)),
+        H=rng.normal(size=(n, q)),
+        K=rng.normal(size=(n, q)),
+        Mf1=rng.normal(size=(n, n)),
+        Mg1=Mg1,
+        Mg2=Mg1 + rng.uniform(0, 3, (n, n, m)),
+    )
+
+
+@pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
+def test_block_structure(name):
+    system = make_system(name)
+    n, m, q = system.n, system.m, system.q
+    basis = PolynomialBasis(n)
+    L = basis.size
+    features = point_features(
+        system, basis, grid_points(-np.ones(n), np.ones(n), [3] * n), np.eye(n)
+    )
+    r = np.ones(m)
+    cases = [
+        (ControlAffinePlant(system), ({"u": m}, {"state": n, "y": q}), n),
+        (ThreeGainObserver(system, _gains(system)), ({"y": q, "u": m}, {"estimated_state": n}), n),
+        (CriticWeights(np.zeros(L), 0.01), ({"critic_sum": L, "gamma": L * L}, {"weights": L}), L),
+        (GammaGain(np.eye(L), 0.01, 0.2), ({"gain_sum": L * L}, {"gamma": L * L}), L * L),
+        (
+            SaturatedController(system, basis, r, 3.0),
+            ({"estimated_state": n, "weights": L}, {"u": m}),
+            0,
+        ),
+        (
+            BellmanExtrapolator(features, r, 3.0, 0.7),
+            ({"weights": L}, {"critic_sum": L, "gain_sum": L * L, "learning_condition": 1}),
+            0,
+        ),
+        (RunningCost(np.eye(n), r, 3.0), ({"state": n, "u": m}, {"cost": 1}), 1),
+    ]
+    for block, (ins, outs), num_states in cases:
+        assert _ports(block) == (ins, outs), type(block).__name__
+        assert block.num_continuous_states() == num_states, type(block).__name__
+
+
+def test_accessors_return_the_named_ports():
+    system = make_system("two_state")
+    plant = ControlAffinePlant(system)
+    assert plant.get_y_output_port().get_name() == "y"
+    assert plant.get_state_output_port().get_name() == "state"
+    assert plant.get_u_input_port().get_name() == "u"
+    obs = ThreeGainObserver(system, _gains(system))
+    assert obs.get_estimated_state_output_port().get_name() == "estimated_state"
+    assert obs.get_y_input_port().get_name() == "y" and obs.get_u_input_port().get_name() == "u"
+
+
+def test_state_outputs_have_no_direct_feedthrough():
+    system = make_system("two_state")
+    for block in (ControlAffinePlant(system), ThreeGainObserver(system, _gains(system))):
+        assert not any(
+            block.HasDirectFeedthrough(i, j)
+            for i in range(block.num_input_ports())
+            for j in range(block.num_output_ports())
+        )
+
+
+def _derivatives(block, state, inputs):
+    context = block.CreateDefaultContext()
+    context.SetContinuousState(state)
+    for name, value in inputs.items():
+        block.GetInputPort(name).FixValue(context, value)
+    return block.EvalTimeDerivatives(context).CopyToVector()
+
+
+@pytest.mark.parametrize("x", GRID)
+def test_plant_derivative_closed_form(x):
+    system = make_system("two_state")
+    u = np.array([0.7])
+    c = np.cos(2 * x[0]) + 2
+    expected = [-x[0] + x[1], -x[0] - 0.5 * x[1] * (1 - c**2) + c * u[0]]
+    np.testing.assert_allclose(
+        _derivatives(ControlAffinePlant(system), x, {"u": u}), expected, rtol=1e-14, atol=1e-14
+    )
+
+
+@pytest.mark.parametrize("xhat", GRID)
+@pytest.mark.parametrize("u", [-2.0, 0.0, 1.5])
+def test_observer_derivative_closed_form(xhat, u):
+    """The paper's form (eq:observerdynamics_x) with the sign-correct sector."""
+    system = make_system("two_state")
+    gains = _gains(system, seed=4)
+    y, uu = np.array([0.4]), np.array([u])
+    C = system.output_matrix
+    ytil = y - C @ xhat
+    Mug1 = np.minimum(gains.Mg1[..., 0] * u, gains.Mg2[..., 0] * u)
+
+    def fbar(z):
+        return system.f(z) - gains.Mf1 @ z
+
+    def gbar(z):
+        return system.g(z) @ uu - Mug1 @ z
+
+    expected = (
+        gains.Mf1 @ xhat
+        + Mug1 @ xhat
+        + fbar(xhat + gains.H @ ytil)
+        + gbar(xhat + gains.K @ ytil)
+        + gains.L @ ytil
+    )
+    got = _derivatives(ThreeGainObserver(system, gains), xhat, {"y": y, "u": uu})
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_critic_and_gamma_derivatives_closed_form(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(3, 3))
+    Gamma = A @ A.T + np.eye(3)
+    S = rng.normal(size=(3, 3))
+    S = S @ S.T
+    s = rng.normal(size=3)
+    W = rng.normal(size=3)
+    kc, beta = 0.01, 0.2
+    dW = _derivatives(CriticWeights(np.zeros(3), kc), W, {"critic_sum": s, "gamma": Gamma.ravel()})
+    np.testing.assert_allclose(dW, -kc * Gamma @ s, rtol=1e-13)
+    dG = _derivatives(GammaGain(np.eye(3), kc, beta), Gamma.ravel(), {"gain_sum": S.ravel()})
+    expected = beta * Gamma - kc * Gamma @ S @ Gamma
+    np.testing.assert_allclose(dG.reshape(3, 3), expected, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(dG.reshape(3, 3), dG.reshape(3, 3).T, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("x", GRID)
+def test_controller_output_closed_form(x):
+    system = make_system("two_state")
+    W = np.array([0.4, 0.2, 0.8])
+    ctrl = SaturatedController(system, PolynomialBasis(2), np.array([2.0]), 3.0)
+    context = ctrl.CreateDefaultContext()
+    ctrl.get_estimated_state_input_port().FixValue(context, x)
+    ctrl.get_weights_input_port().FixValue(context, W)
+    grad_V = np.array([2 * W[0] * x[0] + W[1] * x[1], W[1] * x[0] + 2 * W[2] * x[1]])
+    D = (1 / (2 * 3.0)) * (1 / 2.0) * (np.cos(2 * x[0]) + 2) * grad_V[1]
+    np.testing.assert_allclose(
+        ctrl.get_u_output_port().Eval(context), [-3.0 * np.tanh(D)], rtol=1e-14
+    )
+
+
+@pytest.mark.parametrize("x", GRID[:5])
+def test_running_cost_derivative_closed_form(x):
+    u = np.array([1.2])
+    rate = _derivatives(
+        RunningCost(5 * np.eye(2), np.array([1.0]), 3.0), [0.0], {"state": x, "u": u}
+    )
+    U = 2 * 3.0 * (u[0] * np.arctanh(u[0] / 3) + 1.5 * np.log(1 - u[0] ** 2 / 9))
+    np.testing.assert_allclose(rate, [5 * x @ x + U], rtol=1e-12)
+
+
+def test_bellman_outputs_share_one_cache_entry():
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    features = point_features(system, basis, grid_points([-1, -1], [1, 1], [4, 4]), np.eye(2))
+    block = BellmanExtrapolator(features, np.ones(1), 3.0, 0.7)
+    context = block.CreateDefaultContext()
+    block.get_weights_input_port().FixValue(context, np.array([0.4, 0.2, 0.8]))
+    first = block.extrapolation(context)
+    block.get_critic_sum_output_port().Eval(context)
+    block.get_gain_sum_output_port().Eval(context)
+    assert block.extrapolation(context) is first  # not recomputed
+    np.testing.assert_allclose(
+        block.get_gain_sum_output_port().Eval(context), first.gain_sum.ravel()
+    )
+    assert block.get_learning_condition_output_port().Eval(context)[0] == pytest.approx(
+        np.linalg.eigvalsh(first.gain_sum)[0]
+    )
+    block.get_weights_input_port().FixValue(context, np.array([1.0, 0.0, 1.0]))
+    assert block.extrapolation(context) is not first  # input change invalidates
+
+
+def test_gain_shape_errors_name_the_gain():
+    system = make_system("two_state")
+    with pytest.raises(ValueError, match=r"observer gain L must have shape \(2, 1\); got \(1, 2\)"):
+        ObserverGains.from_arrays(
+            system,
+            np.zeros((1, 2)),
+            np.zeros((2, 1)),
+            np.zeros((2, 1)),
+            np.zeros((2, 2)),
+            np.zeros((2, 2, 1)),
+            np.zeros((2, 2, 1)),
+        )
