@@ -46,6 +46,9 @@ class SimulationResult:
         When x or xhat left the certified box or ``|u_k|`` exceeded lambda_bar.
     design : dict or None
         The observer design as a JSON-ready dict, with its certificate.
+    extra : dict of ndarray
+        Further logs of the loop beyond :data:`~ofrl_drake.diagram.LOGGED`
+        (e.g. ``observer_gains`` of a scheduled observer), time first.
     """
 
     t: np.ndarray
@@ -61,6 +64,7 @@ class SimulationResult:
     validity: ValidityReport | None = None
     design: dict[str, Any] | None = None
     scenario_name: str = ""
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def e(self) -> np.ndarray:
@@ -221,6 +225,7 @@ def simulate(
         integrator=stats,
         design=design_dict,
         scenario_name=scenario.name,
+        extra={k: v for k, v in logs.items() if k not in LOGGED},
     )
     if box is not None:
         result.validity = validity_report(
