@@ -41,11 +41,13 @@ from ofrl_drake.systems import (
     GammaGain,
     RunningCost,
     SaturatedController,
+    ScheduledThreeGainObserver,
     ThreeGainObserver,
 )
 
 __all__ = [
     "LOGGED",
+    "OPTIONAL_LOGGED",
     "SIGNALS",
     "SLOTS",
     "ClosedLoop",
@@ -70,6 +72,12 @@ SIGNALS = {
     "gain_sum": "bellman",
     "learning_condition": "bellman",
     "cost": "running_cost",
+}
+
+#: Signals logged when the block providing them has them (key -> (slot, port)).
+OPTIONAL_LOGGED = {
+    "observer_gains": ("observer", "observer_gains"),
+    "solve_failed": ("observer", "solve_failed"),
 }
 
 #: Log key -> signal name. Every variant logs these.
@@ -166,6 +174,20 @@ def _default_block(slot: str, parts: ClosedLoopParts) -> System:
     if slot == "plant":
         return ControlAffinePlant(parts.system, initial_state=s.x0)
     if slot == "observer":
+        o = s.observer
+        if o.schedule_period > 0:
+            width = np.asarray(o.box.upper, float) - np.asarray(o.box.lower, float)
+            half = np.asarray(o.schedule_half_width or 0.5 * width, float)
+            return ScheduledThreeGainObserver(
+                parts.system,
+                parts.design,
+                period=o.schedule_period,
+                half_width=half,
+                input_bound=s.input_bound,
+                alpha=o.alpha,
+                design_options={"jacobian_method": o.jacobian_method, "solver": o.solver},
+                initial_state=s.xhat0,
+            )
         gains = ObserverGains.from_design(parts.system, parts.design)
         return ThreeGainObserver(parts.system, gains, initial_state=s.xhat0)
     if slot == "controller":
@@ -265,6 +287,11 @@ def build_closed_loop(
         logger = LogVectorOutput(source.GetOutputPort(signal), builder, period)
         logger.set_name(f"log_{key}")
         loggers[key] = logger
+    for key, (slot, port) in OPTIONAL_LOGGED.items():
+        if blocks[slot].HasOutputPort(port):
+            logger = LogVectorOutput(blocks[slot].GetOutputPort(port), builder, period)
+            logger.set_name(f"log_{key}")
+            loggers[key] = logger
     diagram = builder.Build()
     diagram.set_name(f"closed_loop_{scenario.name}")
     return ClosedLoop(diagram=diagram, parts=parts, blocks=blocks, loggers=loggers)

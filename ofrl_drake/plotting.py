@@ -6,6 +6,7 @@ matplotlib ``Figure``; :func:`save_figures` writes them all as PNG.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -34,6 +35,19 @@ _STYLE = {
     "font.size": 10,
     "legend.frameon": False,
 }
+
+
+def _math_label(label: str) -> str:
+    """``"x1^2 x2"`` -> ``"$x_{1}^{2} x_{2}$"`` for mathtext."""
+    return (
+        "$"
+        + re.sub(
+            r"x(\d+)(?:\^(\d+))?",
+            lambda m: f"x_{{{m[1]}}}" + (f"^{{{m[2]}}}" if m[2] else ""),
+            label,
+        )
+        + "$"
+    )
 
 
 def _axes(title: str | None = None) -> tuple[Figure, plt.Axes]:
@@ -70,7 +84,7 @@ def plot_weights(result, labels: Sequence[str] | None = None) -> Figure:
     fig, ax = _axes()
     L = result.W.shape[1]
     for k in range(L):
-        name = labels[k] if labels is not None else None
+        name = _math_label(labels[k]) if labels is not None else None
         label = rf"$\hat{{W}}_{k + 1}$" + (f" ({name})" if name else "")
         ax.plot(result.t, result.W[:, k], lw=1.4, label=label)
     ax.set_ylabel(r"critic weights $\hat{W}_c$")
@@ -150,6 +164,13 @@ def save_figures(
     figures["control_input"] = plot_input(result, input_bound)
     figures["learning_condition"] = plot_learning_condition(result)
     figures["cost"] = plot_cost(result)
+    extra = getattr(result, "extra", {})
+    if "observer_gains" in extra:
+        n_q = extra["observer_gains"].shape[1] // 3  # packed [vec L, vec H, vec K]
+        failed = extra.get("solve_failed", np.zeros((result.t.size, 1)))[:, 0] > 0.5
+        figures["gain_schedule"] = plot_gain_schedule(
+            result.t, extra["observer_gains"][:, :n_q], failed
+        )
     paths = []
     for name, fig in figures.items():
         path = directory / f"{name}.png"

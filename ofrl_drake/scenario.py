@@ -96,7 +96,10 @@ class ObserverConfig:
     """Observer design: decay rate ``alpha`` and the box of the Jacobian bounds.
 
     Optional: ``L``, ``H``, ``K`` pin the gains (all three or none);
-    ``jacobian_method`` (``sampled`` or ``certified``), ``solver``.
+    ``jacobian_method`` (``sampled`` or ``certified``), ``solver``;
+    ``schedule_period`` > 0 re-solves the LMI every that many seconds over the
+    box ``xhat +- schedule_half_width`` (default: half the box width), the
+    paper's "final values from the simulation".
     """
 
     alpha: float = 2.0
@@ -106,6 +109,8 @@ class ObserverConfig:
     L: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
     H: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
     K: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
+    schedule_period: float = field(default=0.0, metadata=_OPTIONAL)
+    schedule_half_width: list[float] = field(default_factory=list, metadata=_OPTIONAL)
 
 
 @dataclass
@@ -341,6 +346,18 @@ def validate_scenario(scenario: Scenario) -> None:
         )
     for k in pinned:
         _matrix(f"observer.{k}", getattr(o, k), (n, q))
+    _positive("observer.schedule_period", o.schedule_period, allow_zero=True)
+    if o.schedule_half_width:
+        hw = _vector("observer.schedule_half_width", o.schedule_half_width, n)
+        if np.any(hw <= 0):
+            raise ScenarioError(
+                f"observer.schedule_half_width: entries must be > 0; got {o.schedule_half_width}."
+            )
+    if o.schedule_period > 0 and pinned:
+        raise ScenarioError(
+            "observer.schedule_period: scheduled gains are re-designed, so they cannot be "
+            "pinned; remove observer.L/H/K or set schedule_period: 0."
+        )
 
     from ofrl_drake.variants import VARIANT_FACTORIES
 

@@ -164,8 +164,8 @@ def test_bad_swaps_raise(paper_scenario, paper_design):
         build_closed_loop(paper_scenario, design=paper_design, nonsense=CriticWeights([0.0], 0.1))
     with pytest.raises(
         SwapError,
-        match=r"critic: input port 'critic_sum' has size 2, but bellman's output "
-        r"'critic_sum' has size 3",
+        match=r"controller: input port 'weights' has size 3, but critic's output "
+        r"'weights' has size 2",
     ):
         build_closed_loop(
             paper_scenario, design=paper_design, critic=CriticWeights([0.0, 0.0], 0.1)

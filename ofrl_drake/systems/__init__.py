@@ -7,6 +7,7 @@ from ofrl_drake.systems.critic import CriticWeights
 from ofrl_drake.systems.gamma import GammaGain
 from ofrl_drake.systems.observer import ThreeGainObserver
 from ofrl_drake.systems.plant import ControlAffinePlant
+from ofrl_drake.systems.scheduled_observer import ScheduledThreeGainObserver
 
 __all__ = [
     "BellmanExtrapolator",
@@ -15,5 +16,6 @@ __all__ = [
     "GammaGain",
     "RunningCost",
     "SaturatedController",
+    "ScheduledThreeGainObserver",
     "ThreeGainObserver",
 ]

@@ -1,0 +1,179 @@
+"""The three-gain observer with gains re-solved along the trajectory.
+
+The paper reports "final values from the simulation" for P, L, H, K, which
+suggests gains re-solved as the estimate moves. This block re-solves the
+observer LMI at a fixed period over a box centred on the current estimate,
+holding the gains in discrete state between solves. A failed solve keeps the
+previous gains and is flagged on the ``solve_failed`` output.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer import ObserverGains, observer_rhs
+
+__all__ = ["ScheduledThreeGainObserver"]
+
+
+class ScheduledThreeGainObserver(LeafSystem):
+    """Three-gain observer whose gains are re-designed every ``period`` seconds.
+
+    .. pydrake_system::
+
+        name: ScheduledThreeGainObserver
+        input_ports:
+        - y
+        - u
+        output_ports:
+        - estimated_state
+        - observer_gains
+        - solve_failed
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    initial_design : ObserverDesign
+        Gains and Jacobian bounds used until the first re-solve.
+    period : float
+        Seconds between re-solves (> 0).
+    half_width : array_like, shape (n,)
+        Half-widths of the box ``[xhat - half_width, xhat + half_width]`` over
+        which the Jacobian bounds of each re-solve are computed.
+    input_bound : float
+        lbar, the input bound every re-solve certifies.
+    alpha : float
+        Decay rate every re-solve certifies.
+    design_options : dict, optional
+        Extra keyword arguments for :func:`ofrl_drake.design.design_observer`.
+    initial_state : array_like, shape (n,), optional
+        Default xhat(0).
+
+    Notes
+    -----
+    ``observer_gains`` is ``[vec(L), vec(H), vec(K)]`` (row-major, ``3 n q``
+    entries); ``solve_failed`` is 1 after a re-solve that found no certified
+    design (the previous gains stay in force), else 0.
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        initial_design: Any,
+        *,
+        period: float,
+        half_width: Sequence[float],
+        input_bound: float,
+        alpha: float,
+        design_options: dict[str, Any] | None = None,
+        initial_state: Sequence[float] | None = None,
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.initial_design = initial_design
+        self.period = period
+        self.half_width = half_width
+        self.input_bound = input_bound
+        self.alpha = alpha
+        self.design_options = design_options
+        self.initial_state = initial_state
+        if not period > 0:
+            raise ValueError(f"period must be > 0 seconds; got {period}.")
+        hw = np.asarray(half_width, dtype=float)
+        if hw.shape != (system.n,) or np.any(hw <= 0):
+            raise ValueError(
+                f"half_width must hold {system.n} positive numbers; got {list(half_width)}."
+            )
+        self._half_width = hw
+        n, q = system.n, system.q
+        self._gain_shape = (n, q)
+        gains = ObserverGains.from_design(system, initial_design)
+        x0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
+        self._xhat_index = self.DeclareContinuousState(BasicVector(x0))
+        self._gains_index = self.DeclareDiscreteState(self._pack_gains(gains))
+        self._bounds_index = self.DeclareDiscreteState(self._pack_bounds(gains))
+        self._failed_index = self.DeclareDiscreteState(1)
+        self._y_port = self.DeclareVectorInputPort("y", q)
+        self._u_port = self.DeclareVectorInputPort("u", system.m)
+        self._xhat_port = self.DeclareStateOutputPort("estimated_state", self._xhat_index)
+        self._gains_port = self.DeclareStateOutputPort("observer_gains", self._gains_index)
+        self._failed_port = self.DeclareStateOutputPort("solve_failed", self._failed_index)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, period, self._resolve)
+
+    # ------------------------------------------------------------- accessors
+    def get_y_input_port(self):
+        """The measurement ``y`` (size q)."""
+        return self._y_port
+
+    def get_u_input_port(self):
+        """The applied input ``u`` (size m)."""
+        return self._u_port
+
+    def get_estimated_state_output_port(self):
+        """The estimate ``xhat`` (size n)."""
+        return self._xhat_port
+
+    def get_observer_gains_output_port(self):
+        """``[vec(L), vec(H), vec(K)]`` currently in force (size 3 n q)."""
+        return self._gains_port
+
+    def get_solve_failed_output_port(self):
+        """1 if the latest re-solve failed, else 0 (size 1)."""
+        return self._failed_port
+
+    # --------------------------------------------------------------- packing
+    @staticmethod
+    def _pack_gains(gains: ObserverGains) -> np.ndarray:
+        return np.concatenate([gains.L.ravel(), gains.H.ravel(), gains.K.ravel()])
+
+    @staticmethod
+    def _pack_bounds(gains: ObserverGains) -> np.ndarray:
+        return np.concatenate([gains.Mf1.ravel(), gains.Mg1.ravel(), gains.Mg2.ravel()])
+
+    def _unpack(self, context) -> ObserverGains:
+        n, m, q = self.system.n, self.system.m, self.system.q
+        g = context.get_discrete_state(self._gains_index).get_value()
+        b = context.get_discrete_state(self._bounds_index).get_value()
+        k = n * q
+        return ObserverGains(
+            L=g[:k].reshape(n, q),
+            H=g[k : 2 * k].reshape(n, q),
+            K=g[2 * k :].reshape(n, q),
+            Mf1=b[: n * n].reshape(n, n),
+            Mg1=b[n * n : n * n * (1 + m)].reshape(n, n, m),
+            Mg2=b[n * n * (1 + m) :].reshape(n, n, m),
+        )
+
+    # -------------------------------------------------------------- dynamics
+    def DoCalcTimeDerivatives(self, context, derivatives) -> None:
+        xhat = context.get_continuous_state_vector().CopyToVector()
+        y = self._y_port.Eval(context)
+        u = self._u_port.Eval(context)
+        gains = self._unpack(context)
+        derivatives.SetFromVector(observer_rhs(self.system, gains, xhat, y, u))
+
+    def _resolve(self, context, discrete_state) -> None:
+        from ofrl_drake.design import design_observer
+        from ofrl_drake.errors import OfrlError
+        from ofrl_drake.jacobian_bounds import Box
+
+        xhat = context.get_continuous_state_vector().CopyToVector()
+        box = Box(xhat - self._half_width, xhat + self._half_width)
+        try:
+            design = design_observer(
+                self.system, box, self.input_bound, self.alpha, **(self.design_options or {})
+            )
+        except OfrlError:
+            discrete_state.get_mutable_vector(self._failed_index).SetFromVector([1.0])
+            return
+        gains = ObserverGains.from_design(self.system, design)
+        discrete_state.get_mutable_vector(self._gains_index).SetFromVector(self._pack_gains(gains))
+        discrete_state.get_mutable_vector(self._bounds_index).SetFromVector(
+            self._pack_bounds(gains)
+        )
+        discrete_state.get_mutable_vector(self._failed_index).SetFromVector([0.0])
