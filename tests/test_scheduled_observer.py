@@ -1,0 +1,58 @@
+"""Gains re-solved along the trajectory, held in discrete state."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ofrl_drake import ScenarioError, simulate
+from ofrl_drake.scenario import validate_scenario
+
+
+def _scheduled(scenario, **observer):
+    return dataclasses.replace(
+        scenario,
+        observer=dataclasses.replace(scenario.observer, **observer),
+        simulation=dataclasses.replace(scenario.simulation, duration=3.0),
+    )
+
+
+def test_gains_are_resolved_and_logged(paper_scenario, paper_design):
+    s = _scheduled(paper_scenario, schedule_period=1.0, schedule_half_width=[1.0, 1.0])
+    r = simulate(s, design=paper_design, progress=False)
+    gains, failed = r.extra["observer_gains"], r.extra["solve_failed"][:, 0]
+    assert gains.shape == (r.t.size, 6)  # vec L, vec H, vec K with n = 2, q = 1
+    before = r.t < 1.0 - 1e-9
+    np.testing.assert_allclose(
+        gains[before, :2], np.tile(paper_design.L.ravel(), (before.sum(), 1))
+    )
+    # A smaller box around the estimate needs a smaller gain than the design on [-2, 2]^2.
+    assert np.linalg.norm(gains[-1, :2]) < 0.9 * np.linalg.norm(paper_design.L)
+    assert not failed.any()
+    assert np.linalg.norm(r.e[-1]) < 1e-3
+
+
+def test_failed_resolves_keep_the_previous_gains(paper_scenario, paper_design):
+    # No design certifies alpha = 500 on these boxes: every re-solve fails.
+    s = _scheduled(paper_scenario, schedule_period=1.0, alpha=500.0)
+    r = simulate(s, design=paper_design, progress=False)
+    failed = r.extra["solve_failed"][:, 0]
+    assert failed[r.t < 1.0 - 1e-9].max() == 0.0
+    assert failed[r.t > 1.0 + 1e-9].min() == 1.0
+    np.testing.assert_allclose(r.extra["observer_gains"][-1, :2], paper_design.L.ravel())
+
+
+def test_schedule_cannot_pin_gains(paper_scenario):
+    s = _scheduled(
+        paper_scenario, schedule_period=1.0, L=[[1.0], [1.0]], H=[[0.0], [0.0]], K=[[0.0], [0.0]]
+    )
+    with pytest.raises(
+        ScenarioError, match=r"observer\.schedule_period: scheduled gains are re-designed"
+    ):
+        validate_scenario(s)
+
+
+def test_bad_half_width(paper_scenario):
+    s = _scheduled(paper_scenario, schedule_period=1.0, schedule_half_width=[1.0, -1.0])
+    with pytest.raises(ScenarioError, match=r"observer\.schedule_half_width: entries must be > 0"):
+        validate_scenario(s)
