@@ -21,6 +21,7 @@ __all__ = [
     "plot_gain_schedule",
     "plot_input",
     "plot_learning_condition",
+    "plot_overview",
     "plot_state",
     "plot_weights",
     "save_figures",
@@ -147,6 +148,47 @@ def plot_gain_schedule(t: np.ndarray, gains: np.ndarray, failed: np.ndarray) -> 
     return fig
 
 
+def plot_overview(result, input_bound: float | None = None) -> Figure:
+    """Four panels: states and estimates, estimation error, weights, input."""
+    with plt.rc_context({**_STYLE, "figure.figsize": (9.0, 6.0)}):
+        fig, axes = plt.subplots(2, 2, sharex=True, constrained_layout=True)
+    ax = axes[0, 0]
+    for i in range(result.x.shape[1]):
+        (line,) = ax.plot(result.t, result.x[:, i], lw=1.5, label=rf"$x_{i + 1}$")
+        ax.plot(
+            result.t,
+            result.xhat[:, i],
+            lw=1.3,
+            ls="--",
+            color=line.get_color(),
+            label=rf"$\hat{{x}}_{i + 1}$",
+        )
+    ax.set_ylabel("state and estimate")
+    ax.legend(ncol=2, fontsize=8)
+    ax = axes[0, 1]
+    for i in range(result.x.shape[1]):
+        ax.plot(result.t, result.e[:, i], lw=1.3, label=rf"$e_{i + 1}$")
+    ax.set_ylabel(r"error $x-\hat{x}$")
+    ax.legend(fontsize=8)
+    ax = axes[1, 0]
+    for k in range(result.W.shape[1]):
+        ax.plot(result.t, result.W[:, k], lw=1.3, label=rf"$\hat{{W}}_{k + 1}$")
+    ax.set_ylabel(r"critic weights $\hat{W}_c$")
+    ax.legend(ncol=3, fontsize=8)
+    ax = axes[1, 1]
+    for k in range(result.u.shape[1]):
+        ax.plot(result.t, result.u[:, k], lw=1.3, label=rf"$u_{k + 1}$")
+    if input_bound is not None:
+        for s in (-1, 1):
+            ax.axhline(s * input_bound, color="k", lw=0.8, ls=":")
+    ax.set_ylabel("control input $u$")
+    for ax in axes[1]:
+        ax.set_xlabel(r"time $t$ [s]")
+    for ax in axes.flat:
+        ax.grid(True, alpha=0.3)
+    return fig
+
+
 def save_figures(
     result,
     directory: str | Path,
@@ -164,6 +206,7 @@ def save_figures(
     figures["control_input"] = plot_input(result, input_bound)
     figures["learning_condition"] = plot_learning_condition(result)
     figures["cost"] = plot_cost(result)
+    figures["overview"] = plot_overview(result, input_bound)
     extra = getattr(result, "extra", {})
     if "observer_gains" in extra:
         n_q = extra["observer_gains"].shape[1] // 3  # packed [vec L, vec H, vec K]
