@@ -1,0 +1,900 @@
+"""Observer gain design: solve (lmi2) for ``P, R, H, K`` and certify in numpy.
+
+The paper's Theorem (thm:stateobserver) with the substitution ``L = P^{-1} R``
+(remark, eq. lmi2) gives a matrix inequality that is linear in ``(P, R, H, K)``
+at each input; :mod:`ofrl_drake.lmi` assembles it. One common ``(P, R, H, K)`` is
+asked to satisfy it at every one of the ``3**m`` vertices
+``u_k in {-input_bound, 0, +input_bound}`` (NOTES.md, "one set of gains"), with
+the sign-correct input sector.
+
+The semidefinite program, in either backend (Drake ``MathematicalProgram``
+here, cvxpy in :mod:`ofrl_drake.design_cvxpy`):
+
+* ``P = P^T >= I`` (normalizes the scale of the homogeneous LMI, so that
+  ``lambda_max(P)`` is a bound on ``cond(P)`` and ``||L|| <= ||R||``);
+* ``LMI(u) <= -margin I`` at every vertex: a strict margin, so the numbers the
+  solver returns still certify after rounding;
+* ``objective="min_gain"`` (default): minimize ``||R||_2 + ||[H K]||_F``, with
+  ``||R||_2 <= t`` as the LMI ``[[t I, R], [R^T, t I]] >= 0`` and
+  ``||[H K]||_F <= s`` as ``[[s, v^T], [v, s I]] >= 0`` (``v = vec[H K]``).
+  A bare feasibility solve can return a nearly singular ``P`` and a huge ``L``
+  (NOTES.md, "conditioning"); a large ``L`` makes the observer stiff and costs
+  simulation time, and since ``P >= I`` gives ``||L|| = ||P^{-1} R|| <= ||R||``,
+  minimizing ``||R||_2`` minimizes a bound on the gain while also keeping ``P``
+  from growing (``R = P L``). The small ``||[H K]||_F`` term pins the directions
+  of ``H`` and ``K`` that the LMI does not see (e.g. ``K`` entries multiplying
+  a zero column of ``M_g2 - M_g1``) to zero instead of leaving them to the solver.
+  ``"min_condition"`` minimizes ``lambda_max(P)`` (a bound on ``cond(P)``);
+  ``"feasibility"`` has no objective.
+* ``max_gain``: the constraint ``||R||_2 <= max_gain``, which implies
+  ``||L||_2 <= max_gain`` because ``P >= I`` (sufficient, slightly conservative);
+  ``||L||_2`` is then also checked in numpy.
+
+Whatever the solver reports, the returned numbers are accepted only if the
+eigenvalue certificate, recomputed in numpy from ``P, L, H, K, C`` and the
+bounds alone (:func:`ofrl_drake.lmi.certificate`), is negative at every vertex;
+otherwise :class:`ObserverDesignInfeasible` is raised.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from pydrake.solvers import (
+    ClarabelSolver,
+    CsdpSolver,
+    MathematicalProgram,
+    MosekSolver,
+    ScsSolver,
+    SolutionResult,
+)
+
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.jacobian_bounds import Box, JacobianBounds, jacobian_bounds
+from ofrl_drake.lmi import SECTORS, certificate, is_certified, vertex_data
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.sector import input_vertices
+
+__all__ = [
+    "BACKENDS",
+    "OBJECTIVES",
+    "SOLVERS",
+    "DesignError",
+    "ObserverDesign",
+    "ObserverDesignInfeasible",
+    "design_observer",
+    "max_decay_rate",
+]
+
+SOLVERS = ("clarabel", "scs", "csdp", "mosek")
+BACKENDS = ("drake", "cvxpy")
+OBJECTIVES = ("min_gain", "min_condition", "feasibility")
+DEFAULT_MARGIN = 1e-3
+# SCS (first order) needs tight tolerances to return numbers that certify.
+_DRAKE_OPTIONS: dict[str, dict[str, float | int]] = {
+    "scs": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iters": 100_000},
+}
+
+
+class DesignError(OfrlError):
+    """A design was asked for with a bad argument (solver, backend, bounds...)."""
+
+
+class ObserverDesignInfeasible(OfrlError):
+    """No observer gains were certified for the given rate, box and input bound.
+
+    Attributes
+    ----------
+    alpha : float
+        The decay rate asked for.
+    box : Box
+        The box of the Jacobian bounds.
+    input_bound : float
+        The input bound.
+    status : str
+        What the solver reported.
+    solver : str
+        Which solver.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        alpha: float,
+        box: Box,
+        input_bound: float,
+        status: str,
+        solver: str = "",
+    ) -> None:
+        super().__init__(message)
+        self.alpha = alpha
+        self.box = box
+        self.input_bound = input_bound
+        self.status = status
+        self.solver = solver
+
+
+# ----------------------------------------------------------- the SDP problem
+@dataclass(frozen=True, eq=False)
+class LmiProblem:
+    """The numeric data of one observer SDP, shared by both backends.
+
+    Attributes
+    ----------
+    C : ndarray, shape (q, n)
+        Output matrix.
+    vertices : list of (u, A, Jf21, Jg21)
+        Per input vertex, the constant matrices of (lmi2)
+        (:func:`ofrl_drake.lmi.vertex_data`).
+    alpha, margin : float
+        Decay rate and strict margin (``LMI <= -margin I``).
+    objective : str
+        One of :data:`OBJECTIVES`.
+    max_gain : float or None
+        Cap on ``||R||_2`` (hence on ``||L||_2``).
+    fixed : tuple of (L, H, K) or None
+        If given, only ``P`` is a variable and ``R = P L``.
+    """
+
+    C: np.ndarray
+    vertices: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+    alpha: float
+    margin: float
+    objective: str
+    max_gain: float | None
+    fixed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return int(self.C.shape[1])
+
+    @property
+    def q(self) -> int:
+        """Output dimension."""
+        return int(self.C.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class SdpSolution:
+    """What a backend returns: numbers (or None) and the solver's verdict.
+
+    Attributes
+    ----------
+    P, R, H, K : ndarray or None
+        The solution, None if the solver returned none.
+    status : str
+        The solver's status, as text.
+    infeasible : bool
+        True if the solver reported (primal) infeasibility.
+    solve_time : float
+        Wall-clock seconds spent in the backend (building and solving).
+    """
+
+    P: np.ndarray | None
+    R: np.ndarray | None
+    H: np.ndarray | None
+    K: np.ndarray | None
+    status: str
+    infeasible: bool
+    solve_time: float
+
+
+def _drake_solver(name: str) -> Any:
+    makers = {
+        "clarabel": ClarabelSolver,
+        "scs": ScsSolver,
+        "csdp": CsdpSolver,
+        "mosek": MosekSolver,
+    }
+    if name not in makers:
+        raise DesignError(f"solver must be one of {SOLVERS}; got {name!r}.")
+    solver = makers[name]()
+    if not (solver.available() and solver.enabled()):
+        hint = " (MOSEK needs a licence: set MOSEKLM_LICENSE_FILE)" * (name == "mosek")
+        raise DesignError(
+            f"solver {name!r} is not usable here: available()="
+            f"{solver.available()}, enabled()={solver.enabled()}{hint}; use "
+            "solver='clarabel' or 'scs'."
+        )
+    return solver
+
+
+def _drake_program(problem: LmiProblem) -> tuple[MathematicalProgram, Any, Any, Any, Any]:
+    """The SDP as a ``MathematicalProgram``; returns it and ``P, R, H, K``."""
+    n, q, C = problem.n, problem.q, problem.C
+    eye = np.eye(n)
+    prog = MathematicalProgram()
+    P = prog.NewSymmetricContinuousVariables(n, "P")
+    if problem.fixed is None:
+        R = prog.NewContinuousVariables(n, q, "R")
+        H = prog.NewContinuousVariables(n, q, "H")
+        K = prog.NewContinuousVariables(n, q, "K")
+    else:
+        L_fix, H, K = problem.fixed
+        R = P @ L_fix
+    prog.AddLinearMatrixInequalityConstraint(P - eye)
+    for _, A, Jf21, Jg21 in problem.vertices:
+        J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
+        M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
+        M21 = P - J21
+        M = np.block([[M11, M21.T], [M21, -2.0 * eye]])
+        prog.AddLinearMatrixInequalityConstraint(-M - problem.margin * np.eye(2 * n))
+    if problem.max_gain is not None:
+        g = float(problem.max_gain)
+        prog.AddLinearMatrixInequalityConstraint(np.block([[g * eye, R], [R.T, g * np.eye(q)]]))
+    if problem.objective == "min_gain":
+        t = prog.NewContinuousVariables(1, "t")[0]
+        prog.AddLinearMatrixInequalityConstraint(np.block([[t * eye, R], [R.T, t * np.eye(q)]]))
+        prog.AddLinearCost(t)
+        if problem.fixed is None:
+            s = prog.NewContinuousVariables(1, "s")[0]
+            v = np.concatenate([H.ravel(), K.ravel()])[:, None]
+            prog.AddLinearMatrixInequalityConstraint(
+                np.block([[np.array([[s]]), v.T], [v, s * np.eye(v.shape[0])]])
+            )
+            prog.AddLinearCost(s)
+    elif problem.objective == "min_condition":
+        s = prog.NewContinuousVariables(1, "s")[0]
+        prog.AddLinearMatrixInequalityConstraint(s * eye - P)
+        prog.AddLinearCost(s)
+    return prog, P, R, H, K
+
+
+def _solve_drake(problem: LmiProblem, solver_name: str) -> SdpSolution:
+    """Build and solve ``problem`` with ``pydrake.solvers.MathematicalProgram``."""
+    solver = _drake_solver(solver_name)
+    start = time.perf_counter()
+    # numpy's object loops flag "invalid value" on Drake expressions; harmless.
+    with np.errstate(invalid="ignore"):
+        prog, P, R, H, K = _drake_program(problem)
+    for key, value in _DRAKE_OPTIONS.get(solver_name, {}).items():
+        prog.SetSolverOption(solver.solver_id(), key, value)
+    result = solver.Solve(prog)
+    elapsed = time.perf_counter() - start
+    code = result.get_solution_result()
+    status = code.name
+    details = result.get_solver_details()
+    if hasattr(details, "status") and isinstance(details.status, str):
+        status = f"{status} ({details.status})"
+    infeasible = code in (
+        SolutionResult.kInfeasibleConstraints,
+        SolutionResult.kInfeasibleOrUnbounded,
+    )
+    if infeasible:
+        return SdpSolution(None, None, None, None, status, True, elapsed)
+    n, q = problem.n, problem.q
+    Pv = np.asarray(result.GetSolution(P), dtype=float).reshape(n, n)
+    if problem.fixed is None:
+        Rv = np.asarray(result.GetSolution(R), dtype=float).reshape(n, q)
+        Hv = np.asarray(result.GetSolution(H), dtype=float).reshape(n, q)
+        Kv = np.asarray(result.GetSolution(K), dtype=float).reshape(n, q)
+    else:
+        Rv = Pv @ problem.fixed[0]
+        Hv, Kv = problem.fixed[1], problem.fixed[2]
+    return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed)
+
+
+# ------------------------------------------------------------ the result type
+def _array(a: Any) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class ObserverDesign:
+    """Certified observer gains and everything needed to re-check them.
+
+    Attributes
+    ----------
+    P : ndarray, shape (n, n)
+        Lyapunov matrix of ``V_e = e^T P e``.
+    L, H, K : ndarray, shape (n, q)
+        Observer gains (eq:observerdynamics).
+    R : ndarray, shape (n, q)
+        ``P L``, the SDP variable.
+    alpha : float
+        Certified decay rate: ``dV_e/dt <= -2 alpha V_e``.
+    box : Box
+        Where the Jacobian bounds hold (x and x-hat must stay inside).
+    input_bound : float
+        ``lambda_bar``: certified for every ``|u_k| <= input_bound``.
+    bounds : JacobianBounds
+        The Jacobian bounds used.
+    C : ndarray, shape (q, n)
+        Output matrix.
+    solver, backend : str
+        Which solver and modelling layer produced the numbers.
+    solve_time : float
+        Wall-clock seconds of the solve (building included).
+    status : str
+        The solver's status.
+    sector : str
+        ``"sign_correct"`` (default) or ``"paper"``.
+    objective : str
+        The objective used.
+    margin : float
+        The strict margin asked of the solver.
+    """
+
+    P: np.ndarray
+    L: np.ndarray
+    H: np.ndarray
+    K: np.ndarray
+    R: np.ndarray
+    alpha: float
+    box: Box
+    input_bound: float
+    bounds: JacobianBounds
+    C: np.ndarray
+    solver: str
+    solve_time: float
+    status: str
+    backend: str
+    sector: str = "sign_correct"
+    objective: str = "min_gain"
+    margin: float = DEFAULT_MARGIN
+    _cert: list = field(default_factory=list, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for key in ("P", "L", "H", "K", "R", "C"):
+            object.__setattr__(self, key, _array(getattr(self, key)))
+        object.__setattr__(self, "box", Box.coerce(self.box))
+        object.__setattr__(self, "alpha", float(self.alpha))
+        object.__setattr__(self, "input_bound", float(self.input_bound))
+        object.__setattr__(self, "solve_time", float(self.solve_time))
+        if self.sector not in SECTORS:
+            raise DesignError(f"sector must be one of {SECTORS}; got {self.sector!r}.")
+        object.__setattr__(
+            self,
+            "_cert",
+            certificate(
+                self.P,
+                self.L,
+                self.H,
+                self.K,
+                self.C,
+                self.bounds,
+                self.input_bound,
+                self.alpha,
+                self.sector,
+            ),
+        )
+
+    # ------------------------------------------------------------ certificate
+    def certificate(self) -> list[tuple[np.ndarray, float]]:
+        """``(u vertex, max eigenvalue of the LMI)`` for each of the 3**m vertices.
+
+        Recomputed in numpy from ``P, L, H, K, C`` and the bounds only (with
+        ``R = P L``), never taken from the solver.
+        """
+        return [(u.copy(), ev) for u, ev in self._cert]
+
+    @property
+    def max_eigenvalue(self) -> float:
+        """The largest LMI eigenvalue over all vertices (< 0 when certified)."""
+        return max(ev for _, ev in self._cert)
+
+    @property
+    def is_certified(self) -> bool:
+        """True if ``P`` is positive definite and every vertex eigenvalue is < 0."""
+        return is_certified(
+            self.P,
+            self.L,
+            self.H,
+            self.K,
+            self.C,
+            self.bounds,
+            self.input_bound,
+            self.alpha,
+            self.sector,
+        )
+
+    @property
+    def condition_number(self) -> float:
+        """``cond(P)`` (2-norm)."""
+        return float(np.linalg.cond(self.P))
+
+    @property
+    def gain_norm(self) -> float:
+        """``||L||_2``."""
+        return float(np.linalg.norm(self.L, 2))
+
+    # ----------------------------------------------------------- persistence
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict.
+
+        Keys: ``P, L, H, K`` (nested lists), ``alpha``, ``input_bound``,
+        ``box`` ``{lower, upper}``, ``jacobian_bounds`` ``{Mf1, Mf2, Mg1, Mg2}``,
+        ``certificate`` ``[{input, max_eigenvalue}, ...]``, ``solver``,
+        ``solve_time``; and also ``R, C, status, backend, sector, objective,
+        margin, jacobian_method, condition_number, gain_norm, is_certified``.
+        """
+        return {
+            "P": self.P.tolist(),
+            "L": self.L.tolist(),
+            "H": self.H.tolist(),
+            "K": self.K.tolist(),
+            "alpha": self.alpha,
+            "input_bound": self.input_bound,
+            "box": self.box.to_dict(),
+            "jacobian_bounds": self.bounds.to_dict(),
+            "certificate": [{"input": u.tolist(), "max_eigenvalue": ev} for u, ev in self._cert],
+            "solver": self.solver,
+            "solve_time": self.solve_time,
+            "R": self.R.tolist(),
+            "C": self.C.tolist(),
+            "status": self.status,
+            "backend": self.backend,
+            "sector": self.sector,
+            "objective": self.objective,
+            "margin": self.margin,
+            "jacobian_method": self.bounds.method,
+            "condition_number": self.condition_number,
+            "gain_norm": self.gain_norm,
+            "is_certified": self.is_certified,
+        }
+
+    def to_json(self, path: str | os.PathLike[str]) -> None:
+        """Write :meth:`to_dict` to ``path`` as JSON."""
+        with open(path, "w", encoding="utf-8") as fh:
+            json.dump(self.to_dict(), fh, indent=2)
+            fh.write("\n")
+
+    @classmethod
+    def from_dict(
+        cls, data: dict[str, Any], system: ControlAffineSystem | None = None
+    ) -> ObserverDesign:
+        """Rebuild a design from :meth:`to_dict` output.
+
+        The stored ``certificate`` is not trusted: it is recomputed from the
+        numbers.
+
+        Parameters
+        ----------
+        data : dict
+            As written by :meth:`to_dict`.
+        system : ControlAffineSystem, optional
+            Supplies ``C`` if ``data`` has no ``"C"`` key.
+
+        Raises
+        ------
+        DesignError
+            If a required key is missing.
+        """
+        required = [
+            "P",
+            "L",
+            "H",
+            "K",
+            "alpha",
+            "input_bound",
+            "box",
+            "jacobian_bounds",
+            "solver",
+            "solve_time",
+        ]
+        missing = [k for k in required if k not in data]
+        if missing:
+            raise DesignError(f"observer design data is missing keys {missing}.")
+        if "C" in data:
+            C = np.asarray(data["C"], dtype=float)
+        elif system is not None:
+            C = system.output_matrix
+        else:
+            raise DesignError("observer design data has no 'C'; pass system= to supply it.")
+        box = Box.coerce(data["box"])
+        method = data.get("jacobian_method", "given")
+        bounds = JacobianBounds.from_dict(data["jacobian_bounds"], box, method)
+        P = np.asarray(data["P"], dtype=float)
+        L = np.asarray(data["L"], dtype=float)
+        R = np.asarray(data["R"], dtype=float) if "R" in data else P @ L
+        return cls(
+            P=P,
+            L=L,
+            H=data["H"],
+            K=data["K"],
+            R=R,
+            alpha=data["alpha"],
+            box=box,
+            input_bound=data["input_bound"],
+            bounds=bounds,
+            C=C,
+            solver=data["solver"],
+            solve_time=data["solve_time"],
+            status=data.get("status", "loaded"),
+            backend=data.get("backend", "drake"),
+            sector=data.get("sector", "sign_correct"),
+            objective=data.get("objective", "min_gain"),
+            margin=data.get("margin", DEFAULT_MARGIN),
+        )
+
+    @classmethod
+    def from_json(
+        cls, path: str | os.PathLike[str], system: ControlAffineSystem | None = None
+    ) -> ObserverDesign:
+        """Read a design written by :meth:`to_json`."""
+        with open(path, encoding="utf-8") as fh:
+            return cls.from_dict(json.load(fh), system)
+
+    @classmethod
+    def from_gains(
+        cls,
+        system: ControlAffineSystem,
+        box: Any,
+        input_bound: float,
+        alpha: float,
+        L: Any,
+        H: Any,
+        K: Any,
+        P: Any = None,
+        bounds: JacobianBounds | None = None,
+        *,
+        solver: str = "clarabel",
+        backend: str = "drake",
+        jacobian_method: str = "sampled",
+        margin: float = DEFAULT_MARGIN,
+        sector: str = "sign_correct",
+    ) -> ObserverDesign:
+        """A design from pinned gains ``L, H, K`` (and optionally ``P``).
+
+        If ``P`` is given, nothing is solved and the design is returned as it
+        is: :meth:`certificate` and :attr:`is_certified` report honestly whether
+        it certifies. If ``P`` is None, a small SDP looks for ``P >= I`` with
+        ``LMI <= -margin I`` at every vertex, ``L, H, K`` fixed, minimizing
+        ``lambda_max(P)``.
+
+        Raises
+        ------
+        ObserverDesignInfeasible
+            If ``P`` is None and no certifying ``P`` is found.
+        """
+        C = system.output_matrix
+        n, q = system.n, system.q
+        gains = []
+        for name, G in (("L", L), ("H", H), ("K", K)):
+            G = np.asarray(G, dtype=float)
+            if G.ndim == 1 and q == 1:
+                G = G.reshape(-1, 1)
+            if G.shape != (n, q) or not np.all(np.isfinite(G)):
+                raise DesignError(f"{name} must be a finite ({n}, {q}) array; got {G.tolist()}.")
+            gains.append(G)
+        box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
+        alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
+        if P is not None:
+            P = np.asarray(P, dtype=float)
+            if P.shape != (n, n):
+                raise DesignError(f"P must have shape ({n}, {n}); got {P.shape}.")
+            return cls(
+                P=P,
+                L=gains[0],
+                H=gains[1],
+                K=gains[2],
+                R=P @ gains[0],
+                alpha=alpha,
+                box=box,
+                input_bound=input_bound,
+                bounds=bounds,
+                C=C,
+                solver="none",
+                solve_time=0.0,
+                status="given",
+                backend="none",
+                sector=sector,
+                objective="given",
+                margin=margin,
+            )
+        problem = _problem(C, bounds, input_bound, alpha, margin, "min_condition", None, sector)
+        problem = replace(problem, fixed=(gains[0], gains[1], gains[2]))
+        return _finish(problem, bounds, box, input_bound, solver, backend, sector, max_gain=None)
+
+
+# ---------------------------------------------------------------- the driver
+def _check_numbers(alpha: float, input_bound: float, margin: float) -> tuple[float, float, float]:
+    for name, value in (
+        ("alpha", alpha),
+        ("input_bound", input_bound),
+        ("margin", margin),
+    ):
+        if not isinstance(value, int | float | np.floating | np.integer) or not (
+            math.isfinite(value) and value >= 0
+        ):
+            raise DesignError(f"{name} must be a finite number >= 0; got {value!r}.")
+    return float(alpha), float(input_bound), float(margin)
+
+
+def _box_and_bounds(
+    system: ControlAffineSystem,
+    box: Any,
+    bounds: JacobianBounds | None,
+    jacobian_method: str,
+) -> tuple[Box, JacobianBounds]:
+    box = Box.coerce(box, system.n)
+    if bounds is None:
+        return box, jacobian_bounds(system, box, jacobian_method)
+    if not isinstance(bounds, JacobianBounds):
+        raise DesignError(f"bounds must be a JacobianBounds; got {type(bounds).__name__}.")
+    if bounds.Mg1.shape != (system.n, system.n, system.m):
+        raise DesignError(
+            f"bounds are for n = {bounds.n}, m = {bounds.m} but the system has "
+            f"n = {system.n}, m = {system.m}."
+        )
+    inside = np.all(bounds.box.lower <= box.lower) and np.all(box.upper <= bounds.box.upper)
+    if not inside:
+        raise DesignError(
+            f"bounds hold on {bounds.box!r}, which does not contain the design "
+            f"box {box!r}; recompute them on the design box."
+        )
+    return box, bounds
+
+
+def _problem(
+    C: np.ndarray,
+    bounds: JacobianBounds,
+    input_bound: float,
+    alpha: float,
+    margin: float,
+    objective: str,
+    max_gain: float | None,
+    sector: str,
+) -> LmiProblem:
+    if sector not in SECTORS:
+        raise DesignError(f"sector must be one of {SECTORS}; got {sector!r}.")
+    if objective not in OBJECTIVES:
+        raise DesignError(f"objective must be one of {OBJECTIVES}; got {objective!r}.")
+    if max_gain is not None and not (math.isfinite(max_gain) and max_gain > 0):
+        raise DesignError(f"max_gain must be a positive number; got {max_gain!r}.")
+    vertices = []
+    for u in input_vertices(input_bound, bounds.m):
+        A, Jf21, Jg21 = vertex_data(bounds, u, sector)
+        vertices.append((u, A, Jf21, Jg21))
+    return LmiProblem(C, vertices, alpha, margin, objective, max_gain)
+
+
+def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
+    hint = "try a smaller alpha, a smaller box, a smaller input bound"
+    if max_gain is not None:
+        hint += ", a larger max_gain"
+    if inaccurate:
+        hint += ", a larger margin or a more accurate solver ('clarabel')"
+    return hint
+
+
+def _finish(
+    problem: LmiProblem,
+    bounds: JacobianBounds,
+    box: Box,
+    input_bound: float,
+    solver: str,
+    backend: str,
+    sector: str,
+    max_gain: float | None,
+) -> ObserverDesign:
+    if backend == "drake":
+        sol = _solve_drake(problem, solver)
+    elif backend == "cvxpy":
+        from ofrl_drake.design_cvxpy import solve_cvxpy
+
+        sol = solve_cvxpy(problem, solver)
+    else:
+        raise DesignError(f"backend must be one of {BACKENDS}; got {backend!r}.")
+    where = (
+        f"alpha={problem.alpha:g}, box {box.lower.tolist()}..{box.upper.tolist()}, "
+        f"|u_k| <= {input_bound:g}"
+    )
+
+    def fail(reason: str, inaccurate: bool = True) -> ObserverDesignInfeasible:
+        return ObserverDesignInfeasible(
+            f"no certified observer for {where} ({solver}/{backend}: {reason}); "
+            f"{_relax_hint(max_gain, inaccurate)}.",
+            alpha=problem.alpha,
+            box=box,
+            input_bound=input_bound,
+            status=sol.status,
+            solver=solver,
+        )
+
+    if sol.infeasible or sol.P is None:
+        raise fail(f"solver status {sol.status}", inaccurate=not sol.infeasible)
+    numbers = [sol.P, sol.R, sol.H, sol.K]
+    if not all(np.all(np.isfinite(a)) for a in numbers):
+        raise fail(f"solver status {sol.status}, non-finite solution")
+    P = 0.5 * (sol.P + sol.P.T)
+    try:
+        L = np.linalg.solve(P, sol.R)
+    except np.linalg.LinAlgError:
+        raise fail(f"solver status {sol.status}, singular P") from None
+    design = ObserverDesign(
+        P=P,
+        L=L,
+        H=sol.H,
+        K=sol.K,
+        R=sol.R,
+        alpha=problem.alpha,
+        box=box,
+        input_bound=input_bound,
+        bounds=bounds,
+        C=problem.C,
+        solver=solver,
+        solve_time=sol.solve_time,
+        status=sol.status,
+        backend=backend,
+        sector=sector,
+        objective=problem.objective,
+        margin=problem.margin,
+    )
+    if not design.is_certified:
+        raise fail(
+            f"solver status {sol.status}, but the numpy certificate fails with max "
+            f"eigenvalue {design.max_eigenvalue:.3g}"
+        )
+    if max_gain is not None and design.gain_norm > max_gain * (1 + 1e-6):
+        raise fail(f"||L|| = {design.gain_norm:.4g} exceeds max_gain", False)
+    return design
+
+
+def design_observer(
+    system: ControlAffineSystem,
+    box: Any,
+    input_bound: float,
+    alpha: float,
+    *,
+    bounds: JacobianBounds | None = None,
+    jacobian_method: str = "sampled",
+    solver: str = "clarabel",
+    margin: float = DEFAULT_MARGIN,
+    objective: str = "min_gain",
+    max_gain: float | None = None,
+    backend: str = "drake",
+    sector: str = "sign_correct",
+) -> ObserverDesign:
+    """Design certified observer gains ``P, L, H, K`` by solving (lmi2).
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The plant.
+    box : Box or (lower, upper)
+        Compact set where the Jacobian bounds hold; ``x`` and ``x-hat`` must
+        stay in it for the certificate to apply.
+    input_bound : float
+        ``lambda_bar``; one common set of gains is certified at all 3**m
+        vertices, hence for every ``|u_k| <= input_bound``.
+    alpha : float
+        Decay rate: ``dV_e/dt <= -2 alpha V_e``, ``V_e = e^T P e``.
+    bounds : JacobianBounds, optional
+        Precomputed bounds on a box containing ``box``; default: computed with
+        ``jacobian_method``.
+    jacobian_method : {"sampled", "certified"}
+        How to compute ``bounds`` when they are not given.
+    solver : {"clarabel", "scs", "csdp", "mosek"}
+        SDP solver (the cvxpy backend accepts "clarabel" and "scs").
+    margin : float
+        Strict margin: ``LMI <= -margin I`` at every vertex.
+    objective : {"min_gain", "min_condition", "feasibility"}
+        See the module docstring; "min_gain" minimizes
+        ``||R||_2 + ||[H K]||_F``.
+    max_gain : float, optional
+        Enforce ``||L||_2 <= max_gain`` (through ``||R||_2 <= max_gain``).
+    backend : {"drake", "cvxpy"}
+        Modelling layer.
+    sector : {"sign_correct", "paper"}
+        Input sector; "paper" reproduces the paper's literal (aug_jac_g), valid
+        only for ``u >= 0``.
+
+    Returns
+    -------
+    ObserverDesign
+        Certified: :attr:`ObserverDesign.is_certified` is True.
+
+    Raises
+    ------
+    ObserverDesignInfeasible
+        If the solver reports infeasibility or the numbers do not certify.
+    DesignError
+        For an unknown solver, backend, objective or sector, a solver that is
+        not usable here (MOSEK without licence), or bounds that do not match.
+
+    Examples
+    --------
+    >>> from ofrl_drake.examples import make_system
+    >>> d = design_observer(make_system("two_state"), ([-2, -2], [2, 2]), 3.0, 2.0)
+    >>> d.is_certified, d.condition_number < 1e3
+    (True, True)
+    """
+    if solver not in SOLVERS:
+        raise DesignError(f"solver must be one of {SOLVERS}; got {solver!r}.")
+    if backend not in BACKENDS:
+        raise DesignError(f"backend must be one of {BACKENDS}; got {backend!r}.")
+    alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
+    box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
+    problem = _problem(
+        system.output_matrix,
+        bounds,
+        input_bound,
+        alpha,
+        margin,
+        objective,
+        max_gain,
+        sector,
+    )
+    return _finish(problem, bounds, box, input_bound, solver, backend, sector, max_gain)
+
+
+def max_decay_rate(
+    system: ControlAffineSystem,
+    box: Any,
+    input_bound: float,
+    *,
+    alpha_max: float = 10.0,
+    tol: float = 1e-2,
+    max_gain: float | None = None,
+    **kw: Any,
+) -> ObserverDesign:
+    """Bisect ``alpha`` and return the certified design with the largest rate.
+
+    Parameters
+    ----------
+    system, box, input_bound
+        As in :func:`design_observer`.
+    alpha_max : float
+        Upper end of the search; returned directly if it certifies.
+    tol : float
+        Stop when the bracket ``[certified, not certified]`` is narrower.
+    max_gain : float, optional
+        Cap ``||L||_2 <= max_gain``, enforced as ``||R||_2 <= max_gain`` inside
+        the SDP (sufficient since ``P >= I``) and re-checked in numpy.
+    **kw
+        Passed to :func:`design_observer` (``solver``, ``backend``, ``bounds``,
+        ``margin``, ``objective``, ...). The Jacobian bounds are computed once.
+
+    Returns
+    -------
+    ObserverDesign
+        The best certified design found; its ``alpha`` is within ``tol`` of the
+        largest certifiable rate (for this margin and solver).
+
+    Raises
+    ------
+    ObserverDesignInfeasible
+        If not even ``alpha = 0`` certifies.
+    """
+    if not (math.isfinite(alpha_max) and alpha_max > 0):
+        raise DesignError(f"alpha_max must be a positive number; got {alpha_max!r}.")
+    if not (math.isfinite(tol) and tol > 0):
+        raise DesignError(f"tol must be a positive number; got {tol!r}.")
+    if kw.get("bounds") is None:
+        method = kw.pop("jacobian_method", "sampled")
+        kw["bounds"] = jacobian_bounds(system, Box.coerce(box, system.n), method)
+
+    def attempt(alpha: float) -> ObserverDesign | None:
+        try:
+            return design_observer(system, box, input_bound, alpha, max_gain=max_gain, **kw)
+        except ObserverDesignInfeasible:
+            return None
+
+    best = attempt(alpha_max)
+    if best is not None:
+        return best
+    lo_design = attempt(0.0)
+    if lo_design is None:
+        # Raise the real error, with its message and status.
+        return design_observer(system, box, input_bound, 0.0, max_gain=max_gain, **kw)
+    lo, hi = 0.0, float(alpha_max)
+    best = lo_design
+    while hi - lo > tol:
+        mid = 0.5 * (lo + hi)
+        design = attempt(mid)
+        if design is None:
+            hi = mid
+        else:
+            lo, best = mid, design
+    return best

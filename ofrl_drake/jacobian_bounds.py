@@ -1,0 +1,697 @@
+"""Element-wise bounds of the Jacobians of ``f`` and ``g`` over a box.
+
+Assumption 1 of the paper (eqs. aug_jac_f, aug_jac_g) asks for constant
+matrices with
+
+    M_f1[i, j]    <= d f_i / d x_j      <= M_f2[i, j]
+    M_g1[i, j, k] <= d g[i, k] / d x_j  <= M_g2[i, j, k]
+
+for every ``x`` in a compact set, here an axis-aligned box. The Jacobians are
+taken from ``system.f`` and ``system.g`` themselves with
+``pydrake.symbolic.Jacobian``; users write no derivatives.
+
+Two methods:
+
+``"sampled"``
+    Evaluate the symbolic Jacobian on a dense grid plus seeded random points,
+    all at once (:class:`ofrl_drake.interval.ExpressionEvaluator`), and take the
+    element-wise min and max. Fast and tight, but only an inner estimate.
+``"certified"``
+    Guaranteed enclosures: interval arithmetic on each Jacobian entry, with a
+    branch and bound that bisects the widest (relevant) side of the boxes whose
+    enclosure is more than ``tol`` wider than the best known inner estimate.
+    Each box is enclosed by the intersection of the natural interval extension
+    and the mean-value form ``h(c) + grad h(X) (X - c)``, whose overestimation
+    shrinks quadratically with the box width.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydrake.symbolic import Expression, Jacobian, MakeVectorVariable, Variable
+
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.interval import (
+    ExpressionEvaluator,
+    Interval,
+    IntervalDomainError,
+    UnsupportedExpressionError,
+)
+from ofrl_drake.model import ControlAffineSystem
+
+__all__ = [
+    "BoundsError",
+    "BoundsExcess",
+    "Box",
+    "BoxError",
+    "JacobianBounds",
+    "jacobian_bounds",
+    "symbolic_jacobians",
+]
+
+METHODS = ("sampled", "certified")
+_POINT_BUDGET = 100_000
+_CHUNK = 20_000
+
+
+class BoxError(OfrlError):
+    """A box is malformed: wrong length, non-finite, or lower >= upper."""
+
+
+class BoundsError(OfrlError):
+    """Jacobian bounds cannot be computed as asked (bad method or parameters)."""
+
+
+# ------------------------------------------------------------------------ Box
+@dataclass(frozen=True, eq=False)
+class Box:
+    """An axis-aligned box ``lower <= x <= upper`` in ``R^n``.
+
+    Parameters
+    ----------
+    lower, upper : array_like, shape (n,)
+        Finite corners with ``lower < upper`` element-wise.
+
+    Raises
+    ------
+    BoxError
+        If the corners are not 1-D, differ in length, are not finite, or some
+        ``lower[i] >= upper[i]``; the message names the offending entry.
+
+    Examples
+    --------
+    >>> Box([-2, -2], [2, 2]).width.tolist()
+    [4.0, 4.0]
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def __post_init__(self) -> None:
+        try:
+            lo = np.array(self.lower, dtype=float)
+            hi = np.array(self.upper, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise BoxError(
+                f"box corners must be numbers; got lower={self.lower!r}, "
+                f"upper={self.upper!r} ({err})."
+            ) from None
+        if lo.ndim != 1 or hi.ndim != 1 or lo.size == 0:
+            raise BoxError(
+                f"box lower and upper must be 1-D arrays of length n; got shapes "
+                f"{lo.shape} and {hi.shape}."
+            )
+        if lo.shape != hi.shape:
+            raise BoxError(
+                f"box lower has length {lo.size} but upper has length {hi.size}; "
+                "give one bound per state."
+            )
+        for name, arr in (("lower", lo), ("upper", hi)):
+            bad = np.flatnonzero(~np.isfinite(arr))
+            if bad.size:
+                raise BoxError(
+                    f"box {name}[{bad[0]}] = {arr[bad[0]]} is not finite; Jacobian "
+                    "bounds need a compact box."
+                )
+        bad = np.flatnonzero(lo >= hi)
+        if bad.size:
+            i = bad[0]
+            raise BoxError(
+                f"box lower[{i}] = {lo[i]:g} is not below upper[{i}] = {hi[i]:g}; "
+                "each side needs lower < upper."
+            )
+        lo.setflags(write=False)
+        hi.setflags(write=False)
+        object.__setattr__(self, "lower", lo)
+        object.__setattr__(self, "upper", hi)
+
+    @classmethod
+    def coerce(cls, box: Any, n: int | None = None) -> Box:
+        """Return ``box`` as a :class:`Box`, checking its dimension.
+
+        Parameters
+        ----------
+        box : Box or (lower, upper) or mapping with keys ``lower``, ``upper``
+            The box.
+        n : int, optional
+            The required dimension.
+
+        Raises
+        ------
+        BoxError
+            If ``box`` has another form, is malformed, or is not ``n``-dimensional.
+        """
+        if isinstance(box, Box):
+            out = box
+        elif isinstance(box, dict):
+            if set(box) != {"lower", "upper"}:
+                raise BoxError(
+                    f"a box mapping needs exactly the keys 'lower' and 'upper'; got {sorted(box)}."
+                )
+            out = cls(box["lower"], box["upper"])
+        else:
+            try:
+                lower, upper = box
+            except (TypeError, ValueError):
+                raise BoxError(
+                    f"box must be a Box or a pair (lower, upper); got {box!r}."
+                ) from None
+            out = cls(lower, upper)
+        if n is not None and out.n != n:
+            raise BoxError(
+                f"box has dimension {out.n} but the system has n = {n} states; "
+                f"give {n} lower and {n} upper bounds."
+            )
+        return out
+
+    @property
+    def n(self) -> int:
+        """The dimension."""
+        return int(self.lower.size)
+
+    @property
+    def width(self) -> np.ndarray:
+        """``upper - lower``."""
+        return self.upper - self.lower
+
+    @property
+    def center(self) -> np.ndarray:
+        """``(lower + upper) / 2``."""
+        return 0.5 * (self.lower + self.upper)
+
+    def contains(self, X: np.ndarray) -> np.ndarray:
+        """Whether each column of ``X`` (shape ``(n,)`` or ``(n, N)``) is inside."""
+        X = np.asarray(X, dtype=float)
+        lo = self.lower.reshape((-1,) + (1,) * (X.ndim - 1))
+        hi = self.upper.reshape((-1,) + (1,) * (X.ndim - 1))
+        return np.all((lo <= X) & (X <= hi), axis=0)
+
+    def to_dict(self) -> dict[str, list[float]]:
+        """``{"lower": [...], "upper": [...]}``."""
+        return {"lower": self.lower.tolist(), "upper": self.upper.tolist()}
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Box):
+            return NotImplemented
+        return bool(
+            np.array_equal(self.lower, other.lower) and np.array_equal(self.upper, other.upper)
+        )
+
+    def __hash__(self) -> int:
+        return hash((tuple(self.lower), tuple(self.upper)))
+
+    def __repr__(self) -> str:
+        return f"Box(lower={self.lower.tolist()}, upper={self.upper.tolist()})"
+
+
+# --------------------------------------------------------------- the results
+def _frozen_array(a: Any) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class BoundsExcess:
+    """How much wider certified bounds are than sampled ones (all entries >= 0).
+
+    Attributes
+    ----------
+    Mf1, Mf2 : ndarray, shape (n, n)
+        ``sampled.Mf1 - certified.Mf1`` and ``certified.Mf2 - sampled.Mf2``.
+    Mg1, Mg2 : ndarray, shape (n, n, m)
+        The same for ``g``.
+    max : float
+        The largest entry of the four arrays.
+    converged : bool
+        Whether the branch and bound met ``tol`` for every entry before running
+        out of ``max_boxes``.
+    """
+
+    Mf1: np.ndarray
+    Mf2: np.ndarray
+    Mg1: np.ndarray
+    Mg2: np.ndarray
+    max: float
+    converged: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """Nested lists plus ``max`` and ``converged``."""
+        return {
+            "Mf1": self.Mf1.tolist(),
+            "Mf2": self.Mf2.tolist(),
+            "Mg1": self.Mg1.tolist(),
+            "Mg2": self.Mg2.tolist(),
+            "max": float(self.max),
+            "converged": bool(self.converged),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class JacobianBounds:
+    """Element-wise Jacobian bounds of ``f`` and ``g`` over a box.
+
+    Attributes
+    ----------
+    method : str
+        ``"sampled"``, ``"certified"`` or ``"given"`` (numbers supplied by hand).
+    box : Box
+        Where the bounds hold.
+    Mf1, Mf2 : ndarray, shape (n, n)
+        ``Mf1[i, j] <= d f_i / d x_j <= Mf2[i, j]``.
+    Mg1, Mg2 : ndarray, shape (n, n, m)
+        ``Mg1[i, j, k] <= d g[i, k] / d x_j <= Mg2[i, j, k]``.
+    excess : BoundsExcess or None
+        For ``"certified"``: how much wider than the sampled bounds. Else None.
+
+    Raises
+    ------
+    BoundsError
+        If the shapes do not match the box or a lower bound exceeds an upper one.
+    """
+
+    method: str
+    box: Box
+    Mf1: np.ndarray
+    Mf2: np.ndarray
+    Mg1: np.ndarray
+    Mg2: np.ndarray
+    excess: BoundsExcess | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if self.method not in (*METHODS, "given"):
+            raise BoundsError(
+                f"JacobianBounds.method must be one of {(*METHODS, 'given')}; got {self.method!r}."
+            )
+        object.__setattr__(self, "box", Box.coerce(self.box))
+        n = self.box.n
+        arrays = {k: _frozen_array(getattr(self, k)) for k in self._KEYS}
+        for key in ("Mf1", "Mf2"):
+            if arrays[key].shape != (n, n):
+                raise BoundsError(
+                    f"{key} must have shape ({n}, {n}) for a {n}-D box; got {arrays[key].shape}."
+                )
+        for key in ("Mg1", "Mg2"):
+            a = arrays[key]
+            if a.ndim != 3 or a.shape[:2] != (n, n) or a.shape != arrays["Mg1"].shape:
+                raise BoundsError(
+                    f"{key} must have shape ({n}, {n}, m) (indexed [i, j, k] = "
+                    f"d g[i, k] / d x_j); got {a.shape}."
+                )
+        for lo, hi in (("Mf1", "Mf2"), ("Mg1", "Mg2")):
+            bad = np.argwhere(~(arrays[lo] <= arrays[hi]))
+            if bad.size:
+                idx = tuple(int(i) for i in bad[0])
+                raise BoundsError(
+                    f"{lo}{list(idx)} = {arrays[lo][idx]:g} exceeds "
+                    f"{hi}{list(idx)} = {arrays[hi][idx]:g} (or is NaN)."
+                )
+        for key, arr in arrays.items():
+            object.__setattr__(self, key, arr)
+
+    _KEYS = ("Mf1", "Mf2", "Mg1", "Mg2")
+
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return self.box.n
+
+    @property
+    def m(self) -> int:
+        """Input dimension."""
+        return int(self.Mg1.shape[2])
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(Mf1, Mf2, Mg1, Mg2)``."""
+        return self.Mf1, self.Mf2, self.Mg1, self.Mg2
+
+    def contains(self, other: JacobianBounds, atol: float = 0.0) -> bool:
+        """Whether ``[other.M1, other.M2]`` lies inside ``[M1 - atol, M2 + atol]``."""
+        return bool(
+            np.all(self.Mf1 - atol <= other.Mf1)
+            and np.all(other.Mf2 <= self.Mf2 + atol)
+            and np.all(self.Mg1 - atol <= other.Mg1)
+            and np.all(other.Mg2 <= self.Mg2 + atol)
+        )
+
+    def to_dict(self) -> dict[str, list]:
+        """``{"Mf1", "Mf2", "Mg1", "Mg2"}`` as nested lists."""
+        return {k: getattr(self, k).tolist() for k in self._KEYS}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], box: Any, method: str = "given") -> JacobianBounds:
+        """Rebuild from :meth:`to_dict` output and the box."""
+        missing = [k for k in cls._KEYS if k not in data]
+        if missing:
+            raise BoundsError(f"jacobian_bounds is missing keys {missing}.")
+        return cls(method, Box.coerce(box), *(data[k] for k in cls._KEYS))
+
+
+# ------------------------------------------------------------------ Jacobians
+def _to_expressions(values: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=object)
+    if arr.shape != shape:
+        raise BoundsError(f"{what} returned shape {arr.shape} on symbolic input; expected {shape}.")
+    out = np.empty(shape, dtype=object)
+    for idx, v in np.ndenumerate(arr):
+        if isinstance(v, Expression):
+            out[idx] = v
+        elif isinstance(v, Variable):
+            out[idx] = Expression(v)
+        else:
+            out[idx] = Expression(float(v))
+    return out
+
+
+def symbolic_jacobians(
+    system: ControlAffineSystem,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Symbolic Jacobians of ``f`` and ``g`` from ``pydrake.symbolic.Jacobian``.
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The plant; ``f`` and ``g`` are called on symbolic states.
+
+    Returns
+    -------
+    x : ndarray of Variable, shape (n,)
+        The state variables.
+    Jf : ndarray of Expression, shape (n, n)
+        ``Jf[i, j] = d f_i / d x_j``.
+    Jg : ndarray of Expression, shape (n, n, m)
+        ``Jg[i, j, k] = d g[i, k] / d x_j``.
+
+    Raises
+    ------
+    BoundsError
+        If ``f`` or ``g`` cannot be called on ``pydrake.symbolic.Expression``
+        states (for example because they call scipy or use ``if`` on the state).
+    """
+    n, m = system.n, system.m
+    x = MakeVectorVariable(n, "x")
+    xe = np.array([Expression(v) for v in x], dtype=object)
+    try:
+        # numpy's object loops flag "invalid value" on Drake expressions; harmless.
+        with np.errstate(invalid="ignore"):
+            fx = _to_expressions(system.f(xe), (n,), "f")
+            gx = _to_expressions(system.g(xe), (n, m), "g")
+    except BoundsError:
+        raise
+    except Exception as err:
+        raise BoundsError(
+            f"{system.name}: f and g must accept pydrake.symbolic.Expression "
+            f"states to be differentiated ({type(err).__name__}: {err}); write "
+            "them with numpy functions (np.cos, np.exp, **) and no branches."
+        ) from err
+    Jf = Jacobian(fx, x)
+    Jg = np.empty((n, n, m), dtype=object)
+    for k in range(m):
+        Jg[:, :, k] = Jacobian(gx[:, k], x)
+    return x, Jf, Jg
+
+
+# ------------------------------------------------------------------- sampling
+def _default_grid(n: int) -> int:
+    g = int(np.floor(_POINT_BUDGET ** (1.0 / n) + 1e-9))
+    g = min(g, 101)
+    if g < 2:
+        return 1
+    return g - 1 if (g % 2 == 0 and g > 2) else g
+
+
+def _grid_points(box: Box, dims: tuple[int, ...], grid: int) -> np.ndarray:
+    """A ``grid``-per-axis grid over the axes ``dims``; other axes at the centre."""
+    if grid == 1 or not dims:
+        return box.center[:, None]
+    axes = [np.linspace(box.lower[i], box.upper[i], grid) for i in dims]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    G = np.repeat(box.center[:, None], mesh[0].size, axis=1)
+    for axis, values in zip(dims, mesh, strict=True):
+        G[axis] = values.ravel()
+    return G
+
+
+def _random_points(box: Box, n_random: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return box.lower[:, None] + rng.random((box.n, n_random)) * box.width[:, None]
+
+
+def _sampled_bounds(
+    entries: np.ndarray,
+    x: np.ndarray,
+    box: Box,
+    grid: int | None,
+    n_random: int,
+    seed: int,
+    names: list[str],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max of each entry over grids plus random points.
+
+    Entries are grouped by the state variables they depend on; each group gets
+    a dense grid over its own variables only (a 4-state system whose entries each
+    depend on two states is gridded in 2-D, not 4-D). The random points cover
+    the whole box for every entry.
+    """
+    evaluator = ExpressionEvaluator(entries, x)
+    lo, hi = _sampled_range(evaluator, _random_points(box, n_random, seed), names)
+    lo_c, hi_c = _sampled_range(evaluator, box.center[:, None], names)
+    lo, hi = np.minimum(lo, lo_c), np.maximum(hi, hi_c)
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for e, used in enumerate(evaluator.variables_used()):
+        if used:
+            groups.setdefault(used, []).append(e)
+    for dims, idx in groups.items():
+        g = _default_grid(len(dims)) if grid is None else int(grid)
+        sub = ExpressionEvaluator(entries[idx], x)
+        g_lo, g_hi = _sampled_range(sub, _grid_points(box, dims, g), [names[i] for i in idx])
+        lo[idx] = np.minimum(lo[idx], g_lo)
+        hi[idx] = np.maximum(hi[idx], g_hi)
+    return lo, hi
+
+
+def _entry_names(n: int, m: int) -> list[str]:
+    names = [f"d f[{i}] / d x[{j}]" for i in range(n) for j in range(n)]
+    names += [f"d g[{i}, {k}] / d x[{j}]" for i in range(n) for j in range(n) for k in range(m)]
+    return names
+
+
+def _sampled_range(
+    evaluator: ExpressionEvaluator, points: np.ndarray, names: list[str]
+) -> tuple[np.ndarray, np.ndarray]:
+    E = int(np.prod(evaluator.shape))
+    lo = np.full(E, np.inf)
+    hi = np.full(E, -np.inf)
+    for start in range(0, points.shape[1], _CHUNK):
+        chunk = points[:, start : start + _CHUNK]
+        vals = evaluator(chunk).reshape(E, -1)
+        bad = ~np.isfinite(vals)
+        if bad.any():
+            e, p = np.argwhere(bad)[0]
+            raise BoundsError(
+                f"the Jacobian entry {names[e]} is not finite "
+                f"({vals[e, p]}) at x = {chunk[:, p].tolist()}; f and g must be "
+                "continuously differentiable on the box (shrink it)."
+            )
+        lo = np.minimum(lo, vals.min(axis=1))
+        hi = np.maximum(hi, vals.max(axis=1))
+    return lo, hi
+
+
+# ---------------------------------------------------------- branch and bound
+class _EntryEncloser:
+    """Interval enclosure of one Jacobian entry over many boxes at once."""
+
+    def __init__(self, expr: Expression, x: np.ndarray) -> None:
+        self.value = ExpressionEvaluator([expr], x)
+        self.used = list(self.value.variables_used()[0])
+        self.gradient: ExpressionEvaluator | None = None
+        if self.used:
+            try:
+                grad = Jacobian(np.array([expr]), x[self.used])[0]
+                gradient = ExpressionEvaluator(grad, x)
+                gradient.interval(np.zeros(len(x)), np.ones(len(x)))
+            except (UnsupportedExpressionError, IntervalDomainError, RuntimeError):
+                gradient = None  # fall back to the natural extension only
+            self.gradient = gradient
+
+    def enclose(self, lo: np.ndarray, hi: np.ndarray) -> Interval:
+        natural = self.value.interval(lo, hi)
+        out_lo, out_hi = natural.lo[0], natural.hi[0]
+        if self.gradient is None:
+            return Interval(out_lo, out_hi)
+        c = 0.5 * (lo + hi)
+        try:
+            grad = self.gradient.interval(lo, hi)
+        except IntervalDomainError:
+            return Interval(out_lo, out_hi)
+        at_c = self.value.interval(c, c)
+        total = Interval(at_c.lo[0], at_c.hi[0])
+        for r, j in enumerate(self.used):
+            step = Interval(np.nextafter(lo[j] - c[j], -np.inf), np.nextafter(hi[j] - c[j], np.inf))
+            total = total + Interval(grad.lo[r], grad.hi[r]) * step
+        return Interval(np.maximum(out_lo, total.lo), np.minimum(out_hi, total.hi))
+
+
+def _certify_entry(
+    encloser: _EntryEncloser,
+    box: Box,
+    inner_lo: float,
+    inner_hi: float,
+    tol: float,
+    max_boxes: int,
+) -> tuple[float, float, bool]:
+    """Branch and bound for one entry; returns ``(lo, hi, converged)``."""
+    lo = box.lower[:, None].copy()
+    hi = box.upper[:, None].copy()
+    used = np.array(encloser.used, dtype=int)
+    settled_lo, settled_hi = np.inf, -np.inf
+    evaluated = 0
+    while True:
+        enc = encloser.enclose(lo, hi)
+        evaluated += lo.shape[1]
+        centers = 0.5 * (lo + hi)
+        vals = encloser.value(centers)[0]
+        vals = vals[np.isfinite(vals)]
+        if vals.size:
+            inner_lo = min(inner_lo, float(vals.min()))
+            inner_hi = max(inner_hi, float(vals.max()))
+        active = (enc.lo < inner_lo - tol) | (enc.hi > inner_hi + tol)
+        done = ~active
+        if done.any():
+            settled_lo = min(settled_lo, float(enc.lo[done].min()))
+            settled_hi = max(settled_hi, float(enc.hi[done].max()))
+        if not active.any():
+            return settled_lo, settled_hi, True
+        if evaluated + 2 * int(active.sum()) > max_boxes:
+            settled_lo = min(settled_lo, float(enc.lo[active].min()))
+            settled_hi = max(settled_hi, float(enc.hi[active].max()))
+            return settled_lo, settled_hi, False
+        lo, hi = lo[:, active], hi[:, active]
+        rel = (hi[used] - lo[used]) / box.width[used, None]
+        split = used[np.argmax(rel, axis=0)]
+        cols = np.arange(lo.shape[1])
+        mid = 0.5 * (lo[split, cols] + hi[split, cols])
+        lo_right = lo.copy()
+        lo_right[split, cols] = mid
+        hi_left = hi.copy()
+        hi_left[split, cols] = mid
+        lo = np.concatenate([lo, lo_right], axis=1)
+        hi = np.concatenate([hi_left, hi], axis=1)
+
+
+# ------------------------------------------------------------------ the entry
+def jacobian_bounds(
+    system: ControlAffineSystem,
+    box: Any,
+    method: str = "sampled",
+    *,
+    grid: int | None = None,
+    n_random: int = 10_000,
+    seed: int = 0,
+    tol: float = 1e-3,
+    max_boxes: int = 200_000,
+) -> JacobianBounds:
+    """Element-wise bounds of the Jacobians of ``f`` and ``g`` over ``box``.
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The plant. ``f`` and ``g`` must accept ``pydrake.symbolic.Expression``
+        states; they are differentiated with ``pydrake.symbolic.Jacobian``.
+    box : Box or (lower, upper)
+        The compact set, an axis-aligned box of dimension ``n``.
+    method : {"sampled", "certified"}
+        ``"sampled"``: min and max over a grid plus random points (an inner
+        estimate). ``"certified"``: guaranteed interval enclosures, refined by
+        branch and bound until each is within ``tol`` of the best known inner
+        estimate (the samples plus the centres of the boxes visited).
+    grid : int, optional
+        Points per axis of the grid (the corners are included). Each Jacobian
+        entry is gridded over the ``d`` states it depends on only. Default: the
+        largest odd number up to 101 with ``grid**d <= 100000``.
+    n_random : int
+        Uniform random points added to the grid.
+    seed : int
+        Seed of the random points.
+    tol : float
+        Certified only: absolute tolerance, in the units of the Jacobian entry.
+    max_boxes : int
+        Certified only: the most boxes evaluated per Jacobian entry. When it is
+        reached, the (still guaranteed) enclosure is returned as it is, and
+        ``excess.converged`` is False.
+
+    Returns
+    -------
+    JacobianBounds
+        For ``"certified"``, ``excess`` records how much wider the bounds are
+        than the sampled ones (same grid, points and seed).
+
+    Raises
+    ------
+    BoundsError
+        For an unknown method or bad parameters, if ``f``/``g`` cannot be
+        differentiated symbolically, or a Jacobian entry is not finite.
+    BoxError
+        If ``box`` is malformed or not ``n``-dimensional.
+    UnsupportedExpressionError
+        If a Jacobian entry uses a function the evaluator does not support.
+
+    Examples
+    --------
+    >>> from ofrl_drake.examples import make_system
+    >>> b = jacobian_bounds(make_system("two_state"), ([-2, -2], [2, 2]))
+    >>> b.Mf1[0].tolist(), b.Mf2[0].tolist()
+    ([-1.0, 1.0], [-1.0, 1.0])
+    """
+    if method not in METHODS:
+        raise BoundsError(
+            f"method must be one of {METHODS}; got {method!r}. Use 'sampled' for "
+            "fast estimates or 'certified' for guaranteed enclosures."
+        )
+    box = Box.coerce(box, system.n)
+    n, m = system.n, system.m
+    if grid is not None and (int(grid) != grid or grid < 1):
+        raise BoundsError(f"grid must be a positive integer; got {grid!r}.")
+    if int(n_random) != n_random or n_random < 0:
+        raise BoundsError(f"n_random must be a non-negative integer; got {n_random!r}.")
+    if not (np.isfinite(tol) and tol > 0):
+        raise BoundsError(f"tol must be a positive number; got {tol!r}.")
+    if int(max_boxes) != max_boxes or max_boxes < 1:
+        raise BoundsError(f"max_boxes must be a positive integer; got {max_boxes!r}.")
+
+    x, Jf, Jg = symbolic_jacobians(system)
+    entries = np.concatenate([Jf.ravel(), Jg.ravel()])
+    names = _entry_names(n, m)
+    s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
+
+    def split(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return v[: n * n].reshape(n, n), v[n * n :].reshape(n, n, m)
+
+    if method == "sampled":
+        (Mf1, Mg1), (Mf2, Mg2) = split(s_lo), split(s_hi)
+        return JacobianBounds("sampled", box, Mf1, Mf2, Mg1, Mg2)
+
+    c_lo = np.empty_like(s_lo)
+    c_hi = np.empty_like(s_hi)
+    converged = True
+    for e, expr in enumerate(entries):
+        encloser = _EntryEncloser(expr, x)
+        try:
+            lo, hi, ok = _certify_entry(encloser, box, s_lo[e], s_hi[e], float(tol), int(max_boxes))
+        except IntervalDomainError as err:
+            raise BoundsError(f"{names[e]}: {err}") from err
+        c_lo[e], c_hi[e] = lo, hi
+        converged = converged and ok
+    (Mf1, Mg1), (Mf2, Mg2) = split(c_lo), split(c_hi)
+    (sMf1, sMg1), (sMf2, sMg2) = split(s_lo), split(s_hi)
+    ex = [sMf1 - Mf1, Mf2 - sMf2, sMg1 - Mg1, Mg2 - sMg2]
+    excess = BoundsExcess(
+        *(_frozen_array(a) for a in ex),
+        max=float(max(a.max() for a in ex)),
+        converged=converged,
+    )
+    return JacobianBounds("certified", box, Mf1, Mf2, Mg1, Mg2, excess)
