@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
 
-from ofrl_drake.diagram import ClosedLoop, build_closed_loop
+from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.scenario import Scenario
 from ofrl_drake.validity import ValidityReport, validity_report
 
