@@ -63,9 +63,9 @@ def _axes(title: str | None = None) -> tuple[Figure, plt.Axes]:
 def plot_state(result, i: int) -> Figure:
     """``x_i`` and ``xhat_i`` against time (the paper's Figs. 1 and 2)."""
     fig, ax = _axes()
-    ax.plot(result.t, result.x[:, i], lw=1.6, label=rf"$x_{i + 1}$")
-    ax.plot(result.t, result.xhat[:, i], lw=1.4, ls="--", label=rf"$\hat{{x}}_{i + 1}$")
-    ax.set_ylabel(rf"state $x_{i + 1}$")
+    ax.plot(result.t, result.x[:, i], lw=1.6, label=rf"$x_{{{i + 1}}}$")
+    ax.plot(result.t, result.xhat[:, i], lw=1.4, ls="--", label=rf"$\hat{{x}}_{{{i + 1}}}$")
+    ax.set_ylabel(rf"state $x_{{{i + 1}}}$")
     ax.legend()
     return fig
 
@@ -74,7 +74,7 @@ def plot_estimation_error(result) -> Figure:
     """``e = x - xhat`` per component (the paper's Fig. 3)."""
     fig, ax = _axes()
     for i in range(result.x.shape[1]):
-        ax.plot(result.t, result.e[:, i], lw=1.4, label=rf"$e_{i + 1}$")
+        ax.plot(result.t, result.e[:, i], lw=1.4, label=rf"$e_{{{i + 1}}}$")
     ax.set_ylabel(r"estimation error $x - \hat{x}$")
     ax.legend(ncol=min(4, result.x.shape[1]))
     return fig
@@ -86,7 +86,7 @@ def plot_weights(result, labels: Sequence[str] | None = None) -> Figure:
     L = result.W.shape[1]
     for k in range(L):
         name = _math_label(labels[k]) if labels is not None else None
-        label = rf"$\hat{{W}}_{k + 1}$" + (f" ({name})" if name else "")
+        label = rf"$\hat{{W}}_{{{k + 1}}}$" + (f" ({name})" if name else "")
         ax.plot(result.t, result.W[:, k], lw=1.4, label=label)
     ax.set_ylabel(r"critic weights $\hat{W}_c$")
     ax.legend(ncol=min(3, L), fontsize=8)
@@ -97,7 +97,7 @@ def plot_input(result, input_bound: float | None = None) -> Figure:
     """The saturated input ``u(t)`` (the paper's Fig. 5), with the bound."""
     fig, ax = _axes()
     for k in range(result.u.shape[1]):
-        ax.plot(result.t, result.u[:, k], lw=1.4, label=rf"$u_{k + 1}$")
+        ax.plot(result.t, result.u[:, k], lw=1.4, label=rf"$u_{{{k + 1}}}$")
     if input_bound is not None:
         for s in (-1, 1):
             ax.axhline(s * input_bound, color="k", lw=0.8, ls=":")
@@ -130,8 +130,11 @@ def plot_comparison(results: dict, key: str = "x", component: int = 0) -> Figure
         data = getattr(result, key)
         y = data if data.ndim == 1 else data[:, component]
         ax.plot(result.t, y, lw=1.4, label=label)
-    suffix = "" if getattr(next(iter(results.values())), key).ndim == 1 else f"_{component + 1}"
-    ax.set_ylabel(f"${key}{suffix}$")
+    names = {"x": "x", "xhat": r"\hat{x}", "e": "e", "u": "u", "W": r"\hat{W}"}
+    if key in names:
+        ax.set_ylabel(f"${names[key]}_{{{component + 1}}}$")
+    else:
+        ax.set_ylabel(key.replace("_", " "))
     ax.legend()
     return fig
 
@@ -154,30 +157,30 @@ def plot_overview(result, input_bound: float | None = None) -> Figure:
         fig, axes = plt.subplots(2, 2, sharex=True, constrained_layout=True)
     ax = axes[0, 0]
     for i in range(result.x.shape[1]):
-        (line,) = ax.plot(result.t, result.x[:, i], lw=1.5, label=rf"$x_{i + 1}$")
+        (line,) = ax.plot(result.t, result.x[:, i], lw=1.5, label=rf"$x_{{{i + 1}}}$")
         ax.plot(
             result.t,
             result.xhat[:, i],
             lw=1.3,
             ls="--",
             color=line.get_color(),
-            label=rf"$\hat{{x}}_{i + 1}$",
+            label=rf"$\hat{{x}}_{{{i + 1}}}$",
         )
     ax.set_ylabel("state and estimate")
     ax.legend(ncol=2, fontsize=8)
     ax = axes[0, 1]
     for i in range(result.x.shape[1]):
-        ax.plot(result.t, result.e[:, i], lw=1.3, label=rf"$e_{i + 1}$")
+        ax.plot(result.t, result.e[:, i], lw=1.3, label=rf"$e_{{{i + 1}}}$")
     ax.set_ylabel(r"error $x-\hat{x}$")
     ax.legend(fontsize=8)
     ax = axes[1, 0]
     for k in range(result.W.shape[1]):
-        ax.plot(result.t, result.W[:, k], lw=1.3, label=rf"$\hat{{W}}_{k + 1}$")
+        ax.plot(result.t, result.W[:, k], lw=1.3, label=rf"$\hat{{W}}_{{{k + 1}}}$")
     ax.set_ylabel(r"critic weights $\hat{W}_c$")
     ax.legend(ncol=3, fontsize=8)
     ax = axes[1, 1]
     for k in range(result.u.shape[1]):
-        ax.plot(result.t, result.u[:, k], lw=1.3, label=rf"$u_{k + 1}$")
+        ax.plot(result.t, result.u[:, k], lw=1.3, label=rf"$u_{{{k + 1}}}$")
     if input_bound is not None:
         for s in (-1, 1):
             ax.axhline(s * input_bound, color="k", lw=0.8, ls=":")
