@@ -1,22 +1,45 @@
-"""Observer gain design: solve (lmi2) for ``P, R, H, K`` and certify in numpy.
+"""Observer gain design: solve an LMI for ``P, L (, H, K)`` and certify it in numpy.
 
-The paper's Theorem (thm:stateobserver) with the substitution ``L = P^{-1} R``
-(remark, eq. lmi2) gives a matrix inequality that is linear in ``(P, R, H, K)``
-at each input; :mod:`ofrl_drake.lmi` assembles it. One common ``(P, R, H, K)`` is
-asked to satisfy it at every one of the ``3**m`` vertices
-``u_k in {-input_bound, 0, +input_bound}`` (NOTES.md, "one set of gains"), with
-the sign-correct input sector.
+Two formulations (``formulation=``):
+
+``"polytopic"`` (default): a sound decay certificate.
+    ``H = K = 0`` are fixed; the error then obeys ``e' = (M_f + M_gu - L C) e``
+    with ``M_f + M_gu`` in the element-wise box ``[M_f1 + M_ug1(u), M_f2 +
+    M_ug2(u)]`` (the row-wise mean value theorem; :mod:`ofrl_drake.lmi`), and
+    ``P A_cl`` is linear in ``P`` and ``R = P L``. One common ``(P, R)`` is asked
+    to satisfy
+
+        A^T P + P A - C^T R^T - R C + 2 alpha P <= -margin I
+
+    at every corner ``A`` of that box and every input vertex
+    ``u_k in {-input_bound, 0, +input_bound}``
+    (:func:`ofrl_drake.lmi.corner_matrices`); by convexity this gives
+    ``dV/dt <= -2 alpha V`` for ``V = e^T P e``, every ``x, xhat`` in the box and
+    every ``|u_k| <= input_bound``. Feasible only for rates the plant allows: on
+    the two-state example no quadratic ``V`` certifies ``alpha >= 1``.
+``"paper"``: the paper's (lmi2), exactly as stated, with the sign-correct input
+    sector, at the ``3**m`` input vertices (NOTES.md, "one set of gains"), linear
+    in ``(P, R, H, K)``. It is the paper's method, kept for reproduction and
+    comparison, but it is not a decay certificate for nonlinear plants (a design
+    that satisfies it at alpha = 2 on the two-state example has ``dV/dt = +39 V``
+    at some states; see :mod:`ofrl_drake.lmi`). ``injection_gains=False`` pins
+    ``H = K = 0`` (a linear Luenberger observer certified by (lmi2)).
+
+Every design also carries the polytopic decay certificate of its own numbers
+(:meth:`ObserverDesign.decay_certificate`, :attr:`ObserverDesign.is_decay_certified`),
+so a "paper" design says honestly whether it certifies decay.
 
 The semidefinite program, in either backend (Drake ``MathematicalProgram``
 here, cvxpy in :mod:`ofrl_drake.design_cvxpy`):
 
 * ``P = P^T >= I`` (normalizes the scale of the homogeneous LMI, so that
   ``lambda_max(P)`` is a bound on ``cond(P)`` and ``||L|| <= ||R||``);
-* ``LMI(u) <= -margin I`` at every vertex: a strict margin, so the numbers the
-  solver returns still certify after rounding;
-* ``objective="min_gain"`` (default): minimize ``||R||_2 + ||[H K]||_F``, with
-  ``||R||_2 <= t`` as the LMI ``[[t I, R], [R^T, t I]] >= 0`` and
-  ``||[H K]||_F <= s`` as ``[[s, v^T], [v, s I]] >= 0`` (``v = vec[H K]``).
+* the formulation's LMI ``<= -margin I`` at every vertex (and corner): a strict
+  margin, so the numbers the solver returns still certify after rounding;
+* ``objective="min_gain"`` (default): minimize ``||R||_2`` (plus ``||[H K]||_F``
+  when ``H, K`` are free), with ``||R||_2 <= t`` as the LMI
+  ``[[t I, R], [R^T, t I]] >= 0`` and ``||[H K]||_F <= s`` as
+  ``[[s, v^T], [v, s I]] >= 0`` (``v = vec[H K]``).
   A bare feasibility solve can return a nearly singular ``P`` and a huge ``L``
   (NOTES.md, "conditioning"); a large ``L`` makes the observer stiff and costs
   simulation time, and since ``P >= I`` gives ``||L|| = ||P^{-1} R|| <= ||R||``,
@@ -30,10 +53,15 @@ here, cvxpy in :mod:`ofrl_drake.design_cvxpy`):
   ``||L||_2 <= max_gain`` because ``P >= I`` (sufficient, slightly conservative);
   ``||L||_2`` is then also checked in numpy.
 
+The Drake backend passes every LMI to ``AddLinearMatrixInequalityConstraint`` as
+its numeric coefficient matrices ``F_0 + sum_i z_i F_i``, read off the
+pure-numpy LMI functions of :mod:`ofrl_drake.lmi` (which are affine in the
+decision variables ``z``), so no symbolic matrix arithmetic is needed.
+
 Whatever the solver reports, the returned numbers are accepted only if the
-eigenvalue certificate, recomputed in numpy from ``P, L, H, K, C`` and the
-bounds alone (:func:`ofrl_drake.lmi.certificate`), is negative at every vertex;
-otherwise :class:`ObserverDesignInfeasible` is raised.
+certificate of the formulation, recomputed in numpy from ``P, L, H, K, C`` and
+the bounds alone, is negative at every vertex; otherwise
+:class:`ObserverDesignInfeasible` is raised.
 """
 
 from __future__ import annotations
@@ -42,7 +70,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -57,12 +85,25 @@ from pydrake.solvers import (
 
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds, jacobian_bounds
-from ofrl_drake.lmi import SECTORS, certificate, is_certified, vertex_data
+from ofrl_drake.lmi import (
+    MAX_CORNERS,
+    SECTORS,
+    LmiError,
+    certificate,
+    corner_count,
+    corner_matrices,
+    decay_certificate,
+    is_certified,
+    lmi2_blocks,
+    polytopic_lmi,
+    vertex_data,
+)
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.sector import input_vertices
 
 __all__ = [
     "BACKENDS",
+    "FORMULATIONS",
     "OBJECTIVES",
     "SOLVERS",
     "DesignError",
@@ -75,6 +116,7 @@ __all__ = [
 SOLVERS = ("clarabel", "scs", "csdp", "mosek")
 BACKENDS = ("drake", "cvxpy")
 OBJECTIVES = ("min_gain", "min_condition", "feasibility")
+FORMULATIONS = ("polytopic", "paper")
 DEFAULT_MARGIN = 1e-3
 # SCS (first order) needs tight tolerances to return numbers that certify.
 _DRAKE_OPTIONS: dict[str, dict[str, float | int]] = {
@@ -101,6 +143,8 @@ class ObserverDesignInfeasible(OfrlError):
         What the solver reported.
     solver : str
         Which solver.
+    formulation : str
+        Which LMI formulation.
     """
 
     def __init__(
@@ -112,6 +156,7 @@ class ObserverDesignInfeasible(OfrlError):
         input_bound: float,
         status: str,
         solver: str = "",
+        formulation: str = "",
     ) -> None:
         super().__init__(message)
         self.alpha = alpha
@@ -119,6 +164,7 @@ class ObserverDesignInfeasible(OfrlError):
         self.input_bound = input_bound
         self.status = status
         self.solver = solver
+        self.formulation = formulation
 
 
 # ----------------------------------------------------------- the SDP problem
@@ -128,28 +174,40 @@ class LmiProblem:
 
     Attributes
     ----------
+    formulation : str
+        ``"polytopic"`` or ``"paper"`` (see the module docstring).
     C : ndarray, shape (q, n)
         Output matrix.
     vertices : list of (u, A, Jf21, Jg21)
-        Per input vertex, the constant matrices of (lmi2)
-        (:func:`ofrl_drake.lmi.vertex_data`).
+        ``"paper"``: per input vertex, the constant matrices of (lmi2)
+        (:func:`ofrl_drake.lmi.vertex_data`). Empty for ``"polytopic"``.
+    corners : ndarray, shape (N, n, n)
+        ``"polytopic"``: the distinct corner matrices ``A`` over all input
+        vertices (:func:`ofrl_drake.lmi.corner_matrices`, built with the pinned
+        ``H, K``), with ``A_cl = A - L C``. Empty for ``"paper"``.
     alpha, margin : float
         Decay rate and strict margin (``LMI <= -margin I``).
     objective : str
         One of :data:`OBJECTIVES`.
     max_gain : float or None
         Cap on ``||R||_2`` (hence on ``||L||_2``).
-    fixed : tuple of (L, H, K) or None
-        If given, only ``P`` is a variable and ``R = P L``.
+    L : ndarray or None
+        If given, ``L`` is pinned and ``R = P L``; else ``R`` is a variable.
+    HK : tuple of (H, K) or None
+        If given, ``H, K`` are pinned; else they are variables (``"paper"``
+        only: ``"polytopic"`` always pins them).
     """
 
+    formulation: str
     C: np.ndarray
     vertices: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+    corners: np.ndarray
     alpha: float
     margin: float
     objective: str
     max_gain: float | None
-    fixed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    L: np.ndarray | None = None
+    HK: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def n(self) -> int:
@@ -207,54 +265,134 @@ def _drake_solver(name: str) -> Any:
     return solver
 
 
-def _drake_program(problem: LmiProblem) -> tuple[MathematicalProgram, Any, Any, Any, Any]:
-    """The SDP as a ``MathematicalProgram``; returns it and ``P, R, H, K``."""
+@dataclass(frozen=True)
+class _Layout:
+    """Where each unknown sits in the decision vector ``z`` of the Drake program.
+
+    ``z = [vech(P), vec(R), vec(H), vec(K), t, s]``, each part present only
+    when it is a variable: ``R`` unless ``L`` is pinned, ``H, K`` unless
+    pinned, ``t`` for ``min_gain``, ``s`` for ``min_gain`` with free ``H, K``
+    and for ``min_condition``.
+    """
+
+    problem: LmiProblem
+    names: tuple[tuple[str, int], ...]
+
+    @classmethod
+    def of(cls, problem: LmiProblem) -> _Layout:
+        """The layout of ``problem``'s unknowns."""
+        n, q = problem.n, problem.q
+        names = [("P", n * (n + 1) // 2)]
+        if problem.L is None:
+            names.append(("R", n * q))
+        if problem.HK is None:
+            names += [("H", n * q), ("K", n * q)]
+        if problem.objective == "min_gain":
+            names.append(("t", 1))
+            if problem.HK is None:
+                names.append(("s", 1))
+        elif problem.objective == "min_condition":
+            names.append(("s", 1))
+        return cls(problem, tuple(names))
+
+    @property
+    def size(self) -> int:
+        """Length of ``z``."""
+        return sum(k for _, k in self.names)
+
+    def unpack(self, z: np.ndarray) -> dict[str, Any]:
+        """``P, R, H, K`` (and ``t, s`` if present) from ``z``; affine in ``z``."""
+        n, q, p = self.problem.n, self.problem.q, self.problem
+        parts: dict[str, Any] = {}
+        pos = 0
+        for name, k in self.names:
+            parts[name] = z[pos : pos + k]
+            pos += k
+        P = np.zeros((n, n))
+        rows, cols = np.triu_indices(n)
+        P[rows, cols] = parts["P"]
+        P[cols, rows] = parts["P"]
+        out: dict[str, Any] = {"P": P}
+        out["R"] = parts["R"].reshape(n, q) if p.L is None else P @ p.L
+        if p.HK is None:
+            out["H"] = parts["H"].reshape(n, q)
+            out["K"] = parts["K"].reshape(n, q)
+        else:
+            out["H"], out["K"] = p.HK
+        for name in ("t", "s"):
+            if name in parts:
+                out[name] = float(parts[name][0])
+        return out
+
+
+def _psd_blocks(problem: LmiProblem, v: dict[str, Any]) -> list[np.ndarray]:
+    """Every matrix the SDP asks to be positive semidefinite, at the numbers ``v``.
+
+    Affine in the decision vector (see :class:`_Layout`), so the Drake backend
+    reads the coefficient matrices ``F_i`` off it.
+    """
     n, q, C = problem.n, problem.q, problem.C
+    P, R, H, K = v["P"], v["R"], v["H"], v["K"]
     eye = np.eye(n)
-    prog = MathematicalProgram()
-    P = prog.NewSymmetricContinuousVariables(n, "P")
-    if problem.fixed is None:
-        R = prog.NewContinuousVariables(n, q, "R")
-        H = prog.NewContinuousVariables(n, q, "H")
-        K = prog.NewContinuousVariables(n, q, "K")
+    blocks = [P - eye]
+    if problem.formulation == "paper":
+        for _, A, Jf21, Jg21 in problem.vertices:
+            M = lmi2_blocks(P, R, H, K, C, A, Jf21, Jg21, problem.alpha)
+            blocks.append(-M - problem.margin * np.eye(2 * n))
     else:
-        L_fix, H, K = problem.fixed
-        R = P @ L_fix
-    prog.AddLinearMatrixInequalityConstraint(P - eye)
-    for _, A, Jf21, Jg21 in problem.vertices:
-        J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
-        M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
-        M21 = P - J21
-        M = np.block([[M11, M21.T], [M21, -2.0 * eye]])
-        prog.AddLinearMatrixInequalityConstraint(-M - problem.margin * np.eye(2 * n))
+        M = polytopic_lmi(P, R, problem.corners, C, problem.alpha)
+        blocks.extend(-M - problem.margin * eye)
     if problem.max_gain is not None:
         g = float(problem.max_gain)
-        prog.AddLinearMatrixInequalityConstraint(np.block([[g * eye, R], [R.T, g * np.eye(q)]]))
+        blocks.append(np.block([[g * eye, R], [R.T, g * np.eye(q)]]))
     if problem.objective == "min_gain":
-        t = prog.NewContinuousVariables(1, "t")[0]
-        prog.AddLinearMatrixInequalityConstraint(np.block([[t * eye, R], [R.T, t * np.eye(q)]]))
-        prog.AddLinearCost(t)
-        if problem.fixed is None:
-            s = prog.NewContinuousVariables(1, "s")[0]
-            v = np.concatenate([H.ravel(), K.ravel()])[:, None]
-            prog.AddLinearMatrixInequalityConstraint(
-                np.block([[np.array([[s]]), v.T], [v, s * np.eye(v.shape[0])]])
-            )
-            prog.AddLinearCost(s)
+        t = v["t"]
+        blocks.append(np.block([[t * eye, R], [R.T, t * np.eye(q)]]))
+        if problem.HK is None:
+            s = v["s"]
+            w = np.concatenate([H.ravel(), K.ravel()])[:, None]
+            blocks.append(np.block([[np.array([[s]]), w.T], [w, s * np.eye(w.shape[0])]]))
     elif problem.objective == "min_condition":
-        s = prog.NewContinuousVariables(1, "s")[0]
-        prog.AddLinearMatrixInequalityConstraint(s * eye - P)
-        prog.AddLinearCost(s)
-    return prog, P, R, H, K
+        blocks.append(v["s"] * eye - P)
+    return [0.5 * (B + B.T) for B in blocks]
+
+
+def _drake_program(problem: LmiProblem) -> tuple[MathematicalProgram, np.ndarray, _Layout]:
+    """The SDP as a ``MathematicalProgram``; returns it, ``z`` and its layout.
+
+    Each LMI ``F_0 + sum_i z_i F_i >= 0`` is added with its numeric ``F_i``:
+    ``F_0`` is :func:`_psd_blocks` at ``z = 0`` and ``F_i`` its change at the
+    unit vector ``e_i`` (exact for an affine map), keeping only the variables
+    that appear in that block.
+    """
+    layout = _Layout.of(problem)
+    prog = MathematicalProgram()
+    z = np.concatenate([prog.NewContinuousVariables(k, name) for name, k in layout.names])
+    N = layout.size
+    F0 = _psd_blocks(problem, layout.unpack(np.zeros(N)))
+    Fi = [
+        [B - B0 for B, B0 in zip(_psd_blocks(problem, layout.unpack(e)), F0, strict=True)]
+        for e in np.eye(N)
+    ]
+    for j, B0 in enumerate(F0):
+        used = [i for i in range(N) if np.any(Fi[i][j])]
+        prog.AddLinearMatrixInequalityConstraint([B0] + [Fi[i][j] for i in used], z[used])
+    if problem.objective in ("min_gain", "min_condition"):
+        cost = np.zeros(N)
+        pos = 0
+        for name, k in layout.names:
+            if name in ("t", "s"):
+                cost[pos] = 1.0
+            pos += k
+        prog.AddLinearCost(cost, 0.0, z)
+    return prog, z, layout
 
 
 def _solve_drake(problem: LmiProblem, solver_name: str) -> SdpSolution:
     """Build and solve ``problem`` with ``pydrake.solvers.MathematicalProgram``."""
     solver = _drake_solver(solver_name)
     start = time.perf_counter()
-    # numpy's object loops flag "invalid value" on Drake expressions; harmless.
-    with np.errstate(invalid="ignore"):
-        prog, P, R, H, K = _drake_program(problem)
+    prog, z, layout = _drake_program(problem)
     for key, value in _DRAKE_OPTIONS.get(solver_name, {}).items():
         prog.SetSolverOption(solver.solver_id(), key, value)
     result = solver.Solve(prog)
@@ -270,16 +408,8 @@ def _solve_drake(problem: LmiProblem, solver_name: str) -> SdpSolution:
     )
     if infeasible:
         return SdpSolution(None, None, None, None, status, True, elapsed)
-    n, q = problem.n, problem.q
-    Pv = np.asarray(result.GetSolution(P), dtype=float).reshape(n, n)
-    if problem.fixed is None:
-        Rv = np.asarray(result.GetSolution(R), dtype=float).reshape(n, q)
-        Hv = np.asarray(result.GetSolution(H), dtype=float).reshape(n, q)
-        Kv = np.asarray(result.GetSolution(K), dtype=float).reshape(n, q)
-    else:
-        Rv = Pv @ problem.fixed[0]
-        Hv, Kv = problem.fixed[1], problem.fixed[2]
-    return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed)
+    v = layout.unpack(np.asarray(result.GetSolution(z), dtype=float))
+    return SdpSolution(v["P"], v["R"], v["H"], v["K"], status, False, elapsed)
 
 
 # ------------------------------------------------------------ the result type
@@ -289,9 +419,23 @@ def _array(a: Any) -> np.ndarray:
     return arr
 
 
+def _cert_list(cert: list[tuple[np.ndarray, float]]) -> list[dict[str, Any]]:
+    return [{"input": u.tolist(), "max_eigenvalue": ev} for u, ev in cert]
+
+
 @dataclass(frozen=True, eq=False)
 class ObserverDesign:
     """Certified observer gains and everything needed to re-check them.
+
+    Two certificates are kept, both recomputed in numpy from ``P, L, H, K, C``
+    and the bounds only (never taken from the solver):
+
+    * :meth:`certificate`: the check of the formulation that was solved:
+      the (lmi2) eigenvalues at the ``3**m`` input vertices for ``"paper"``,
+      the decay certificate for ``"polytopic"``; :attr:`is_certified`.
+    * :meth:`decay_certificate`: the sound polytopic check of ``dV/dt <= -2
+      alpha V`` (:func:`ofrl_drake.lmi.decay_certificate`), whatever the
+      formulation; :attr:`is_decay_certified`.
 
     Attributes
     ----------
@@ -302,7 +446,8 @@ class ObserverDesign:
     R : ndarray, shape (n, q)
         ``P L``, the SDP variable.
     alpha : float
-        Certified decay rate: ``dV_e/dt <= -2 alpha V_e``.
+        The decay rate asked for: ``dV_e/dt <= -2 alpha V_e`` if
+        :attr:`is_decay_certified`.
     box : Box
         Where the Jacobian bounds hold (x and x-hat must stay inside).
     input_bound : float
@@ -318,11 +463,13 @@ class ObserverDesign:
     status : str
         The solver's status.
     sector : str
-        ``"sign_correct"`` (default) or ``"paper"``.
+        ``"sign_correct"`` (default) or ``"paper"`` (``"paper"`` formulation only).
     objective : str
         The objective used.
     margin : float
         The strict margin asked of the solver.
+    formulation : str
+        ``"polytopic"`` (default) or ``"paper"``.
     """
 
     P: np.ndarray
@@ -342,7 +489,9 @@ class ObserverDesign:
     sector: str = "sign_correct"
     objective: str = "min_gain"
     margin: float = DEFAULT_MARGIN
+    formulation: str = "polytopic"
     _cert: list = field(default_factory=list, init=False, repr=False)
+    _decay: list = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
         for key in ("P", "L", "H", "K", "R", "C"):
@@ -351,42 +500,15 @@ class ObserverDesign:
         object.__setattr__(self, "alpha", float(self.alpha))
         object.__setattr__(self, "input_bound", float(self.input_bound))
         object.__setattr__(self, "solve_time", float(self.solve_time))
-        if self.sector not in SECTORS:
-            raise DesignError(f"sector must be one of {SECTORS}; got {self.sector!r}.")
-        object.__setattr__(
-            self,
-            "_cert",
-            certificate(
-                self.P,
-                self.L,
-                self.H,
-                self.K,
-                self.C,
-                self.bounds,
-                self.input_bound,
-                self.alpha,
-                self.sector,
-            ),
-        )
+        _check_formulation(self.formulation, self.sector)
+        if self.formulation == "paper":
+            cert = certificate(*self._numbers(), self.sector)
+        else:
+            cert = self.decay_certificate()
+        object.__setattr__(self, "_cert", cert)
 
-    # ------------------------------------------------------------ certificate
-    def certificate(self) -> list[tuple[np.ndarray, float]]:
-        """``(u vertex, max eigenvalue of the LMI)`` for each of the 3**m vertices.
-
-        Recomputed in numpy from ``P, L, H, K, C`` and the bounds only (with
-        ``R = P L``), never taken from the solver.
-        """
-        return [(u.copy(), ev) for u, ev in self._cert]
-
-    @property
-    def max_eigenvalue(self) -> float:
-        """The largest LMI eigenvalue over all vertices (< 0 when certified)."""
-        return max(ev for _, ev in self._cert)
-
-    @property
-    def is_certified(self) -> bool:
-        """True if ``P`` is positive definite and every vertex eigenvalue is < 0."""
-        return is_certified(
+    def _numbers(self) -> tuple[Any, ...]:
+        return (
             self.P,
             self.L,
             self.H,
@@ -395,8 +517,62 @@ class ObserverDesign:
             self.bounds,
             self.input_bound,
             self.alpha,
-            self.sector,
         )
+
+    # ------------------------------------------------------------ certificate
+    def certificate(self) -> list[tuple[np.ndarray, float]]:
+        """``(u vertex, max eigenvalue)`` of the solved formulation's LMI.
+
+        ``"paper"``: the largest eigenvalue of the (lmi2) matrix at each of the
+        ``3**m`` input vertices. ``"polytopic"``: at each input vertex, the
+        largest eigenvalue of ``A_cl^T P + P A_cl + 2 alpha P`` over every corner
+        of the Jacobian bounds (the same as :meth:`decay_certificate`).
+        Recomputed in numpy from ``P, L, H, K, C`` and the bounds only.
+        """
+        return [(u.copy(), ev) for u, ev in self._cert]
+
+    def decay_certificate(self) -> list[tuple[np.ndarray, float]]:
+        """``(u vertex, max eigenvalue over the corners)``: the sound decay check.
+
+        :func:`ofrl_drake.lmi.decay_certificate` on this design's numbers; all
+        negative (and ``P > 0``) means ``dV/dt <= -2 alpha V`` for every ``x``,
+        ``xhat`` in the box (with ``xhat + H ytil``, ``xhat + K ytil`` in it too)
+        and every ``|u_k| <= input_bound``.
+
+        Raises
+        ------
+        LmiError
+            If the corner enumeration exceeds :data:`ofrl_drake.lmi.MAX_CORNERS`.
+        """
+        if not self._decay:
+            object.__setattr__(self, "_decay", decay_certificate(*self._numbers()))
+        return [(u.copy(), ev) for u, ev in self._decay]
+
+    @property
+    def max_eigenvalue(self) -> float:
+        """The largest eigenvalue of :meth:`certificate` (< 0 when certified)."""
+        return max(ev for _, ev in self._cert)
+
+    @property
+    def is_certified(self) -> bool:
+        """True if ``P`` is positive definite and every :meth:`certificate` value is < 0."""
+        if self.formulation == "paper":
+            return is_certified(*self._numbers(), self.sector)
+        return self.is_decay_certified
+
+    @property
+    def is_decay_certified(self) -> bool:
+        """True if ``P > 0`` and every :meth:`decay_certificate` value is < 0.
+
+        False also when the corner enumeration is too large to check.
+        """
+        try:
+            cert = self.decay_certificate()
+        except LmiError:
+            return False
+        if not np.all(np.isfinite(self.P)) or np.linalg.eigvalsh(self.P)[0] <= 0:
+            return False
+        return all(ev < 0 for _, ev in cert)
 
     @property
     def condition_number(self) -> float:
@@ -415,9 +591,16 @@ class ObserverDesign:
         Keys: ``P, L, H, K`` (nested lists), ``alpha``, ``input_bound``,
         ``box`` ``{lower, upper}``, ``jacobian_bounds`` ``{Mf1, Mf2, Mg1, Mg2}``,
         ``certificate`` ``[{input, max_eigenvalue}, ...]``, ``solver``,
-        ``solve_time``; and also ``R, C, status, backend, sector, objective,
-        margin, jacobian_method, condition_number, gain_norm, is_certified``.
+        ``solve_time``, ``formulation``, ``decay_certificate`` (same shape as
+        ``certificate``; None if the corner enumeration is too large),
+        ``is_decay_certified``; and also ``R, C, status, backend, sector,
+        objective, margin, jacobian_method, condition_number, gain_norm,
+        is_certified``.
         """
+        try:
+            decay: list[dict[str, Any]] | None = _cert_list(self.decay_certificate())
+        except LmiError:
+            decay = None
         return {
             "P": self.P.tolist(),
             "L": self.L.tolist(),
@@ -427,9 +610,12 @@ class ObserverDesign:
             "input_bound": self.input_bound,
             "box": self.box.to_dict(),
             "jacobian_bounds": self.bounds.to_dict(),
-            "certificate": [{"input": u.tolist(), "max_eigenvalue": ev} for u, ev in self._cert],
+            "certificate": _cert_list(self._cert),
             "solver": self.solver,
             "solve_time": self.solve_time,
+            "formulation": self.formulation,
+            "decay_certificate": decay,
+            "is_decay_certified": self.is_decay_certified,
             "R": self.R.tolist(),
             "C": self.C.tolist(),
             "status": self.status,
@@ -455,8 +641,9 @@ class ObserverDesign:
     ) -> ObserverDesign:
         """Rebuild a design from :meth:`to_dict` output.
 
-        The stored ``certificate`` is not trusted: it is recomputed from the
-        numbers.
+        The stored certificates are not trusted: they are recomputed from the
+        numbers. Data without a ``formulation`` key were written before the
+        polytopic formulation existed and are read as ``"paper"``.
 
         Parameters
         ----------
@@ -468,7 +655,7 @@ class ObserverDesign:
         Raises
         ------
         DesignError
-            If a required key is missing.
+            If a required key is missing or the formulation is unknown.
         """
         required = [
             "P",
@@ -515,6 +702,7 @@ class ObserverDesign:
             sector=data.get("sector", "sign_correct"),
             objective=data.get("objective", "min_gain"),
             margin=data.get("margin", DEFAULT_MARGIN),
+            formulation=data.get("formulation", "paper"),
         )
 
     @classmethod
@@ -543,19 +731,27 @@ class ObserverDesign:
         jacobian_method: str = "sampled",
         margin: float = DEFAULT_MARGIN,
         sector: str = "sign_correct",
+        formulation: str = "polytopic",
     ) -> ObserverDesign:
         """A design from pinned gains ``L, H, K`` (and optionally ``P``).
 
         If ``P`` is given, nothing is solved and the design is returned as it
         is: :meth:`certificate` and :attr:`is_certified` report honestly whether
         it certifies. If ``P`` is None, a small SDP looks for ``P >= I`` with
-        ``LMI <= -margin I`` at every vertex, ``L, H, K`` fixed, minimizing
-        ``lambda_max(P)``.
+        the formulation's LMI ``<= -margin I`` at every vertex (``"paper"``) or
+        every corner and vertex (``"polytopic"``, where the corners are built
+        with the given ``H, K``, so nonzero injection gains are checked
+        soundly too), ``L, H, K`` fixed, minimizing ``lambda_max(P)``.
 
         Raises
         ------
         ObserverDesignInfeasible
             If ``P`` is None and no certifying ``P`` is found.
+        DesignError
+            For gains of the wrong shape or a bad formulation, solver or backend,
+            or (``P`` None) too many corners for the polytopic formulation.
+        LmiError
+            If ``P`` is given and the polytopic corner enumeration is too large.
         """
         C = system.output_matrix
         n, q = system.n, system.q
@@ -567,6 +763,7 @@ class ObserverDesign:
             if G.shape != (n, q) or not np.all(np.isfinite(G)):
                 raise DesignError(f"{name} must be a finite ({n}, {q}) array; got {G.tolist()}.")
             gains.append(G)
+        _check_formulation(formulation, sector)
         box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
         alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
         if P is not None:
@@ -591,13 +788,37 @@ class ObserverDesign:
                 sector=sector,
                 objective="given",
                 margin=margin,
+                formulation=formulation,
             )
-        problem = _problem(C, bounds, input_bound, alpha, margin, "min_condition", None, sector)
-        problem = replace(problem, fixed=(gains[0], gains[1], gains[2]))
+        problem = _problem(
+            C,
+            bounds,
+            input_bound,
+            alpha,
+            margin,
+            "min_condition",
+            None,
+            sector,
+            formulation,
+            L=gains[0],
+            HK=(gains[1], gains[2]),
+        )
         return _finish(problem, bounds, box, input_bound, solver, backend, sector, max_gain=None)
 
 
 # ---------------------------------------------------------------- the driver
+def _check_formulation(formulation: str, sector: str) -> None:
+    if formulation not in FORMULATIONS:
+        raise DesignError(f"formulation must be one of {FORMULATIONS}; got {formulation!r}.")
+    if sector not in SECTORS:
+        raise DesignError(f"sector must be one of {SECTORS}; got {sector!r}.")
+    if formulation == "polytopic" and sector != "sign_correct":
+        raise DesignError(
+            f"sector={sector!r} applies to formulation='paper' only; the polytopic "
+            "formulation always uses the sign-correct input sector."
+        )
+
+
 def _check_numbers(alpha: float, input_bound: float, margin: float) -> tuple[float, float, float]:
     for name, value in (
         ("alpha", alpha),
@@ -645,18 +866,40 @@ def _problem(
     objective: str,
     max_gain: float | None,
     sector: str,
+    formulation: str,
+    *,
+    L: np.ndarray | None = None,
+    HK: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LmiProblem:
-    if sector not in SECTORS:
-        raise DesignError(f"sector must be one of {SECTORS}; got {sector!r}.")
+    _check_formulation(formulation, sector)
     if objective not in OBJECTIVES:
         raise DesignError(f"objective must be one of {OBJECTIVES}; got {objective!r}.")
     if max_gain is not None and not (math.isfinite(max_gain) and max_gain > 0):
         raise DesignError(f"max_gain must be a positive number; got {max_gain!r}.")
+    n, q = C.shape[1], C.shape[0]
     vertices = []
-    for u in input_vertices(input_bound, bounds.m):
-        A, Jf21, Jg21 = vertex_data(bounds, u, sector)
-        vertices.append((u, A, Jf21, Jg21))
-    return LmiProblem(C, vertices, alpha, margin, objective, max_gain)
+    corners = np.zeros((0, n, n))
+    if formulation == "paper":
+        for u in input_vertices(input_bound, bounds.m):
+            A, Jf21, Jg21 = vertex_data(bounds, u, sector)
+            vertices.append((u, A, Jf21, Jg21))
+    else:
+        if HK is None:
+            HK = (np.zeros((n, q)), np.zeros((n, q)))
+        us = input_vertices(input_bound, bounds.m)
+        try:
+            total = sum(corner_count(bounds, u, *HK, C) for u in us)
+            if total > MAX_CORNERS:
+                raise LmiError(
+                    f"{total} corner matrices over {len(us)} input vertices, more than "
+                    f"MAX_CORNERS = {MAX_CORNERS}; tighten the Jacobian bounds, use a "
+                    "smaller box or formulation='paper'."
+                )
+            stacks = [corner_matrices(bounds, u, *HK, C) for u in us]
+        except LmiError as err:
+            raise DesignError(f"formulation='polytopic': {err}") from err
+        corners = np.unique(np.concatenate(stacks), axis=0)
+    return LmiProblem(formulation, C, vertices, corners, alpha, margin, objective, max_gain, L, HK)
 
 
 def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
@@ -666,6 +909,16 @@ def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
     if inaccurate:
         hint += ", a larger margin or a more accurate solver ('clarabel')"
     return hint
+
+
+def _solve(problem: LmiProblem, solver: str, backend: str) -> SdpSolution:
+    if backend == "drake":
+        return _solve_drake(problem, solver)
+    if backend == "cvxpy":
+        from ofrl_drake.design_cvxpy import solve_cvxpy
+
+        return solve_cvxpy(problem, solver)
+    raise DesignError(f"backend must be one of {BACKENDS}; got {backend!r}.")
 
 
 def _finish(
@@ -678,17 +931,10 @@ def _finish(
     sector: str,
     max_gain: float | None,
 ) -> ObserverDesign:
-    if backend == "drake":
-        sol = _solve_drake(problem, solver)
-    elif backend == "cvxpy":
-        from ofrl_drake.design_cvxpy import solve_cvxpy
-
-        sol = solve_cvxpy(problem, solver)
-    else:
-        raise DesignError(f"backend must be one of {BACKENDS}; got {backend!r}.")
+    sol = _solve(problem, solver, backend)
     where = (
-        f"alpha={problem.alpha:g}, box {box.lower.tolist()}..{box.upper.tolist()}, "
-        f"|u_k| <= {input_bound:g}"
+        f"formulation={problem.formulation}, alpha={problem.alpha:g}, box "
+        f"{box.lower.tolist()}..{box.upper.tolist()}, |u_k| <= {input_bound:g}"
     )
 
     def fail(reason: str, inaccurate: bool = True) -> ObserverDesignInfeasible:
@@ -700,6 +946,7 @@ def _finish(
             input_bound=input_bound,
             status=sol.status,
             solver=solver,
+            formulation=problem.formulation,
         )
 
     if sol.infeasible or sol.P is None:
@@ -708,10 +955,13 @@ def _finish(
     if not all(np.all(np.isfinite(a)) for a in numbers):
         raise fail(f"solver status {sol.status}, non-finite solution")
     P = 0.5 * (sol.P + sol.P.T)
-    try:
-        L = np.linalg.solve(P, sol.R)
-    except np.linalg.LinAlgError:
-        raise fail(f"solver status {sol.status}, singular P") from None
+    if problem.L is not None:
+        L = problem.L
+    else:
+        try:
+            L = np.linalg.solve(P, sol.R)
+        except np.linalg.LinAlgError:
+            raise fail(f"solver status {sol.status}, singular P") from None
     design = ObserverDesign(
         P=P,
         L=L,
@@ -730,6 +980,7 @@ def _finish(
         sector=sector,
         objective=problem.objective,
         margin=problem.margin,
+        formulation=problem.formulation,
     )
     if not design.is_certified:
         raise fail(
@@ -755,8 +1006,10 @@ def design_observer(
     max_gain: float | None = None,
     backend: str = "drake",
     sector: str = "sign_correct",
+    formulation: str = "polytopic",
+    injection_gains: bool = True,
 ) -> ObserverDesign:
-    """Design certified observer gains ``P, L, H, K`` by solving (lmi2).
+    """Design certified observer gains by solving an LMI (see the module docstring).
 
     Parameters
     ----------
@@ -769,7 +1022,8 @@ def design_observer(
         ``lambda_bar``; one common set of gains is certified at all 3**m
         vertices, hence for every ``|u_k| <= input_bound``.
     alpha : float
-        Decay rate: ``dV_e/dt <= -2 alpha V_e``, ``V_e = e^T P e``.
+        Decay rate: ``dV_e/dt <= -2 alpha V_e``, ``V_e = e^T P e`` (for
+        ``"paper"``, only in the sense of (lmi2); see the module docstring).
     bounds : JacobianBounds, optional
         Precomputed bounds on a box containing ``box``; default: computed with
         ``jacobian_method``.
@@ -778,44 +1032,60 @@ def design_observer(
     solver : {"clarabel", "scs", "csdp", "mosek"}
         SDP solver (the cvxpy backend accepts "clarabel" and "scs").
     margin : float
-        Strict margin: ``LMI <= -margin I`` at every vertex.
+        Strict margin: ``LMI <= -margin I`` at every vertex (and corner).
     objective : {"min_gain", "min_condition", "feasibility"}
-        See the module docstring; "min_gain" minimizes
-        ``||R||_2 + ||[H K]||_F``.
+        See the module docstring; "min_gain" minimizes ``||R||_2`` (plus
+        ``||[H K]||_F`` when ``H, K`` are free).
     max_gain : float, optional
         Enforce ``||L||_2 <= max_gain`` (through ``||R||_2 <= max_gain``).
     backend : {"drake", "cvxpy"}
         Modelling layer.
     sector : {"sign_correct", "paper"}
-        Input sector; "paper" reproduces the paper's literal (aug_jac_g), valid
-        only for ``u >= 0``.
+        Input sector of the ``"paper"`` formulation; "paper" reproduces the
+        paper's literal (aug_jac_g), valid only for ``u >= 0``.
+    formulation : {"polytopic", "paper"}
+        ``"polytopic"``: the sound decay certificate with ``H = K = 0``.
+        ``"paper"``: the paper's (lmi2).
+    injection_gains : bool
+        ``"paper"`` only: False pins ``H = K = 0`` (a linear Luenberger observer
+        checked against (lmi2)). The polytopic formulation always has ``H = K =
+        0`` and ignores it.
 
     Returns
     -------
     ObserverDesign
-        Certified: :attr:`ObserverDesign.is_certified` is True.
+        Certified: :attr:`ObserverDesign.is_certified` is True (and, for
+        ``"polytopic"``, so is :attr:`ObserverDesign.is_decay_certified`).
 
     Raises
     ------
     ObserverDesignInfeasible
         If the solver reports infeasibility or the numbers do not certify.
     DesignError
-        For an unknown solver, backend, objective or sector, a solver that is
-        not usable here (MOSEK without licence), or bounds that do not match.
+        For an unknown solver, backend, objective, sector or formulation, a
+        solver that is not usable here (MOSEK without licence), bounds that do
+        not match, or too many corners for the polytopic formulation.
 
     Examples
     --------
     >>> from ofrl_drake.examples import make_system
-    >>> d = design_observer(make_system("two_state"), ([-2, -2], [2, 2]), 3.0, 2.0)
-    >>> d.is_certified, d.condition_number < 1e3
-    (True, True)
+    >>> d = design_observer(make_system("two_state"), ([-2, -2], [2, 2]), 3.0, 0.5)
+    >>> d.is_certified, d.is_decay_certified, d.condition_number < 1e3
+    (True, True, True)
+    >>> p = design_observer(make_system("two_state"), ([-2, -2], [2, 2]), 3.0, 2.0,
+    ...                     formulation="paper")
+    >>> p.is_certified, p.is_decay_certified
+    (True, False)
     """
     if solver not in SOLVERS:
         raise DesignError(f"solver must be one of {SOLVERS}; got {solver!r}.")
     if backend not in BACKENDS:
         raise DesignError(f"backend must be one of {BACKENDS}; got {backend!r}.")
+    _check_formulation(formulation, sector)
     alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
     box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
+    n, q = system.n, system.q
+    pinned = None if injection_gains else (np.zeros((n, q)), np.zeros((n, q)))
     problem = _problem(
         system.output_matrix,
         bounds,
@@ -825,6 +1095,8 @@ def design_observer(
         objective,
         max_gain,
         sector,
+        formulation,
+        HK=pinned,
     )
     return _finish(problem, bounds, box, input_bound, solver, backend, sector, max_gain)
 
@@ -853,14 +1125,16 @@ def max_decay_rate(
         Cap ``||L||_2 <= max_gain``, enforced as ``||R||_2 <= max_gain`` inside
         the SDP (sufficient since ``P >= I``) and re-checked in numpy.
     **kw
-        Passed to :func:`design_observer` (``solver``, ``backend``, ``bounds``,
-        ``margin``, ``objective``, ...). The Jacobian bounds are computed once.
+        Passed to :func:`design_observer` (``formulation``, ``solver``,
+        ``backend``, ``bounds``, ``margin``, ``objective``, ...). The Jacobian
+        bounds are computed once.
 
     Returns
     -------
     ObserverDesign
-        The best certified design found; its ``alpha`` is within ``tol`` of the
-        largest certifiable rate (for this margin and solver).
+        The best certified design found, in the formulation asked for; its
+        ``alpha`` is within ``tol`` of the largest certifiable rate (for this
+        margin and solver).
 
     Raises
     ------

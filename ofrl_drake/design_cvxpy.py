@@ -1,11 +1,15 @@
 """The observer SDP of :mod:`ofrl_drake.design`, built in cvxpy (second backend).
 
 Same variables, constraints and objectives as the Drake backend (see the
-:mod:`ofrl_drake.design` docstring): ``P = P^T >= I``, ``LMI(u) <= -margin I`` at
-every input vertex, ``min ||R||_2 + ||[H K]||_F`` by default. Solvers: Clarabel
-and SCS, both shipped with cvxpy. The numbers are certified in numpy exactly as
-for the Drake backend, and the same :class:`ObserverDesign` is returned with
-``backend="cvxpy"``.
+:mod:`ofrl_drake.design` docstring), for both formulations: ``P = P^T >= I``;
+``"paper"``: (lmi2) ``<= -margin I`` at every input vertex; ``"polytopic"``:
+``A^T P + P A - C^T R^T - R C + 2 alpha P <= -margin I`` at every corner matrix
+``A``; ``min ||R||_2`` (``+ ||[H K]||_F`` when ``H, K`` are free) by default.
+The LMIs are written here directly in cvxpy expressions, independently of the
+numpy assembly the Drake backend uses, so agreement of the two backends is a
+check of both. Solvers: Clarabel and SCS, both shipped with cvxpy. The numbers
+are certified in numpy exactly as for the Drake backend, and the same
+:class:`ObserverDesign` is returned with ``backend="cvxpy"``.
 """
 
 from __future__ import annotations
@@ -72,25 +76,29 @@ def solve_cvxpy(problem: LmiProblem, solver: str) -> SdpSolution:
     n, q, C = problem.n, problem.q, problem.C
     eye = np.eye(n)
     P = cp.Variable((n, n), symmetric=True, name="P")
-    if problem.fixed is None:
-        R = cp.Variable((n, q), name="R")
+    R = cp.Variable((n, q), name="R") if problem.L is None else P @ problem.L
+    if problem.HK is None:
         H = cp.Variable((n, q), name="H")
         K = cp.Variable((n, q), name="K")
     else:
-        L_fix, H, K = problem.fixed
-        R = P @ L_fix
+        H, K = problem.HK
     constraints = [P - eye >> 0]
-    for _, A, Jf21, Jg21 in problem.vertices:
-        J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
-        M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
-        M21 = P - J21
-        M = cp.bmat([[M11, M21.T], [M21, -2.0 * eye]])
-        constraints.append(_sym(-M) - problem.margin * np.eye(2 * n) >> 0)
+    if problem.formulation == "paper":
+        for _, A, Jf21, Jg21 in problem.vertices:
+            J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
+            M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
+            M21 = P - J21
+            M = cp.bmat([[M11, M21.T], [M21, -2.0 * eye]])
+            constraints.append(_sym(-M) - problem.margin * np.eye(2 * n) >> 0)
+    else:
+        for A in problem.corners:
+            M = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
+            constraints.append(_sym(-M) - problem.margin * eye >> 0)
     if problem.max_gain is not None:
         constraints.append(cp.sigma_max(R) <= float(problem.max_gain))
     if problem.objective == "min_gain":
         cost = cp.sigma_max(R)
-        if problem.fixed is None:
+        if problem.HK is None:
             cost = cost + cp.norm(cp.hstack([cp.vec(H, order="F"), cp.vec(K, order="F")]))
         objective = cp.Minimize(cost)
     elif problem.objective == "min_condition":
@@ -112,13 +120,12 @@ def solve_cvxpy(problem: LmiProblem, solver: str) -> SdpSolution:
     if infeasible or P.value is None:
         return SdpSolution(None, None, None, None, status, infeasible, elapsed)
     Pv = np.asarray(P.value, dtype=float)
-    if problem.fixed is None:
-        Rv = np.asarray(R.value, dtype=float)
+    Rv = np.asarray(R.value, dtype=float) if problem.L is None else Pv @ problem.L
+    if problem.HK is None:
         Hv = np.asarray(H.value, dtype=float)
         Kv = np.asarray(K.value, dtype=float)
     else:
-        Rv = Pv @ problem.fixed[0]
-        Hv, Kv = problem.fixed[1], problem.fixed[2]
+        Hv, Kv = problem.HK
     return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed)
 
 
@@ -135,6 +142,8 @@ def design_observer_cvxpy(
     objective: str = "min_gain",
     max_gain: float | None = None,
     sector: str = "sign_correct",
+    formulation: str = "polytopic",
+    injection_gains: bool = True,
 ) -> ObserverDesign:
     """:func:`ofrl_drake.design.design_observer` with ``backend="cvxpy"``.
 
@@ -160,4 +169,6 @@ def design_observer_cvxpy(
         max_gain=max_gain,
         backend="cvxpy",
         sector=sector,
+        formulation=formulation,
+        injection_gains=injection_gains,
     )

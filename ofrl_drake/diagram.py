@@ -158,6 +158,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
             H=np.asarray(o.H, float),
             K=np.asarray(o.K, float),
             jacobian_method=o.jacobian_method,
+            formulation=o.formulation,
         )
     return design_observer(
         system,
@@ -166,6 +167,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
         o.alpha,
         jacobian_method=o.jacobian_method,
         solver=o.solver,
+        formulation=o.formulation,
     )
 
 
@@ -185,7 +187,11 @@ def _default_block(slot: str, parts: ClosedLoopParts) -> System:
                 half_width=half,
                 input_bound=s.input_bound,
                 alpha=o.alpha,
-                design_options={"jacobian_method": o.jacobian_method, "solver": o.solver},
+                design_options={
+                    "jacobian_method": o.jacobian_method,
+                    "solver": o.solver,
+                    "formulation": o.formulation,
+                },
                 initial_state=s.xhat0,
             )
         gains = ObserverGains.from_design(parts.system, parts.design)

@@ -1,7 +1,9 @@
-"""The observer LMI (lmi2) at one input vertex, and its eigenvalue certificate.
+"""Observer LMIs and their eigenvalue certificates: pure numpy, no Drake or solver.
 
-Pure numpy: nothing here needs Drake or a solver.
+Two checks live here.
 
+The paper's (lmi2), at one input vertex
+-----------------------------------------
 With Jacobian bounds ``M_f1, M_f2`` (n x n) and ``M_g1, M_g2`` (n x n x m), an
 input ``u`` and the sign-correct input sector (NOTES.md, "input sector")
 ``M_ug1(u), M_ug2(u)`` of :func:`ofrl_drake.sector.input_sector`, the paper's
@@ -16,24 +18,75 @@ input ``u`` and the sign-correct input sector (NOTES.md, "input sector")
      [P - J21,                                  -2 I     ]]  <=  0
 
 with ``R = P L`` (the paper's substitution ``L = P^{-1} R``); the lower-right
-block is ``-((J_f)_22 + (J_g)_22) = -2 I``. Given numbers ``P, L, H, K`` the
-matrix is assembled with ``R = P L`` and its largest eigenvalue is computed with
-``numpy.linalg.eigvalsh``: a negative value at every one of the ``3**m`` input
-vertices of :func:`ofrl_drake.sector.input_vertices` (and ``P`` positive
-definite) certifies ``dV/dt <= -2 alpha V`` for ``V = e^T P e`` for every input
-with ``|u_k| <= input_bound`` (NOTES.md, "one set of gains").
-
+block is ``-((J_f)_22 + (J_g)_22) = -2 I``. :func:`lmi_matrix` assembles it from
+numbers and :func:`certificate` lists its largest eigenvalue at each of the
+``3**m`` input vertices of :func:`ofrl_drake.sector.input_vertices`.
 ``sector="paper"`` uses the paper's literal ``(M_g1 u, M_g2 u)`` instead, which
 is valid only for ``u >= 0``; it is kept to document that gap.
 
-Caveat: this module checks (lmi2) exactly as the paper states it. For linear
-plants (``M_f1 = M_f2``, constant ``g``) the nonlinear terms vanish and a
-negative certificate does give ``dV/dt <= -2 alpha V``. For nonlinear plants the
-paper's step from element-wise Jacobian bounds to the quadratic sector condition
-(quad_f) needs each row of ``(M_f2 - M_f1)(I - H C) e`` to bound ``phi_f`` from
-both sides, which fails when a row has more than one uncertain entry; on the
-two-state example a design certified at alpha = 2 on [-2, 2]^2 has
-``dV/dt = +39 V`` at ``x = (0.598, -2)``, ``u = 0``, ``e = (eps, 0)``.
+(lmi2) is *not* a decay certificate for nonlinear plants. For linear plants
+(``M_f1 = M_f2``, constant ``g``) the nonlinear terms vanish and a negative
+(lmi2) does give ``dV/dt <= -2 alpha V``. For nonlinear plants the paper's step
+from element-wise Jacobian bounds to the quadratic sector condition (quad_f)
+needs each row of ``(M_f2 - M_f1)(I - H C) e`` to bound ``phi_f`` from both
+sides, which fails when a row has more than one uncertain entry, and (lmi) adds
+the f and g conditions with one ``phi`` and multiplier 1. On the two-state
+example a design satisfying (lmi2) at alpha = 2 on [-2, 2]^2 with ``|u| <= 3``
+has ``dV/dt = +39 V`` at ``x = (0.598, -2)``, ``u = 0``, ``e = (eps, 0)``.
+
+The polytopic decay certificate
+-------------------------------
+:func:`decay_certificate` is a sound check of ``dV/dt <= -2 alpha V`` for
+``V = e^T P e``, ``e = x - xhat``. With ``ytil = C e`` the observer
+(:mod:`ofrl_drake.observer`)
+
+    xhat' = f(xhat + H ytil) + g(xhat + K ytil) u + (L - M_f1 H - M_ug1(u) K) ytil
+
+and the plant ``x' = f(x) + g(x) u`` give, exactly,
+
+    e' = [f(x) - f(z_f)] + [g(x) - g(z_g)] u - (L - M_f1 H - M_ug1(u) K) C e,
+
+    z_f = xhat + H C e,  x - z_f = (I - H C) e,
+    z_g = xhat + K C e,  x - z_g = (I - K C) e.
+
+By the mean value theorem applied to each row ``i`` separately (each row at its
+own point of the segment, which stays in the box because the box is convex),
+``f(x) - f(z_f) = M_f (I - H C) e`` with ``M_f`` in the element-wise box
+``[M_f1, M_f2]``, and for each input ``k``, ``g_k(x) - g_k(z_g) = G_k (I - K C) e``
+with ``G_k`` in ``[M_g1[:, :, k], M_g2[:, :, k]]``. So ``e' = A_cl e`` with
+
+    A_cl = M_f (I - H C) + M_gu (I - K C) - (L - M_f1 H - M_ug1(u) K) C,
+    M_gu = sum_k u_k G_k,
+
+and ``dV/dt + 2 alpha V = e^T S e`` with ``S = A_cl^T P + P A_cl + 2 alpha P``.
+``lambda_max(S)`` is a convex function of ``A_cl``, and:
+
+* for fixed ``u``, ``A_cl`` is affine in ``(M_f, G_1, ..., G_m)``, so the largest
+  ``lambda_max(S)`` over the product of boxes is attained at a corner;
+* for fixed ``M_f, G``, ``A_cl`` is affine in ``u`` on each orthant (``M_ug1(u)``
+  is linear there, with breaks only at ``u_k = 0``), so the largest value over
+  ``|u_k| <= lambda_bar`` is attained at a vertex in ``{-lambda_bar, 0,
+  lambda_bar}^m``.
+
+Applying the two in turn, ``lambda_max(S) <= 0`` at every combination of corner
+and input vertex implies ``dV/dt <= -2 alpha V`` for every ``x`` and ``xhat`` in
+the box (and ``xhat + H ytil``, ``xhat + K ytil`` in it too when ``H, K != 0``) and
+every ``|u_k| <= lambda_bar``. At a fixed vertex ``u`` the set of ``M_gu`` over the
+corners of the ``G_k`` has the same corners as the element-wise box
+``[M_ug1(u), M_ug2(u)]`` (a sum of boxes is a box), so those corners are
+enumerated instead: far fewer when ``m > 1``, the same maximum. When ``H = K =
+0``, ``A_cl = (M_f + M_gu) - L C`` depends on the sum only, which ranges over the
+box ``[M_f1 + M_ug1(u), M_f2 + M_ug2(u)]``, and its corners are enumerated.
+The argument needs the bounds to be true enclosures of the Jacobians on the box:
+``jacobian_method="certified"`` guarantees that; ``"sampled"`` is an inner
+estimate, usually tight but without a guarantee.
+Only entries with lower != upper generate corners; more than
+:data:`MAX_CORNERS` matrices in total raise :class:`LmiError`.
+
+Along ``e = eps e_1`` on the two-state example (``C = [0 1]``, so ``ytil = 0``)
+``dV/dt = 2 eps^2 (-P11 + P12 a21(x))`` with ``a21 = d f_2 / d x_1`` of both
+signs on the box, so no quadratic ``V`` certifies ``alpha >= 1`` there, whatever
+the gains; the polytopic certificate finds rates just below 1.
 """
 
 from __future__ import annotations
@@ -47,16 +100,27 @@ from ofrl_drake.errors import OfrlError
 from ofrl_drake.sector import input_sector, input_vertices, paper_input_sector
 
 __all__ = [
+    "MAX_CORNERS",
     "SECTORS",
     "LmiError",
     "bounds_arrays",
+    "box_corners",
     "certificate",
+    "corner_count",
+    "corner_matrices",
+    "decay_certificate",
+    "decay_matrices",
     "is_certified",
+    "is_decay_certified",
+    "lmi2_blocks",
     "lmi_matrix",
+    "polytopic_lmi",
     "vertex_data",
 ]
 
 SECTORS = ("sign_correct", "paper")
+#: The most corner matrices (over all input vertices) the polytopic checks enumerate.
+MAX_CORNERS = 2**16
 
 
 class LmiError(OfrlError):
@@ -216,7 +280,47 @@ def lmi_matrix(
     if A.shape != (n, n):
         raise LmiError(f"bounds are for n = {A.shape[0]} but P is {n} x {n}.")
     P = 0.5 * (P + P.T)
-    R = P @ L
+    return lmi2_blocks(P, P @ L, H, K, C, A, Jf21, Jg21, alpha)
+
+
+def lmi2_blocks(
+    P: np.ndarray,
+    R: np.ndarray,
+    H: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    A: np.ndarray,
+    Jf21: np.ndarray,
+    Jg21: np.ndarray,
+    alpha: float,
+) -> np.ndarray:
+    """The (lmi2) matrix from its vertex data, in terms of ``R`` (no checks).
+
+    Affine in ``(P, R, H, K)`` jointly, which is what makes (lmi2) an LMI; the
+    Drake backend of :mod:`ofrl_drake.design` reads its coefficient matrices off
+    this function.
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n)
+        Symmetric Lyapunov matrix.
+    R : ndarray, shape (n, q)
+        ``P L``.
+    H, K : ndarray, shape (n, q)
+        Injection gains.
+    C : ndarray, shape (q, n)
+        Output matrix.
+    A, Jf21, Jg21 : ndarray, shape (n, n)
+        From :func:`vertex_data`.
+    alpha : float
+        Decay rate.
+
+    Returns
+    -------
+    ndarray, shape (2n, 2n)
+        The symmetrized (lmi2) matrix.
+    """
+    n = P.shape[0]
     eye = np.eye(n)
     J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
     M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * alpha * P
@@ -279,4 +383,304 @@ def is_certified(
     if np.linalg.eigvalsh(0.5 * (P + P.T))[0] <= 0:
         return False
     cert = certificate(P, L, H, K, C, bounds, input_bound, alpha, sector)
+    return all(ev < 0 for _, ev in cert)
+
+
+# ------------------------------------------------- polytopic decay certificate
+def _free_count(lower: np.ndarray, upper: np.ndarray) -> int:
+    return int(np.count_nonzero(lower != upper))
+
+
+def box_corners(lower: Any, upper: Any) -> np.ndarray:
+    """All corners of the element-wise box ``lower <= M <= upper``.
+
+    Only entries with ``lower != upper`` vary, so a box with ``k`` such entries
+    has ``2**k`` corners.
+
+    Parameters
+    ----------
+    lower, upper : array_like, same shape
+        Element-wise bounds, ``lower <= upper``.
+
+    Returns
+    -------
+    ndarray, shape (2**k, *lower.shape)
+        Corner ``c`` takes ``upper`` at the free entries whose bit is set in
+        ``c`` (the first free entry, in C order, is bit 0) and ``lower`` elsewhere.
+
+    Raises
+    ------
+    LmiError
+        If the shapes differ, an entry has ``lower > upper`` (or is NaN), or
+        ``2**k`` exceeds :data:`MAX_CORNERS`.
+
+    Examples
+    --------
+    >>> box_corners([[0.0, 1.0]], [[2.0, 1.0]]).tolist()
+    [[[0.0, 1.0]], [[2.0, 1.0]]]
+    """
+    lo = np.asarray(lower, dtype=float)
+    hi = np.asarray(upper, dtype=float)
+    if lo.shape != hi.shape:
+        raise LmiError(f"box lower has shape {lo.shape} but upper has {hi.shape}.")
+    if not np.all(lo <= hi):
+        raise LmiError("box lower must be <= upper element-wise (and not NaN).")
+    free = np.flatnonzero(lo.ravel() != hi.ravel())
+    k = free.size
+    if 2**k > MAX_CORNERS:
+        raise LmiError(
+            f"the box has {k} uncertain entries, {2**k} corners, more than "
+            f"MAX_CORNERS = {MAX_CORNERS}; tighten the Jacobian bounds or use a smaller box."
+        )
+    bits = (np.arange(2**k)[:, None] >> np.arange(k)[None, :]) & 1
+    out = np.repeat(lo.ravel()[None, :], 2**k, axis=0)
+    out[:, free] = np.where(bits == 1, hi.ravel()[free], lo.ravel()[free])
+    return out.reshape((2**k, *lo.shape))
+
+
+def _injection(H: Any, K: Any, C: Any, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(H, K, C)`` as arrays, or None when there is no injection (H = K = 0)."""
+    if H is None and K is None:
+        return None
+    if H is None or K is None or C is None:
+        raise LmiError("give H, K and C together (or neither, for H = K = 0).")
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    q = C.shape[0]
+    out = []
+    for name, G in (("H", H), ("K", K)):
+        G = np.asarray(G, dtype=float)
+        if G.ndim == 1 and q == 1:
+            G = G.reshape(-1, 1)
+        if G.shape != (n, q) or C.shape != (q, n):
+            raise LmiError(
+                f"{name} must have shape (n, q) = ({n}, {q}) and C ({q}, {n}); "
+                f"got {G.shape} and {C.shape}."
+            )
+        out.append(G)
+    if not (np.any(out[0]) or np.any(out[1])):
+        return None
+    return out[0], out[1], C
+
+
+def corner_count(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = None) -> int:
+    """How many matrices :func:`corner_matrices` returns for these arguments."""
+    Mf1, Mf2, Mg1, Mg2 = bounds_arrays(bounds)
+    u = _input(u, Mg1.shape[2])
+    Mug1, Mug2 = input_sector(Mg1, Mg2, u)
+    if _injection(H, K, C, Mf1.shape[0]) is None:
+        return 2 ** _free_count(Mf1 + Mug1, Mf2 + Mug2)
+    return 2 ** (_free_count(Mf1, Mf2) + _free_count(Mug1, Mug2))
+
+
+def _input(u: Any, m: int) -> np.ndarray:
+    u = np.atleast_1d(np.asarray(u, dtype=float))
+    if u.shape != (m,):
+        raise LmiError(f"u must have shape ({m},); got {u.shape}.")
+    return u
+
+
+def corner_matrices(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = None) -> np.ndarray:
+    """The error-dynamics matrices ``A`` (with ``A_cl = A - L C``) at every corner.
+
+    ``A = M_f (I - H C) + M_gu (I - K C) + (M_f1 H + M_ug1(u) K) C`` for ``M_f``
+    at the corners of ``[M_f1, M_f2]`` and ``M_gu`` at the corners of
+    ``[M_ug1(u), M_ug2(u)]`` (see the module docstring). With ``H = K = 0`` (or
+    not given) ``A = M_f + M_gu`` at the corners of the summed box
+    ``[M_f1 + M_ug1(u), M_f2 + M_ug2(u)]``.
+
+    Parameters
+    ----------
+    bounds : JacobianBounds or mapping or (Mf1, Mf2, Mg1, Mg2)
+        Jacobian bounds (see :func:`bounds_arrays`).
+    u : array_like, shape (m,)
+        The input (an input vertex, for a certificate).
+    H, K : array_like, shape (n, q), optional
+        Injection gains; both None (or both zero) means no injection.
+    C : array_like, shape (q, n), optional
+        Output matrix; needed with ``H, K``.
+
+    Returns
+    -------
+    ndarray, shape (N, n, n)
+        ``N =`` :func:`corner_count`.
+
+    Raises
+    ------
+    LmiError
+        For bad shapes or more than :data:`MAX_CORNERS` corners.
+    """
+    Mf1, Mf2, Mg1, Mg2 = bounds_arrays(bounds)
+    n = Mf1.shape[0]
+    u = _input(u, Mg1.shape[2])
+    Mug1, Mug2 = input_sector(Mg1, Mg2, u)
+    inj = _injection(H, K, C, n)
+    if inj is None:
+        return box_corners(Mf1 + Mug1, Mf2 + Mug2)
+    H, K, C = inj
+    count = 2 ** (_free_count(Mf1, Mf2) + _free_count(Mug1, Mug2))
+    if count > MAX_CORNERS:
+        raise LmiError(
+            f"{count} corner matrices at u = {u.tolist()}, more than MAX_CORNERS = "
+            f"{MAX_CORNERS}; tighten the Jacobian bounds or use a smaller box."
+        )
+    eye = np.eye(n)
+    Af = box_corners(Mf1, Mf2) @ (eye - H @ C)  # (Nf, n, n)
+    Ag = box_corners(Mug1, Mug2) @ (eye - K @ C)  # (Ng, n, n)
+    A = Af[:, None] + Ag[None, :] + (Mf1 @ H + Mug1 @ K) @ C
+    return A.reshape(-1, n, n)
+
+
+def decay_matrices(P: np.ndarray, A_cl: np.ndarray, alpha: float) -> np.ndarray:
+    """``S = A_cl^T P + P A_cl + 2 alpha P`` for a stack of ``A_cl`` (no checks).
+
+    ``dV/dt + 2 alpha V = e^T S e`` for ``V = e^T P e`` and ``e' = A_cl e``.
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n)
+        Symmetric.
+    A_cl : ndarray, shape (..., n, n)
+        Closed-loop error matrices.
+    alpha : float
+        Decay rate.
+
+    Returns
+    -------
+    ndarray, shape (..., n, n)
+        Symmetric matrices.
+    """
+    PA = P @ A_cl
+    return PA + np.swapaxes(PA, -1, -2) + 2.0 * alpha * P
+
+
+def polytopic_lmi(
+    P: np.ndarray, R: np.ndarray, A: np.ndarray, C: np.ndarray, alpha: float
+) -> np.ndarray:
+    """``A^T P + P A - C^T R^T - R C + 2 alpha P`` for a stack of ``A`` (no checks).
+
+    With ``R = P L`` this is :func:`decay_matrices` at ``A_cl = A - L C``; it is
+    affine in ``(P, R)``, the LMI of the polytopic design.
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n)
+        Symmetric.
+    R : ndarray, shape (n, q)
+        ``P L``.
+    A : ndarray, shape (..., n, n)
+        From :func:`corner_matrices`.
+    C : ndarray, shape (q, n)
+        Output matrix.
+    alpha : float
+        Decay rate.
+
+    Returns
+    -------
+    ndarray, shape (..., n, n)
+        Symmetric matrices; the design asks for them ``<= -margin I``.
+    """
+    PA = P @ A - R @ C
+    return PA + np.swapaxes(PA, -1, -2) + 2.0 * alpha * P
+
+
+def decay_certificate(
+    P: np.ndarray,
+    L: np.ndarray,
+    H: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    bounds: Any,
+    input_bound: float,
+    alpha: float,
+) -> list[tuple[np.ndarray, float]]:
+    """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 alpha P`` per input vertex.
+
+    The maximum, at each of the ``3**m`` input vertices, over every corner of
+    the Jacobian bounds (:func:`corner_matrices`) of ``lambda_max(S)`` with
+    ``S = A_cl^T P + P A_cl + 2 alpha P`` and ``A_cl = A - L C``. All negative
+    (and ``P`` positive definite) is a sound certificate that ``V = e^T P e``
+    obeys ``dV/dt <= -2 alpha V`` along the true nonlinear error dynamics for
+    every ``x, xhat`` in the box of the bounds and every ``|u_k| <=
+    input_bound``; the derivation is in the module docstring.
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n)
+        Lyapunov matrix (symmetrized here).
+    L, H, K : ndarray, shape (n, q)
+        Observer gains.
+    C : ndarray, shape (q, n)
+        Output matrix.
+    bounds : JacobianBounds or mapping or (Mf1, Mf2, Mg1, Mg2)
+        Jacobian bounds over the box.
+    input_bound : float
+        ``lambda_bar``.
+    alpha : float
+        Decay rate.
+
+    Returns
+    -------
+    list of (ndarray, float)
+        ``(u vertex, max eigenvalue over the corners)``, in the order of
+        :func:`ofrl_drake.sector.input_vertices`.
+
+    Raises
+    ------
+    LmiError
+        For bad shapes or numbers, or more than :data:`MAX_CORNERS` corner
+        matrices over all vertices.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> Z = np.zeros((1, 1, 1))
+    >>> cert = decay_certificate([[1.0]], [[3.0]], [[0.0]], [[0.0]], [[1.0]],
+    ...                          ([[-1.0]], [[1.0]], Z, Z), 1.0, 0.5)
+    >>> [(u.tolist(), ev) for u, ev in cert]
+    [([-1.0], -3.0), ([0.0], -3.0), ([1.0], -3.0)]
+    """
+    P, L, H, K, C = _gains(P, L, H, K, C)
+    if not np.isfinite(alpha):
+        raise LmiError(f"alpha must be finite; got {alpha!r}.")
+    if not (np.isfinite(input_bound) and input_bound >= 0):
+        raise LmiError(f"input_bound must be finite and >= 0; got {input_bound!r}.")
+    Mf1 = bounds_arrays(bounds)[0]
+    n = P.shape[0]
+    if Mf1.shape != (n, n):
+        raise LmiError(f"bounds are for n = {Mf1.shape[0]} but P is {n} x {n}.")
+    m = bounds_arrays(bounds)[2].shape[2]
+    vertices = input_vertices(float(input_bound), m)
+    total = sum(corner_count(bounds, u, H, K, C) for u in vertices)
+    if total > MAX_CORNERS:
+        raise LmiError(
+            f"the decay certificate needs {total} corner matrices over {len(vertices)} "
+            f"input vertices, more than MAX_CORNERS = {MAX_CORNERS}; tighten the "
+            "Jacobian bounds or use a smaller box."
+        )
+    P = 0.5 * (P + P.T)
+    out = []
+    for u in vertices:
+        A_cl = corner_matrices(bounds, u, H, K, C) - L @ C
+        S = decay_matrices(P, A_cl, alpha)
+        out.append((u, float(np.linalg.eigvalsh(S)[:, -1].max())))
+    return out
+
+
+def is_decay_certified(
+    P: np.ndarray,
+    L: np.ndarray,
+    H: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    bounds: Any,
+    input_bound: float,
+    alpha: float,
+) -> bool:
+    """True if ``P`` is positive definite and :func:`decay_certificate` is < 0."""
+    P = np.asarray(P, dtype=float)
+    if not np.all(np.isfinite(P)):
+        return False
+    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] <= 0:
+        return False
+    cert = decay_certificate(P, L, H, K, C, bounds, input_bound, alpha)
     return all(ev < 0 for _, ev in cert)

@@ -95,7 +95,11 @@ class PointsConfig:
 class ObserverConfig:
     """Observer design: decay rate ``alpha`` and the box of the Jacobian bounds.
 
-    Optional: ``L``, ``H``, ``K`` pin the gains (all three or none);
+    Optional: ``formulation``: ``polytopic`` (default; a sound decay
+    certificate over every corner of the Jacobian bounds, with H = K = 0) or
+    ``paper`` (the paper's (lmi2) with the sign-correct sector, which does not
+    imply decay for every nonlinear plant; see the README);
+    ``L``, ``H``, ``K`` pin the gains (all three or none);
     ``jacobian_method`` (``sampled`` or ``certified``), ``solver``;
     ``schedule_period`` > 0 re-solves the LMI every that many seconds over the
     box ``xhat +- schedule_half_width`` (default: half the box width), the
@@ -104,6 +108,7 @@ class ObserverConfig:
 
     alpha: float = 2.0
     box: BoxConfig = field(default_factory=BoxConfig)
+    formulation: str = field(default="polytopic", metadata=_OPTIONAL)
     jacobian_method: str = field(default="sampled", metadata=_OPTIONAL)
     solver: str = field(default="clarabel", metadata=_OPTIONAL)
     L: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
@@ -328,6 +333,10 @@ def validate_scenario(scenario: Scenario) -> None:
         raise ScenarioError(
             f"observer.box.upper: must exceed observer.box.lower element-wise; got "
             f"lower={o.box.lower}, upper={o.box.upper}."
+        )
+    if o.formulation not in ("polytopic", "paper"):
+        raise ScenarioError(
+            f"observer.formulation: must be 'polytopic' or 'paper'; got {o.formulation!r}."
         )
     if o.jacobian_method not in ("sampled", "certified"):
         raise ScenarioError(

@@ -81,3 +81,69 @@ def test_missing_scenario_exits_2(tmp_path):
     assert proc.returncode == 2
     assert "no such scenario file" in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def _scenario_with(tmp_path, **observer):
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["observer"].update(observer)
+    path = tmp_path / "scenario.yaml"
+    path.write_text(yaml_dump(data))
+    return path
+
+
+def test_design_observer_writes_the_certificate(tmp_path):
+    out = tmp_path / "design.json"
+    proc = _cli("design-observer", PAPER_SCENARIO, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    design = json.loads(out.read_text())
+    for key in (
+        "P",
+        "L",
+        "H",
+        "K",
+        "alpha",
+        "input_bound",
+        "box",
+        "jacobian_bounds",
+        "certificate",
+        "solver",
+        "solve_time",
+    ):
+        assert key in design, key
+    assert set(design["box"]) >= {"lower", "upper"}
+    assert set(design["jacobian_bounds"]) >= {"Mf1", "Mf2", "Mg1", "Mg2"}
+    assert [c["input"] for c in design["certificate"]] == [[-3.0], [0.0], [3.0]]
+    assert all(c["max_eigenvalue"] < 0 for c in design["certificate"])
+    # The certificate re-checks in numpy from the numbers in the file alone.
+    from ofrl_drake.lmi import certificate
+
+    arrays = {k: np.asarray(design[k]) for k in ("P", "L", "H", "K")}
+    bounds = {k: np.asarray(v) for k, v in design["jacobian_bounds"].items()}
+    recheck = certificate(
+        arrays["P"],
+        arrays["L"],
+        arrays["H"],
+        arrays["K"],
+        np.array([[0.0, 1.0]]),
+        bounds,
+        design["input_bound"],
+        design["alpha"],
+        sector="sign_correct",
+    )
+    np.testing.assert_allclose(
+        [v for _, v in recheck],
+        [c["max_eigenvalue"] for c in design["certificate"]],
+        rtol=1e-6,
+        atol=1e-9,
+    )
+
+
+def test_infeasible_design_exits_2_with_one_line(tmp_path):
+    out = tmp_path / "design.json"
+    proc = _cli("design-observer", _scenario_with(tmp_path, alpha=500.0), "--out", out)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "alpha" in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scenario.yaml"]

@@ -1,6 +1,7 @@
-"""Observer design: certificates, backends, persistence, infeasibility, errors."""
+"""Observer design: both formulations, soundness, backends, persistence, errors."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -19,12 +20,15 @@ from ofrl_drake.design import (
 from ofrl_drake.design_cvxpy import design_observer_cvxpy
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.examples import make_system
-from ofrl_drake.jacobian_bounds import BoxError, jacobian_bounds
-from ofrl_drake.lmi import certificate, lmi_matrix
+from ofrl_drake.jacobian_bounds import BoxError, JacobianBounds, jacobian_bounds
+from ofrl_drake.lmi import certificate, decay_certificate, lmi_matrix
 from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer import ObserverGains, observer_rhs
 
 BOX2 = ([-2.0, -2.0], [2.0, 2.0])
 BOX4 = ([-2.0] * 4, [2.0] * 4)
+# Where d f_2 / d x_1 = -1 + 4 (cos 2x1 + 2) sin 2x1 peaks on x2 = -2 (about +7.81).
+X_PEAK = np.array([0.5 * np.arccos((np.sqrt(3.0) - 1.0) / 2.0), -2.0])
 
 
 @pytest.fixture(scope="module")
@@ -38,23 +42,46 @@ def bounds2(two_state):
 
 
 @pytest.fixture(scope="module")
-def design2(two_state, bounds2):
-    return design_observer(two_state, BOX2, 3.0, 2.0, bounds=bounds2)
+def certified2(two_state):
+    """Guaranteed enclosures: the soundness tests must not rest on sampled bounds."""
+    return jacobian_bounds(two_state, BOX2, "certified")
 
 
-def _recomputed(design, system):
-    """The certificate from the JSON numbers alone, through the pure-numpy module."""
+@pytest.fixture(scope="module")
+def paper2(two_state, bounds2):
+    return design_observer(two_state, BOX2, 3.0, 2.0, bounds=bounds2, formulation="paper")
+
+
+@pytest.fixture(scope="module")
+def poly2(two_state, certified2):
+    return design_observer(two_state, BOX2, 3.0, 0.9, bounds=certified2)
+
+
+def _recomputed(design, system, which="certificate"):
+    """A certificate from the JSON numbers alone, through the pure-numpy module."""
     d = json.loads(json.dumps(design.to_dict()))
-    return certificate(
+    check = {"certificate": certificate, "decay": decay_certificate}[which]
+    return check(
         d["P"], d["L"], d["H"], d["K"], system.output_matrix, d["jacobian_bounds"],
         d["input_bound"], d["alpha"],
     )  # fmt: skip
 
 
-# ------------------------------------------------------------- certificates
-def test_two_state_certifies_at_alpha_2(two_state, design2):
-    d = design2
-    assert d.is_certified
+def _vdot_over_v(system, design, x, xhat, u):
+    """``dV/dt / V`` for ``V = e^T P e`` from the true plant and the real observer."""
+    gains = ObserverGains.from_design(system, design)
+    C = system.output_matrix
+    u = np.atleast_1d(np.asarray(u, dtype=float))
+    x_dot = system.f(x) + system.g(x) @ u
+    xhat_dot = observer_rhs(system, gains, xhat, C @ x, u)
+    e = x - xhat
+    return 2.0 * e @ design.P @ (x_dot - xhat_dot) / (e @ design.P @ e)
+
+
+# ------------------------------------------- the paper's (lmi2) formulation
+def test_paper_formulation_certifies_lmi2_but_not_decay(two_state, paper2):
+    d = paper2
+    assert d.formulation == "paper" and d.is_certified
     assert d.backend == "drake" and d.solver == "clarabel"
     cert = d.certificate()
     assert [u.tolist() for u, _ in cert] == [[-3.0], [0.0], [3.0]]
@@ -68,38 +95,148 @@ def test_two_state_certifies_at_alpha_2(two_state, design2):
     for (u1, lam1), (u2, lam2) in zip(cert, again, strict=True):
         np.testing.assert_array_equal(u1, u2)
         assert lam1 == pytest.approx(lam2, rel=1e-9, abs=1e-12)
+    # ... but the sound check of the same numbers fails, by far, at every vertex.
+    assert not d.is_decay_certified
+    decay = d.decay_certificate()
+    assert [u.tolist() for u, _ in decay] == [[-3.0], [0.0], [3.0]]
+    assert min(lam for _, lam in decay) > 1.0
 
 
-def test_mimo_coupled_two_state_certifies_at_all_nine_vertices():
+def test_paper_design_has_a_growing_error_where_the_polytopic_one_decays(two_state, paper2, poly2):
+    # The gap between (lmi2) and decay: at x = (0.598, -2), xhat = x - (1e-4, 0),
+    # u = 0 the output error is zero, so no gain acts, and the true
+    # dV/dt = 2 e1^T P A_cl e1 = 2 eps^2 (-P11 + P12 a21) is about +39 V.
+    xhat = X_PEAK - np.array([1e-4, 0.0])
+    rate = _vdot_over_v(two_state, paper2, X_PEAK, xhat, [0.0])
+    assert rate > -2.0 * paper2.alpha
+    assert rate > 30.0  # documents the size of the gap: the error grows
+    # The polytopic design's bound holds at the same point.
+    assert _vdot_over_v(two_state, poly2, X_PEAK, xhat, [0.0]) <= -2.0 * poly2.alpha
+
+
+def test_paper_without_injection_gains_pins_h_and_k(two_state, bounds2):
+    d = design_observer(
+        two_state, BOX2, 3.0, 0.5, bounds=bounds2, formulation="paper", injection_gains=False
+    )
+    assert d.is_certified and d.formulation == "paper"
+    np.testing.assert_array_equal(d.H, 0.0)
+    np.testing.assert_array_equal(d.K, 0.0)
+
+
+# ------------------------------------------------ the polytopic formulation
+def test_polytopic_is_the_default_and_certifies_decay(two_state, poly2):
+    d = poly2
+    assert d.formulation == "polytopic"
+    assert d.is_certified and d.is_decay_certified
+    np.testing.assert_array_equal(d.H, 0.0)
+    np.testing.assert_array_equal(d.K, 0.0)
+    cert = d.certificate()
+    assert [u.tolist() for u, _ in cert] == [[-3.0], [0.0], [3.0]]
+    assert all(lam <= -0.5e-3 for _, lam in cert)
+    # For this formulation the two certificates are the same check.
+    for (u1, lam1), (u2, lam2) in zip(cert, d.decay_certificate(), strict=True):
+        np.testing.assert_array_equal(u1, u2)
+        assert lam1 == lam2
+    for (_, lam1), (_, lam2) in zip(cert, _recomputed(d, two_state, "decay"), strict=True):
+        assert lam1 == pytest.approx(lam2, rel=1e-9, abs=1e-12)
+    assert np.all(np.linalg.eigvalsh(d.P) >= 1.0 - 1e-6)
+    assert d.condition_number < 1e3
+
+
+def test_polytopic_max_decay_rate_is_just_below_one(two_state, bounds2):
+    # Along e = eps e1 no quadratic V certifies alpha >= 1 (a21 takes both signs).
+    best = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2)
+    assert 0.8 <= best.alpha < 1.0
+    assert best.formulation == "polytopic" and best.is_decay_certified
+    with pytest.raises(ObserverDesignInfeasible, match=r"formulation=polytopic, alpha=1,"):
+        design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2)
+
+
+def _error_pairs(rng, count):
+    """Random ``(x, xhat, u)`` in the box, errors from 1e-5 to the box size, and
+    structured worst cases: the error along e1 (no output error) at x2 = +-2."""
+    pairs = []
+    for _ in range(count):
+        x = rng.uniform(-2.0, 2.0, 2)
+        step = rng.normal(size=2) * 10.0 ** rng.uniform(-5.0, 0.6)
+        xhat = np.clip(x - step, -2.0, 2.0)
+        pairs.append((x, xhat, rng.uniform(-3.0, 3.0, 1)))
+    for x1 in [*np.linspace(-2.0, 2.0, 9).tolist(), X_PEAK[0], -X_PEAK[0]]:
+        for x2 in (-2.0, 2.0):
+            for u in (-3.0, 0.0, 3.0):
+                x = np.array([x1, x2])
+                for eps in (1e-4, 0.5):
+                    xhat = np.array([np.clip(x1 - eps, -2.0, 2.0), x2])
+                    pairs.append((x, xhat, np.array([u])))
+    return [(x, xh, u) for x, xh, u in pairs if np.abs(x - xh).max() >= 1e-5]
+
+
+def test_polytopic_design_decays_along_the_true_nonlinear_error_dynamics(two_state, poly2):
+    # The soundness check: dV/dt <= -2 alpha V with the real plant f, g and the
+    # real observer equations, for x, xhat anywhere in the box and |u| <= 3.
+    pairs = _error_pairs(np.random.default_rng(20240611), 200)
+    assert len(pairs) > 250
+    alpha = poly2.alpha
+    rates = np.array([_vdot_over_v(two_state, poly2, x, xh, u) for x, xh, u in pairs])
+    assert np.all(rates <= -2.0 * alpha * (1 - 1e-9))
+
+
+def test_paper_design_breaks_its_claim_on_the_same_pairs(two_state, paper2):
+    pairs = _error_pairs(np.random.default_rng(20240611), 200)
+    rates = np.array([_vdot_over_v(two_state, paper2, x, xh, u) for x, xh, u in pairs])
+    assert np.any(rates > -2.0 * paper2.alpha)
+
+
+def test_mimo_coupled_two_state_polytopic_certifies_at_all_nine_vertices():
     system = make_system("coupled_two_state")
-    d = design_observer(system, BOX4, 3.0, 1.0)
+    d = design_observer(system, BOX4, 3.0, 0.9)
     assert d.L.shape == (4, 2) and d.H.shape == (4, 2) and d.K.shape == (4, 2)
+    np.testing.assert_array_equal(d.H, 0.0)
     cert = d.certificate()
     assert len(cert) == 9
-    assert all(lam < 0 for _, lam in cert)
+    assert all(lam <= -0.5e-3 for _, lam in cert)
+    assert d.is_certified and d.is_decay_certified and d.condition_number < 1e3
+    assert max(lam for _, lam in _recomputed(d, system, "decay")) < 0
+    with pytest.raises(ObserverDesignInfeasible, match="formulation=polytopic"):
+        design_observer(system, BOX4, 3.0, 1.1)
+
+
+def test_mimo_coupled_two_state_paper_certifies_lmi2_only():
+    system = make_system("coupled_two_state")
+    d = design_observer(system, BOX4, 3.0, 1.0, formulation="paper")
+    cert = d.certificate()
+    assert len(cert) == 9 and all(lam < 0 for _, lam in cert)
     assert d.is_certified and d.condition_number < 1e3
-    again = _recomputed(d, system)
-    assert max(lam for _, lam in again) < 0
+    assert max(lam for _, lam in _recomputed(d, system)) < 0
+    assert not d.is_decay_certified
 
 
-def test_min_gain_beats_feasibility_on_gain(two_state, bounds2):
-    small = design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2)
-    plain = design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, objective="feasibility")
+# ------------------------------------------------------------- objectives
+@pytest.mark.parametrize("formulation", ["polytopic", "paper"])
+def test_min_gain_beats_feasibility_on_gain(two_state, bounds2, formulation):
+    kw = {"bounds": bounds2, "formulation": formulation}
+    small = design_observer(two_state, BOX2, 3.0, 0.5, **kw)
+    plain = design_observer(two_state, BOX2, 3.0, 0.5, objective="feasibility", **kw)
     assert plain.is_certified and small.is_certified
     assert small.gain_norm < plain.gain_norm
 
 
-def test_max_gain_caps_the_gain(two_state, bounds2):
-    d = design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, max_gain=200.0)
-    assert d.gain_norm <= 200.0 * (1 + 1e-6)
+@pytest.mark.parametrize(
+    ("formulation", "alpha_ok", "alpha_bad", "cap"),
+    [("polytopic", 0.5, 0.9, 20.0), ("paper", 0.5, 2.0, 200.0)],
+)
+def test_max_gain_caps_the_gain(two_state, bounds2, formulation, alpha_ok, alpha_bad, cap):
+    kw = {"bounds": bounds2, "formulation": formulation, "max_gain": cap}
+    d = design_observer(two_state, BOX2, 3.0, alpha_ok, **kw)
+    assert d.gain_norm <= cap * (1 + 1e-6)
     with pytest.raises(ObserverDesignInfeasible, match="a larger max_gain"):
-        design_observer(two_state, BOX2, 3.0, 2.0, bounds=bounds2, max_gain=50.0)
+        design_observer(two_state, BOX2, 3.0, alpha_bad, **{**kw, "max_gain": cap / 4})
 
 
 # ------------------------------------------------------------------ sign gap
-def test_paper_sector_fails_at_negative_input_where_sign_correct_certifies(two_state, design2):
+def test_paper_sector_fails_at_negative_input_where_sign_correct_certifies(two_state, paper2):
     C = two_state.output_matrix
-    d = design2
+    d = paper2
     args = (d.P, d.L, d.H, d.K, C, d.bounds)
     assert np.linalg.eigvalsh(lmi_matrix(*args, [-3.0], 2.0))[-1] < 0
     # Same numbers, the paper's literal sector (M_g1 u, M_g2 u): fails at u = -3 ...
@@ -113,75 +250,115 @@ def test_paper_sector_fails_at_negative_input_where_sign_correct_certifies(two_s
 
 def test_paper_sector_design_is_infeasible_at_alpha_2(two_state, bounds2):
     with pytest.raises(ObserverDesignInfeasible, match="smaller alpha") as err:
-        design_observer(two_state, BOX2, 3.0, 2.0, bounds=bounds2, sector="paper")
+        design_observer(
+            two_state, BOX2, 3.0, 2.0, bounds=bounds2, formulation="paper", sector="paper"
+        )
     assert "Infeasible" in err.value.status
 
 
 # ------------------------------------------------------------------ backends
 @pytest.mark.parametrize(
-    ("half", "alpha"),
-    [(0.5, 0.5), (0.5, 2.0), (0.5, 50.0), (2.0, 0.5), (2.0, 2.0), (2.0, 50.0), (50.0, 0.5)],
+    ("formulation", "half", "alpha", "feasible"),
+    [
+        ("paper", 0.5, 0.5, True),
+        ("paper", 0.5, 2.0, True),
+        ("paper", 0.5, 50.0, False),
+        ("paper", 2.0, 2.0, True),
+        ("paper", 2.0, 50.0, False),
+        ("paper", 50.0, 0.5, True),
+        ("polytopic", 0.5, 0.5, True),
+        ("polytopic", 0.5, 5.0, False),
+        ("polytopic", 2.0, 0.9, True),
+        ("polytopic", 2.0, 1.0, False),
+        ("polytopic", 2.0, 2.0, False),
+        ("polytopic", 50.0, 0.5, True),
+    ],
 )
-def test_backends_agree_on_feasibility(two_state, half, alpha):
+def test_backends_agree_on_feasibility(two_state, formulation, half, alpha, feasible):
     box = ([-half, -half], [half, half])
     bounds = jacobian_bounds(two_state, box)
     outcomes = []
     for backend in ("drake", "cvxpy"):
         try:
-            d = design_observer(two_state, box, 3.0, alpha, bounds=bounds, backend=backend)
+            d = design_observer(
+                two_state, box, 3.0, alpha, bounds=bounds, backend=backend, formulation=formulation
+            )
         except ObserverDesignInfeasible:
             outcomes.append(False)
         else:
-            assert d.is_certified and d.backend == backend
+            assert d.is_certified and d.backend == backend and d.formulation == formulation
             outcomes.append(True)
-    assert outcomes[0] == outcomes[1]
-    assert outcomes[0] == (alpha < 50.0 or half == 50.0)
+    assert outcomes == [feasible, feasible]
 
 
-def test_backends_find_the_same_optimum(two_state, bounds2, design2):
-    other = design_observer_cvxpy(two_state, BOX2, 3.0, 2.0, bounds=bounds2)
+@pytest.mark.parametrize(("formulation", "alpha"), [("paper", 2.0), ("polytopic", 0.9)])
+def test_backends_find_the_same_optimum(two_state, bounds2, formulation, alpha):
+    kw = {"bounds": bounds2, "formulation": formulation}
+    drake = design_observer(two_state, BOX2, 3.0, alpha, **kw)
+    other = design_observer_cvxpy(two_state, BOX2, 3.0, alpha, **kw)
     assert other.backend == "cvxpy" and other.is_certified
     # Same convex program, same objective: the same minimal ||R||_2.
-    assert np.linalg.norm(other.R, 2) == pytest.approx(np.linalg.norm(design2.R, 2), rel=1e-3)
+    assert np.linalg.norm(other.R, 2) == pytest.approx(np.linalg.norm(drake.R, 2), rel=1e-3)
 
 
 def test_csdp_through_drake(two_state, bounds2):
-    d = design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, solver="csdp")
-    assert d.is_certified and d.solver == "csdp"
+    for formulation in ("polytopic", "paper"):
+        d = design_observer(
+            two_state, BOX2, 3.0, 0.5, bounds=bounds2, solver="csdp", formulation=formulation
+        )
+        assert d.is_certified and d.solver == "csdp"
+
+
+def test_drake_backend_raises_no_runtime_warning(two_state, bounds2):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for formulation in ("polytopic", "paper"):
+            d = design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, formulation=formulation)
+            assert d.is_certified
 
 
 # ------------------------------------------------------------- infeasibility
-def test_infeasible_rate_raises_with_one_line_advice(two_state, bounds2):
+@pytest.mark.parametrize("formulation", ["polytopic", "paper"])
+def test_infeasible_rate_raises_with_one_line_advice(two_state, bounds2, formulation):
     with pytest.raises(ObserverDesignInfeasible, match=r"alpha=50.*try a smaller alpha") as err:
-        design_observer(two_state, BOX2, 3.0, 50.0, bounds=bounds2)
+        design_observer(two_state, BOX2, 3.0, 50.0, bounds=bounds2, formulation=formulation)
     e = err.value
     assert "\n" not in str(e)
-    assert e.alpha == 50.0 and e.input_bound == 3.0
+    assert f"formulation={formulation}" in str(e)
+    assert e.alpha == 50.0 and e.input_bound == 3.0 and e.formulation == formulation
     assert e.box.lower.tolist() == [-2.0, -2.0]
     assert e.status
     assert isinstance(e, OfrlError)
 
 
 # ------------------------------------------------------------- persistence
-def test_to_dict_keys_and_json_round_trip(two_state, design2, tmp_path):
-    d = design2.to_dict()
+@pytest.mark.parametrize("which", ["paper2", "poly2"])
+def test_to_dict_keys_and_json_round_trip(two_state, which, request, tmp_path):
+    design = request.getfixturevalue(which)
+    d = design.to_dict()
     required = {
         "P", "L", "H", "K", "alpha", "input_bound", "box", "jacobian_bounds",
-        "certificate", "solver", "solve_time",
+        "certificate", "solver", "solve_time", "formulation", "decay_certificate",
+        "is_decay_certified",
     }  # fmt: skip
     assert required <= set(d)
     assert set(d["box"]) == {"lower", "upper"}
     assert set(d["jacobian_bounds"]) == {"Mf1", "Mf2", "Mg1", "Mg2"}
     assert [set(c) for c in d["certificate"]] == [{"input", "max_eigenvalue"}] * 3
+    assert [set(c) for c in d["decay_certificate"]] == [{"input", "max_eigenvalue"}] * 3
+    assert d["formulation"] == design.formulation
+    assert d["is_decay_certified"] is (which == "poly2")
     assert isinstance(d["P"][0][0], float) and isinstance(d["L"][1][0], float)
     path = tmp_path / "design.json"
-    design2.to_json(path)
+    design.to_json(path)
     back = ObserverDesign.from_json(path)
     for key in ("P", "L", "H", "K", "R", "C"):
-        np.testing.assert_array_equal(getattr(back, key), getattr(design2, key))
-    assert back.alpha == design2.alpha and back.box == design2.box
+        np.testing.assert_array_equal(getattr(back, key), getattr(design, key))
+    assert back.alpha == design.alpha and back.box == design.box
+    assert back.formulation == design.formulation
     assert back.is_certified
-    assert [lam for _, lam in back.certificate()] == [lam for _, lam in design2.certificate()]
+    assert back.is_decay_certified is design.is_decay_certified
+    assert [lam for _, lam in back.certificate()] == [lam for _, lam in design.certificate()]
     # Without "C", the system supplies it.
     del d["C"]
     assert ObserverDesign.from_dict(d, system=two_state).is_certified
@@ -189,41 +366,76 @@ def test_to_dict_keys_and_json_round_trip(two_state, design2, tmp_path):
         ObserverDesign.from_dict(d)
     with pytest.raises(DesignError, match=r"missing keys \['P'\]"):
         ObserverDesign.from_dict({k: v for k, v in d.items() if k != "P"}, system=two_state)
+    # Files written before the formulation key existed hold (lmi2) designs.
+    del d["formulation"]
+    assert ObserverDesign.from_dict(d, system=two_state).formulation == "paper"
 
 
-def test_from_gains_finds_p_or_reports_honestly(two_state, bounds2, design2):
-    d = design2
+def test_from_gains_finds_p_or_reports_honestly(two_state, bounds2, paper2):
+    d = paper2
     pinned = ObserverDesign.from_gains(
-        two_state, BOX2, 3.0, 2.0, d.L, d.H, d.K, P=d.P, bounds=bounds2
+        two_state, BOX2, 3.0, 2.0, d.L, d.H, d.K, P=d.P, bounds=bounds2, formulation="paper"
     )
-    assert pinned.is_certified and pinned.solver == "none"
-    found = ObserverDesign.from_gains(two_state, BOX2, 3.0, 2.0, d.L, d.H, d.K, bounds=bounds2)
+    assert pinned.is_certified and pinned.solver == "none" and not pinned.is_decay_certified
+    found = ObserverDesign.from_gains(
+        two_state, BOX2, 3.0, 2.0, d.L, d.H, d.K, bounds=bounds2, formulation="paper"
+    )
     assert found.is_certified
     assert found.condition_number <= d.condition_number * (1 + 1e-3)  # it minimizes lambda_max
+    # The same pinned numbers checked polytopically: honestly not certified ...
+    poly = ObserverDesign.from_gains(
+        two_state, BOX2, 3.0, 2.0, d.L, d.H, d.K, P=d.P, bounds=bounds2
+    )
+    assert poly.formulation == "polytopic" and not poly.is_certified and poly.max_eigenvalue > 1
+    # ... and no P makes them certify decay at alpha = 2.
+    with pytest.raises(ObserverDesignInfeasible, match="formulation=polytopic, alpha=2"):
+        ObserverDesign.from_gains(two_state, BOX2, 3.0, 2.0, d.L, d.H, d.K, bounds=bounds2)
     # Arbitrary gains with P = I: the certificate says no, honestly.
     bad = ObserverDesign.from_gains(
         two_state, BOX2, 3.0, 2.0, [1.0, 1.0], [0.0, 0.0], [0.0, 0.0], P=np.eye(2),
-        bounds=bounds2,
+        bounds=bounds2, formulation="paper",
     )  # fmt: skip
     assert not bad.is_certified and bad.max_eigenvalue > 0
     with pytest.raises(ObserverDesignInfeasible, match="smaller alpha"):
         ObserverDesign.from_gains(
-            two_state, BOX2, 3.0, 2.0, [1.0, 1.0], [0.0, 0.0], [0.0, 0.0], bounds=bounds2
-        )
+            two_state, BOX2, 3.0, 2.0, [1.0, 1.0], [0.0, 0.0], [0.0, 0.0], bounds=bounds2,
+            formulation="paper",
+        )  # fmt: skip
+
+
+def test_from_gains_polytopic_finds_p_for_pinned_gains(two_state, certified2, poly2):
+    d = poly2
+    found = ObserverDesign.from_gains(two_state, BOX2, 3.0, 0.9, d.L, d.H, d.K, bounds=certified2)
+    assert found.is_certified and found.is_decay_certified
+    np.testing.assert_array_equal(found.L, d.L)
+    assert found.condition_number <= d.condition_number * (1 + 1e-3)
+    # Nonzero injection gains are checked over every M_f x M_gu corner too.
+    H = np.array([[0.0], [1e-3]])
+    inj = ObserverDesign.from_gains(two_state, BOX2, 3.0, 0.5, d.L, H, -H, bounds=certified2)
+    assert inj.is_decay_certified
+    np.testing.assert_array_equal(inj.H, H)
 
 
 # ------------------------------------------------------------ max decay rate
-def test_max_decay_rate_brackets_the_boundary(two_state, bounds2):
-    best = max_decay_rate(
-        two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, bounds=bounds2, max_gain=200.0
-    )
+def test_max_decay_rate_brackets_the_boundary_paper(two_state, bounds2):
+    kw = {"bounds": bounds2, "formulation": "paper"}
+    best = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, max_gain=200.0, **kw)
     assert best.is_certified and best.gain_norm <= 200.0 * (1 + 1e-6)
+    assert best.formulation == "paper"
     assert 0.0 < best.alpha < 8.0
     with pytest.raises(ObserverDesignInfeasible):
-        design_observer(two_state, BOX2, 3.0, best.alpha + 0.1, bounds=bounds2, max_gain=200.0)
+        design_observer(two_state, BOX2, 3.0, best.alpha + 0.1, max_gain=200.0, **kw)
     # Without a cap the rate is higher.
-    free = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, bounds=bounds2)
+    free = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, **kw)
     assert free.alpha > best.alpha
+
+
+def test_max_decay_rate_with_a_gain_cap_polytopic(two_state, bounds2):
+    best = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2, max_gain=30.0)
+    assert best.is_decay_certified and best.gain_norm <= 30.0 * (1 + 1e-6)
+    assert 0.5 < best.alpha < 0.9
+    with pytest.raises(ObserverDesignInfeasible, match="a larger max_gain"):
+        design_observer(two_state, BOX2, 3.0, best.alpha + 0.02, bounds=bounds2, max_gain=30.0)
 
 
 # ------------------------------------------------------------------- errors
@@ -234,6 +446,10 @@ def test_argument_errors(two_state, bounds2):
         design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2, backend="matlab")
     with pytest.raises(DesignError, match="objective must be one of"):
         design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2, objective="max_gain")
+    with pytest.raises(DesignError, match="formulation must be one of"):
+        design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2, formulation="lmi3")
+    with pytest.raises(DesignError, match="applies to formulation='paper' only"):
+        design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2, sector="paper")
     with pytest.raises(DesignError, match="cvxpy backend supports solvers"):
         design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2, backend="cvxpy", solver="csdp")
     with pytest.raises(DesignError, match="alpha must be a finite number >= 0"):
@@ -244,6 +460,17 @@ def test_argument_errors(two_state, bounds2):
         design_observer(two_state, ([-3.0, -3.0], [3.0, 3.0]), 3.0, 1.0, bounds=bounds2)
     with pytest.raises(OfrlError, match="method must be one of"):
         design_observer(two_state, BOX2, 3.0, 1.0, jacobian_method="exact")
+
+
+def test_too_many_corners_is_a_design_error():
+    n = 5
+    A = -np.eye(n)
+    system = _linear_system(A, np.ones((n, 1)), np.eye(1, n))
+    box = ([-1.0] * n, [1.0] * n)
+    z = np.zeros((n, n, 1))
+    wide = JacobianBounds("given", box, A - 1.0, A + 1.0, z, z)  # 25 uncertain entries
+    with pytest.raises(DesignError, match=r"formulation='polytopic'.*more than MAX_CORNERS"):
+        design_observer(system, box, 1.0, 0.1, bounds=wide)
 
 
 def test_mosek_needs_a_licence(two_state, bounds2):
@@ -264,6 +491,7 @@ def _linear_system(A, B, C):
     )
 
 
+@pytest.mark.parametrize("formulation", ["polytopic", "paper"])
 @settings(
     max_examples=25,
     deadline=None,
@@ -275,7 +503,7 @@ def _linear_system(A, B, C):
     q=st.sampled_from([1, 2]),
     alpha=st.floats(0.1, 2.0),
 )
-def test_linear_certificate_implies_decay(data, n, q, alpha):
+def test_linear_certificate_implies_decay(formulation, data, n, q, alpha):
     A = data.draw(arrays(np.float64, (n, n), elements=st.floats(-3, 3)))
     B = data.draw(arrays(np.float64, (n, 1), elements=st.floats(-2, 2)))
     C = data.draw(arrays(np.float64, (q, n), elements=st.floats(-2, 2)))
@@ -283,7 +511,7 @@ def test_linear_certificate_implies_decay(data, n, q, alpha):
     system = _linear_system(A, B, C)
     box = ([-1.0] * n, [1.0] * n)
     try:
-        d = design_observer(system, box, 1.0, alpha)
+        d = design_observer(system, box, 1.0, alpha, formulation=formulation)
     except ObserverDesignInfeasible:
         assume(False)
         return
@@ -291,6 +519,8 @@ def test_linear_certificate_implies_decay(data, n, q, alpha):
     np.testing.assert_allclose(d.bounds.Mf1, A, rtol=0, atol=1e-12)
     np.testing.assert_allclose(d.bounds.Mf2, A, rtol=0, atol=1e-12)
     np.testing.assert_allclose(d.bounds.Mg2 - d.bounds.Mg1, 0.0, rtol=0, atol=1e-12)
+    # For a linear plant either certificate is a decay certificate.
+    assert d.is_certified and d.is_decay_certified
     Acl = A - d.L @ C
     assert np.max(np.linalg.eigvals(Acl).real) < -alpha + 1e-6
     # e' = (A - L C) e exactly; V = e^T P e must decay at least like exp(-2 alpha t).

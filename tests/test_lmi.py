@@ -1,4 +1,6 @@
-"""The (lmi2) matrix and its eigenvalue certificate: pure numpy, no Drake."""
+"""The (lmi2) matrix, the polytopic decay certificate and their checks: pure numpy."""
+
+import itertools
 
 import numpy as np
 import pytest
@@ -8,13 +10,21 @@ from hypothesis.extra.numpy import arrays
 
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.lmi import (
+    MAX_CORNERS,
     LmiError,
     bounds_arrays,
+    box_corners,
     certificate,
+    corner_count,
+    corner_matrices,
+    decay_certificate,
     is_certified,
+    is_decay_certified,
     lmi_matrix,
+    polytopic_lmi,
     vertex_data,
 )
+from ofrl_drake.sector import input_sector
 
 # The two-state example's sampled bounds on [-2, 2]^2 (rounded outward a little).
 MF1 = np.array([[-1.0, 1.0], [-9.8074, 0.0]])
@@ -171,3 +181,185 @@ def test_errors_name_the_problem():
     with pytest.raises(LmiError, match="input_bound must be finite"):
         certificate(eye, g, g, g, C2, TWO_STATE, np.inf, 1.0)
     assert issubclass(LmiError, OfrlError)
+
+
+# ------------------------------------------------ polytopic decay certificate
+# A 2x2 case by hand: f has one uncertain entry d f_2 / d x_1 in [-1, 1], g one
+# entry d g_2 / d x_1 in [-1, 1]; with |u| <= 1 the sum a = M_f[1, 0] + M_gu[1, 0]
+# lies in [-2, 2] at u = +-1 and in [-1, 1] at u = 0.
+HAND = (
+    np.array([[-1.0, 0.0], [-1.0, -2.0]]),
+    np.array([[-1.0, 0.0], [1.0, -2.0]]),
+    np.array([[[0.0], [0.0]], [[-1.0], [0.0]]]),
+    np.array([[[0.0], [0.0]], [[1.0], [0.0]]]),
+)
+
+
+def test_decay_certificate_by_hand():
+    zeros = np.zeros((2, 1))
+    # P = I, L = 0, alpha = 1/2: S = A + A^T + I = [[-1, a], [a, -3]],
+    # lambda_max = -2 + sqrt(1 + a^2), largest at |a| = 2 (u = +-1), 1 (u = 0).
+    cert = decay_certificate(np.eye(2), zeros, zeros, zeros, C2, HAND, 1.0, 0.5)
+    assert [u.tolist() for u, _ in cert] == [[-1.0], [0.0], [1.0]]
+    want = [-2 + np.sqrt(5.0), -2 + np.sqrt(2.0), -2 + np.sqrt(5.0)]
+    np.testing.assert_allclose([ev for _, ev in cert], want, rtol=0, atol=1e-12)
+    assert not is_decay_certified(np.eye(2), zeros, zeros, zeros, C2, HAND, 1.0, 0.5)
+    # L = [0, 1]^T moves A_cl[1, 1] to -3: S = [[-1, a], [a, -5]],
+    # lambda_max = -3 + sqrt(4 + a^2).
+    L = np.array([[0.0], [1.0]])
+    cert = decay_certificate(np.eye(2), L, zeros, zeros, C2, HAND, 1.0, 0.5)
+    want = [-3 + np.sqrt(8.0), -3 + np.sqrt(5.0), -3 + np.sqrt(8.0)]
+    np.testing.assert_allclose([ev for _, ev in cert], want, rtol=0, atol=1e-12)
+    assert is_decay_certified(np.eye(2), L, zeros, zeros, C2, HAND, 1.0, 0.5)
+    # A P that is not positive definite never certifies.
+    assert not is_decay_certified(-np.eye(2), L, zeros, zeros, C2, HAND, 1.0, 0.5)
+
+
+def test_box_corners_vary_only_the_uncertain_entries():
+    lo = np.array([[0.0, 1.0], [2.0, -1.0]])
+    hi = np.array([[3.0, 1.0], [2.0, 4.0]])
+    corners = box_corners(lo, hi)
+    assert corners.shape == (4, 2, 2)
+    got = {tuple(c.ravel()) for c in corners}
+    assert got == {(a, 1.0, 2.0, b) for a in (0.0, 3.0) for b in (-1.0, 4.0)}
+    np.testing.assert_array_equal(box_corners(lo, lo), lo[None])
+    with pytest.raises(LmiError, match="lower must be <= upper"):
+        box_corners(hi, lo)
+    with pytest.raises(LmiError, match=r"17 uncertain entries, 131072 corners, more than"):
+        box_corners(np.zeros(17), np.ones(17))
+
+
+def _brute_force_decay(P, L, H, K, C, bounds, input_bound, alpha):
+    """Max eigenvalue per input vertex over every corner of M_f and of each G_k."""
+    Mf1, Mf2, Mg1, Mg2 = bounds
+    n, m = Mf1.shape[0], Mg1.shape[2]
+    eye = np.eye(n)
+    f_free = [tuple(i) for i in np.argwhere(Mf1 != Mf2)]
+    g_free = [tuple(i) for i in np.argwhere(Mg1 != Mg2)]
+    out = []
+    for u in itertools.product((-input_bound, 0.0, input_bound), repeat=m):
+        u = np.array(u)
+        Mug1 = sum(np.minimum(Mg1[:, :, k] * u[k], Mg2[:, :, k] * u[k]) for k in range(m))
+        worst = -np.inf
+        for f_bits in itertools.product((0, 1), repeat=len(f_free)):
+            Mf = Mf1.copy()
+            for idx, bit in zip(f_free, f_bits, strict=True):
+                Mf[idx] = (Mf1, Mf2)[bit][idx]
+            for g_bits in itertools.product((0, 1), repeat=len(g_free)):
+                G = Mg1.copy()
+                for idx, bit in zip(g_free, g_bits, strict=True):
+                    G[idx] = (Mg1, Mg2)[bit][idx]
+                Mgu = sum(G[:, :, k] * u[k] for k in range(m))
+                Acl = Mf @ (eye - H @ C) + Mgu @ (eye - K @ C) - (L - Mf1 @ H - Mug1 @ K) @ C
+                S = Acl.T @ P + P @ Acl + 2 * alpha * P
+                worst = max(worst, np.linalg.eigvalsh(S)[-1])
+        out.append((u, worst))
+    return out
+
+
+def _random_case(seed, n=3, q=2, m=2):
+    rng = np.random.default_rng(seed)
+    Mf1 = rng.normal(size=(n, n))
+    Mf2 = Mf1 + rng.uniform(0, 2, size=(n, n)) * (rng.random((n, n)) < 0.5)
+    Mg1 = rng.normal(size=(n, n, m))
+    Mg2 = Mg1 + rng.uniform(0, 1, size=(n, n, m)) * (rng.random((n, n, m)) < 0.25)
+    P0 = rng.normal(size=(n, n))
+    P = P0 @ P0.T + np.eye(n)
+    L, H, K = (rng.normal(size=(n, q)) for _ in range(3))
+    C = rng.normal(size=(q, n))
+    return (Mf1, Mf2, Mg1, Mg2), P, L, H, K, C
+
+
+@pytest.mark.parametrize("injection", [True, False])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_decay_certificate_equals_brute_force_over_every_g_corner(seed, injection):
+    bounds, P, L, H, K, C = _random_case(seed)
+    if not injection:
+        H, K = np.zeros_like(H), np.zeros_like(K)
+    got = decay_certificate(P, L, H, K, C, bounds, 1.5, 0.3)
+    want = _brute_force_decay(P, L, H, K, C, bounds, 1.5, 0.3)
+    assert len(got) == 9
+    for (u1, ev1), (u2, ev2) in zip(got, want, strict=True):
+        np.testing.assert_array_equal(u1, u2)
+        assert ev1 == pytest.approx(ev2, rel=1e-10, abs=1e-10)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_decay_certificate_bounds_every_sampled_jacobian_and_input(seed):
+    # The convexity argument: any M_f, G_k in their boxes and any |u_k| <= bound
+    # give a lambda_max no larger than the certificate's worst vertex value.
+    bounds, P, L, H, K, C = _random_case(seed)
+    Mf1, Mf2, Mg1, Mg2 = bounds
+    worst = max(ev for _, ev in decay_certificate(P, L, H, K, C, bounds, 1.5, 0.3))
+    rng = np.random.default_rng(seed + 100)
+    eye = np.eye(3)
+    for _ in range(300):
+        Mf = Mf1 + rng.random(Mf1.shape) * (Mf2 - Mf1)
+        G = Mg1 + rng.random(Mg1.shape) * (Mg2 - Mg1)
+        u = rng.uniform(-1.5, 1.5, size=2)
+        Mug1, _ = input_sector(Mg1, Mg2, u)
+        Acl = Mf @ (eye - H @ C) + (G * u).sum(-1) @ (eye - K @ C) - (L - Mf1 @ H - Mug1 @ K) @ C
+        S = Acl.T @ P + P @ Acl + 0.6 * P
+        assert np.linalg.eigvalsh(S)[-1] <= worst + 1e-10 * (1 + abs(worst))
+
+
+def test_corner_matrices_without_injection_use_the_summed_box():
+    # H = K = 0: the corners of [Mf1 + Mug1(u), Mf2 + Mug2(u)]; at u = +-1 the
+    # entry [1, 0] ranges over [-2, 2], at u = 0 over [-1, 1].
+    for u, lo, hi in (([1.0], -2.0, 2.0), ([0.0], -1.0, 1.0), ([-1.0], -2.0, 2.0)):
+        A = corner_matrices(HAND, u)
+        assert A.shape == (2, 2, 2) and corner_count(HAND, u) == 2
+        assert sorted(A[:, 1, 0].tolist()) == [lo, hi]
+        np.testing.assert_array_equal(A[:, 0, 0], [-1.0, -1.0])
+        np.testing.assert_array_equal(A[:, 1, 1], [-2.0, -2.0])
+    # With injection, M_f and M_gu corners are taken separately: 2 x 2 at u = 1.
+    H = np.array([[0.5], [0.0]])
+    assert corner_matrices(HAND, [1.0], H, np.zeros((2, 1)), C2).shape == (4, 2, 2)
+    assert corner_count(HAND, [1.0], H, np.zeros((2, 1)), C2) == 4
+
+
+def test_polytopic_lmi_is_the_decay_matrix_with_r_equal_p_l():
+    bounds, P, L, _, _, C = _random_case(5)
+    zeros = np.zeros_like(L)
+    A = corner_matrices(bounds, [1.0, -1.0])
+    got = polytopic_lmi(P, P @ L, A, C, 0.7)
+    for Ai, Mi in zip(A, got, strict=True):
+        Acl = Ai - L @ C
+        np.testing.assert_allclose(Mi, Acl.T @ P + P @ Acl + 1.4 * P, rtol=1e-12, atol=1e-11)
+    cert = decay_certificate(P, L, zeros, zeros, C, bounds, 1.0, 0.7)
+    assert cert[2 * 3 + 0][1] == pytest.approx(np.linalg.eigvalsh(got)[:, -1].max(), rel=1e-12)
+
+
+def test_linear_plant_decay_certificate_is_the_lyapunov_inequality():
+    # Mf1 = Mf2 = A, g constant: one corner, S = (A - LC)^T P + P (A - LC) + 2 alpha P.
+    A = np.array([[0.0, 1.0], [-2.0, -0.5]])
+    Z = np.zeros((2, 2, 1))
+    P = np.array([[2.0, 0.3], [0.3, 1.0]])
+    L = np.array([[1.0], [2.0]])
+    Acl = A - L @ C2
+    want = np.linalg.eigvalsh(Acl.T @ P + P @ Acl + 0.6 * P)[-1]
+    cert = decay_certificate(P, L, 5 * L, -L, C2, (A, A, Z, Z), 2.0, 0.3)
+    for _, ev in cert:
+        assert ev == pytest.approx(want, rel=1e-12, abs=1e-12)
+
+
+def test_decay_certificate_errors_name_the_problem():
+    eye = np.eye(2)
+    g = np.zeros((2, 1))
+    with pytest.raises(LmiError, match="input_bound must be finite"):
+        decay_certificate(eye, g, g, g, C2, HAND, -1.0, 1.0)
+    with pytest.raises(LmiError, match="alpha must be finite"):
+        decay_certificate(eye, g, g, g, C2, HAND, 1.0, np.nan)
+    with pytest.raises(LmiError, match=r"P must have shape \(2, 2\)"):
+        decay_certificate(np.eye(3), g, g, g, C2, HAND, 1.0, 1.0)
+    with pytest.raises(LmiError, match=r"u must have shape \(1,\)"):
+        corner_matrices(HAND, [1.0, 2.0])
+    with pytest.raises(LmiError, match="give H, K and C together"):
+        corner_matrices(HAND, [1.0], H=g)
+    # 5 x 5 with every f entry uncertain: 2**25 corners at each of 3 vertices.
+    n = 5
+    wide = (-np.ones((n, n)), np.ones((n, n)), np.zeros((n, n, 1)), np.zeros((n, n, 1)))
+    gn = np.zeros((n, 1))
+    Cn = np.eye(1, n)
+    with pytest.raises(LmiError, match=f"more than MAX_CORNERS = {MAX_CORNERS}"):
+        decay_certificate(np.eye(n), gn, gn, gn, Cn, wide, 1.0, 1.0)
