@@ -172,3 +172,28 @@ def test_bad_swaps_raise(paper_scenario, paper_design):
         )
     with pytest.raises(SwapError, match=r"must be a Drake System or a factory"):
         build_closed_loop(paper_scenario, design=paper_design, critic=42)
+
+
+def test_sound_scenario_is_decay_certified_and_stays_in_the_box():
+    from ofrl_drake import load_scenario
+
+    from .conftest import ROOT
+
+    scenario = load_scenario(ROOT / "diagrams" / "two_state_sound.yaml")
+    r = simulate(scenario, progress=False)
+    assert r.design["formulation"] == "polytopic"
+    assert r.design["is_decay_certified"]
+    assert all(c["max_eigenvalue"] < 0 for c in r.design["decay_certificate"])
+    assert r.validity.valid and r.validity.fraction_outside == 0.0
+    assert np.linalg.norm(r.x[-1]) < 1e-3 and np.linalg.norm(r.e[-1]) < 1e-3
+    # The certified rate holds along the run: e^T P e decays at least like exp(-2 alpha t).
+    P = np.asarray(r.design["P"])
+    V = np.einsum("ti,ij,tj->t", r.e, P, r.e)
+    alpha = scenario.observer.alpha
+    assert np.all(V <= V[0] * np.exp(-2 * alpha * r.t) * (1 + 1e-6) + 1e-14)
+
+
+def test_paper_design_satisfies_lmi2_but_not_the_decay_certificate(paper_design):
+    assert paper_design.formulation == "paper"
+    assert paper_design.is_certified
+    assert not paper_design.is_decay_certified
