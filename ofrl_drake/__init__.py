@@ -9,6 +9,7 @@ least-squares gain Gamma and a saturated controller.
 >>> result = od.simulate(scenario)                              # doctest: +SKIP
 """
 
+from ofrl_drake.ablation import Variant, ablate
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.diagram import ClosedLoop, build_closed_loop
 from ofrl_drake.errors import OfrlError, ScenarioError, SwapError
@@ -27,6 +28,8 @@ __all__ = [
     "ScenarioError",
     "SimulationResult",
     "SwapError",
+    "Variant",
+    "ablate",
     "build_closed_loop",
     "load_scenario",
     "simulate",

@@ -11,6 +11,31 @@ Each choice is a factory ``f(parts) -> {block_slot: System}`` registered in
 :data:`VARIANT_FACTORIES`; :func:`~ofrl_drake.build_closed_loop` applies them
 before explicit swaps. The baseline (``three_gain``, ``learned``, the
 scenario's own ``points.kind``, ``least_squares``) builds the default blocks.
+
+What each choice builds:
+
+``observer``
+    ``three_gain``: the certified three-gain observer (default).
+    ``linear_luenberger``: the same observer with ``H = K = 0``, its ``L``
+    certified by the same LMI (:func:`ofrl_drake.baselines.linear_observer_design`);
+    under the ``polytopic`` formulation, whose designs have ``H = K = 0``
+    anyway, it coincides with ``three_gain``.
+    ``drake_luenberger``: Drake's ``LuenbergerObserver`` on the linearization
+    at the origin, poles of ``A - L C`` at
+    :func:`~ofrl_drake.baselines.luenberger_poles` ``(alpha, n)``.
+    ``true_state``: full-state feedback, ``xhat = x``.
+``controller``
+    ``learned``: the saturated policy of the learned critic (default).
+    ``lqr``: Drake's LQR on the linearization with the scenario's ``Q`` and
+    ``R``, clipped at ``lambda_bar``; the critic and Gamma still learn and log.
+    ``frozen_critic``: ``W`` fixed at ``W(0)``.
+``points``
+    ``grid`` (``points.counts``) and ``uniform`` (``points.number`` and
+    ``points.seed``) in the box ``points.lower .. points.upper``, whatever
+    ``points.kind`` says; ``around_estimate``: the scenario's points, as offsets
+    from the centre of their box, moving with ``xhat``.
+``gamma``
+    ``least_squares``: Gamma with forgetting (default); ``constant``: Gamma(0).
 """
 
 from __future__ import annotations
@@ -21,8 +46,24 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydrake.systems.framework import System
 
+from ofrl_drake.baselines import (
+    linear_observer_design,
+    linearize_at_origin,
+    luenberger_gain,
+    luenberger_poles,
+    point_offsets,
+)
+from ofrl_drake.bellman import point_features
 from ofrl_drake.errors import ScenarioError
-from ofrl_drake.systems import CriticWeights, GammaGain
+from ofrl_drake.observer import ObserverGains
+from ofrl_drake.points import grid_points, uniform_points
+from ofrl_drake.systems import BellmanExtrapolator, CriticWeights, GammaGain, ThreeGainObserver
+from ofrl_drake.systems.baselines import (
+    FullStateObserver,
+    LinearizedLuenbergerObserver,
+    MovingBellmanExtrapolator,
+    SaturatedLqrController,
+)
 
 if TYPE_CHECKING:
     from ofrl_drake.diagram import ClosedLoopParts
@@ -44,19 +85,92 @@ def _default(_parts: ClosedLoopParts) -> dict[str, System]:
     return {}
 
 
+# ---------------------------------------------------------------- observer
+def _linear_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
+    design = linear_observer_design(parts.scenario, parts.system)
+    gains = ObserverGains.from_design(parts.system, design)
+    return {"observer": ThreeGainObserver(parts.system, gains, initial_state=parts.scenario.xhat0)}
+
+
+def _drake_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
+    linearization = linearize_at_origin(parts.system)
+    poles = luenberger_poles(parts.scenario.observer.alpha, parts.system.n)
+    gain = luenberger_gain(linearization.A(), linearization.C(), poles)
+    return {
+        "observer": LinearizedLuenbergerObserver(
+            linearization, gain, initial_state=parts.scenario.xhat0
+        )
+    }
+
+
+def _true_state(parts: ClosedLoopParts) -> dict[str, System]:
+    return {"observer": FullStateObserver(parts.system.n)}
+
+
+# -------------------------------------------------------------- controller
+def _lqr(parts: ClosedLoopParts) -> dict[str, System]:
+    linearization = linearize_at_origin(parts.system)
+    return {
+        "controller": SaturatedLqrController(
+            linearization, parts.Q, np.diag(parts.r), parts.scenario.input_bound
+        )
+    }
+
+
 def _frozen_critic(parts: ClosedLoopParts) -> dict[str, System]:
     return {"critic": CriticWeights(parts.scenario.critic.W0, kc=0.0)}
 
 
+# ------------------------------------------------------------------ points
+def _bellman_at(parts: ClosedLoopParts, points: np.ndarray) -> BellmanExtrapolator:
+    s = parts.scenario
+    features = point_features(parts.system, parts.basis, points, parts.Q)
+    return BellmanExtrapolator(features, parts.r, s.input_bound, s.critic.nu)
+
+
+def _grid(parts: ClosedLoopParts) -> dict[str, System]:
+    p = parts.scenario.points
+    if p.kind == "grid":
+        return {}  # the default block already uses the grid
+    if len(p.counts) != parts.system.n:
+        raise ScenarioError(
+            f"variant.points: 'grid' needs points.counts with {parts.system.n} positive "
+            f"integers; got {p.counts}."
+        )
+    return {"bellman": _bellman_at(parts, grid_points(p.lower, p.upper, p.counts))}
+
+
+def _uniform(parts: ClosedLoopParts) -> dict[str, System]:
+    p = parts.scenario.points
+    if p.kind == "uniform":
+        return {}  # the default block already uses these points
+    return {"bellman": _bellman_at(parts, uniform_points(p.lower, p.upper, p.number, p.seed))}
+
+
+def _around_estimate(parts: ClosedLoopParts) -> dict[str, System]:
+    s, p = parts.scenario, parts.scenario.points
+    offsets = point_offsets(parts.features.points, np.asarray(p.lower), np.asarray(p.upper))
+    return {
+        "bellman": MovingBellmanExtrapolator(
+            parts.system, parts.basis, offsets, parts.Q, parts.r, s.input_bound, s.critic.nu
+        )
+    }
+
+
+# ------------------------------------------------------------------- gamma
 def _constant_gamma(parts: ClosedLoopParts) -> dict[str, System]:
     return {"gamma": GammaGain(np.asarray(parts.scenario.critic.Gamma0, float), kc=0.0, beta=0.0)}
 
 
 VARIANT_FACTORIES: dict[str, dict[str, Factory]] = {
-    "observer": {"three_gain": _default},
-    "controller": {"learned": _default, "frozen_critic": _frozen_critic},
-    # Grid and uniform points are resolved from points.kind in the scenario.
-    "points": {"grid": _default, "uniform": _default},
+    "observer": {
+        "three_gain": _default,
+        "linear_luenberger": _linear_luenberger,
+        "drake_luenberger": _drake_luenberger,
+        "true_state": _true_state,
+    },
+    "controller": {"learned": _default, "lqr": _lqr, "frozen_critic": _frozen_critic},
+    "points": {"grid": _grid, "uniform": _uniform, "around_estimate": _around_estimate},
     "gamma": {"least_squares": _default, "constant": _constant_gamma},
 }
 

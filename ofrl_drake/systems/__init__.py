@@ -1,5 +1,11 @@
 """Drake blocks of the closed loop; each is a thin wrapper over a math module."""
 
+from ofrl_drake.systems.baselines import (
+    FullStateObserver,
+    LinearizedLuenbergerObserver,
+    MovingBellmanExtrapolator,
+    SaturatedLqrController,
+)
 from ofrl_drake.systems.bellman import BellmanExtrapolator
 from ofrl_drake.systems.controller import SaturatedController
 from ofrl_drake.systems.cost import RunningCost
@@ -13,9 +19,13 @@ __all__ = [
     "BellmanExtrapolator",
     "ControlAffinePlant",
     "CriticWeights",
+    "FullStateObserver",
     "GammaGain",
+    "LinearizedLuenbergerObserver",
+    "MovingBellmanExtrapolator",
     "RunningCost",
     "SaturatedController",
+    "SaturatedLqrController",
     "ScheduledThreeGainObserver",
     "ThreeGainObserver",
 ]

@@ -1,0 +1,100 @@
+"""Per-run metrics of an ablation, from logged trajectories (pure numpy).
+
+Every function takes arrays with time first, as in
+:class:`~ofrl_drake.SimulationResult`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "SETTLING_RADIUS",
+    "optimality_ratio",
+    "rms_estimation_error",
+    "run_metrics",
+    "settling_time",
+    "time_outside_box",
+]
+
+#: ``|x|`` below which a run counts as settled.
+SETTLING_RADIUS = 1e-2
+
+
+def settling_time(t: np.ndarray, x: np.ndarray, radius: float = SETTLING_RADIUS) -> float:
+    """The first logged time after which ``|x| < radius`` at every sample.
+
+    Returns ``t[0]`` if the run starts and stays inside, and ``inf`` if ``|x|``
+    is not below ``radius`` at the last sample (never settled in the horizon).
+    """
+    outside = np.linalg.norm(np.asarray(x, dtype=float), axis=1) >= radius
+    if not outside.any():
+        return float(t[0])
+    last = int(np.flatnonzero(outside)[-1])
+    return float(t[last + 1]) if last + 1 < len(t) else math.inf
+
+
+def rms_estimation_error(t: np.ndarray, x: np.ndarray, xhat: np.ndarray) -> float:
+    """``sqrt((1/T) int |x - xhat|^2 dt)`` by the trapezoid rule."""
+    t = np.asarray(t, dtype=float)
+    sq = np.sum((np.asarray(x, dtype=float) - np.asarray(xhat, dtype=float)) ** 2, axis=1)
+    span = t[-1] - t[0]
+    if span <= 0:
+        return float(np.sqrt(sq[0]))
+    integral = 0.5 * np.sum((sq[1:] + sq[:-1]) * np.diff(t))
+    return float(np.sqrt(integral / span))
+
+
+def time_outside_box(
+    t: np.ndarray, x: np.ndarray, xhat: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> float:
+    """Seconds during which ``x`` or ``xhat`` was outside ``[lower, upper]``.
+
+    Left-point rule on the logged samples: the interval ``[t_k, t_{k+1})``
+    counts as outside if either was outside at ``t_k``.
+    """
+    lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+
+    def outside(z: np.ndarray) -> np.ndarray:
+        z = np.asarray(z, dtype=float)
+        return np.any((z < lo) | (z > hi), axis=1)
+
+    bad = outside(x) | outside(xhat)
+    return float(np.sum(np.diff(np.asarray(t, dtype=float)) * bad[:-1]))
+
+
+def optimality_ratio(cost: float, optimal_cost: float) -> float:
+    """``J / J*``; NaN when ``J*`` is unavailable or not positive."""
+    if not (math.isfinite(optimal_cost) and optimal_cost > 0 and math.isfinite(cost)):
+        return math.nan
+    return cost / optimal_cost
+
+
+def run_metrics(result: Any, box: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+    """The trajectory metrics of one run.
+
+    Parameters
+    ----------
+    result : SimulationResult
+        The logged run.
+    box : (lower, upper)
+        The observer's certified box.
+
+    Returns
+    -------
+    dict
+        ``cost``, ``final_state_norm``, ``settling_time``,
+        ``rms_estimation_error``, ``min_learning_condition``,
+        ``time_outside_box``.
+    """
+    return {
+        "cost": float(result.cost[-1]),
+        "final_state_norm": float(np.linalg.norm(result.x[-1])),
+        "settling_time": settling_time(result.t, result.x),
+        "rms_estimation_error": rms_estimation_error(result.t, result.x, result.xhat),
+        "min_learning_condition": float(np.min(result.learning_condition)),
+        "time_outside_box": time_outside_box(result.t, result.x, result.xhat, *box),
+    }

@@ -1,0 +1,245 @@
+"""The report of an ablation sweep: ``ablation.md`` and ``figures/``.
+
+:func:`write_report` turns the rows of :func:`ofrl_drake.ablation.ablate` into
+
+* ``ablation.md``: mean and standard deviation of every metric per variant,
+  ``J*`` per initial state, and the runs that failed;
+* ``figures/optimality_ratio.png``: ``J / J*`` per variant, a box plot with the
+  individual runs on top;
+* ``figures/trajectories.png``: the state of every variant from the scenario's
+  own ``x0``, one panel per state component.
+
+Figures are drawn on ``matplotlib.figure.Figure`` objects (no pyplot state) and
+saved at 150 dpi or more.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ofrl_drake.ablation import load_run
+from ofrl_drake.ablation_metrics import settling_time
+from ofrl_drake.optimal import Trajectory
+
+__all__ = [
+    "REPORT_METRICS",
+    "plot_optimality_ratio",
+    "plot_trajectories",
+    "summary_table",
+    "write_report",
+]
+
+#: Column of ``ablation.csv`` -> heading in ``ablation.md``.
+REPORT_METRICS = {
+    "cost": "J",
+    "optimality_ratio": "J/J*",
+    "final_state_norm": "\\|x(T)\\|",
+    "settling_time": "settling time [s]",
+    "rms_estimation_error": "rms \\|x - xhat\\|",
+    "min_learning_condition": "min c(t)",
+    "time_outside_box": "time outside box [s]",
+    "wall_time": "wall time [s]",
+}
+
+DPI = 150
+
+
+def _stats(values: Sequence[float]) -> tuple[float, float, bool]:
+    """Mean, sample standard deviation and whether non-finite values were dropped."""
+    arr = np.asarray(values, dtype=float)
+    finite = arr[np.isfinite(arr)]
+    dropped = finite.size < arr.size
+    if finite.size == 0:
+        return math.nan, math.nan, dropped
+    std = float(np.std(finite, ddof=1)) if finite.size > 1 else math.nan
+    return float(np.mean(finite)), std, dropped
+
+
+def _cell(mean: float, std: float, dropped: bool) -> str:
+    if not math.isfinite(mean):
+        return "n/a"
+    text = f"{mean:.4g}" if not math.isfinite(std) else f"{mean:.4g} ± {std:.2g}"
+    return text + (" †" if dropped else "")
+
+
+def summary_table(rows: Sequence[Mapping[str, Any]], variants: Sequence[str]) -> str:
+    """The per-variant table of ``ablation.md`` (Markdown), mean ± std of each metric."""
+    head = ["variant", "runs", "ok", *REPORT_METRICS.values()]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name in variants:
+        mine = [r for r in rows if r["variant"] == name]
+        ok = sum(r["status"] == "ok" for r in mine)
+        cells = [_cell(*_stats([r[c] for r in mine])) for c in REPORT_METRICS]
+        lines.append("| " + " | ".join([name, str(len(mine)), str(ok), *cells]) + " |")
+    return "\n".join(lines)
+
+
+def _optimal_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    lines = ["| initial state x0 | J* |", "|---|---|"]
+    seen: dict[str, float] = {}
+    for r in rows:
+        seen.setdefault(r["initial_state"], r["optimal_cost"])
+    for label, value in seen.items():
+        shown = f"{value:.6g}" if math.isfinite(value) else "not converged"
+        lines.append(f"| {label} | {shown} |")
+    return "\n".join(lines)
+
+
+def plot_optimality_ratio(rows: Sequence[Mapping[str, Any]], variants: Sequence[str]) -> Figure:
+    """``J / J*`` per variant: a box plot with every run as a dot."""
+    fig = Figure(figsize=(7.0, 0.45 * len(variants) + 1.4), layout="constrained")
+    ax = fig.add_subplot()
+    data = []
+    for name in variants:
+        vals = np.asarray([r["optimality_ratio"] for r in rows if r["variant"] == name], float)
+        data.append(vals[np.isfinite(vals)])
+    positions = np.arange(1, len(variants) + 1)
+    filled = [i for i, d in enumerate(data) if d.size]
+    if filled:
+        ax.boxplot(
+            [data[i] for i in filled],
+            positions=positions[filled],
+            orientation="horizontal",
+            widths=0.6,
+            showfliers=False,
+        )
+    for pos, d in zip(positions, data, strict=True):
+        if d.size:
+            ax.plot(d, np.full(d.size, pos), "o", ms=4, alpha=0.7, color="C1")
+        else:
+            ax.text(1.0, pos, "  no J/J*", va="center", fontsize=8, color="0.4")
+    ax.axvline(1.0, color="0.3", lw=1, ls="--")
+    ax.set_yticks(positions, list(variants))
+    ax.invert_yaxis()
+    ax.set_xlabel(r"$J / J^*$ (1 = optimal)")
+    ax.grid(True, axis="x", alpha=0.3)
+    return fig
+
+
+def plot_trajectories(
+    runs_dir: str | os.PathLike[str],
+    variants: Sequence[str],
+    initial_state: str,
+    optimum: Trajectory | None = None,
+) -> Figure:
+    """Each variant's state from one initial state (saved runs).
+
+    One panel per state component, zoomed on the transient (until every run has
+    settled, :func:`~ofrl_drake.ablation_metrics.settling_time`), and a last
+    panel with ``|x(t)|`` on a log scale over the whole horizon. The optimal
+    trajectory behind ``J*``, if given, is drawn dashed in black.
+    """
+    runs = {name: run for name in variants if (run := load_run(runs_dir, name, initial_state))}
+    curves = [(name, run["t"], run["x"]) for name, run in runs.items()]
+    if optimum is not None:
+        curves.append(("optimal (J*)", optimum.t, optimum.x))
+    n = curves[0][2].shape[1] if curves else 1
+    fig = Figure(figsize=(7.0, 2.2 * (n + 1) + 0.6), layout="constrained")
+    axes = fig.subplots(n + 1, 1, squeeze=False)[:, 0]
+    horizon, settled = 0.0, 0.0
+    for k, (name, t, x) in enumerate(curves):
+        style = {"color": "k", "ls": "--"} if name == "optimal (J*)" else {"color": f"C{k % 10}"}
+        for i in range(n):
+            axes[i].plot(t, x[:, i], lw=1.3, label=name, **style)
+        axes[n].semilogy(t, np.maximum(np.linalg.norm(x, axis=1), 1e-16), lw=1.1, **style)
+        horizon = max(horizon, float(t[-1]))
+        ts = settling_time(t, x)
+        settled = max(settled, ts if math.isfinite(ts) else float(t[-1]))
+    zoom = min(horizon, 1.5 * settled) if settled > 0 else horizon
+    for i in range(n):
+        axes[i].set_ylabel(rf"$x_{i + 1}$")
+        axes[i].set_xlim(0.0, zoom or 1.0)
+    axes[n].set_ylabel(r"$\|x\|$")
+    axes[n].set_xlim(0.0, horizon or 1.0)
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+        ax.set_xlabel(r"time $t$ [s]")
+    axes[0].set_title(f"state from x0 = {initial_state}", fontsize=10)
+    if curves:
+        axes[0].legend(fontsize=7, ncols=2, frameon=False)
+    return fig
+
+
+def write_report(
+    out: str | os.PathLike[str],
+    rows: Sequence[Mapping[str, Any]],
+    variants: Sequence[str],
+    *,
+    scenario_name: str,
+    x0_label: str,
+    duration: float,
+    solver: str = "SNOPT",
+    optimum: Trajectory | None = None,
+) -> list[Path]:
+    """Write ``ablation.md`` and the figures into ``out``; return the paths written.
+
+    Parameters
+    ----------
+    out : str or Path
+        The sweep's directory (holding ``runs/`` from :func:`~ofrl_drake.ablation.ablate`).
+    rows : sequence of dict
+        The sweep's rows.
+    variants : sequence of str
+        Variant names, in table order.
+    scenario_name : str
+    x0_label : str
+        ``initial_state`` label of the scenario's own ``x0`` (for the
+        trajectory figure).
+    duration : float
+        The horizon of J and J*.
+    solver : str
+        Solver of J*, for the text.
+    optimum : Trajectory, optional
+        The optimal trajectory from the scenario's ``x0``, drawn with the variants.
+    """
+    out = Path(out)
+    figures = out / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    failed = [r for r in rows if r["status"] != "ok"]
+    states = list(dict.fromkeys(r["initial_state"] for r in rows))
+    text = [
+        f"# Ablation: {scenario_name}",
+        "",
+        f"{len(rows)} runs: {len(variants)} variants from {len(states)} initial states, "
+        f"horizon {duration:g} s. J* is the optimal cost over the same horizon with "
+        f"|u_k| <= lambda_bar (direct collocation, {solver}). Cells are mean ± sample "
+        "standard deviation over the initial states; † marks a cell that left out "
+        "non-finite values (a run that never settled, or a failed one).",
+        "",
+        summary_table(rows, variants),
+        "",
+        "## Optimal cost per initial state",
+        "",
+        _optimal_table(rows),
+        "",
+        "## Runs that did not finish with status ok",
+        "",
+    ]
+    if failed:
+        text += ["| variant | initial state | status |", "|---|---|---|"]
+        text += [
+            f"| {r['variant']} | {r['initial_state']} | {r['status'].replace('|', '/')} |"
+            for r in failed
+        ]
+    else:
+        text.append("None.")
+    text += [
+        "",
+        "Figures: `figures/optimality_ratio.png` (J/J* per variant), "
+        "`figures/trajectories.png` (state of every variant from the scenario's x0).",
+        "",
+    ]
+    md = out / "ablation.md"
+    md.write_text("\n".join(text))
+    ratio = figures / "optimality_ratio.png"
+    plot_optimality_ratio(rows, variants).savefig(ratio, dpi=DPI)
+    traj = figures / "trajectories.png"
+    plot_trajectories(out / "runs", variants, x0_label, optimum).savefig(traj, dpi=DPI)
+    return [md, ratio, traj]

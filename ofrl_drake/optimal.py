@@ -1,0 +1,530 @@
+"""The optimal-control yardstick ``J*`` for one initial state.
+
+For an initial state ``x0`` the closed loop's cost ``J = int_0^T Q(x) + U(u) dt``
+is compared with the smallest cost any input with ``|u_k| <= lambda_bar`` can
+reach over the same horizon ``T``:
+
+    J* = min_u  int_0^T Q(x) + U(u) dt,   x' = f(x) + g(x) u,  x(0) = x0.
+
+It is solved by direct collocation (Drake's ``DirectCollocation``: cubic
+Hermite states, first-order-hold inputs, collocation at interval midpoints) with
+SNOPT, which the Drake wheel ships. IPOPT is the fallback when SNOPT is not
+available, but Drake gives IPOPT no Hessian and its quasi-Newton iterations
+stall on this problem.
+
+Two choices make the numbers accurate and the problem well posed:
+
+* **The input bound.** ``U(u)`` contains ``atanh(u_k / lambda_bar)``: its value
+  is finite at the bound (``U -> r lambda_bar^2 2 ln 2``) but its derivative is
+  not, and ``atanh(1)`` itself is infinite. The collocation therefore bounds
+  ``|u_k| <= lambda_bar (1 - input_margin)`` with ``input_margin = 1e-6``, where
+  ``U`` and its gradient are finite (``atanh(1 - 1e-6) = 7.25``). The stage cost
+  is continuous at the bound, so excluding the last ``1e-6`` of the input range
+  changes ``J*`` by a negligible amount. (The tempting alternative, ``u =
+  lambda_bar tanh(v)`` with a free ``v``, was tried and rejected: where ``tanh``
+  saturates the gradient in ``v`` vanishes, and SNOPT stopped there, at costs
+  up to 8 % above the optimum.) ``atanh(s)`` is written ``(1/2) ln((1 + s) /
+  (1 - s))`` since Drake's symbolic library has no ``atanh``.
+* **The cost integral.** ``J`` is appended as a state, ``J' = Q(x) + U(u)``,
+  ``J(0) = 0``, and the final cost is ``J(T)``. The cost is then integrated
+  by the same Hermite-Simpson collocation as the dynamics, not by a separate
+  trapezoid rule.
+
+The time grid is fixed (not optimized, so the solver cannot exploit the
+discretization error): steps start at ``Mesh.initial_step`` and grow
+geometrically by ``Mesh.growth`` up to ``Mesh.max_step``, fine where the
+trajectory moves and coarse where it has settled. On the paper's example
+(``x0 = (-1, 1)``, ``T = 30`` s) the default mesh has 108 intervals and gives
+``J* = 3.751106``; a mesh 2.5 times finer (0.02 s growing by 2 % to 0.2 s)
+gives ``3.751102``, and the horizons 5 s and 10 s agree to ``1e-6`` relative.
+
+A run that does not converge is reported with its solver status and a NaN
+cost, never a made-up number. The solver is warm-started from a closed-loop
+trajectory when one is given (the learned controller's, in
+:func:`ofrl_drake.ablation.ablate`); if that fails, it is retried from default
+guesses (``x`` decaying to zero with time constants 1, 0.5 and 2 s, ``u = 0``),
+since SNOPT occasionally stops on numerical difficulties from one guess and
+converges from another.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydrake.planning import DirectCollocation
+from pydrake.solvers import IpoptSolver, SnoptSolver, SolverOptions
+from pydrake.symbolic import MakeVectorVariable, log
+from pydrake.systems.primitives import SymbolicVectorSystem
+from pydrake.trajectories import PiecewisePolynomial
+
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.examples import make_system
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.scenario import Scenario
+
+__all__ = [
+    "SOLVERS",
+    "Mesh",
+    "OptimalControlResult",
+    "OptimalCostCache",
+    "Trajectory",
+    "cost_augmented_plant",
+    "optimal_control",
+    "problem_key",
+    "solve_optimal_control",
+]
+
+#: Nonlinear-programming solvers tried, by name.
+SOLVERS = ("snopt", "ipopt")
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A fixed, geometrically graded time grid for the collocation.
+
+    Attributes
+    ----------
+    initial_step : float
+        Length of the first interval [s].
+    growth : float
+        Ratio of consecutive intervals (>= 1).
+    max_step : float
+        Longest interval [s].
+    """
+
+    initial_step: float = 0.05
+    growth: float = 1.03
+    max_step: float = 0.5
+
+    def __post_init__(self) -> None:
+        ok = (
+            math.isfinite(self.initial_step)
+            and self.initial_step > 0
+            and math.isfinite(self.growth)
+            and self.growth >= 1
+            and math.isfinite(self.max_step)
+            and self.max_step >= self.initial_step
+        )
+        if not ok:
+            raise OfrlError(
+                f"mesh: need initial_step > 0, growth >= 1 and max_step >= initial_step; "
+                f"got {self}."
+            )
+
+    def steps(self, duration: float) -> np.ndarray:
+        """Interval lengths covering ``[0, duration]`` exactly, shape ``(N,)``.
+
+        The geometric sequence is cut where it first reaches ``duration`` and
+        then scaled by at most one step's worth to end exactly there.
+        """
+        if not (math.isfinite(duration) and duration > 0):
+            raise OfrlError(f"mesh: the horizon must be a positive number; got {duration!r}.")
+        steps, h, total = [], self.initial_step, 0.0
+        while total < duration * (1 - 1e-12):
+            steps.append(h)
+            total += h
+            h = min(self.max_step, h * self.growth)
+        out = np.asarray(steps, dtype=float)
+        return out * (duration / out.sum())
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A sampled trajectory: a warm start, or the optimum itself.
+
+    Attributes
+    ----------
+    t : ndarray, shape (T,)
+    x : ndarray, shape (T, n)
+    u : ndarray, shape (T, m)
+    cost : ndarray, shape (T,)
+        Accumulated cost ``int_0^t Q(x) + U(u)``.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    cost: np.ndarray
+
+    @classmethod
+    def from_result(cls, result: Any) -> Trajectory:
+        """Take ``t, x, u, cost`` from a :class:`~ofrl_drake.SimulationResult`."""
+        return cls(
+            t=np.asarray(result.t, dtype=float),
+            x=np.asarray(result.x, dtype=float),
+            u=np.asarray(result.u, dtype=float),
+            cost=np.asarray(result.cost, dtype=float),
+        )
+
+
+@dataclass(frozen=True)
+class OptimalControlResult:
+    """``J*`` for one initial state, or why there is none.
+
+    Attributes
+    ----------
+    x0 : tuple of float
+        The initial state.
+    cost : float
+        ``J*``; NaN unless :attr:`converged`.
+    converged : bool
+        True if the solver reported an optimal solution.
+    status : str
+        ``"ok"`` or the solver's status for every attempt, on one line.
+    duration : float
+        The horizon T [s].
+    solver : str
+        Which solver produced the result.
+    solve_time : float
+        Wall-clock seconds of all attempts.
+    warm_started : bool
+        True if the accepted solution started from the given warm start.
+    trajectory : Trajectory or None
+        The optimal trajectory at the mesh's knots (None if not converged).
+    """
+
+    x0: tuple[float, ...]
+    cost: float
+    converged: bool
+    status: str
+    duration: float
+    solver: str
+    solve_time: float
+    warm_started: bool = False
+    trajectory: Trajectory | None = field(default=None, compare=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict (without the trajectory)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "trajectory"}
+        out["x0"] = list(self.x0)
+        out["cost"] = self.cost if math.isfinite(self.cost) else None
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> OptimalControlResult:
+        """Inverse of :meth:`to_dict`."""
+        cost = data["cost"]
+        return cls(
+            x0=tuple(float(v) for v in data["x0"]),
+            cost=float("nan") if cost is None else float(cost),
+            converged=bool(data["converged"]),
+            status=str(data["status"]),
+            duration=float(data["duration"]),
+            solver=str(data["solver"]),
+            solve_time=float(data["solve_time"]),
+            warm_started=bool(data.get("warm_started", False)),
+        )
+
+
+def cost_augmented_plant(
+    system: ControlAffineSystem, Q: np.ndarray, r: np.ndarray, input_bound: float
+) -> SymbolicVectorSystem:
+    """The plant with the running cost appended as a state.
+
+    State ``(x, J)``, input ``u`` (size m)::
+
+        x' = f(x) + g(x) u
+        J' = x^T Q x + sum_k 2 r_k lbar (u_k atanh(u_k / lbar)
+                                         + (lbar / 2) ln(1 - u_k^2 / lbar^2))
+
+    defined for ``|u_k| < lbar`` (``atanh(s) = (1/2) ln((1 + s) / (1 - s))``).
+    """
+    n, m = system.n, system.m
+    Q = np.asarray(Q, dtype=float)
+    r = np.asarray(r, dtype=float)
+    x = MakeVectorVariable(n, "x")
+    J = MakeVectorVariable(1, "J")
+    u = MakeVectorVariable(m, "u")
+    # numpy's object loops flag "invalid value" on Drake symbolic values; harmless.
+    with np.errstate(invalid="ignore"):
+        xdot = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u
+        running = x @ Q @ x
+    for k in range(m):
+        s = u[k] / input_bound
+        atanh = 0.5 * log((1.0 + s) / (1.0 - s))
+        running += 2.0 * r[k] * input_bound * (u[k] * atanh + 0.5 * input_bound * log(1.0 - s * s))
+    return SymbolicVectorSystem(
+        state=np.concatenate([x, J]), input=u, dynamics=np.concatenate([xdot, [running]])
+    )
+
+
+def _solver(name: str | None) -> Any:
+    if name is None:
+        name = "snopt" if SnoptSolver().available() and SnoptSolver().enabled() else "ipopt"
+    makers = {"snopt": SnoptSolver, "ipopt": IpoptSolver}
+    if name not in makers:
+        raise OfrlError(f"optimal control: solver must be one of {SOLVERS}; got {name!r}.")
+    solver = makers[name]()
+    if not (solver.available() and solver.enabled()):
+        raise OfrlError(f"optimal control: solver {name!r} is not available in this Drake.")
+    return name, solver
+
+
+def _default_guess(x0: np.ndarray, duration: float, time_constant: float) -> Trajectory:
+    """x decaying from x0 with the given time constant, u = 0."""
+    t = np.linspace(0.0, duration, 200)
+    x = np.exp(-t / time_constant)[:, None] * x0[None, :]
+    return Trajectory(t=t, x=x, u=np.zeros((t.size, 0)), cost=np.zeros(t.size))
+
+
+def _initial_trajectories(
+    guess: Trajectory, x0: np.ndarray, m: int, u_max: float, duration: float
+) -> tuple[PiecewisePolynomial, PiecewisePolynomial]:
+    t = np.asarray(guess.t, dtype=float)
+    keep = np.concatenate([[True], np.diff(t) > 1e-12]) & (t <= duration + 1e-9)
+    t = t[keep]
+    x = np.asarray(guess.x, dtype=float)[keep]
+    J = np.asarray(guess.cost, dtype=float)[keep]
+    if guess.u.size:
+        u = np.clip(np.asarray(guess.u, dtype=float)[keep], -u_max, u_max)
+    else:
+        u = np.zeros((t.size, m))
+    x[0] = x0
+    states = np.hstack([x, J[:, None]])
+    return (
+        PiecewisePolynomial.FirstOrderHold(t, u.T),
+        PiecewisePolynomial.FirstOrderHold(t, states.T),
+    )
+
+
+def solve_optimal_control(
+    system: ControlAffineSystem,
+    x0: np.ndarray,
+    Q: np.ndarray,
+    r: np.ndarray,
+    input_bound: float,
+    duration: float,
+    *,
+    warm_start: Trajectory | None = None,
+    mesh: Mesh | None = None,
+    solver: str | None = None,
+    input_margin: float = 1e-6,
+) -> OptimalControlResult:
+    """Minimize ``int_0^T Q(x) + U(u) dt`` over inputs with ``|u_k| <= lambda_bar``.
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    x0 : array_like, shape (n,)
+        Initial state.
+    Q : array_like, shape (n, n)
+        State weight.
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lambda_bar.
+    duration : float
+        Horizon T [s].
+    warm_start : Trajectory, optional
+        Initial guess (e.g. the learned closed loop from ``x0``). If the solve
+        from it fails, a default guess is tried too.
+    mesh : Mesh, optional
+        The time grid (default :class:`Mesh`).
+    solver : {"snopt", "ipopt"}, optional
+        Default: SNOPT if available.
+    input_margin : float
+        Inputs are bounded by ``|u_k| <= lambda_bar (1 - input_margin)``, where
+        the gradient of ``U`` is finite (see the module docstring).
+
+    Returns
+    -------
+    OptimalControlResult
+        With ``cost = NaN`` and the solver status if no attempt converged.
+
+    Raises
+    ------
+    OfrlError
+        For bad arguments (shapes, an unknown or unavailable solver).
+    """
+    mesh = mesh or Mesh()
+    name, nlp = _solver(solver)
+    x0 = np.asarray(x0, dtype=float)
+    if x0.shape != (system.n,) or not np.all(np.isfinite(x0)):
+        raise OfrlError(f"optimal control: x0 must be {system.n} finite numbers; got {x0}.")
+    steps = mesh.steps(duration)
+    plant = cost_augmented_plant(system, Q, r, input_bound)
+    n, m = system.n, system.m
+
+    if not (0 < input_margin < 1):
+        raise OfrlError(f"optimal control: input_margin must be in (0, 1); got {input_margin!r}.")
+    u_max = input_bound * (1.0 - input_margin)
+    attempts = [("warm start", warm_start)] if warm_start is not None else []
+    attempts += [
+        (f"default guess ({tc:g} s)", _default_guess(x0, duration, tc)) for tc in (1.0, 0.5, 2.0)
+    ]
+    statuses = []
+    start = time.perf_counter()
+    for label, guess in attempts:
+        dircol = DirectCollocation(
+            plant,
+            plant.CreateDefaultContext(),
+            num_time_samples=steps.size + 1,
+            minimum_time_step=float(steps.min()) * (1 - 1e-9),
+            maximum_time_step=float(steps.max()) * (1 + 1e-9),
+        )
+        prog = dircol.prog()
+        for i, h in enumerate(steps):
+            prog.AddBoundingBoxConstraint(h, h, dircol.time_step(i))
+        start_state = np.concatenate([x0, [0.0]])
+        prog.AddBoundingBoxConstraint(start_state, start_state, dircol.initial_state())
+        for k in range(steps.size + 1):
+            prog.AddBoundingBoxConstraint(-u_max, u_max, dircol.input(k))
+        dircol.AddFinalCost(dircol.final_state()[n])
+        dircol.SetInitialTrajectory(*_initial_trajectories(guess, x0, m, u_max, duration))
+        options = SolverOptions()
+        if name == "ipopt":
+            options.SetOption(nlp.solver_id(), "print_level", 0)
+        result = nlp.Solve(prog, None, options)
+        code = result.get_solution_result()
+        states = dircol.GetStateSamples(result)
+        cost = float(states[n, -1])
+        if result.is_success() and math.isfinite(cost) and cost >= 0:
+            trajectory = Trajectory(
+                t=np.asarray(dircol.GetSampleTimes(result), dtype=float),
+                x=states[:n].T.copy(),
+                u=np.asarray(dircol.GetInputSamples(result), dtype=float).T.copy(),
+                cost=states[n].copy(),
+            )
+            return OptimalControlResult(
+                x0=tuple(float(a) for a in x0),
+                cost=cost,
+                converged=True,
+                status="ok",
+                duration=float(duration),
+                solver=name,
+                solve_time=time.perf_counter() - start,
+                warm_started=label == "warm start",
+                trajectory=trajectory,
+            )
+        info = getattr(result.get_solver_details(), "info", None)
+        detail = f" (info {info})" if info is not None else ""
+        statuses.append(f"{label}: {name} {code.name}{detail}")
+    return OptimalControlResult(
+        x0=tuple(float(a) for a in x0),
+        cost=float("nan"),
+        converged=False,
+        status="not converged (" + "; ".join(statuses) + ")",
+        duration=float(duration),
+        solver=name,
+        solve_time=time.perf_counter() - start,
+    )
+
+
+def optimal_control(
+    scenario: Scenario,
+    x0: np.ndarray | None = None,
+    *,
+    warm_start: Trajectory | None = None,
+    mesh: Mesh | None = None,
+    solver: str | None = None,
+) -> OptimalControlResult:
+    """``J*`` of ``scenario`` from ``x0`` (default: the scenario's own) over its horizon."""
+    system = make_system(scenario.system)
+    return solve_optimal_control(
+        system,
+        np.asarray(scenario.x0 if x0 is None else x0, dtype=float),
+        np.asarray(scenario.cost.Q, dtype=float),
+        np.asarray(scenario.cost.R, dtype=float),
+        scenario.input_bound,
+        scenario.simulation.duration,
+        warm_start=warm_start,
+        mesh=mesh,
+        solver=solver,
+    )
+
+
+def problem_key(
+    scenario: Scenario, x0: np.ndarray, mesh: Mesh | None = None, solver: str | None = None
+) -> str:
+    """A hash of everything ``J*`` depends on: the scenario's problem data and ``x0``.
+
+    The problem data are the system, ``Q``, ``R``, ``lambda_bar`` and the horizon;
+    the key also covers the mesh and the solver, so a change to either is not
+    served from a stale cache.
+    """
+    mesh = mesh or Mesh()
+    payload = {
+        "system": scenario.system,
+        "Q": np.asarray(scenario.cost.Q, dtype=float).tolist(),
+        "R": np.asarray(scenario.cost.R, dtype=float).tolist(),
+        "input_bound": float(scenario.input_bound),
+        "duration": float(scenario.simulation.duration),
+        "mesh": asdict(mesh),
+        "solver": _solver(solver)[0],
+        "x0": [float(a).hex() for a in np.asarray(x0, dtype=float)],
+    }
+    text = json.dumps(payload, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+class OptimalCostCache:
+    """Converged ``J*`` values on disk, one JSON file per problem key.
+
+    Parameters
+    ----------
+    directory : str or Path
+        Where the files live (created on first write).
+    mesh : Mesh, optional
+    solver : str, optional
+        Part of the key (see :func:`problem_key`).
+
+    Notes
+    -----
+    Only converged results are stored, so a failure is retried next time.
+    Files are written to a temporary name and renamed, so a reader never sees
+    half a file.
+    """
+
+    def __init__(
+        self, directory: str | os.PathLike[str], mesh: Mesh | None = None, solver: str | None = None
+    ) -> None:
+        self.directory = directory
+        self.mesh = mesh
+        self.solver = solver
+        self._dir = Path(directory)
+
+    def path(self, scenario: Scenario, x0: np.ndarray) -> Path:
+        """The file holding ``J*`` of ``scenario`` from ``x0``."""
+        return self._dir / f"{problem_key(scenario, x0, self.mesh, self.solver)}.json"
+
+    def get(self, scenario: Scenario, x0: np.ndarray) -> OptimalControlResult | None:
+        """The cached result (with its trajectory when stored), or None."""
+        path = self.path(scenario, x0)
+        if not path.is_file():
+            return None
+        try:
+            result = OptimalControlResult.from_dict(json.loads(path.read_text()))
+        except (ValueError, KeyError, TypeError):
+            return None  # a damaged file is recomputed
+        npz = path.with_suffix(".npz")
+        if npz.is_file():
+            with np.load(npz) as data:
+                trajectory = Trajectory(t=data["t"], x=data["x"], u=data["u"], cost=data["cost"])
+            result = dataclasses.replace(result, trajectory=trajectory)
+        return result
+
+    def put(self, scenario: Scenario, result: OptimalControlResult) -> None:
+        """Store ``result`` (and its trajectory, as ``.npz``) if it converged."""
+        if not result.converged:
+            return
+        path = self.path(scenario, np.asarray(result.x0))
+        self._dir.mkdir(parents=True, exist_ok=True)
+        if result.trajectory is not None:
+            tmp = path.with_name(f".{path.stem}.tmp.npz")
+            np.savez(tmp, **asdict(result.trajectory))
+            os.replace(tmp, path.with_suffix(".npz"))
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=self._dir)
+        with os.fdopen(fd, "w") as fh:
+            json.dump({**result.to_dict(), "scenario": scenario.name}, fh, indent=2)
+            fh.write("\n")
+        os.replace(tmp, path)

@@ -1,0 +1,345 @@
+"""Baseline blocks for ablations: each replaces one slot of the closed loop.
+
+They use the port names of the blocks they replace, so
+:func:`~ofrl_drake.build_closed_loop` wires them by name:
+
+* :class:`FullStateObserver` (``observer`` slot): the "estimate" is the true state.
+* :class:`LinearizedLuenbergerObserver` (``observer``): Drake's
+  ``LuenbergerObserver`` on the linearization at the origin.
+* :class:`SaturatedLqrController` (``controller``): Drake's
+  ``LinearQuadraticRegulator`` on the linearization, clipped at ``lambda_bar``.
+* :class:`MovingBellmanExtrapolator` (``bellman``): the Bellman extrapolation at
+  points ``xhat + offsets`` that move with the estimate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.controllers import LinearQuadraticRegulator
+from pydrake.systems.estimators import LuenbergerObserver
+from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, ValueProducer
+from pydrake.systems.primitives import AffineSystem, LinearSystem, Saturation
+
+from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.model import ControlAffineSystem
+
+__all__ = [
+    "FullStateObserver",
+    "LinearizedLuenbergerObserver",
+    "MovingBellmanExtrapolator",
+    "SaturatedLqrController",
+]
+
+
+class FullStateObserver(LeafSystem):
+    """Full-state feedback in the observer slot: ``estimated_state = state``.
+
+    Stateless, with direct feedthrough. The plant's ``state`` output has none,
+    so feeding it through to the controller closes no algebraic loop.
+
+    .. pydrake_system::
+
+        name: FullStateObserver
+        input_ports:
+        - state
+        output_ports:
+        - estimated_state
+
+    Parameters
+    ----------
+    num_states : int
+        n, the size of the state.
+    """
+
+    def __init__(self, num_states: int) -> None:
+        super().__init__()
+        self.num_states = num_states
+        self._state_port = self.DeclareVectorInputPort("state", num_states)
+        self._xhat_port = self.DeclareVectorOutputPort(
+            "estimated_state",
+            num_states,
+            self._calc_estimated_state,
+            prerequisites_of_calc={self._state_port.ticket()},
+        )
+
+    def get_state_input_port(self):
+        """The true state x (size n)."""
+        return self._state_port
+
+    def get_estimated_state_output_port(self):
+        """The "estimate", equal to x (size n)."""
+        return self._xhat_port
+
+    def _calc_estimated_state(self, context, output) -> None:
+        output.SetFromVector(self._state_port.Eval(context))
+
+
+class LinearizedLuenbergerObserver(Diagram):
+    """Drake's ``LuenbergerObserver`` on the linearization, with ports ``y, u``.
+
+    The observer runs the linear model ``xhat' = A xhat + B u + L (y - C xhat
+    - D u)``. Drake's ``LuenbergerObserver`` starts from a zero state, so to
+    start from ``xhat(0) = initial_state`` it observes the same model in the
+    shifted coordinates ``z = xhat - xhat(0)`` (an ``AffineSystem`` with
+    ``f0 = A xhat(0)`` and ``y0 = C xhat(0)``), and a stateless ``AffineSystem``
+    adds ``xhat(0)`` back. The estimate is the same; only its origin moved.
+
+    .. pydrake_system::
+
+        name: LinearizedLuenbergerObserver
+        input_ports:
+        - y
+        - u
+        output_ports:
+        - estimated_state
+
+    Parameters
+    ----------
+    linearization : LinearSystem
+        ``(A, B, C, D)`` of the plant at the origin
+        (:func:`ofrl_drake.baselines.linearize_at_origin`).
+    gain : array_like, shape (n, q)
+        Observer gain L (e.g. :func:`ofrl_drake.baselines.luenberger_gain`).
+    initial_state : array_like, shape (n,), optional
+        Default xhat(0) (zeros if omitted).
+    """
+
+    def __init__(
+        self,
+        linearization: LinearSystem,
+        gain: np.ndarray,
+        initial_state: Sequence[float] | None = None,
+    ) -> None:
+        super().__init__()
+        self.linearization = linearization
+        self.gain = gain
+        self.initial_state = initial_state
+        A, B = linearization.A(), linearization.B()
+        C, D = linearization.C(), linearization.D()
+        n = A.shape[0]
+        xhat0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
+        shifted = AffineSystem(A, B, A @ xhat0, C, D, C @ xhat0)
+        builder = DiagramBuilder()
+        observer = builder.AddNamedSystem(
+            "luenberger",
+            LuenbergerObserver(
+                shifted, shifted.CreateDefaultContext(), np.asarray(gain, dtype=float)
+            ),
+        )
+        # estimated_state = z + xhat(0): a stateless affine map y = I z + xhat(0).
+        shift_back = builder.AddNamedSystem(
+            "add_initial_estimate", AffineSystem(D=np.eye(n), y0=xhat0)
+        )
+        builder.Connect(observer.get_estimated_state_output_port(), shift_back.get_input_port())
+        builder.ExportInput(observer.get_observed_system_output_input_port(), "y")
+        builder.ExportInput(observer.get_observed_system_input_input_port(), "u")
+        builder.ExportOutput(shift_back.get_output_port(), "estimated_state")
+        builder.BuildInto(self)
+
+    def get_y_input_port(self):
+        """The measurement ``y`` (size q)."""
+        return self.GetInputPort("y")
+
+    def get_u_input_port(self):
+        """The applied input ``u`` (size m)."""
+        return self.GetInputPort("u")
+
+    def get_estimated_state_output_port(self):
+        """The estimate ``xhat`` (size n)."""
+        return self.GetOutputPort("estimated_state")
+
+
+class SaturatedLqrController(Diagram):
+    """Drake's ``LinearQuadraticRegulator`` on the linearization, clipped at lbar.
+
+    ``u = clip(-K xhat, -lbar, lbar)`` with ``K`` the LQR gain of
+    ``(A, B, Q, R)``, a Drake ``LinearSystem`` followed by a ``Saturation``.
+    Near the origin ``U(u) ~ r u^2``, so ``R = diag(r)`` is the quadratic part of
+    the scenario's input cost.
+
+    .. pydrake_system::
+
+        name: SaturatedLqrController
+        input_ports:
+        - estimated_state
+        output_ports:
+        - u
+
+    Parameters
+    ----------
+    linearization : LinearSystem
+        ``(A, B)`` of the plant at the origin.
+    Q : array_like, shape (n, n)
+        State weight.
+    R : array_like, shape (m, m)
+        Input weight, positive definite.
+    input_bound : float
+        lbar > 0.
+
+    Attributes
+    ----------
+    K : ndarray, shape (m, n)
+        The LQR gain.
+    """
+
+    def __init__(
+        self, linearization: LinearSystem, Q: np.ndarray, R: np.ndarray, input_bound: float
+    ) -> None:
+        super().__init__()
+        self.linearization = linearization
+        self.Q = Q
+        self.R = R
+        self.input_bound = input_bound
+        lqr = LinearQuadraticRegulator(
+            linearization, np.asarray(Q, dtype=float), np.atleast_2d(np.asarray(R, float))
+        )
+        self.K = -np.asarray(lqr.D(), dtype=float)
+        m = self.K.shape[0]
+        builder = DiagramBuilder()
+        builder.AddNamedSystem("lqr", lqr)
+        saturation = builder.AddNamedSystem(
+            "saturation", Saturation(-input_bound * np.ones(m), input_bound * np.ones(m))
+        )
+        builder.Connect(lqr.get_output_port(), saturation.get_input_port())
+        builder.ExportInput(lqr.get_input_port(), "estimated_state")
+        builder.ExportOutput(saturation.get_output_port(), "u")
+        builder.BuildInto(self)
+
+    def get_estimated_state_input_port(self):
+        """The state estimate xhat (size n)."""
+        return self.GetInputPort("estimated_state")
+
+    def get_u_output_port(self):
+        """The clipped input u (size m)."""
+        return self.GetOutputPort("u")
+
+
+class MovingBellmanExtrapolator(LeafSystem):
+    """Bellman errors at N points ``xhat + offsets`` that move with the estimate.
+
+    Like :class:`~ofrl_drake.systems.BellmanExtrapolator`, but the point
+    features are recomputed at every evaluation, for all N points at once
+    (:func:`~ofrl_drake.bellman.point_features`, no loop over points). One cache
+    entry, depending on both inputs, feeds the three outputs.
+
+    .. pydrake_system::
+
+        name: MovingBellmanExtrapolator
+        input_ports:
+        - weights
+        - estimated_state
+        output_ports:
+        - critic_sum
+        - gain_sum
+        - learning_condition
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    basis : PolynomialBasis
+    offsets : array_like, shape (n, N)
+        Point offsets from the estimate
+        (:func:`ofrl_drake.baselines.point_offsets`).
+    Q : array_like, shape (n, n)
+        State weight.
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar.
+    nu : float
+        Normalization gain of rho.
+
+    Notes
+    -----
+    ``gain_sum`` is output row-major, flattened to ``L * L``.
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        basis: PolynomialBasis,
+        offsets: np.ndarray,
+        Q: np.ndarray,
+        r: np.ndarray,
+        input_bound: float,
+        nu: float,
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.basis = basis
+        self.offsets = offsets
+        self.Q = Q
+        self.r = r
+        self.input_bound = input_bound
+        self.nu = nu
+        self._offsets = np.asarray(offsets, dtype=float)
+        if self._offsets.ndim != 2 or self._offsets.shape[0] != system.n:
+            raise ValueError(
+                f"offsets must have shape (n, N) = ({system.n}, N); got {self._offsets.shape}."
+            )
+        self._Q = np.asarray(Q, dtype=float)
+        self._r = np.asarray(r, dtype=float)
+        size = basis.size
+        self._weights_port = self.DeclareVectorInputPort("weights", size)
+        self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
+        self._cache = self.DeclareCacheEntry(
+            "bellman_extrapolation",
+            ValueProducer(
+                allocate=AbstractValue.Make(object()).Clone,
+                calc=self._calc_extrapolation,
+            ),
+            prerequisites_of_calc={self._weights_port.ticket(), self._xhat_port.ticket()},
+        )
+        deps = {self._cache.ticket()}
+        self._critic_sum_port = self.DeclareVectorOutputPort(
+            "critic_sum", size, self._calc_critic_sum, prerequisites_of_calc=deps
+        )
+        self._gain_sum_port = self.DeclareVectorOutputPort(
+            "gain_sum", size * size, self._calc_gain_sum, prerequisites_of_calc=deps
+        )
+        self._learning_condition_port = self.DeclareVectorOutputPort(
+            "learning_condition", 1, self._calc_learning_condition, prerequisites_of_calc=deps
+        )
+
+    def get_weights_input_port(self):
+        """Critic weights W (size L)."""
+        return self._weights_port
+
+    def get_estimated_state_input_port(self):
+        """The estimate xhat the points move with (size n)."""
+        return self._xhat_port
+
+    def get_critic_sum_output_port(self):
+        """``(1/N) sum omega_i delta_i / rho_i`` (size L)."""
+        return self._critic_sum_port
+
+    def get_gain_sum_output_port(self):
+        """``(1/N) sum omega_i omega_i^T / rho_i^2``, flattened (size L*L)."""
+        return self._gain_sum_port
+
+    def get_learning_condition_output_port(self):
+        """``c = lambda_min(gain_sum)`` (size 1)."""
+        return self._learning_condition_port
+
+    def extrapolation(self, context):
+        """The cached :class:`~ofrl_drake.bellman.BellmanExtrapolation`."""
+        return self._cache.Eval(context)
+
+    def _calc_extrapolation(self, context, value) -> None:
+        W = self._weights_port.Eval(context)
+        xhat = self._xhat_port.Eval(context)
+        features = point_features(self.system, self.basis, xhat[:, None] + self._offsets, self._Q)
+        value.set_value(extrapolate(features, W, self._r, self.input_bound, self.nu))
+
+    def _calc_critic_sum(self, context, output) -> None:
+        output.SetFromVector(self._cache.Eval(context).critic_sum)
+
+    def _calc_gain_sum(self, context, output) -> None:
+        output.SetFromVector(self._cache.Eval(context).gain_sum.ravel())
+
+    def _calc_learning_condition(self, context, output) -> None:
+        output.SetAtIndex(0, learning_condition(self._cache.Eval(context).gain_sum))

@@ -1,0 +1,352 @@
+"""Ablation sweeps: against the optimum, on Dask, with failures, resumed after a kill."""
+
+import dataclasses
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_dump, yaml_load
+
+from ofrl_drake.ablation import (
+    CSV_COLUMNS,
+    AblationError,
+    Variant,
+    ablate,
+    default_variants,
+    initial_state_label,
+    read_rows,
+    sample_initial_states,
+)
+from ofrl_drake.ablation_metrics import (
+    optimality_ratio,
+    rms_estimation_error,
+    settling_time,
+    time_outside_box,
+)
+from ofrl_drake.cli import main
+from ofrl_drake.variants import VARIANT_FACTORIES
+
+from .conftest import PAPER_SCENARIO, ROOT
+
+#: J and J* are compared over 10 s instead of 30 s: every variant is within
+#: 1e-6 of its final cost by then (|x(10)| < 1e-4), and both use the same horizon.
+HORIZON = 10.0
+
+DEFAULT_NAMES = [
+    "baseline",
+    "observer=linear_luenberger",
+    "observer=drake_luenberger",
+    "observer=true_state",
+    "controller=lqr",
+    "controller=frozen_critic",
+    "points=uniform",
+    "points=around_estimate",
+    "gamma=constant",
+]
+SMALL_VARIANTS = "baseline: {}\nlqr: {controller: lqr}\nfull_state: {observer: true_state}\n"
+
+
+def _key(row):
+    return row["variant"], row["initial_state"]
+
+
+def _same(a, b):
+    """Rows equal in every column but wall_time (NaN equal to NaN)."""
+    for c in CSV_COLUMNS:
+        if c == "wall_time":
+            continue
+        x, y = a[c], b[c]
+        if isinstance(x, float) and math.isnan(x):
+            assert isinstance(y, float) and math.isnan(y), (c, a, b)
+        else:
+            assert x == y, (c, a, b)
+
+
+@pytest.fixture(scope="module")
+def every_variant(paper_scenario):
+    return ablate(paper_scenario, duration=HORIZON, progress=False)
+
+
+@pytest.fixture(scope="module")
+def short_files(tmp_path_factory):
+    """A 2 s copy of the paper scenario and a three-variant file."""
+    d = tmp_path_factory.mktemp("short")
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["simulation"]["duration"] = 2.0
+    scenario = d / "short.yaml"
+    scenario.write_text(yaml_dump(data))
+    variants = d / "variants.yaml"
+    variants.write_text(SMALL_VARIANTS)
+    return scenario, variants
+
+
+# ------------------------------------------------------------ against J*
+def test_default_variants_are_the_baseline_and_every_single_swap(paper_scenario):
+    variants = default_variants(paper_scenario)
+    assert [v.name for v in variants] == DEFAULT_NAMES
+    assert variants[0].choices == {}
+    assert all(len(v.choices) == 1 for v in variants[1:])
+
+
+def test_every_variant_costs_at_least_the_optimum(every_variant):
+    rows = every_variant
+    assert [r["variant"] for r in rows] == DEFAULT_NAMES
+    assert {r["initial_state"] for r in rows} == {"[-1.0, 1.0]"}
+    optimal = {r["optimal_cost"] for r in rows}
+    assert len(optimal) == 1
+    (j_star,) = optimal
+    assert j_star == pytest.approx(3.7511, rel=1e-4)
+    for r in rows:
+        assert r["status"] == "ok", r
+        assert j_star <= 1.01 * r["cost"], r
+        assert r["optimality_ratio"] == pytest.approx(r["cost"] / j_star, rel=1e-15)
+        assert r["final_state_norm"] < 1e-3, r
+        assert 0 < r["settling_time"] < HORIZON, r
+        assert r["min_learning_condition"] > 0, r
+
+
+def test_full_state_costs_no_more_than_output_feedback(every_variant):
+    cost = {r["variant"]: r["cost"] for r in every_variant}
+    assert cost["observer=true_state"] <= 1.05 * cost["baseline"]
+
+
+def test_rows_are_consistent_with_the_variant(every_variant):
+    row = {r["variant"]: r for r in every_variant}
+    assert row["observer=true_state"]["rms_estimation_error"] == 0.0
+    assert row["observer=true_state"]["time_outside_box"] == 0.0
+    # xhat(0) = (2, 1.5) is on the box edge and leaves it briefly under output feedback.
+    assert row["baseline"]["time_outside_box"] > 0.0
+    assert row["baseline"]["rms_estimation_error"] > 0.1
+
+
+# -------------------------------------------------------------- metrics
+def test_metrics_on_known_trajectories():
+    t = np.linspace(0.0, 4.0, 5)
+    x = np.array([[1.0, 0.0], [0.02, 0.0], [0.005, 0.0], [0.011, 0.0], [0.001, 0.0]])
+    assert settling_time(t, x) == 4.0
+    assert settling_time(t, x[[0, 1, 2, 4, 4]]) == 2.0
+    assert settling_time(t, np.zeros((5, 2))) == 0.0
+    assert settling_time(t, np.ones((5, 2))) == math.inf
+    xhat = x + np.array([1.0, 0.0])
+    assert rms_estimation_error(t, x, xhat) == pytest.approx(1.0, rel=1e-15)
+    box = (np.array([-0.5, -0.5]), np.array([0.5, 0.5]))
+    # x(0) = 1 and xhat(k) = x(k) + 1 lie outside at every sample: [0, 4).
+    assert time_outside_box(t, x, xhat, *box) == 4.0
+    assert time_outside_box(t, x * 0, x * 0, *box) == 0.0
+    assert time_outside_box(t, x, x, *box) == 1.0
+    assert optimality_ratio(2.0, 4.0) == 0.5
+    assert math.isnan(optimality_ratio(2.0, math.nan))
+    assert math.isnan(optimality_ratio(2.0, 0.0))
+
+
+def test_csv_columns_are_exactly_the_issue_s():
+    assert CSV_COLUMNS == (
+        "variant",
+        "initial_state",
+        "cost",
+        "optimal_cost",
+        "optimality_ratio",
+        "final_state_norm",
+        "settling_time",
+        "rms_estimation_error",
+        "min_learning_condition",
+        "time_outside_box",
+        "wall_time",
+        "status",
+    )
+
+
+# ------------------------------------------------------- initial states
+def test_sampled_initial_states(paper_scenario):
+    states = sample_initial_states(paper_scenario, 5, seed=3)
+    assert states.shape == (6, 2)
+    np.testing.assert_array_equal(states[0], paper_scenario.x0)
+    np.testing.assert_array_equal(states, sample_initial_states(paper_scenario, 5, seed=3))
+    assert not np.array_equal(states, sample_initial_states(paper_scenario, 5, seed=4))
+    offset = np.asarray(paper_scenario.xhat0) - np.asarray(paper_scenario.x0)
+    lo, hi = paper_scenario.observer.box.lower, paper_scenario.observer.box.upper
+    for x0 in states:
+        for z in (x0, x0 + offset):
+            assert np.all(z >= lo) and np.all(z <= hi), z
+    np.testing.assert_array_equal(states, np.round(states, 6))
+    assert initial_state_label(states[0]) == "[-1.0, 1.0]"
+    wide = dataclasses.replace(paper_scenario, xhat0=[3.5, 1.5])
+    with pytest.raises(AblationError, match=r"as wide as the observer box in axis 0"):
+        sample_initial_states(wide, 2, seed=0)
+    with pytest.raises(AblationError, match=r"must be an integer >= 0"):
+        sample_initial_states(paper_scenario, -1, seed=0)
+
+
+def test_ablate_rejects_bad_input(paper_scenario, tmp_path):
+    with pytest.raises(AblationError, match=r"distinct names"):
+        ablate(paper_scenario, [Variant("a"), Variant("a")])
+    with pytest.raises(AblationError, match=r"expected finite rows of 2 numbers"):
+        ablate(paper_scenario, [Variant("a")], [[0.0, 0.0, 0.0]])
+    with pytest.raises(AblationError, match=r"repeated states"):
+        ablate(paper_scenario, [Variant("a")], [[0.1, 0.2], [0.1, 0.2]])
+    (tmp_path / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
+    with pytest.raises(AblationError, match=r"ablation.csv exists; pass --resume"):
+        ablate(paper_scenario, [Variant("a")], out=tmp_path)
+
+
+# ---------------------------------------------------------- robustness
+def test_a_failing_variant_is_recorded_and_the_others_finish(paper_scenario, tmp_path, monkeypatch):
+    def broken(parts):
+        raise RuntimeError("observer exploded\non purpose")
+
+    monkeypatch.setitem(VARIANT_FACTORIES["observer"], "broken", broken)
+    variants = [Variant("baseline"), Variant("broken", {"observer": "broken"})]
+    rows = ablate(paper_scenario, variants, [[-1.0, 1.0], [-1.5, 0.5]], out=tmp_path, duration=2.0)
+    status = {_key(r): r["status"] for r in rows}
+    assert len(rows) == 4
+    for label in ("[-1.0, 1.0]", "[-1.5, 0.5]"):
+        assert status[("baseline", label)] == "ok"
+        assert status[("broken", label)] == "RuntimeError: observer exploded on purpose"
+    broken_row = next(r for r in rows if r["variant"] == "broken")
+    assert math.isnan(broken_row["cost"]) and math.isnan(broken_row["optimality_ratio"])
+    assert broken_row["optimal_cost"] > 0  # J* is computed all the same
+    on_disk = read_rows(tmp_path / "ablation.csv")
+    assert sorted(map(_key, on_disk)) == sorted(map(_key, rows))
+
+
+def test_resume_completes_a_table_with_a_torn_last_line(paper_scenario, tmp_path):
+    variants = [Variant("baseline"), Variant("lqr", {"controller": "lqr"})]
+    states = [[-1.0, 1.0], [-1.5, 0.5]]
+    full = ablate(paper_scenario, variants, states, out=tmp_path / "a", duration=2.0)
+    lines = (tmp_path / "a" / "ablation.csv").read_text().splitlines(keepends=True)
+    assert len(lines) == 5
+    part = tmp_path / "b"
+    part.mkdir()
+    (tmp_path / "a" / "ablation.json").rename(part / "ablation.json")
+    (part / "ablation.csv").write_text("".join(lines[:3]) + lines[3][:25])
+    rows = ablate(paper_scenario, variants, states, out=part, resume=True, duration=2.0)
+    text = (part / "ablation.csv").read_text()
+    assert text.startswith("".join(lines[:3]))
+    on_disk = read_rows(part / "ablation.csv")
+    assert len(on_disk) == 4 and len(set(map(_key, on_disk))) == 4
+    for a, b in zip(sorted(rows, key=_key), sorted(full, key=_key), strict=True):
+        _same(a, b)
+    # The finished rows were kept, not re-run.
+    assert on_disk[:2] == read_rows(tmp_path / "a" / "ablation.csv")[:2]
+
+
+def test_resume_refuses_another_scenario(paper_scenario, tmp_path):
+    ablate(paper_scenario, [Variant("baseline")], out=tmp_path, duration=1.0)
+    other = dataclasses.replace(paper_scenario, input_bound=2.0)
+    with pytest.raises(AblationError, match=r"--resume: .* holds a sweep of another scenario"):
+        ablate(other, [Variant("baseline")], out=tmp_path, resume=True, duration=1.0)
+
+
+# -------------------------------------------------------- Dask and CLI
+def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path, capsys):
+    from distributed import LocalCluster
+
+    from ofrl_drake import load_scenario
+    from ofrl_drake.ablation import load_variants
+
+    scenario_file, variants_file = short_files
+    out = tmp_path / "dask"
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        code = main(
+            [
+                "ablate",
+                str(scenario_file),
+                "--out",
+                str(out),
+                "--variants",
+                str(variants_file),
+                "--initial-states",
+                "1",
+                "--scheduler",
+                cluster.scheduler_address,
+            ]
+        )
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert f"wrote {out}: 6 runs (6 ok)" in captured.out, captured.out
+    scenario = load_scenario(scenario_file)
+    serial = ablate(
+        scenario,
+        load_variants(variants_file),
+        sample_initial_states(scenario, 1, seed=0),
+        progress=False,
+    )
+    dask_rows = read_rows(out / "ablation.csv")
+    assert len(dask_rows) == len(serial) == 6
+    for a, b in zip(sorted(dask_rows, key=_key), sorted(serial, key=_key), strict=True):
+        _same(a, b)
+    md = (out / "ablation.md").read_text()
+    assert "| variant | runs | ok | J | J/J* |" in md
+    for name in ("baseline", "lqr", "full_state"):
+        assert f"| {name} | 2 | 2 | " in md
+    from PIL import Image
+
+    for figure in ("optimality_ratio.png", "trajectories.png"):
+        with Image.open(out / "figures" / figure) as image:
+            assert min(image.info["dpi"]) >= 149.9, figure
+
+
+def test_resume_after_killing_the_command(short_files, tmp_path):
+    scenario_file, variants_file = short_files
+    out = tmp_path / "killed"
+    command = [
+        sys.executable,
+        "-m",
+        "ofrl_drake",
+        "ablate",
+        str(scenario_file),
+        "--out",
+        str(out),
+        "--variants",
+        str(variants_file),
+        "--initial-states",
+        "2",
+        "--workers",
+        "0",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(command, cwd=ROOT, env=env, stderr=subprocess.PIPE)
+    table = out / "ablation.csv"
+    try:
+        while proc.poll() is None:
+            if table.exists() and table.read_text().count("\n") >= 3:  # header + 2 rows
+                break
+            time.sleep(0.02)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+        stderr = proc.communicate()[1].decode()
+    assert proc.returncode == -signal.SIGKILL, stderr
+    before = read_rows(table)
+    assert 2 <= len(before) < 9
+    assert main(["ablate", *command[4:], "--resume"]) == 0
+    after = read_rows(table)
+    assert len(after) == 9 and len(set(map(_key, after))) == 9
+    assert after[: len(before)] == before
+
+
+def test_cli_errors_are_one_line(short_files, tmp_path, capsys):
+    scenario_file, variants_file = short_files
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("x: {estimator: kalman}\n")
+    args = ["ablate", str(scenario_file), "--out", str(tmp_path / "o"), "--workers", "0"]
+    assert main([*args, "--variants", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1
+    assert "variants.x.estimator: unknown slot" in err
+    bad.write_text("x: {observer: kalman}\n")
+    assert main([*args, "--variants", str(bad)]) == 2
+    assert "variants.x.observer: unknown choice 'kalman'" in capsys.readouterr().err
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
+    assert main([*args, "--variants", str(variants_file)]) == 2
+    assert "ablation.csv exists; pass --resume" in capsys.readouterr().err
+    assert main([*args, "--variants", str(tmp_path / "missing.yaml")]) == 2
+    assert "missing.yaml: no such variants file" in capsys.readouterr().err

@@ -1,0 +1,178 @@
+"""The optimal-control yardstick J*: the problem it solves, its accuracy, its cache."""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from ofrl_drake import OfrlError
+from ofrl_drake.cost import stage_cost
+from ofrl_drake.examples import make_system
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.optimal import (
+    Mesh,
+    OptimalControlResult,
+    OptimalCostCache,
+    cost_augmented_plant,
+    optimal_control,
+    problem_key,
+    solve_optimal_control,
+)
+
+Q = 5.0 * np.eye(2)
+R = np.array([1.0])
+LBAR = 3.0
+
+
+@pytest.fixture(scope="module")
+def two_state():
+    return make_system("two_state")
+
+
+@pytest.fixture(scope="module")
+def paper_optimum(two_state):
+    """J* from the paper's x0 over 5 s (the cost after 5 s is below 1e-6 of it)."""
+    return solve_optimal_control(two_state, [-1.0, 1.0], Q, R, LBAR, 5.0)
+
+
+@pytest.mark.parametrize("u", [-2.9999, -1.3, 0.0, 0.4, 2.99])
+def test_cost_state_derivative_is_the_stage_cost(two_state, u):
+    """J' of the collocated system equals Q(x) + U(u) of ofrl_drake.cost."""
+    plant = cost_augmented_plant(two_state, Q, R, LBAR)
+    context = plant.CreateDefaultContext()
+    x = np.array([0.7, -1.4])
+    context.SetContinuousState(np.concatenate([x, [0.0]]))
+    plant.get_input_port().FixValue(context, [u])
+    deriv = plant.EvalTimeDerivatives(context).CopyToVector()
+    np.testing.assert_allclose(deriv[:2], two_state.dynamics(x, np.array([u])), rtol=1e-14)
+    np.testing.assert_allclose(deriv[2], stage_cost(x, np.array([u]), Q, R, LBAR), rtol=1e-12)
+
+
+def test_paper_optimum_converges_within_the_bound(paper_optimum):
+    r = paper_optimum
+    assert r.converged and r.status == "ok" and r.solver == "snopt"
+    assert r.cost == pytest.approx(3.7511, rel=1e-4)
+    traj = r.trajectory
+    assert np.all(np.abs(traj.u) <= LBAR * (1 - 1e-6) * (1 + 1e-12))
+    assert traj.t[0] == 0.0 and traj.t[-1] == pytest.approx(5.0, abs=1e-12)
+    np.testing.assert_array_equal(traj.x[0], [-1.0, 1.0])
+    assert traj.cost[0] == 0.0 and traj.cost[-1] == r.cost
+    assert np.all(np.diff(traj.cost) >= 0)
+
+
+def test_optimal_input_replayed_open_loop_follows_the_optimal_state(two_state, paper_optimum):
+    """Integrate x' = f + g u with the collocated (first-order-hold) input by scipy."""
+    traj = paper_optimum.trajectory
+
+    def rhs(t, x):
+        return two_state.dynamics(x, np.array([np.interp(t, traj.t, traj.u[:, 0])]))
+
+    sol = solve_ivp(rhs, (0.0, 1.0), [-1.0, 1.0], rtol=1e-11, atol=1e-12, max_step=0.01)
+    x1 = np.array([np.interp(1.0, traj.t, traj.x[:, i]) for i in range(2)])
+    # The plant is open-loop unstable (eigenvalue 3.8), which amplifies the
+    # collocation error of the replay.
+    np.testing.assert_allclose(sol.y[:, -1], x1, rtol=0, atol=1e-3)
+
+
+def test_mesh_refinement_and_horizon_leave_j_star_unchanged(two_state, paper_optimum):
+    fine = solve_optimal_control(
+        two_state, [-1.0, 1.0], Q, R, LBAR, 5.0, mesh=Mesh(0.02, 1.02, 0.2)
+    )
+    longer = solve_optimal_control(two_state, [-1.0, 1.0], Q, R, LBAR, 10.0)
+    assert fine.converged and longer.converged
+    assert fine.trajectory.t.size > 1.5 * paper_optimum.trajectory.t.size
+    assert fine.cost == pytest.approx(paper_optimum.cost, rel=1e-5)
+    assert longer.cost == pytest.approx(paper_optimum.cost, rel=1e-5)
+
+
+def test_j_star_is_below_the_paper_closed_loop(paper_scenario, paper_optimum):
+    from ofrl_drake import simulate
+
+    short = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, duration=5.0)
+    )
+    r = simulate(short, progress=False)
+    assert paper_optimum.cost <= r.cost[-1]
+    assert r.cost[-1] / paper_optimum.cost == pytest.approx(1.1454, abs=2e-3)
+
+
+def test_warm_start_reaches_the_same_optimum(two_state, paper_optimum):
+    warm = dataclasses.replace(paper_optimum.trajectory, u=paper_optimum.trajectory.u * 0.5)
+    r = solve_optimal_control(two_state, [-1.0, 1.0], Q, R, LBAR, 5.0, warm_start=warm)
+    assert r.converged and r.warm_started
+    assert r.cost == pytest.approx(paper_optimum.cost, rel=1e-6)
+
+
+def test_scenario_level_call_uses_the_scenario_problem(paper_scenario, paper_optimum):
+    short = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, duration=5.0)
+    )
+    r = optimal_control(short)
+    assert r.x0 == (-1.0, 1.0) and r.duration == 5.0
+    assert r.cost == pytest.approx(paper_optimum.cost, rel=1e-9)
+
+
+def test_infeasible_problem_reports_status_and_nan():
+    """x' = x^2 + u escapes to infinity before T from x0 = 10 for every |u| <= 1."""
+    escape = ControlAffineSystem(
+        lambda x: np.array([x[0] ** 2]), lambda x: np.array([[1 + 0 * x[0]]]), [[1.0]]
+    )
+    r = solve_optimal_control(escape, [10.0], np.eye(1), [1.0], 1.0, 5.0)
+    assert not r.converged and math.isnan(r.cost) and r.trajectory is None
+    assert r.status.startswith("not converged (default guess (1 s): snopt kInfeasible")
+    assert r.status.count("default guess") == 3
+    assert r.to_dict()["cost"] is None
+
+
+def test_bad_arguments_raise(two_state):
+    with pytest.raises(OfrlError, match=r"x0 must be 2 finite numbers"):
+        solve_optimal_control(two_state, [1.0], Q, R, LBAR, 5.0)
+    with pytest.raises(OfrlError, match=r"solver must be one of \('snopt', 'ipopt'\)"):
+        solve_optimal_control(two_state, [1.0, 0.0], Q, R, LBAR, 5.0, solver="gurobi")
+    with pytest.raises(OfrlError, match=r"input_margin must be in \(0, 1\)"):
+        solve_optimal_control(two_state, [1.0, 0.0], Q, R, LBAR, 5.0, input_margin=0.0)
+    with pytest.raises(OfrlError, match=r"mesh: need initial_step > 0"):
+        Mesh(initial_step=0.0)
+    with pytest.raises(OfrlError, match=r"the horizon must be a positive number"):
+        Mesh().steps(-1.0)
+
+
+def test_mesh_covers_the_horizon_exactly():
+    steps = Mesh().steps(30.0)
+    assert steps.sum() == pytest.approx(30.0, rel=1e-14)
+    assert steps.size == 108
+    assert np.all(np.diff(steps) >= -1e-15)
+    assert steps[0] == pytest.approx(0.05, rel=0.01) and steps.max() <= 0.5 * (1 + 1e-2)
+
+
+def test_cache_round_trip_and_keys(tmp_path, paper_scenario, paper_optimum):
+    cache = OptimalCostCache(tmp_path / "optimal")
+    x0 = np.array([-1.0, 1.0])
+    assert cache.get(paper_scenario, x0) is None
+    cache.put(paper_scenario, paper_optimum)
+    got = cache.get(paper_scenario, x0)
+    assert got.cost == paper_optimum.cost and got.status == "ok" and got.converged
+    np.testing.assert_array_equal(got.trajectory.x, paper_optimum.trajectory.x)
+    stored = json.loads(cache.path(paper_scenario, x0).read_text())
+    assert stored["x0"] == [-1.0, 1.0] and stored["scenario"] == "two_state_paper"
+    # The key changes with x0 and with the problem, not with unrelated settings.
+    key = problem_key(paper_scenario, x0)
+    assert problem_key(paper_scenario, np.array([-1.0, 1.0 + 1e-12])) != key
+    longer = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, duration=31.0)
+    )
+    assert problem_key(longer, x0) != key
+    assert problem_key(paper_scenario, x0, mesh=Mesh(0.02)) != key
+    renamed = dataclasses.replace(
+        paper_scenario, critic=dataclasses.replace(paper_scenario.critic, kc=0.02)
+    )
+    assert problem_key(renamed, x0) == key
+    # A failure is not cached; a damaged file reads as missing.
+    failed = OptimalControlResult((0.5, 0.5), math.nan, False, "not converged", 30.0, "snopt", 1.0)
+    cache.put(paper_scenario, failed)
+    assert cache.get(paper_scenario, np.array([0.5, 0.5])) is None
+    cache.path(paper_scenario, x0).write_text("{ not json")
+    assert cache.get(paper_scenario, x0) is None
