@@ -98,6 +98,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         )
     if result.validity is not None and not result.validity.valid:
         print(result.validity.warning(), file=sys.stderr)
+    if loop.design is not None and not loop.design.is_decay_certified:
+        print(
+            f"note: the observer gains satisfy the {loop.design.formulation!r} LMI but not "
+            "the sound decay certificate (is_decay_certified is false); use "
+            "formulation: polytopic for a guarantee. See the README.",
+            file=sys.stderr,
+        )
     s = result.summary()
     print(
         f"wrote {out}: |x(T)| = {s['final_state_norm']:.3g}, "
