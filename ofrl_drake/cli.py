@@ -24,32 +24,70 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-__all__ = ["main"]
+from ofrl_drake.errors import OfrlError
+
+__all__ = ["OUTPUT_MARKER", "OutputError", "atomic_directory", "check_output_directory", "main"]
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_BAD_INPUT = 2
 
 
+#: Written into every output folder of ``run``; only such folders are replaced.
+OUTPUT_MARKER = ".ofrl_drake_output"
+
+
+class OutputError(OfrlError):
+    """The output path cannot be written safely."""
+
+
+def check_output_directory(target: Path) -> Path:
+    """Resolve ``target`` and refuse to replace anything ``run`` did not write.
+
+    ``target`` may be absent, an empty folder, or the output of an earlier
+    ``run`` (it holds :data:`OUTPUT_MARKER`).
+    """
+    target = Path(target).expanduser().resolve()
+    if target == target.parent:
+        raise OutputError(f"--out: {target} is a filesystem root; name an output folder.")
+    if target.exists():
+        if not target.is_dir():
+            raise OutputError(f"--out: {target} exists and is not a folder; choose another path.")
+        if any(target.iterdir()) and not (target / OUTPUT_MARKER).exists():
+            raise OutputError(
+                f"--out: {target} is not empty and was not written by ofrl-drake run; "
+                "choose a new folder or empty this one."
+            )
+    return target
+
+
 @contextlib.contextmanager
 def atomic_directory(target: Path) -> Iterator[Path]:
-    """Yield a temporary directory that replaces ``target`` only on success."""
-    target = Path(target)
+    """Yield a temporary folder that replaces ``target`` only on success.
+
+    The folder is built beside ``target`` and renamed into place, so a failure
+    at any point leaves ``target`` as it was and no temporary folder behind.
+    """
+    target = check_output_directory(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    backup = target.with_name(f".{target.name}.old")
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)
         yield tmp
+        (tmp / OUTPUT_MARKER).write_text("written by ofrl-drake run\n")
+        shutil.rmtree(backup, ignore_errors=True)
+        if target.exists():
+            target.rename(backup)
+        tmp.rename(target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if backup.exists() and not target.exists():
+            backup.rename(target)
         raise
-    backup = None
-    if target.exists():
-        backup = target.with_name(f".{target.name}.old")
-        shutil.rmtree(backup, ignore_errors=True)
-        target.rename(backup)
-    tmp.rename(target)
-    if backup is not None:
-        shutil.rmtree(backup, ignore_errors=True)
+    shutil.rmtree(backup, ignore_errors=True)
 
 
 def atomic_write_text(target: Path, text: str) -> None:
@@ -75,6 +113,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from ofrl_drake.simulation import simulate
 
     scenario = load_scenario(args.scenario)
+    check_output_directory(Path(args.out))  # fail before the work, not after
     loop = build_closed_loop(scenario)
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
     out = Path(args.out)
@@ -272,7 +311,6 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code."""
-    from ofrl_drake.errors import OfrlError
 
     args = _parser().parse_args(argv)
     try:

@@ -147,3 +147,25 @@ def test_infeasible_design_exits_2_with_one_line(tmp_path):
     assert "Traceback" not in proc.stderr
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scenario.yaml"]
+
+
+def test_run_refuses_to_replace_a_folder_it_did_not_write(tmp_path):
+    out = tmp_path / "precious"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    proc = _cli("run", _short_scenario(tmp_path, duration=0.5), "--out", out)
+    assert proc.returncode == 2
+    assert "is not empty and was not written by ofrl-drake run" in proc.stderr
+    assert (out / "notes.txt").read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["precious", "scenario.yaml"]
+
+
+def test_run_replaces_its_own_earlier_output(tmp_path):
+    out = tmp_path / "out"
+    scenario = _short_scenario(tmp_path, duration=0.5)
+    assert _cli("run", scenario, "--out", out).returncode == 0
+    (out / "stale.txt").write_text("from an older run")
+    proc = _cli("run", scenario, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert not (out / "stale.txt").exists() and (out / "summary.json").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenario.yaml"]
