@@ -575,6 +575,16 @@ class ObserverDesign:
         return all(ev < 0 for _, ev in cert)
 
     @property
+    def bounds_are_guaranteed(self) -> bool:
+        """True unless the Jacobian bounds are ``"sampled"`` (an inner estimate).
+
+        A decay certificate proves ``V' <= -2 alpha V`` on the box only if the
+        bounds enclose the Jacobians; ``"certified"`` bounds do, sampled ones
+        usually but not provably do. ``"given"`` bounds are the caller's claim.
+        """
+        return self.bounds.method != "sampled"
+
+    @property
     def condition_number(self) -> float:
         """``cond(P)`` (2-norm)."""
         return float(np.linalg.cond(self.P))
@@ -616,6 +626,7 @@ class ObserverDesign:
             "formulation": self.formulation,
             "decay_certificate": decay,
             "is_decay_certified": self.is_decay_certified,
+            "bounds_are_guaranteed": self.bounds_are_guaranteed,
             "R": self.R.tolist(),
             "C": self.C.tolist(),
             "status": self.status,
@@ -728,7 +739,7 @@ class ObserverDesign:
         *,
         solver: str = "clarabel",
         backend: str = "drake",
-        jacobian_method: str = "sampled",
+        jacobian_method: str = "certified",
         margin: float = DEFAULT_MARGIN,
         sector: str = "sign_correct",
         formulation: str = "polytopic",
@@ -999,7 +1010,7 @@ def design_observer(
     alpha: float,
     *,
     bounds: JacobianBounds | None = None,
-    jacobian_method: str = "sampled",
+    jacobian_method: str = "certified",
     solver: str = "clarabel",
     margin: float = DEFAULT_MARGIN,
     objective: str = "min_gain",
@@ -1027,8 +1038,11 @@ def design_observer(
     bounds : JacobianBounds, optional
         Precomputed bounds on a box containing ``box``; default: computed with
         ``jacobian_method``.
-    jacobian_method : {"sampled", "certified"}
-        How to compute ``bounds`` when they are not given.
+    jacobian_method : {"certified", "sampled"}
+        How to compute ``bounds`` when they are not given. ``"certified"``
+        (default) gives guaranteed interval enclosures, so a decay certificate
+        is a proof; ``"sampled"`` is an inner estimate, faster but not a
+        guarantee (see :attr:`ObserverDesign.bounds_are_guaranteed`).
     solver : {"clarabel", "scs", "csdp", "mosek"}
         SDP solver (the cvxpy backend accepts "clarabel" and "scs").
     margin : float
@@ -1146,7 +1160,7 @@ def max_decay_rate(
     if not (math.isfinite(tol) and tol > 0):
         raise DesignError(f"tol must be a positive number; got {tol!r}.")
     if kw.get("bounds") is None:
-        method = kw.pop("jacobian_method", "sampled")
+        method = kw.pop("jacobian_method", "certified")
         kw["bounds"] = jacobian_bounds(system, Box.coerce(box, system.n), method)
 
     def attempt(alpha: float) -> ObserverDesign | None:

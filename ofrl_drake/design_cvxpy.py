@@ -136,7 +136,7 @@ def design_observer_cvxpy(
     alpha: float,
     *,
     bounds: JacobianBounds | None = None,
-    jacobian_method: str = "sampled",
+    jacobian_method: str = "certified",
     solver: str = "clarabel",
     margin: float = DEFAULT_MARGIN,
     objective: str = "min_gain",

@@ -109,7 +109,7 @@ class ObserverConfig:
     alpha: float = 2.0
     box: BoxConfig = field(default_factory=BoxConfig)
     formulation: str = field(default="polytopic", metadata=_OPTIONAL)
-    jacobian_method: str = field(default="sampled", metadata=_OPTIONAL)
+    jacobian_method: str = field(default="certified", metadata=_OPTIONAL)
     solver: str = field(default="clarabel", metadata=_OPTIONAL)
     L: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
     H: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
