@@ -7,11 +7,15 @@ that one type; the command-line tool prints them on one line and exits 2.
 
 from __future__ import annotations
 
-__all__ = ["OfrlError", "ScenarioError", "SwapError"]
+__all__ = ["ModelError", "OfrlError", "ScenarioError", "SwapError"]
 
 
 class OfrlError(ValueError):
     """Base class for every input error raised by ofrl_drake."""
+
+
+class ModelError(OfrlError):
+    """A model, basis, gain or point set has the wrong shape or non-finite values."""
 
 
 class ScenarioError(OfrlError):

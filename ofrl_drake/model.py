@@ -19,6 +19,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ofrl_drake.errors import ModelError
+
 __all__ = ["ControlAffineSystem"]
 
 ArrayFunction = Callable[[np.ndarray], np.ndarray]
@@ -86,25 +88,25 @@ class ControlAffineSystem:
 
         C_arr = np.asarray(C, dtype=float)
         if C_arr.ndim != 2 or C_arr.shape[0] < 1 or C_arr.shape[1] < 1:
-            raise ValueError(
+            raise ModelError(
                 f"C must be a 2-D array of shape (q, n); got shape {C_arr.shape}. "
                 "Pass C as a list of rows, e.g. [[0.0, 1.0]]."
             )
         if not np.all(np.isfinite(C_arr)):
-            raise ValueError(f"C must be finite; got {C_arr.tolist()}.")
+            raise ModelError(f"C must be finite; got {C_arr.tolist()}.")
         self._C = C_arr
         self.q, self.n = C_arr.shape
 
         x = _probe_point(self.n)
         fx = self._call("f", f, x)
         if fx.shape != (self.n,):
-            raise ValueError(
+            raise ModelError(
                 f"f(x) must return shape (n,) = ({self.n},) to match C with "
                 f"n = {self.n} columns; got shape {fx.shape}. Check f or C."
             )
         gx = self._call("g", g, x)
         if gx.ndim != 2 or gx.shape[0] != self.n or gx.shape[1] < 1:
-            raise ValueError(
+            raise ModelError(
                 f"g(x) must return shape (n, m) = ({self.n}, m) to match C with "
                 f"n = {self.n} columns; got shape {gx.shape}. Return a 2-D array, "
                 "e.g. np.array([[0 * x[0]], [1 + 0 * x[0]]]) for m = 1."
@@ -117,11 +119,11 @@ class ControlAffineSystem:
         try:
             value = np.asarray(fn(x), dtype=float)
         except Exception as err:
-            raise ValueError(
+            raise ModelError(
                 f"{name}(x) failed at the probe point x = {x.tolist()}: {err}"
             ) from err
         if not np.all(np.isfinite(value)):
-            raise ValueError(
+            raise ModelError(
                 f"{name}(x) returned non-finite values {value.tolist()} at the "
                 f"probe point x = {x.tolist()}; {name} must be finite."
             )

@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ofrl_drake.errors import ModelError
+
 __all__ = ["grid_points", "uniform_points"]
 
 
@@ -13,12 +15,12 @@ def _check_box(lower: Sequence[float], upper: Sequence[float]) -> tuple[np.ndarr
     lo = np.asarray(lower, dtype=float)
     hi = np.asarray(upper, dtype=float)
     if lo.shape != hi.shape or lo.ndim != 1:
-        raise ValueError(
+        raise ModelError(
             f"points: lower {lo.tolist()} and upper {hi.tolist()} must be vectors "
             "of the same length n."
         )
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)):
-        raise ValueError(
+        raise ModelError(
             f"points: need finite lower < upper element-wise; got lower={lo.tolist()}, "
             f"upper={hi.tolist()}."
         )
@@ -36,7 +38,7 @@ def grid_points(
     lo, hi = _check_box(lower, upper)
     counts = [int(c) for c in counts]
     if len(counts) != lo.size or min(counts) < 1:
-        raise ValueError(
+        raise ModelError(
             f"points.counts must hold {lo.size} positive integers; got {list(counts)}."
         )
     axes = [np.linspace(a, b, c) for a, b, c in zip(lo, hi, counts, strict=True)]
@@ -50,6 +52,6 @@ def uniform_points(
     """``number`` points drawn uniformly in the box from ``numpy`` generator ``seed``."""
     lo, hi = _check_box(lower, upper)
     if int(number) < 1:
-        raise ValueError(f"points.number must be a positive integer; got {number}.")
+        raise ModelError(f"points.number must be a positive integer; got {number}.")
     rng = np.random.default_rng(seed)
     return lo[:, None] + (hi - lo)[:, None] * rng.random((lo.size, int(number)))

@@ -305,7 +305,7 @@ def validate_scenario(scenario: Scenario) -> None:
     _spd("critic.Gamma0", Gamma0)
     _positive("critic.kc", c.kc)
     _positive("critic.nu", c.nu)
-    _positive("critic.beta", c.beta, allow_zero=True)
+    _positive("critic.beta", c.beta)
 
     p = scenario.points
     if p.kind not in ("grid", "uniform"):

@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from ofrl_drake import PolynomialBasis
 from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.cost import input_cost_from_D
 from ofrl_drake.examples import make_system
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.policy import saturated_policy
@@ -96,13 +97,16 @@ def test_sums_stay_finite_for_huge_weights(scale, seed):
     assert np.all(np.abs(out.u) <= LBAR)
 
 
-def test_large_D_reaches_1e4():
+def test_U_delta_and_sums_are_finite_for_D_up_to_1e4():
     system = make_system("two_state")
     basis = PolynomialBasis(2)
     F = point_features(system, basis, grid_points([-1, -1], [1, 1], [10, 10]), 5 * np.eye(2))
-    out = extrapolate(F, np.array([0.0, 0.0, 1e4]), np.array([1.0]), LBAR, NU)
-    assert np.max(np.abs(out.D)) >= 1e3
-    assert np.all(np.isfinite(out.delta))
+    out = extrapolate(F, np.array([0.0, 0.0, 2e4]), np.array([1.0]), LBAR, NU)
+    assert np.max(np.abs(out.D)) >= 1e4
+    U = input_cost_from_D(out.D, np.array([1.0]), LBAR)
+    for value in (U, out.delta, out.rho, out.critic_sum, out.gain_sum):
+        assert np.all(np.isfinite(value))
+    assert np.all(U >= 0)
 
 
 def test_learning_condition_is_min_eigenvalue():

@@ -224,3 +224,59 @@ def test_gain_shape_errors_name_the_gain():
             np.zeros((2, 2, 1)),
             np.zeros((2, 2, 1)),
         )
+
+
+MIMO_GRID = [
+    np.array([a, b, c, d])
+    for a in (-1.5, 0.4)
+    for b in (-0.7, 1.1)
+    for c in (-0.3, 1.8)
+    for d in (0.0, -1.2)
+]
+
+
+@pytest.mark.parametrize("xhat", MIMO_GRID)
+@pytest.mark.parametrize("u", [np.array([-2.0, 1.5]), np.array([2.5, -0.5]), np.array([0.0, -3.0])])
+def test_mimo_observer_derivative_closed_form(xhat, u):
+    """m = 2 with mixed-sign inputs: the sector sums min/max per input."""
+    system = make_system("coupled_two_state")
+    gains = _gains(system, seed=7)
+    y = np.array([0.4, -0.2])
+    ytil = y - system.output_matrix @ xhat
+    Mug1 = sum(np.minimum(gains.Mg1[..., k] * u[k], gains.Mg2[..., k] * u[k]) for k in range(2))
+
+    def fbar(z):
+        return system.f(z) - gains.Mf1 @ z
+
+    def gbar(z):
+        return system.g(z) @ u - Mug1 @ z
+
+    expected = (
+        gains.Mf1 @ xhat
+        + Mug1 @ xhat
+        + fbar(xhat + gains.H @ ytil)
+        + gbar(xhat + gains.K @ ytil)
+        + gains.L @ ytil
+    )
+    got = _derivatives(ThreeGainObserver(system, gains), xhat, {"y": y, "u": u})
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("x", MIMO_GRID)
+def test_mimo_controller_output_closed_form(x):
+    """u_k = -lbar tanh(g_k(x)^T grad V(x) / (2 lbar r_k)) with r = [1, 2]."""
+    system = make_system("coupled_two_state")
+    basis = PolynomialBasis(4)
+    W = np.linspace(-0.5, 1.0, basis.size)
+    r = np.array([1.0, 2.0])
+    ctrl = SaturatedController(system, basis, r, 3.0)
+    context = ctrl.CreateDefaultContext()
+    ctrl.get_estimated_state_input_port().FixValue(context, x)
+    ctrl.get_weights_input_port().FixValue(context, W)
+    # grad V by central differences of V = W^T sigma, independent of basis.gradient.
+    h = 1e-6
+    grad_V = np.array([(W @ basis(x + h * e) - W @ basis(x - h * e)) / (2 * h) for e in np.eye(4)])
+    D = (system.g(x).T @ grad_V) / (2 * 3.0 * r)
+    np.testing.assert_allclose(
+        ctrl.get_u_output_port().Eval(context), -3.0 * np.tanh(D), rtol=1e-7, atol=1e-9
+    )

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 
@@ -83,10 +84,10 @@ class ScheduledThreeGainObserver(LeafSystem):
         self.design_options = design_options
         self.initial_state = initial_state
         if not period > 0:
-            raise ValueError(f"period must be > 0 seconds; got {period}.")
+            raise ModelError(f"period must be > 0 seconds; got {period}.")
         hw = np.asarray(half_width, dtype=float)
         if hw.shape != (system.n,) or np.any(hw <= 0):
-            raise ValueError(
+            raise ModelError(
                 f"half_width must hold {system.n} positive numbers; got {list(half_width)}."
             )
         self._half_width = hw
