@@ -259,8 +259,14 @@ def build_closed_loop(
     r = np.asarray(scenario.cost.R, dtype=float)
     features = point_features(system, basis, extrapolation_points(scenario), Q)
     choices = variant_choices(scenario)
-    if design is None and "observer" not in swaps and choices["observer"] == "three_gain":
-        design = design_for(scenario, system)
+    if design is None and "observer" not in swaps:
+        if choices["observer"] == "three_gain":
+            design = design_for(scenario, system)
+        elif choices["observer"] == "linear_luenberger":
+            from ofrl_drake.baselines import linear_observer_design
+
+            # Designed here, not inside the variant, so its certificate is reported.
+            design = linear_observer_design(scenario, system)
     parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r)
     from ofrl_drake.variants import variant_blocks
 

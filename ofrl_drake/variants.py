@@ -87,7 +87,7 @@ def _default(_parts: ClosedLoopParts) -> dict[str, System]:
 
 # ---------------------------------------------------------------- observer
 def _linear_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
-    design = linear_observer_design(parts.scenario, parts.system)
+    design = parts.design or linear_observer_design(parts.scenario, parts.system)
     gains = ObserverGains.from_design(parts.system, design)
     return {"observer": ThreeGainObserver(parts.system, gains, initial_state=parts.scenario.xhat0)}
 
