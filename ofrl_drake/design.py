@@ -44,7 +44,8 @@ here, cvxpy in :mod:`ofrl_drake.design_cvxpy`):
   (NOTES.md, "conditioning"); a large ``L`` makes the observer stiff and costs
   simulation time, and since ``P >= I`` gives ``||L|| = ||P^{-1} R|| <= ||R||``,
   minimizing ``||R||_2`` minimizes a bound on the gain while also keeping ``P``
-  from growing (``R = P L``). The small ``||[H K]||_F`` term pins the directions
+  from growing (``R = P L``). The ``||[H K]||_F`` term, weighted equally with
+  ``||R||_2`` (objective ``t + s``), pins the directions
   of ``H`` and ``K`` that the LMI does not see (e.g. ``K`` entries multiplying
   a zero column of ``M_g2 - M_g1``) to zero instead of leaving them to the solver.
   ``"min_condition"`` minimizes ``lambda_max(P)`` (a bound on ``cond(P)``);
