@@ -14,6 +14,25 @@ import numpy as np
 __all__ = ["PolynomialBasis"]
 
 
+def _gradient_table(exponents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct lowered exponents ``e - 1_j`` and the factors ``e_j``.
+
+    Returns ``(lowered, factors)``, shapes ``(K, n)`` and ``(L n, K)``, such that
+    ``grad sigma(x).ravel() = factors @ prod(x ** lowered, axis=1)``.
+    """
+    size, n = exponents.shape
+    index: dict[tuple[int, ...], int] = {}
+    entries = []
+    for l, e in enumerate(exponents):
+        for j in np.flatnonzero(e):
+            key = tuple(int(p) - (k == j) for k, p in enumerate(e))
+            entries.append((l * n + j, index.setdefault(key, len(index)), float(e[j])))
+    factors = np.zeros((size * n, len(index)))
+    for row, k, value in entries:
+        factors[row, k] = value
+    return np.array(list(index), dtype=float).reshape(-1, n), factors
+
+
 class PolynomialBasis:
     """All monomials of the given total degrees, with analytic gradients.
 
@@ -66,28 +85,28 @@ class PolynomialBasis:
                 rows.append(np.bincount(combo, minlength=n))
         self.exponents = np.array(rows, dtype=int)
         self.size = self.exponents.shape[0]
+        self._powers = self.exponents.astype(float)
+        self._lowered, self._factors = _gradient_table(self.exponents)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """``sigma(x)``: shape ``(L,)`` for ``x`` of shape ``(n,)``, or ``(L, N)``
         for a batch ``(n, N)``."""
         x = np.asarray(x, dtype=float)
-        # (L, n, ...) powers, product over the state axis.
-        powers = x[None, ...] ** self.exponents.reshape(self.size, self.n, *([1] * (x.ndim - 1)))
-        return powers.prod(axis=1)
+        if x.ndim == 1:
+            return (x**self._powers).prod(axis=1)
+        # (L, n, N) powers, product over the state axis.
+        return (x[None, :, :] ** self._powers[:, :, None]).prod(axis=1)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """``d sigma / d x``: shape ``(L, n)`` for one point, ``(L, n, N)`` for a batch."""
         x = np.asarray(x, dtype=float)
-        extra = [1] * (x.ndim - 1)
-        E = self.exponents.reshape(self.size, self.n, *extra)
-        powers = x[None, ...] ** E  # (L, n, ...)
-        # d/dx_j of prod_k x_k^E_k = E_j x_j^(E_j - 1) prod_{k != j} x_k^E_k.
-        lowered = np.where(E > 0, x[None, ...] ** np.maximum(E - 1, 0), 0.0) * E
-        grad = np.empty((self.size, self.n, *x.shape[1:]))
-        for j in range(self.n):  # loop over state dimension, not over points
-            others = np.delete(powers, j, axis=1).prod(axis=1)
-            grad[:, j] = lowered[:, j] * others
-        return grad
+        # d/dx_j of x^e is e_j x^(e - 1_j): the distinct lowered monomials,
+        # evaluated once, times a constant (L n, K) table of the factors e_j.
+        if x.ndim == 1:
+            lowered = (x**self._lowered).prod(axis=1)  # (K,)
+            return (self._factors @ lowered).reshape(self.size, self.n)
+        lowered = (x[None, :, :] ** self._lowered[:, :, None]).prod(axis=1)  # (K, N)
+        return (self._factors @ lowered).reshape(self.size, self.n, x.shape[1])
 
     def labels(self, names: Sequence[str] | None = None) -> list[str]:
         """Readable names such as ``"x1^2"``, ``"x1 x2"``, for plots and tables."""

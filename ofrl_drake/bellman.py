@@ -31,10 +31,10 @@ import numpy as np
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.cost import input_cost_from_D, state_cost
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.policy import policy_argument
 
 __all__ = [
     "BellmanExtrapolation",
+    "Extrapolator",
     "PointFeatures",
     "extrapolate",
     "learning_condition",
@@ -121,6 +121,65 @@ def point_features(
     )
 
 
+class Extrapolator:
+    """:func:`extrapolate` for fixed ``r``, ``lbar`` and ``nu``.
+
+    The scalings that do not depend on ``W`` are applied to the point data
+    once here, so that each call is only the ``W``-dependent work; the
+    Bellman-extrapolation block holds one of these.
+
+    Parameters
+    ----------
+    features : PointFeatures
+        From :func:`point_features`.
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar.
+    nu : float
+        Normalization gain of ``rho_i = 1 + nu omega_i^T omega_i``.
+    """
+
+    def __init__(
+        self, features: PointFeatures, r: np.ndarray, input_bound: float, nu: float
+    ) -> None:
+        self.features = features
+        self.r = np.asarray(r, dtype=float)
+        self.input_bound = float(input_bound)
+        self.nu = float(nu)
+        # D = W @ policy_input, policy_input[k] = input[k] / (2 lbar r_k).
+        denominator = 2.0 * self.input_bound * self.r
+        self._policy_input = features.input / denominator[:, None, None]
+
+    def __call__(self, W: np.ndarray) -> BellmanExtrapolation:
+        """The extrapolation for critic weights ``W`` (shape ``(L,)``)."""
+        f = self.features
+        W = np.asarray(W, dtype=float)
+        D = np.matmul(W, self._policy_input)  # (m, N)
+        tanh_D = np.tanh(D)
+        u = -self.input_bound * tanh_D
+        omega = f.drift.copy()  # (L, N)
+        for k in range(u.shape[0]):  # a loop over inputs, not points
+            omega += f.input[k] * u[k]
+        delta = W @ omega
+        delta += f.state_cost
+        delta += input_cost_from_D(D, self.r, self.input_bound, tanh_D=tanh_D)
+        rho = (omega * omega).sum(axis=0)
+        rho *= self.nu
+        rho += 1.0
+        weighted = omega / rho
+        n_points = omega.shape[1]
+        return BellmanExtrapolation(
+            D=D,
+            u=u,
+            omega=omega,
+            delta=delta,
+            rho=rho,
+            critic_sum=(weighted @ delta) / n_points,
+            gain_sum=(weighted @ weighted.T) / n_points,
+        )
+
+
 def extrapolate(
     features: PointFeatures,
     W: np.ndarray,
@@ -142,26 +201,12 @@ def extrapolate(
         lbar.
     nu : float
         Normalization gain of ``rho_i = 1 + nu omega_i^T omega_i``.
+
+    See Also
+    --------
+    Extrapolator : the same for many ``W`` with fixed ``r``, ``lbar``, ``nu``.
     """
-    W = np.asarray(W, dtype=float)
-    D = policy_argument(features.input, W, r, input_bound)  # (m, N)
-    u = -input_bound * np.tanh(D)
-    omega = features.drift + (features.input * u[:, None, :]).sum(axis=0)  # (L, N)
-    delta = W @ omega + features.state_cost + input_cost_from_D(D, r, input_bound)
-    rho = 1.0 + nu * (omega * omega).sum(axis=0)
-    n_points = omega.shape[1]
-    weighted = omega / rho
-    critic_sum = weighted @ delta / n_points
-    gain_sum = weighted @ weighted.T / n_points
-    return BellmanExtrapolation(
-        D=D,
-        u=u,
-        omega=omega,
-        delta=delta,
-        rho=rho,
-        critic_sum=critic_sum,
-        gain_sum=gain_sum,
-    )
+    return Extrapolator(features, r, input_bound, nu)(W)
 
 
 def learning_condition(gain_sum: np.ndarray) -> float:

@@ -5,18 +5,18 @@ With ``ytil = y - C xhat`` the observer simplifies exactly to (NOTES.md)::
     xhat' = f(xhat + H ytil) + g(xhat + K ytil) u + (L - M_f1 H - M_ug1(u) K) ytil
 
 where ``M_ug1(u)`` is the sign-correct lower input sector
-(:func:`ofrl_drake.sector.input_sector`).
+(:func:`ofrl_drake.sector.input_sector`), here applied as precomputed
+products with K (see :class:`ObserverGains`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.sector import input_sector
 
 __all__ = ["ObserverGains", "observer_rhs"]
 
@@ -42,6 +42,18 @@ class ObserverGains:
         Lower Jacobian bound of f.
     Mg1, Mg2 : ndarray, shape (n, n, m)
         Lower and upper Jacobian bounds of g.
+    stacked : ndarray, shape ((3 + 2 m) n, q)
+        Derived from the above (see Notes); not a constructor argument.
+
+    Notes
+    -----
+    The gains are constant, so the right-hand side's products with them are
+    folded into one matrix formed here, :attr:`stacked`, with row blocks
+    ``H``, ``K``, ``L - M_f1 H`` and, per input k, ``min(M_g1, M_g2)[..., k] K``
+    (used when ``u_k >= 0``) and ``max(M_g1, M_g2)[..., k] K`` (when
+    ``u_k < 0``): ``min(a u_k, b u_k) = u_k min(a, b)`` for ``u_k >= 0`` and
+    ``u_k max(a, b)`` otherwise, so these give ``M_ug1(u) K`` without forming
+    ``M_ug1(u)``. One product ``stacked @ ytil`` then yields every term.
     """
 
     L: np.ndarray
@@ -50,6 +62,18 @@ class ObserverGains:
     Mf1: np.ndarray
     Mg1: np.ndarray
     Mg2: np.ndarray
+    stacked: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        H, K = np.asarray(self.H, dtype=float), np.asarray(self.K, dtype=float)
+        Mg1, Mg2 = np.asarray(self.Mg1, dtype=float), np.asarray(self.Mg2, dtype=float)
+        q = H.shape[1]
+        # (m, n, n) with the input first, times K: (m, n, q), then rows.
+        lower = (np.minimum(Mg1, Mg2).transpose(2, 0, 1) @ K).reshape(-1, q)
+        upper = (np.maximum(Mg1, Mg2).transpose(2, 0, 1) @ K).reshape(-1, q)
+        linear = np.asarray(self.L, dtype=float) - np.asarray(self.Mf1, dtype=float) @ H
+        stacked = np.concatenate([H, K, linear, lower, upper]).reshape(-1, q)
+        object.__setattr__(self, "stacked", stacked)
 
     @classmethod
     def from_arrays(
@@ -88,11 +112,17 @@ def observer_rhs(
     u: np.ndarray,
 ) -> np.ndarray:
     """``xhat'`` of the three-gain observer at one time."""
+    xhat, u = np.asarray(xhat, dtype=float), np.asarray(u, dtype=float)
+    n, m = xhat.shape[0], u.shape[0]
     ytil = y - system.output_matrix @ xhat
-    Mug1, _ = input_sector(gains.Mg1, gains.Mg2, u)
-    correction = gains.L - gains.Mf1 @ gains.H - Mug1 @ gains.K
-    return (
-        np.asarray(system.f(xhat + gains.H @ ytil), dtype=float)
-        + np.asarray(system.g(xhat + gains.K @ ytil), dtype=float) @ u
-        + correction @ ytil
+    # [H ytil; K ytil; (L - M_f1 H) ytil; sector-lower K ytil (m); sector-upper K ytil (m)]
+    v = gains.stacked @ ytil
+    rhs = (
+        np.asarray(system.f(xhat + v[:n]), dtype=float)
+        + np.asarray(system.g(xhat + v[n : 2 * n]), dtype=float) @ u
+        + v[2 * n : 3 * n]
     )
+    for k, uk in enumerate(u.tolist()):  # a loop over inputs: - M_ug1(u) K ytil
+        start = (3 + k if uk >= 0.0 else 3 + m + k) * n
+        rhs -= uk * v[start : start + n]
+    return rhs

@@ -29,9 +29,12 @@ def policy_argument(
     -------
     D : ndarray, shape (m,) or (m, N)
     """
-    D = grad_sigma_g @ W if grad_sigma_g.ndim == 2 else np.matmul(W, grad_sigma_g)
-    scale = 1.0 / (2.0 * input_bound * np.asarray(r, dtype=float))
-    return D * scale.reshape(-1, *([1] * (D.ndim - 1)))
+    denominator = 2.0 * input_bound * np.asarray(r, dtype=float)
+    if grad_sigma_g.ndim == 2:
+        return (grad_sigma_g @ W) / denominator
+    D = np.matmul(W, grad_sigma_g)  # (m, N), a fresh array
+    D /= denominator.reshape(D.shape[:1] + (1,) * (D.ndim - 1))
+    return D
 
 
 def saturated_policy(
@@ -60,5 +63,7 @@ def saturated_policy(
     -------
     u : ndarray, shape (m,)
     """
-    b = (grad_sigma @ g).T  # (m, L)
-    return -input_bound * np.tanh(policy_argument(b, W, r, input_bound))
+    # D = scale * g^T (grad sigma^T W): two small products, no (m, L) intermediate.
+    grad_V = W @ grad_sigma  # (n,)
+    D = (grad_V @ g) / (2.0 * input_bound * np.asarray(r, dtype=float))
+    return -input_bound * np.tanh(D)

@@ -6,7 +6,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from ofrl_drake.bellman import PointFeatures, extrapolate, learning_condition
+from ofrl_drake.bellman import Extrapolator, PointFeatures, learning_condition
 
 __all__ = ["BellmanExtrapolator"]
 
@@ -52,7 +52,7 @@ class BellmanExtrapolator(LeafSystem):
         self.r = r
         self.input_bound = input_bound
         self.nu = nu
-        self._r = np.asarray(r, dtype=float)
+        self._extrapolator = Extrapolator(features, r, input_bound, nu)
         size = features.drift.shape[0]
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._cache = self.DeclareCacheEntry(
@@ -95,8 +95,7 @@ class BellmanExtrapolator(LeafSystem):
         return self._cache.Eval(context)
 
     def _calc_extrapolation(self, context, value) -> None:
-        W = self._weights_port.Eval(context)
-        value.set_value(extrapolate(self.features, W, self._r, self.input_bound, self.nu))
+        value.set_value(self._extrapolator(self._weights_port.Eval(context)))
 
     def _calc_critic_sum(self, context, output) -> None:
         output.SetFromVector(self._cache.Eval(context).critic_sum)

@@ -61,4 +61,4 @@ class RunningCost(LeafSystem):
         x = self._x_port.Eval(context)
         u = self._u_port.Eval(context)
         rate = state_cost(x, self._Q) + input_cost(u, self._r, self.input_bound)
-        derivatives.SetFromVector(np.atleast_1d(rate))
+        derivatives.SetFromVector(np.array([rate]))

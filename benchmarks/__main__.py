@@ -1,0 +1,130 @@
+"""Run the benchmarks: ``python -m benchmarks [--quick] [--out FILE.json]``.
+
+Prints Markdown tables (runs, per-evaluation overhead, LMI design, targets)
+and writes every number to a JSON file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from benchmarks import suite
+from benchmarks.cases import with_duration
+from benchmarks.report import format_report, targets
+from benchmarks.timing import machine_info, speed_probe
+
+DIAGRAMS = Path(__file__).resolve().parents[1] / "diagrams"
+PAPER = DIAGRAMS / "two_state_paper.yaml"
+MIMO = DIAGRAMS / "coupled_two_state.yaml"
+
+SECTIONS = ("paper", "overhead", "points", "basis", "state_dimension", "integrators", "lmi")
+
+QUICK = suite.Settings(
+    repeats=2,
+    overhead_batches=3,
+    overhead_calls=200,
+    point_grids=((10, 10), (25, 40)),
+    integrator_cases=(("runge_kutta3", 1e-3), ("radau3", 1e-3)),
+    lmi_cases=(("drake", "clarabel"), ("cvxpy", "clarabel")),
+)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks",
+        description="Time the Drake closed loop against a fused numpy baseline.",
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="fewer repeats, cases and points (a smoke run)"
+    )
+    p.add_argument("--out", type=Path, help="write the results to this JSON file")
+    p.add_argument("--repeats", type=int, help="timed runs per case (default 5, quick 2)")
+    p.add_argument(
+        "--duration", type=float, help="simulated seconds (default: the scenario's horizon)"
+    )
+    p.add_argument(
+        "--only",
+        nargs="+",
+        choices=SECTIONS,
+        metavar="SECTION",
+        help=f"run only these sections: {', '.join(SECTIONS)}",
+    )
+    return p
+
+
+def run(
+    settings: suite.Settings, sections: Sequence[str], duration: float | None
+) -> dict[str, Any]:
+    """Run ``sections`` and return the results, with the targets checked."""
+    from ofrl_drake import load_scenario
+
+    paper = with_duration(load_scenario(PAPER), duration)
+    mimo = with_duration(load_scenario(MIMO), duration)
+    results: dict[str, Any] = {
+        "machine": machine_info(),
+        "settings": {
+            "repeats": settings.repeats,
+            "duration": paper.simulation.duration,
+            "baseline": {
+                "method": suite.BASELINE_METHOD,
+                "rtol": suite.BASELINE_TOLERANCES[0],
+                "atol": suite.BASELINE_TOLERANCES[1],
+            },
+            "paper_simulation": {
+                "integrator": paper.simulation.integrator,
+                "accuracy": paper.simulation.accuracy,
+                "max_step": paper.simulation.max_step,
+                "log_period": paper.simulation.log_period,
+            },
+        },
+        "section_seconds": {},
+        "speed_probe": {"start": speed_probe()},
+    }
+    jobs = {
+        "paper": lambda: suite.paper_end_to_end(paper, settings),
+        "overhead": lambda: suite.evaluation_overhead(paper, settings),
+        "points": lambda: suite.points_scaling(paper, settings),
+        "basis": lambda: suite.basis_scaling(paper, settings),
+        "state_dimension": lambda: suite.state_dimension([paper, mimo], settings),
+        "integrators": lambda: suite.integrators(paper, settings),
+        "lmi": lambda: suite.lmi_design([paper, mimo], settings),
+    }
+    for name in SECTIONS:
+        if name not in sections:
+            continue
+        print(f"running {name} ...", file=sys.stderr, flush=True)
+        seconds, value = suite.timed(jobs[name])
+        results["lmi_design" if name == "lmi" else name] = value
+        results["section_seconds"][name] = seconds
+    results["speed_probe"]["end"] = speed_probe()
+    results["targets"] = targets(results)
+    return results
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
+    args = _parser().parse_args(argv)
+    settings = QUICK if args.quick else suite.Settings()
+    if args.repeats is not None:
+        if args.repeats < 1:
+            _parser().error("--repeats must be >= 1")
+        settings = dataclasses.replace(settings, repeats=args.repeats)
+    if args.duration is not None and not args.duration > 0:
+        _parser().error("--duration must be > 0")
+    results = run(settings, args.only or SECTIONS, args.duration)
+    print(format_report(results))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=2) + "\n")
+        print(f"\nwrote {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

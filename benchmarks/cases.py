@@ -1,0 +1,162 @@
+"""Scenario variants and the fused baseline that matches each one.
+
+Every benchmark case is a :class:`~ofrl_drake.scenario.Scenario` (the paper's,
+or a copy with more points, a larger basis, another integrator...) run two
+ways: through the Drake diagram with :func:`ofrl_drake.simulate`, and through
+the hand-written :class:`~benchmarks.fused_numpy.FusedClosedLoop` under
+``solve_ivp``. Accuracy is judged against a tight DOP853 solution of the fused
+equations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from benchmarks.fused_numpy import FusedClosedLoop
+from ofrl_drake.diagram import extrapolation_points
+from ofrl_drake.scenario import Scenario
+
+__all__ = [
+    "REFERENCE_TOLERANCE",
+    "SAMPLE_TIMES",
+    "Reference",
+    "fused_loop",
+    "initial_state",
+    "reference",
+    "with_basis",
+    "with_duration",
+    "with_grid",
+    "with_integrator",
+]
+
+#: rtol = atol of the DOP853 reference solution.
+REFERENCE_TOLERANCE = 1e-12
+
+#: Times (s) at which W is compared with the reference (clipped to the horizon).
+SAMPLE_TIMES = (1.0, 5.0, 10.0, 30.0)
+
+
+def with_duration(scenario: Scenario, duration: float | None) -> Scenario:
+    """``scenario`` with another horizon (unchanged if ``duration`` is None)."""
+    if duration is None:
+        return scenario
+    return dataclasses.replace(
+        scenario, simulation=dataclasses.replace(scenario.simulation, duration=duration)
+    )
+
+
+def with_integrator(
+    scenario: Scenario, integrator: str, accuracy: float, log_period: float | None = None
+) -> Scenario:
+    """``scenario`` simulated with another Drake integrator, accuracy and log period."""
+    simulation = dataclasses.replace(scenario.simulation, integrator=integrator, accuracy=accuracy)
+    if log_period is not None:
+        simulation = dataclasses.replace(simulation, log_period=log_period)
+    return dataclasses.replace(scenario, simulation=simulation)
+
+
+def with_grid(scenario: Scenario, counts: list[int]) -> Scenario:
+    """``scenario`` with a tensor grid of ``prod(counts)`` extrapolation points."""
+    points = dataclasses.replace(scenario.points, kind="grid", counts=list(counts))
+    return dataclasses.replace(scenario, points=points)
+
+
+def with_basis(scenario: Scenario, degrees: list[int]) -> Scenario:
+    """``scenario`` with basis degrees ``degrees``.
+
+    The new monomials start at zero weight and the same diagonal of Gamma(0).
+    """
+    from ofrl_drake.basis import PolynomialBasis
+
+    old = PolynomialBasis(len(scenario.x0), scenario.critic.basis_degrees)
+    new = PolynomialBasis(len(scenario.x0), degrees)
+    weights = dict(zip(map(tuple, old.exponents.tolist()), scenario.critic.W0, strict=True))
+    W0 = [float(weights.get(tuple(e), 0.0)) for e in new.exponents.tolist()]
+    gamma = float(np.mean(np.diag(np.asarray(scenario.critic.Gamma0, dtype=float))))
+    critic = dataclasses.replace(
+        scenario.critic,
+        basis_degrees=list(degrees),
+        W0=W0,
+        Gamma0=(gamma * np.eye(new.size)).tolist(),
+    )
+    return dataclasses.replace(scenario, critic=critic)
+
+
+def fused_loop(scenario: Scenario, design: Any) -> FusedClosedLoop:
+    """The fused numpy closed loop of ``scenario`` with the gains of ``design``."""
+    b = design.bounds
+    return FusedClosedLoop(
+        system=scenario.system,
+        points=extrapolation_points(scenario),
+        degrees=list(scenario.critic.basis_degrees),
+        Q=np.asarray(scenario.cost.Q, dtype=float),
+        r=np.asarray(scenario.cost.R, dtype=float),
+        input_bound=scenario.input_bound,
+        kc=scenario.critic.kc,
+        nu=scenario.critic.nu,
+        beta=scenario.critic.beta,
+        L=np.asarray(design.L),
+        H=np.asarray(design.H),
+        K=np.asarray(design.K),
+        Mf1=np.asarray(b.Mf1),
+        Mg1=np.asarray(b.Mg1),
+        Mg2=np.asarray(b.Mg2),
+    )
+
+
+def initial_state(scenario: Scenario, loop: FusedClosedLoop) -> np.ndarray:
+    """``z(0)`` of the fused loop for ``scenario``."""
+    c = scenario.critic
+    return loop.initial_state(
+        np.asarray(scenario.x0, float),
+        np.asarray(scenario.xhat0, float),
+        np.asarray(c.W0, float),
+        np.asarray(c.Gamma0, float),
+    )
+
+
+@dataclass(frozen=True)
+class Reference:
+    """W of a tight DOP853 solution at the sample times.
+
+    Attributes
+    ----------
+    times : ndarray, shape (K,)
+        Sample times; the last one is the horizon.
+    W : ndarray, shape (K, L)
+    """
+
+    times: np.ndarray
+    W: np.ndarray
+
+    def errors(self, times: np.ndarray, W: np.ndarray) -> tuple[float, float]:
+        """``(|W(T) - W_ref(T)|_inf, max_k |W(t_k) - W_ref(t_k)|_inf)`` of a run.
+
+        ``times``, ``W`` are the run's samples; each reference time is matched
+        with the nearest sample.
+        """
+        rows = [int(np.argmin(np.abs(times - t))) for t in self.times]
+        diff = np.abs(W[rows] - self.W)
+        return float(diff[-1].max()), float(diff.max())
+
+
+def reference(scenario: Scenario, design: Any) -> Reference:
+    """W at :data:`SAMPLE_TIMES` (and the horizon) from DOP853 at rtol = atol = 1e-12."""
+    loop = fused_loop(scenario, design)
+    duration = scenario.simulation.duration
+    times = np.array(sorted({t for t in SAMPLE_TIMES if t < duration} | {duration}))
+    sol = loop.solve(
+        initial_state(scenario, loop),
+        duration,
+        method="DOP853",
+        rtol=REFERENCE_TOLERANCE,
+        atol=REFERENCE_TOLERANCE,
+        t_eval=times,
+    )
+    if not sol.success:  # pragma: no cover - DOP853 does not fail on this problem
+        raise RuntimeError(f"reference solve failed: {sol.message}")
+    return Reference(times=times, W=np.array([loop.weights(z) for z in sol.y.T]))

@@ -1,0 +1,154 @@
+"""The targets of issue 5, checked on the results, and the Markdown tables."""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["LIMITS", "format_report", "targets"]
+
+#: Target -> limit: the paper ratio, the overhead in microseconds, the
+#: N-scaling ratio and the Drake/cvxpy design-time ratio.
+LIMITS = {
+    "paper_ratio": 2.0,
+    "overhead_us": 60.0,
+    "points_ratio": 10.0,
+    "lmi_drake_over_cvxpy": 1.0,
+}
+
+
+def _target(value: float | None, limit: float) -> dict[str, Any]:
+    return {"value": value, "limit": limit, "met": value is not None and value <= limit}
+
+
+def targets(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``{name: {"value", "limit", "met"}}`` for each target the results cover."""
+    out: dict[str, dict[str, Any]] = {}
+    if "paper" in results:
+        out["paper_ratio"] = _target(results["paper"]["ratio"], LIMITS["paper_ratio"])
+    if "overhead" in results:
+        out["overhead_us"] = _target(results["overhead"]["overhead_us"], LIMITS["overhead_us"])
+    rows = results.get("points", [])
+    if len(rows) > 1:
+        ratio = rows[-1]["ours"]["median"] / rows[0]["ours"]["median"]
+        out["points_ratio"] = _target(ratio, LIMITS["points_ratio"])
+    lmi = [r for r in results.get("lmi_design", []) if "median" in r]
+    for scenario in dict.fromkeys(r["scenario"] for r in lmi):
+        for solver in dict.fromkeys(r["solver"] for r in lmi):
+            times = {
+                r["backend"]: r["median"]
+                for r in lmi
+                if r["scenario"] == scenario and r["solver"] == solver
+            }
+            if {"drake", "cvxpy"} <= set(times):
+                out[f"lmi_drake_over_cvxpy[{scenario}, {solver}]"] = _target(
+                    times["drake"] / times["cvxpy"], LIMITS["lmi_drake_over_cvxpy"]
+                )
+    return out
+
+
+def _seconds(x: float) -> str:
+    return f"{x:.3f}" if x >= 0.1 else f"{x:.4f}"
+
+
+def _err(x: float) -> str:
+    return f"{x:.1e}"
+
+
+_HEADER = (
+    "| case | runner | median s | min s | max s | evals | steps | us/eval "
+    "| W(T) err | max W err | ratio |"
+)
+_RULE = "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+
+
+def _run_row(case: str, runner: str, r: dict[str, Any], ratio: float | None) -> str:
+    return (
+        f"| {case} | {runner} | {_seconds(r['median'])} | {_seconds(r['min'])} "
+        f"| {_seconds(r['max'])} | {r['num_derivative_evaluations']} | {r['num_steps']} "
+        f"| {r['us_per_evaluation']:.0f} | {_err(r['W_final_error'])} "
+        f"| {_err(r['W_max_error'])} | {'' if ratio is None else f'{ratio:.2f}x'} |"
+    )
+
+
+def _pair(case: str, row: dict[str, Any]) -> list[str]:
+    ours = row["ours"]
+    lines = [_run_row(case, f"drake {ours['integrator']} {ours['accuracy']:g}", ours, None)]
+    if "baseline" in row:
+        lines.append(_run_row(case, "numpy + LSODA", row["baseline"], row["ratio"]))
+    return lines
+
+
+def format_report(results: dict[str, Any]) -> str:
+    """Markdown: the runs table, the per-evaluation overhead, the LMI table, the targets."""
+    lines = [_HEADER, _RULE]
+    if "paper" in results:
+        lines += _pair("paper (N=100, L=3, n=2)", results["paper"])
+    for row in results.get("points", []):
+        lines += _pair(f"N = {row['N']}", row)
+    for row in results.get("basis", []):
+        lines += _pair(f"degrees {row['degrees']} (L = {row['L']})", row)
+    for row in results.get("state_dimension", []):
+        lines += _pair(f"n = {row['n']} ({row['scenario']})", row)
+    for row in results.get("integrators", []):
+        case = f"{row['integrator']} @ {row['accuracy']:g} (log every {row['log_period']:g} s)"
+        lines.append(_run_row(case, "drake", row, None))
+    out = ["\n".join(lines)]
+
+    if "paper" in results:
+        p = results["paper"]
+        out.append(
+            f"Paper scenario: ours {_seconds(p['ours']['median'])} s whole "
+            f"(simulation alone {_seconds(p['ours']['advance']['median'])} s, observer "
+            f"design {_seconds(p['design']['median'])} s), baseline "
+            f"{_seconds(p['baseline']['median'])} s: {p['ratio']:.2f}x whole "
+            f"(median of the per-repeat ratios {p['ratio_of_pairs']:.2f}x), "
+            f"{p['ratio_simulation_only']:.2f}x simulation alone."
+        )
+    if "overhead" in results:
+        o = results["overhead"]
+        out.append(
+            f"One derivative evaluation (median of {o['batches']} batches of {o['calls']}): "
+            f"diagram {o['diagram_us']:.1f} us, fused numpy {o['fused_us']:.1f} us, overhead "
+            f"{o['overhead_us']:.1f} us; fastest batches {o['diagram_min_us']:.1f} us and "
+            f"{o['fused_min_us']:.1f} us, overhead {o['overhead_min_us']:.1f} us "
+            f"(max |difference| {o['max_derivative_difference']:.1e})."
+        )
+
+    lmi = results.get("lmi_design", [])
+    if lmi:
+        table = [
+            "| scenario | backend | solver | median s | min s | max s | solve s "
+            "| certified | max eig | norm L |",
+            "|---|---|---|--:|--:|--:|--:|---|--:|--:|",
+        ]
+        for r in lmi:
+            if "failed" in r:
+                table.append(
+                    f"| {r['scenario']} | {r['backend']} | {r['solver']} "
+                    f"| failed: {r['failed']} |||||||"
+                )
+                continue
+            table.append(
+                f"| {r['scenario']} | {r['backend']} | {r['solver']} | {_seconds(r['median'])} "
+                f"| {_seconds(r['min'])} | {_seconds(r['max'])} | {_seconds(r['solve_time'])} "
+                f"| {r['certified']} | {r['max_eigenvalue']:.2e} | {r['gain_norm']:.1f} |"
+            )
+        out.append("\n".join(table))
+
+    probe = results.get("speed_probe", {})
+    if {"start", "end"} <= set(probe):
+        a, b = probe["start"], probe["end"]
+        out.append(
+            "Machine speed probe (start / end of the run): 3x3 numpy product "
+            f"{a['numpy_matmul_3x3_us']:.2f} / {b['numpy_matmul_3x3_us']:.2f} us, empty Python "
+            f"call {a['python_call_us']:.3f} / {b['python_call_us']:.3f} us."
+        )
+
+    checks = results.get("targets", {})
+    if checks:
+        table = ["| target | value | limit | met |", "|---|--:|--:|---|"]
+        for name, t in checks.items():
+            value = "n/a" if t["value"] is None else f"{t['value']:.2f}"
+            table.append(f"| {name} | {value} | {t['limit']:g} | {'yes' if t['met'] else 'NO'} |")
+        out.append("\n".join(table))
+    return "\n\n".join(out)

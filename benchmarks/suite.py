@@ -1,0 +1,396 @@
+"""The benchmark sections: each returns JSON-ready results.
+
+* :func:`paper_end_to_end` -- ``simulate()`` on the paper scenario, whole,
+  against the fused numpy right-hand side under LSODA;
+* :func:`evaluation_overhead` -- one derivative evaluation of the diagram
+  against the fused right-hand side at the same state;
+* :func:`points_scaling`, :func:`basis_scaling`, :func:`state_dimension` --
+  how the cost grows with N, L and n;
+* :func:`integrators` -- Drake integrators at two accuracies;
+* :func:`lmi_design` -- the observer LMI through Drake and through cvxpy.
+
+Times are wall-clock seconds, with median, min and max over ``repeats`` runs
+after one warm-up run; competing variants run interleaved.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from benchmarks.cases import (
+    Reference,
+    fused_loop,
+    initial_state,
+    reference,
+    with_basis,
+    with_grid,
+    with_integrator,
+)
+from benchmarks.timing import Timing, interleaved, measure
+from ofrl_drake.scenario import Scenario
+
+__all__ = [
+    "BASELINE_METHOD",
+    "BASELINE_TOLERANCES",
+    "Settings",
+    "basis_scaling",
+    "evaluation_overhead",
+    "integrators",
+    "lmi_design",
+    "paper_end_to_end",
+    "points_scaling",
+    "state_dimension",
+    "timed",
+]
+
+#: The baseline integrator and its tolerances (rtol, atol).
+BASELINE_METHOD = "LSODA"
+BASELINE_TOLERANCES = (1e-9, 1e-11)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What to run and how often.
+
+    Attributes
+    ----------
+    repeats : int
+        Timed runs per case (after one warm-up run).
+    point_grids : tuple of tuple of int
+        Grid counts of the N-scaling cases.
+    basis_degrees : tuple of tuple of int
+        Basis degrees of the L-scaling cases.
+    integrator_cases : tuple of (str, float)
+        (scheme, accuracy) pairs.
+    overhead_batches, overhead_calls : int
+        Interleaved batches, and derivative evaluations per batch, of the
+        per-evaluation overhead measurement.
+    integrator_log_period : float
+        Log period of the integrator cases: coarser than the paper scenario's,
+        which is matched to the explicit step, so that implicit schemes are
+        not forced to short steps by the logging.
+    lmi_cases : tuple of (str, str)
+        (backend, solver) pairs.
+    """
+
+    repeats: int = 5
+    point_grids: tuple[tuple[int, ...], ...] = ((10, 10), (25, 40), (100, 100))
+    basis_degrees: tuple[tuple[int, ...], ...] = ((2,), (2, 4))
+    integrator_cases: tuple[tuple[str, float], ...] = (
+        ("runge_kutta3", 1e-3),
+        ("runge_kutta3", 1e-5),
+        ("runge_kutta5", 1e-3),
+        ("runge_kutta5", 1e-5),
+        ("radau3", 1e-3),
+        ("radau3", 1e-5),
+        ("implicit_euler", 1e-2),
+        ("implicit_euler", 1e-3),
+    )
+    integrator_log_period: float = 0.1
+    overhead_batches: int = 21
+    overhead_calls: int = 500
+    lmi_cases: tuple[tuple[str, str], ...] = (
+        ("drake", "clarabel"),
+        ("cvxpy", "clarabel"),
+        ("drake", "scs"),
+        ("cvxpy", "scs"),
+    )
+
+
+# ------------------------------------------------------------------ helpers
+def _design(scenario: Scenario) -> Any:
+    from ofrl_drake.diagram import design_for
+
+    return design_for(scenario)
+
+
+def _ours(scenario: Scenario) -> Callable[[], Any]:
+    from ofrl_drake.simulation import simulate
+
+    return lambda: simulate(scenario, progress=False)
+
+
+def _baseline(scenario: Scenario, design: Any, times: np.ndarray) -> Callable[[], Any]:
+    """Build the fused loop (point features included) and integrate it."""
+    rtol, atol = BASELINE_TOLERANCES
+
+    def run() -> Any:
+        loop = fused_loop(scenario, design)
+        sol = loop.solve(
+            initial_state(scenario, loop),
+            scenario.simulation.duration,
+            method=BASELINE_METHOD,
+            rtol=rtol,
+            atol=atol,
+            t_eval=times,
+        )
+        return loop, sol
+
+    return run
+
+
+def _ours_summary(timing: Timing, advance: list[float], result: Any, ref: Reference) -> dict:
+    stats = result.integrator
+    final, worst = ref.errors(result.t, result.W)
+    evals = stats["num_derivative_evaluations"]
+    advance_timing = Timing(tuple(advance))
+    return {
+        **timing.to_dict(),
+        "advance": advance_timing.to_dict(),
+        "us_per_evaluation": 1e6 * advance_timing.median / evals,
+        "num_derivative_evaluations": evals,
+        "num_steps": stats["num_steps"],
+        "num_log_samples": int(result.t.size),
+        "integrator": stats["scheme"],
+        "accuracy": stats["accuracy"],
+        "W_final_error": final,
+        "W_max_error": worst,
+    }
+
+
+def _baseline_summary(timing: Timing, run: Any, ref: Reference, steps: int) -> dict:
+    loop, sol = run
+    W = np.array([loop.weights(z) for z in sol.y.T])
+    final, worst = ref.errors(sol.t, W)
+    return {
+        **timing.to_dict(),
+        "us_per_evaluation": 1e6 * timing.median / sol.nfev,
+        "num_derivative_evaluations": int(sol.nfev),
+        "num_jacobian_evaluations": int(getattr(sol, "njev", 0)),
+        "num_steps": steps,
+        "integrator": f"scipy {BASELINE_METHOD}",
+        "tolerances": list(BASELINE_TOLERANCES),
+        "W_final_error": final,
+        "W_max_error": worst,
+    }
+
+
+def _baseline_steps(scenario: Scenario, design: Any) -> int:
+    """LSODA's accepted steps (an untimed run without ``t_eval``)."""
+    rtol, atol = BASELINE_TOLERANCES
+    loop = fused_loop(scenario, design)
+    sol = loop.solve(
+        initial_state(scenario, loop),
+        scenario.simulation.duration,
+        method=BASELINE_METHOD,
+        rtol=rtol,
+        atol=atol,
+    )
+    return int(sol.t.size - 1)
+
+
+def _compare(scenario: Scenario, repeats: int, *, baseline: bool = True) -> dict:
+    """Ours (whole ``simulate()``) and, optionally, the fused baseline, interleaved."""
+    design = _design(scenario)
+    ref = reference(scenario, design)
+    advance: list[float] = []
+    ours = _ours(scenario)
+
+    def ours_recorded() -> Any:
+        result = ours()
+        advance.append(result.wall_time)
+        return result
+
+    fns: dict[str, Callable[[], Any]] = {"ours": ours_recorded}
+    if baseline:
+        fns["baseline"] = _baseline(scenario, design, ref.times)
+    timings, results = interleaved(fns, repeats)
+    out = {"ours": _ours_summary(timings["ours"], advance[-repeats:], results["ours"], ref)}
+    if baseline:
+        steps = _baseline_steps(scenario, design)
+        out["baseline"] = _baseline_summary(timings["baseline"], results["baseline"], ref, steps)
+        out["ratio"] = timings["ours"].median / timings["baseline"].median
+        pairs = [a / b for a, b in zip(timings["ours"].runs, timings["baseline"].runs, strict=True)]
+        out["ratio_of_pairs"] = float(np.median(pairs))
+    return out
+
+
+# ----------------------------------------------------------------- sections
+def paper_end_to_end(scenario: Scenario, settings: Settings) -> dict:
+    """The paper scenario: whole ``simulate()`` against the fused baseline."""
+    out = _compare(scenario, settings.repeats)
+    design_timing, _ = measure(lambda: _design(scenario), settings.repeats)
+    out["design"] = design_timing.to_dict()
+    out["ratio_simulation_only"] = out["ours"]["advance"]["median"] / out["baseline"]["median"]
+    return out
+
+
+def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
+    """Microseconds per derivative evaluation: diagram versus fused right-hand side.
+
+    The diagram is evaluated as an integrator does it: the continuous state is
+    set (invalidating every cached value), then the time derivatives are
+    computed. Two states alternate; both methods see the same states. Many
+    short interleaved batches (``settings.overhead_batches`` of
+    ``settings.overhead_calls`` calls each) keep bursts of load on a shared
+    machine from landing on one method only; medians and minima are reported.
+    """
+    calls = settings.overhead_calls
+    from ofrl_drake.diagram import build_closed_loop
+
+    design = _design(scenario)
+    loop = build_closed_loop(scenario, design=design)
+    diagram = loop.diagram
+    context = diagram.CreateDefaultContext()
+    derivatives = diagram.AllocateTimeDerivatives()
+    z0 = context.get_continuous_state_vector().CopyToVector()
+    z1 = z0.copy()
+    z1[: 2 * len(scenario.x0)] *= 0.5  # another plant and observer state
+    states = (z0, z1)
+    fused = fused_loop(scenario, design)
+
+    def diagram_calls() -> None:
+        for k in range(calls):
+            context.SetContinuousState(states[k & 1])
+            diagram.CalcTimeDerivatives(context, derivatives)
+
+    def fused_calls() -> None:
+        for k in range(calls):
+            fused.rhs(0.0, states[k & 1])
+
+    timings, _ = interleaved(
+        {"diagram": diagram_calls, "fused": fused_calls}, settings.overhead_batches
+    )
+    difference = 0.0
+    for z in states:
+        context.SetContinuousState(z)
+        ours = diagram.EvalTimeDerivatives(context).CopyToVector()
+        difference = max(difference, float(np.abs(ours - fused.rhs(0.0, z)).max()))
+    diagram_us = 1e6 * timings["diagram"].median / calls
+    fused_us = 1e6 * timings["fused"].median / calls
+    return {
+        "diagram_us": diagram_us,
+        "diagram_min_us": 1e6 * timings["diagram"].min / calls,
+        "fused_us": fused_us,
+        "fused_min_us": 1e6 * timings["fused"].min / calls,
+        "overhead_us": diagram_us - fused_us,
+        "overhead_min_us": 1e6 * (timings["diagram"].min - timings["fused"].min) / calls,
+        "calls": calls,
+        "batches": settings.overhead_batches,
+        "num_states": int(z0.size),
+        "max_derivative_difference": difference,
+    }
+
+
+def points_scaling(scenario: Scenario, settings: Settings) -> list[dict]:
+    """Cost against the number N of extrapolation points."""
+    rows = []
+    for counts in settings.point_grids:
+        case = with_grid(scenario, list(counts))
+        row = {"N": int(np.prod(counts)), "grid": list(counts)}
+        row.update(_compare(case, settings.repeats))
+        rows.append(row)
+    return rows
+
+
+def basis_scaling(scenario: Scenario, settings: Settings) -> list[dict]:
+    """Cost against the basis size L."""
+    from ofrl_drake.basis import PolynomialBasis
+
+    rows = []
+    for degrees in settings.basis_degrees:
+        case = with_basis(scenario, list(degrees))
+        size = PolynomialBasis(len(scenario.x0), list(degrees)).size
+        row = {"degrees": list(degrees), "L": size}
+        row.update(_compare(case, settings.repeats))
+        rows.append(row)
+    return rows
+
+
+def state_dimension(scenarios: list[Scenario], settings: Settings) -> list[dict]:
+    """Cost for each scenario (the n = 2 paper example, the n = 4 MIMO one)."""
+    rows = []
+    for case in scenarios:
+        row = {"scenario": case.name, "n": len(case.x0)}
+        row.update(_compare(case, settings.repeats))
+        rows.append(row)
+    return rows
+
+
+def integrators(scenario: Scenario, settings: Settings) -> list[dict]:
+    """Drake integrators on the paper scenario (no baseline run; W against the reference)."""
+    design = _design(scenario)
+    ref = reference(scenario, design)
+    rows = []
+    for scheme, accuracy in settings.integrator_cases:
+        case = with_integrator(scenario, scheme, accuracy, settings.integrator_log_period)
+        advance: list[float] = []
+        ours = _ours(case)
+
+        def run(ours: Callable[[], Any] = ours, advance: list[float] = advance) -> Any:
+            result = ours()
+            advance.append(result.wall_time)
+            return result
+
+        timing, result = measure(run, settings.repeats)
+        row = {
+            "integrator": scheme,
+            "accuracy": accuracy,
+            "log_period": settings.integrator_log_period,
+        }
+        row.update(_ours_summary(timing, advance[-settings.repeats :], result, ref))
+        rows.append(row)
+    return rows
+
+
+def lmi_design(scenarios: list[Scenario], settings: Settings) -> list[dict]:
+    """The observer LMI through each (backend, solver), Jacobian bounds precomputed."""
+    from ofrl_drake.design import design_observer
+    from ofrl_drake.errors import OfrlError
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.jacobian_bounds import jacobian_bounds
+
+    rows = []
+    for scenario in scenarios:
+        system = make_system(scenario.system)
+        o = scenario.observer
+        box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+        options: dict[str, Any] = {"jacobian_method": o.jacobian_method}
+        if hasattr(o, "formulation"):
+            options["formulation"] = o.formulation
+        bounds = jacobian_bounds(system, box, o.jacobian_method)
+        for backend, solver in settings.lmi_cases:
+            row: dict[str, Any] = {"scenario": scenario.name, "backend": backend, "solver": solver}
+
+            solve = functools.partial(
+                design_observer,
+                system,
+                box,
+                scenario.input_bound,
+                o.alpha,
+                bounds=bounds,
+                solver=solver,
+                backend=backend,
+                **options,
+            )
+            try:
+                timing, design = measure(solve, settings.repeats)
+            except OfrlError as err:
+                row.update({"failed": f"{type(err).__name__}: {err}"})
+                rows.append(row)
+                continue
+            row.update(timing.to_dict())
+            row.update(
+                {
+                    "solve_time": design.solve_time,
+                    "status": design.status,
+                    "certified": bool(design.is_certified),
+                    "max_eigenvalue": float(design.max_eigenvalue),
+                    "gain_norm": float(design.gain_norm),
+                }
+            )
+            rows.append(row)
+    return rows
+
+
+def timed(fn: Callable[[], Any]) -> tuple[float, Any]:
+    """``(seconds, fn())``: how long a whole section took."""
+    start = time.perf_counter()
+    value = fn()
+    return time.perf_counter() - start, value

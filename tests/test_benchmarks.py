@@ -1,0 +1,143 @@
+"""Smoke test of the benchmark runner: a tiny run, then the output format.
+
+No timing is asserted; only that every section reports finite numbers under
+the documented keys.
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks.__main__ import main
+
+TIMING_KEYS = {"median", "min", "max", "runs"}
+RUN_KEYS = TIMING_KEYS | {
+    "us_per_evaluation",
+    "num_derivative_evaluations",
+    "num_steps",
+    "integrator",
+    "W_final_error",
+    "W_max_error",
+}
+
+
+def _finite(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_run(run):
+    assert RUN_KEYS <= set(run), sorted(RUN_KEYS - set(run))
+    for key in ("median", "min", "max", "us_per_evaluation", "W_final_error", "W_max_error"):
+        assert _finite(run[key]) and run[key] >= 0, key
+    assert run["min"] <= run["median"] <= run["max"]
+    assert all(_finite(t) and t > 0 for t in run["runs"])
+    assert run["num_derivative_evaluations"] > 0 and run["num_steps"] > 0
+
+
+def _check_pair(row):
+    _check_run(row["ours"])
+    _check_run(row["baseline"])
+    assert set(row["ours"]["advance"]) == TIMING_KEYS
+    assert _finite(row["ratio"]) and row["ratio"] > 0
+    assert _finite(row["ratio_of_pairs"]) and row["ratio_of_pairs"] > 0
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "results.json"
+    code = main(["--quick", "--duration", "0.3", "--repeats", "1", "--out", str(out)])
+    assert code == 0
+    return json.loads(out.read_text())
+
+
+def test_all_sections_and_metadata_are_written(results):
+    for key in (
+        "machine",
+        "settings",
+        "section_seconds",
+        "speed_probe",
+        "paper",
+        "overhead",
+        "points",
+        "basis",
+        "state_dimension",
+        "integrators",
+        "lmi_design",
+        "targets",
+    ):
+        assert key in results, key
+    assert results["settings"]["duration"] == pytest.approx(0.3)
+    assert results["settings"]["repeats"] == 1
+    assert results["machine"]["cpu_count"] >= 1
+    for when in ("start", "end"):
+        assert all(_finite(v) and v > 0 for v in results["speed_probe"][when].values())
+
+
+def test_paper_section_compares_with_the_baseline(results):
+    paper = results["paper"]
+    _check_pair(paper)
+    assert _finite(paper["ratio_simulation_only"])
+    assert set(paper["design"]) == TIMING_KEYS
+    assert paper["baseline"]["integrator"] == "scipy LSODA"
+    # Both runners integrate the same equations to the same W.
+    assert paper["ours"]["W_max_error"] < 1e-5
+    assert paper["baseline"]["W_max_error"] < 1e-6
+
+
+def test_overhead_section_reports_microseconds(results):
+    o = results["overhead"]
+    for key in ("diagram_us", "fused_us", "overhead_us", "max_derivative_difference"):
+        assert _finite(o[key]), key
+    assert o["diagram_us"] > 0 and o["fused_us"] > 0
+    np.testing.assert_allclose(o["overhead_us"], o["diagram_us"] - o["fused_us"])
+    # The fused baseline is the same right-hand side as the diagram.
+    assert o["max_derivative_difference"] < 1e-9
+
+
+def test_scaling_sections(results):
+    assert [row["N"] for row in results["points"]] == [100, 1000]
+    assert [row["L"] for row in results["basis"]] == [3, 8]
+    assert [row["n"] for row in results["state_dimension"]] == [2, 4]
+    for section in ("points", "basis", "state_dimension"):
+        for row in results[section]:
+            _check_pair(row)
+
+
+def test_integrator_section(results):
+    rows = results["integrators"]
+    assert {row["integrator"] for row in rows} == {"runge_kutta3", "radau3"}
+    for row in rows:
+        _check_run(row)
+        assert _finite(row["accuracy"])
+
+
+def test_lmi_section(results):
+    rows = results["lmi_design"]
+    assert {(r["backend"], r["solver"]) for r in rows} == {
+        ("drake", "clarabel"),
+        ("cvxpy", "clarabel"),
+    }
+    for row in rows:
+        assert "failed" not in row, row.get("failed")
+        for key in ("median", "min", "max", "solve_time", "max_eigenvalue", "gain_norm"):
+            assert _finite(row[key]), key
+        assert row["certified"] is True
+
+
+def test_targets_have_values_limits_and_verdicts(results):
+    t = results["targets"]
+    assert {"paper_ratio", "overhead_us", "points_ratio"} <= set(t)
+    assert any(name.startswith("lmi_drake_over_cvxpy") for name in t)
+    for check in t.values():
+        assert _finite(check["value"]) and _finite(check["limit"])
+        assert isinstance(check["met"], bool)
+
+
+def test_runner_prints_markdown_tables(tmp_path, capsys):
+    assert main(["--quick", "--duration", "0.1", "--repeats", "1", "--only", "overhead"]) == 0
+    out = capsys.readouterr().out
+    assert "| target | value | limit | met |" in out
+    assert "overhead_us" in out
+    assert "One derivative evaluation" in out
