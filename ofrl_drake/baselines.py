@@ -25,7 +25,7 @@ from pydrake.symbolic import MakeVectorVariable
 from pydrake.systems.primitives import Linearize, LinearSystem, SymbolicVectorSystem
 from scipy.signal import place_poles
 
-from ofrl_drake.errors import ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.scenario import Scenario
 
@@ -98,7 +98,7 @@ def luenberger_poles(alpha: float, n: int) -> np.ndarray:
     For the paper's ``alpha = 2``, ``n = 2`` they are ``-4`` and ``-6``.
     """
     if not (np.isfinite(alpha) and alpha > 0):
-        raise ValueError(f"alpha must be a positive number; got {alpha!r}.")
+        raise ModelError(f"alpha must be a positive number; got {alpha!r}.")
     return -2.0 * alpha * (1.0 + np.arange(n) / n)
 
 

@@ -11,6 +11,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ofrl_drake.errors import ModelError
+
 __all__ = ["PolynomialBasis"]
 
 
@@ -48,6 +50,13 @@ class PolynomialBasis:
     degrees : sequence of int, default (2,)
         Total degrees to include; each must be >= 2.
 
+    Raises
+    ------
+    ModelError
+        If ``n`` is not a positive integer, or ``degrees`` is empty, repeats a
+        degree or holds one below 2 (then sigma(0) = 0 or grad sigma(0) = 0
+        would fail).
+
     Attributes
     ----------
     exponents : ndarray of int, shape (L, n)
@@ -67,18 +76,18 @@ class PolynomialBasis:
         self.n = n
         self.degrees = degrees
         if not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"PolynomialBasis: n must be a positive integer; got {n!r}.")
+            raise ModelError(f"PolynomialBasis: n must be a positive integer; got {n!r}.")
         degs = list(degrees)
         if not degs:
-            raise ValueError("PolynomialBasis: degrees is empty; pass e.g. [2].")
+            raise ModelError("PolynomialBasis: degrees is empty; pass e.g. [2].")
         for d in degs:
             if not isinstance(d, (int, np.integer)) or d < 2:
-                raise ValueError(
+                raise ModelError(
                     f"PolynomialBasis: degree {d!r} is not allowed; degrees must be "
                     "integers >= 2 so that sigma(0) = 0 and grad sigma(0) = 0."
                 )
         if len(set(degs)) != len(degs):
-            raise ValueError(f"PolynomialBasis: degrees {degs} repeat a degree.")
+            raise ModelError(f"PolynomialBasis: degrees {degs} repeat a degree.")
         rows = []
         for d in degs:
             for combo in itertools.combinations_with_replacement(range(n), d):

@@ -30,6 +30,7 @@ import numpy as np
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.cost import input_cost_from_D, state_cost
+from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
@@ -107,7 +108,7 @@ def point_features(
     """Precompute everything at ``points`` (shape ``(n, N)``) that does not depend on W."""
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[0] != system.n:
-        raise ValueError(f"points must have shape (n, N) = ({system.n}, N); got {points.shape}.")
+        raise ModelError(f"points must have shape (n, N) = ({system.n}, N); got {points.shape}.")
     grad = basis.gradient(points)  # (L, n, N)
     f = system.f_batch(points)  # (n, N)
     g = system.g_batch(points)  # (n, m, N)

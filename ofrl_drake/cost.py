@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from ofrl_drake.errors import ModelError
+
 __all__ = ["input_cost", "input_cost_from_D", "log_cosh", "stage_cost", "state_cost"]
 
 #: Beyond this |D|, ln cosh D = |D| - ln 2 to double precision (e^{-2|D|} < 1e-34).
@@ -78,7 +80,7 @@ def input_cost(u: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:
 
     Raises
     ------
-    ValueError
+    ModelError
         If some ``|u_k| > lbar``: no finite cost exists there.
     """
     u = np.asarray(u, dtype=float)
@@ -105,7 +107,7 @@ def input_cost(u: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:
 
 
 def _raise_out_of_bound(u: np.ndarray, input_bound: float) -> None:
-    raise ValueError(
+    raise ModelError(
         f"input_cost: |u| = {np.max(np.abs(u)):.6g} exceeds the input bound "
         f"{input_bound}; U(u) is only defined for |u_k| <= lambda_bar."
     )

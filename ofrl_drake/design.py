@@ -121,7 +121,7 @@ FORMULATIONS = ("polytopic", "paper")
 DEFAULT_MARGIN = 1e-3
 # SCS (first order) needs tight tolerances to return numbers that certify.
 _DRAKE_OPTIONS: dict[str, dict[str, float | int]] = {
-    "scs": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iters": 100_000},
+    "scs": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iters": 200_000},
 }
 
 

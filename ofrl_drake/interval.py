@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression, Variable
 
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import ModelError, OfrlError
 
 __all__ = [
     "ExpressionEvaluator",
@@ -462,7 +462,7 @@ class ExpressionEvaluator:
         single = X.ndim == 1
         X2 = X[:, None] if single else X
         if X2.ndim != 2 or X2.shape[0] != len(self.variables):
-            raise ValueError(
+            raise ModelError(
                 f"points must have {len(self.variables)} rows (one per variable); "
                 f"got shape {X.shape}."
             )
@@ -558,12 +558,12 @@ class ExpressionEvaluator:
         hi2 = hi[:, None] if single else hi
         n = len(self.variables)
         if lo2.shape != hi2.shape or lo2.shape[0] != n:
-            raise ValueError(
+            raise ModelError(
                 f"lower and upper must both have shape ({n},) or ({n}, B); got "
                 f"{lo.shape} and {hi.shape}."
             )
         if np.any(lo2 > hi2):
-            raise ValueError("every box needs lower <= upper.")
+            raise ModelError("every box needs lower <= upper.")
         B = lo2.shape[1]
         vals: list[Interval] = []
         for node in self._nodes:

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = ["ObserverGains", "observer_rhs"]
@@ -24,9 +25,9 @@ __all__ = ["ObserverGains", "observer_rhs"]
 def _matrix(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape:
-        raise ValueError(f"observer gain {name} must have shape {shape}; got {arr.shape}.")
+        raise ModelError(f"observer gain {name} must have shape {shape}; got {arr.shape}.")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"observer gain {name} must be finite; got {arr.tolist()}.")
+        raise ModelError(f"observer gain {name} must be finite; got {arr.tolist()}.")
     return arr
 
 

@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ofrl_drake import PolynomialBasis
+from ofrl_drake.errors import ModelError
 
 
 def test_default_is_the_papers_quadratic_basis():
@@ -67,5 +68,5 @@ def test_every_basis_vanishes_with_its_gradient_at_the_origin(n, degrees):
     ],
 )
 def test_bad_degrees_raise(degrees, match):
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises(ModelError, match=match):
         PolynomialBasis(2, degrees)

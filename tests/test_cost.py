@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from scipy.integrate import quad
 
 from ofrl_drake.cost import input_cost, input_cost_from_D, log_cosh, stage_cost, state_cost
+from ofrl_drake.errors import ModelError
 
 
 def test_state_cost_is_quadratic_form():
@@ -63,5 +64,5 @@ def test_stage_cost_adds_both_terms():
 
 
 def test_input_cost_outside_bound_raises():
-    with pytest.raises(ValueError, match=r"\|u\| = 3.5 exceeds the input bound 3.0"):
+    with pytest.raises(ModelError, match=r"\|u\| = 3.5 exceeds the input bound 3.0"):
         input_cost(np.array([3.5]), np.array([1.0]), 3.0)

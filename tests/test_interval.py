@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import ModelError, OfrlError
 from ofrl_drake.interval import (
     ExpressionEvaluator,
     Interval,
@@ -200,9 +200,9 @@ def test_domain_errors_only_when_wholly_outside():
 
 def test_bad_box_shapes_raise():
     ev = ExpressionEvaluator([x + y], X)
-    with pytest.raises(ValueError, match=r"shape \(2,\) or \(2, B\)"):
+    with pytest.raises(ModelError, match=r"shape \(2,\) or \(2, B\)"):
         ev.interval(np.zeros(3), np.ones(3))
-    with pytest.raises(ValueError, match="lower <= upper"):
+    with pytest.raises(ModelError, match="lower <= upper"):
         ev.interval(np.ones(2), np.zeros(2))
-    with pytest.raises(ValueError, match="2 rows"):
+    with pytest.raises(ModelError, match="2 rows"):
         ev(np.zeros((3, 4)))

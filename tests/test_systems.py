@@ -5,6 +5,7 @@ import pytest
 
 from ofrl_drake import PolynomialBasis
 from ofrl_drake.bellman import point_features
+from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.points import grid_points
@@ -214,7 +215,7 @@ def test_bellman_outputs_share_one_cache_entry():
 
 def test_gain_shape_errors_name_the_gain():
     system = make_system("two_state")
-    with pytest.raises(ValueError, match=r"observer gain L must have shape \(2, 1\); got \(1, 2\)"):
+    with pytest.raises(ModelError, match=r"observer gain L must have shape \(2, 1\); got \(1, 2\)"):
         ObserverGains.from_arrays(
             system,
             np.zeros((1, 2)),
@@ -280,3 +281,39 @@ def test_mimo_controller_output_closed_form(x):
     np.testing.assert_allclose(
         ctrl.get_u_output_port().Eval(context), -3.0 * np.tanh(D), rtol=1e-7, atol=1e-9
     )
+
+
+BAD_BLOCK_ARGUMENTS = [
+    (lambda: CriticWeights([0.0, np.nan], 0.1), r"CriticWeights: initial_weights must be finite"),
+    (lambda: CriticWeights(np.zeros((2, 2)), 0.1), r"initial_weights must be a non-empty 1-D"),
+    (lambda: CriticWeights(np.zeros(3), -1.0), r"CriticWeights: kc must be >= 0; got -1.0"),
+    (lambda: GammaGain(np.array([[1.0, 2.0], [0.0, 1.0]]), 0.1, 0.2), r"initial_gamma must be sym"),
+    (lambda: GammaGain(-np.eye(2), 0.1, 0.2), r"initial_gamma must be positive definite"),
+    (lambda: GammaGain(np.ones((2, 3)), 0.1, 0.2), r"initial_gamma must be a square matrix"),
+    (lambda: GammaGain(np.eye(2), 0.1, -0.2), r"GammaGain: beta must be >= 0; got -0.2"),
+    (lambda: RunningCost(-np.eye(2), [1.0], 3.0), r"RunningCost: Q must be positive semidefinite"),
+    (lambda: RunningCost(np.eye(2), [0.0], 3.0), r"RunningCost: r must have entries > 0"),
+    (lambda: RunningCost(np.eye(2), [1.0], 0.0), r"RunningCost: input_bound must be > 0; got 0"),
+]
+
+
+@pytest.mark.parametrize(("make", "message"), BAD_BLOCK_ARGUMENTS)
+def test_block_constructors_reject_bad_arguments(make, message):
+    with pytest.raises(ModelError, match=message):
+        make()
+
+
+def test_controller_rejects_mismatched_basis_input_weights_and_bound():
+    system = make_system("two_state")
+    with pytest.raises(ModelError, match=r"basis is for n = 3 states but the system has n = 2"):
+        SaturatedController(system, PolynomialBasis(3), np.array([1.0]), 3.0)
+    with pytest.raises(ModelError, match=r"SaturatedController: r must have length 1; got 2"):
+        SaturatedController(system, PolynomialBasis(2), np.array([1.0, 1.0]), 3.0)
+    with pytest.raises(ModelError, match=r"SaturatedController: input_bound must be > 0"):
+        SaturatedController(system, PolynomialBasis(2), np.array([1.0]), -3.0)
+
+
+def test_frozen_blocks_are_allowed():
+    """kc = 0 (frozen critic) and kc = beta = 0 (constant Gamma) are ablations, not errors."""
+    assert CriticWeights(np.zeros(3), 0.0).num_continuous_states() == 3
+    assert GammaGain(np.eye(3), 0.0, 0.0).num_continuous_states() == 9

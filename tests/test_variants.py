@@ -18,6 +18,7 @@ from ofrl_drake.baselines import (
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import extrapolate, point_features
 from ofrl_drake.diagram import LOGGED
+from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.points import grid_points, uniform_points
@@ -139,7 +140,7 @@ def test_luenberger_gain_places_the_poles():
 def test_luenberger_gain_rejects_an_unobservable_pair():
     with pytest.raises(ScenarioError, match=r"not observable"):
         luenberger_gain(np.diag([-1.0, 2.0]), np.array([[1.0, 0.0]]), [-1.0, -2.0])
-    with pytest.raises(ValueError, match=r"alpha must be a positive number"):
+    with pytest.raises(ModelError, match=r"alpha must be a positive number"):
         luenberger_poles(0.0, 2)
 
 
@@ -286,7 +287,7 @@ def test_moving_bellman_block_equals_the_fixed_one_at_shifted_points():
                 rtol=1e-13,
                 atol=1e-15,
             )
-    with pytest.raises(ValueError, match=r"offsets must have shape \(n, N\) = \(2, N\)"):
+    with pytest.raises(ModelError, match=r"offsets must have shape \(n, N\) = \(2, N\)"):
         MovingBellmanExtrapolator(system, basis, np.zeros((3, 4)), Q, r, 3.0, 0.7)
 
 

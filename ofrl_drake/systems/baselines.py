@@ -20,11 +20,19 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.controllers import LinearQuadraticRegulator
 from pydrake.systems.estimators import LuenbergerObserver
-from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, ValueProducer
+from pydrake.systems.framework import (
+    Diagram,
+    DiagramBuilder,
+    InputPort,
+    LeafSystem,
+    OutputPort,
+    ValueProducer,
+)
 from pydrake.systems.primitives import AffineSystem, LinearSystem, Saturation
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
@@ -66,11 +74,11 @@ class FullStateObserver(LeafSystem):
             prerequisites_of_calc={self._state_port.ticket()},
         )
 
-    def get_state_input_port(self):
+    def get_state_input_port(self) -> InputPort:
         """The true state x (size n)."""
         return self._state_port
 
-    def get_estimated_state_output_port(self):
+    def get_estimated_state_output_port(self) -> OutputPort:
         """The "estimate", equal to x (size n)."""
         return self._xhat_port
 
@@ -140,15 +148,15 @@ class LinearizedLuenbergerObserver(Diagram):
         builder.ExportOutput(shift_back.get_output_port(), "estimated_state")
         builder.BuildInto(self)
 
-    def get_y_input_port(self):
+    def get_y_input_port(self) -> InputPort:
         """The measurement ``y`` (size q)."""
         return self.GetInputPort("y")
 
-    def get_u_input_port(self):
+    def get_u_input_port(self) -> InputPort:
         """The applied input ``u`` (size m)."""
         return self.GetInputPort("u")
 
-    def get_estimated_state_output_port(self):
+    def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
         return self.GetOutputPort("estimated_state")
 
@@ -209,11 +217,11 @@ class SaturatedLqrController(Diagram):
         builder.ExportOutput(saturation.get_output_port(), "u")
         builder.BuildInto(self)
 
-    def get_estimated_state_input_port(self):
+    def get_estimated_state_input_port(self) -> InputPort:
         """The state estimate xhat (size n)."""
         return self.GetInputPort("estimated_state")
 
-    def get_u_output_port(self):
+    def get_u_output_port(self) -> OutputPort:
         """The clipped input u (size m)."""
         return self.GetOutputPort("u")
 
@@ -278,7 +286,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         self.nu = nu
         self._offsets = np.asarray(offsets, dtype=float)
         if self._offsets.ndim != 2 or self._offsets.shape[0] != system.n:
-            raise ValueError(
+            raise ModelError(
                 f"offsets must have shape (n, N) = ({system.n}, N); got {self._offsets.shape}."
             )
         self._Q = np.asarray(Q, dtype=float)
@@ -305,23 +313,23 @@ class MovingBellmanExtrapolator(LeafSystem):
             "learning_condition", 1, self._calc_learning_condition, prerequisites_of_calc=deps
         )
 
-    def get_weights_input_port(self):
+    def get_weights_input_port(self) -> InputPort:
         """Critic weights W (size L)."""
         return self._weights_port
 
-    def get_estimated_state_input_port(self):
+    def get_estimated_state_input_port(self) -> InputPort:
         """The estimate xhat the points move with (size n)."""
         return self._xhat_port
 
-    def get_critic_sum_output_port(self):
+    def get_critic_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i delta_i / rho_i`` (size L)."""
         return self._critic_sum_port
 
-    def get_gain_sum_output_port(self):
+    def get_gain_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i omega_i^T / rho_i^2``, flattened (size L*L)."""
         return self._gain_sum_port
 
-    def get_learning_condition_output_port(self):
+    def get_learning_condition_output_port(self) -> OutputPort:
         """``c = lambda_min(gain_sum)`` (size 1)."""
         return self._learning_condition_port
 

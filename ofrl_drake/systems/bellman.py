@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem, ValueProducer
+from pydrake.systems.framework import InputPort, LeafSystem, OutputPort, ValueProducer
 
 from ofrl_drake.bellman import Extrapolator, PointFeatures, learning_condition
 
@@ -74,19 +74,19 @@ class BellmanExtrapolator(LeafSystem):
             "learning_condition", 1, self._calc_learning_condition, prerequisites_of_calc=deps
         )
 
-    def get_weights_input_port(self):
+    def get_weights_input_port(self) -> InputPort:
         """Critic weights W (size L)."""
         return self._weights_port
 
-    def get_critic_sum_output_port(self):
+    def get_critic_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i delta_i / rho_i`` (size L)."""
         return self._critic_sum_port
 
-    def get_gain_sum_output_port(self):
+    def get_gain_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i omega_i^T / rho_i^2``, flattened (size L*L)."""
         return self._gain_sum_port
 
-    def get_learning_condition_output_port(self):
+    def get_learning_condition_output_port(self) -> OutputPort:
         """``c = lambda_min(gain_sum)`` (size 1)."""
         return self._learning_condition_port
 

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.checks import positive_number, positive_vector
+from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.policy import saturated_policy
 
@@ -34,6 +36,12 @@ class SaturatedController(LeafSystem):
         Diagonal of R.
     input_bound : float
         lbar > 0.
+
+    Raises
+    ------
+    ModelError
+        If ``basis`` is not for ``system.n`` states, ``r`` is not ``m``
+        positive numbers, or ``input_bound <= 0``.
     """
 
     def __init__(
@@ -48,7 +56,13 @@ class SaturatedController(LeafSystem):
         self.basis = basis
         self.r = r
         self.input_bound = input_bound
-        self._r = np.asarray(r, dtype=float)
+        if basis.n != system.n:
+            raise ModelError(
+                f"SaturatedController: the basis is for n = {basis.n} states but the "
+                f"system has n = {system.n}; build PolynomialBasis({system.n}, ...)."
+            )
+        self._r = positive_vector("SaturatedController: r", r, system.m)
+        positive_number("SaturatedController: input_bound", input_bound)
         self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
         self._weights_port = self.DeclareVectorInputPort("weights", basis.size)
         self._u_port = self.DeclareVectorOutputPort(
@@ -58,15 +72,15 @@ class SaturatedController(LeafSystem):
             prerequisites_of_calc={self._xhat_port.ticket(), self._weights_port.ticket()},
         )
 
-    def get_estimated_state_input_port(self):
+    def get_estimated_state_input_port(self) -> InputPort:
         """The state estimate xhat (size n)."""
         return self._xhat_port
 
-    def get_weights_input_port(self):
+    def get_weights_input_port(self) -> InputPort:
         """Critic weights W (size L)."""
         return self._weights_port
 
-    def get_u_output_port(self):
+    def get_u_output_port(self) -> OutputPort:
         """The saturated input u (size m)."""
         return self._u_port
 

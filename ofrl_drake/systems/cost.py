@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.checks import nonnegative_matrix, positive_number, positive_vector
 from ofrl_drake.cost import input_cost, state_cost
 
 __all__ = ["RunningCost"]
@@ -29,7 +30,13 @@ class RunningCost(LeafSystem):
     r : array_like, shape (m,)
         Diagonal of R.
     input_bound : float
-        lbar.
+        lbar > 0.
+
+    Raises
+    ------
+    ModelError
+        If ``Q`` is not symmetric positive semidefinite, ``r`` has an entry
+        <= 0, or ``input_bound <= 0``.
     """
 
     def __init__(self, Q: np.ndarray, r: np.ndarray, input_bound: float) -> None:
@@ -37,23 +44,24 @@ class RunningCost(LeafSystem):
         self.Q = Q
         self.r = r
         self.input_bound = input_bound
-        self._Q = np.asarray(Q, dtype=float)
-        self._r = np.asarray(r, dtype=float)
+        self._Q = nonnegative_matrix("RunningCost: Q", Q)
+        self._r = positive_vector("RunningCost: r", r)
+        positive_number("RunningCost: input_bound", input_bound)
         n, m = self._Q.shape[0], self._r.size
         self._state_index = self.DeclareContinuousState(BasicVector(np.zeros(1)))
         self._x_port = self.DeclareVectorInputPort("state", n)
         self._u_port = self.DeclareVectorInputPort("u", m)
         self._cost_port = self.DeclareStateOutputPort("cost", self._state_index)
 
-    def get_state_input_port(self):
+    def get_state_input_port(self) -> InputPort:
         """The true state x (size n)."""
         return self._x_port
 
-    def get_u_input_port(self):
+    def get_u_input_port(self) -> InputPort:
         """The applied input u (size m)."""
         return self._u_port
 
-    def get_cost_output_port(self):
+    def get_cost_output_port(self) -> OutputPort:
         """The accumulated cost J (size 1)."""
         return self._cost_port
 

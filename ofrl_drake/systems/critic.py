@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
+
+from ofrl_drake.checks import finite_vector, positive_number
 
 __all__ = ["CriticWeights"]
 
@@ -30,14 +31,21 @@ class CriticWeights(LeafSystem):
     initial_weights : array_like, shape (L,)
         W(0); also fixes L.
     kc : float
-        Adaptation gain k_c > 0.
+        Adaptation gain k_c >= 0 (0 freezes the critic, an ablation).
+
+    Raises
+    ------
+    ModelError
+        If ``initial_weights`` is not a finite, non-empty vector or ``kc`` is
+        negative or not finite.
     """
 
     def __init__(self, initial_weights: Sequence[float], kc: float) -> None:
         super().__init__()
         self.initial_weights = initial_weights
         self.kc = kc
-        W0 = np.asarray(initial_weights, dtype=float)
+        W0 = finite_vector("CriticWeights: initial_weights", initial_weights)
+        positive_number("CriticWeights: kc", kc, allow_zero=True)
         size = W0.size
         self._size = size
         self._state_index = self.DeclareContinuousState(BasicVector(W0))
@@ -45,15 +53,15 @@ class CriticWeights(LeafSystem):
         self._gamma_port = self.DeclareVectorInputPort("gamma", size * size)
         self._weights_port = self.DeclareStateOutputPort("weights", self._state_index)
 
-    def get_critic_sum_input_port(self):
+    def get_critic_sum_input_port(self) -> InputPort:
         """``(1/N) sum omega delta / rho`` (size L)."""
         return self._critic_sum_port
 
-    def get_gamma_input_port(self):
+    def get_gamma_input_port(self) -> InputPort:
         """Gamma, flattened row-major (size L*L)."""
         return self._gamma_port
 
-    def get_weights_output_port(self):
+    def get_weights_output_port(self) -> OutputPort:
         """The weights W (size L)."""
         return self._weights_port
 

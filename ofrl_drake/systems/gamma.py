@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
+
+from ofrl_drake.checks import positive_number, spd_matrix
 
 __all__ = ["GammaGain"]
 
@@ -31,6 +33,12 @@ class GammaGain(LeafSystem):
         Adaptation gain k_c.
     beta : float
         Forgetting factor beta. ``beta = 0`` and ``kc = 0`` give a constant gain.
+
+    Raises
+    ------
+    ModelError
+        If ``initial_gamma`` is not a finite symmetric positive definite
+        matrix, or ``kc`` or ``beta`` is negative or not finite.
     """
 
     def __init__(self, initial_gamma: np.ndarray, kc: float, beta: float) -> None:
@@ -38,17 +46,19 @@ class GammaGain(LeafSystem):
         self.initial_gamma = initial_gamma
         self.kc = kc
         self.beta = beta
-        G0 = np.asarray(initial_gamma, dtype=float)
+        G0 = spd_matrix("GammaGain: initial_gamma", initial_gamma)
+        positive_number("GammaGain: kc", kc, allow_zero=True)
+        positive_number("GammaGain: beta", beta, allow_zero=True)
         self._size = G0.shape[0]
         self._state_index = self.DeclareContinuousState(BasicVector(G0.ravel()))
         self._gain_sum_port = self.DeclareVectorInputPort("gain_sum", G0.size)
         self._gamma_port = self.DeclareStateOutputPort("gamma", self._state_index)
 
-    def get_gain_sum_input_port(self):
+    def get_gain_sum_input_port(self) -> InputPort:
         """``(1/N) sum omega omega^T / rho^2``, flattened (size L*L)."""
         return self._gain_sum_port
 
-    def get_gamma_output_port(self):
+    def get_gamma_output_port(self) -> OutputPort:
         """Gamma, flattened row-major (size L*L)."""
         return self._gamma_port
 

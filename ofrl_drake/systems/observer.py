@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
@@ -57,15 +57,15 @@ class ThreeGainObserver(LeafSystem):
         self._u_port = self.DeclareVectorInputPort("u", system.m)
         self._xhat_port = self.DeclareStateOutputPort("estimated_state", self._state_index)
 
-    def get_y_input_port(self):
+    def get_y_input_port(self) -> InputPort:
         """The measurement ``y`` (size q)."""
         return self._y_port
 
-    def get_u_input_port(self):
+    def get_u_input_port(self) -> InputPort:
         """The applied input ``u`` (size m)."""
         return self._u_port
 
-    def get_estimated_state_output_port(self):
+    def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
         return self._xhat_port
 

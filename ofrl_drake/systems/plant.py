@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.model import ControlAffineSystem
 
@@ -52,15 +52,15 @@ class ControlAffinePlant(LeafSystem):
             "y", system.q, self._calc_y, prerequisites_of_calc={self.xc_ticket()}
         )
 
-    def get_u_input_port(self):
+    def get_u_input_port(self) -> InputPort:
         """The input ``u`` (size m)."""
         return self._u_port
 
-    def get_y_output_port(self):
+    def get_y_output_port(self) -> OutputPort:
         """The measured output ``y = C x`` (size q)."""
         return self._y_port
 
-    def get_state_output_port(self):
+    def get_state_output_port(self) -> OutputPort:
         """The true state ``x`` (size n)."""
         return self._state_port
 

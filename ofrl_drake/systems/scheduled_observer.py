@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
@@ -107,23 +107,23 @@ class ScheduledThreeGainObserver(LeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period, period, self._resolve)
 
     # ------------------------------------------------------------- accessors
-    def get_y_input_port(self):
+    def get_y_input_port(self) -> InputPort:
         """The measurement ``y`` (size q)."""
         return self._y_port
 
-    def get_u_input_port(self):
+    def get_u_input_port(self) -> InputPort:
         """The applied input ``u`` (size m)."""
         return self._u_port
 
-    def get_estimated_state_output_port(self):
+    def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
         return self._xhat_port
 
-    def get_observer_gains_output_port(self):
+    def get_observer_gains_output_port(self) -> OutputPort:
         """``[vec(L), vec(H), vec(K)]`` currently in force (size 3 n q)."""
         return self._gains_port
 
-    def get_solve_failed_output_port(self):
+    def get_solve_failed_output_port(self) -> OutputPort:
         """1 if the latest re-solve failed, else 0 (size 1)."""
         return self._failed_port
 

@@ -1,0 +1,94 @@
+"""Argument checks shared by the blocks: each raises :class:`ModelError`.
+
+Every message names the owner (``"GammaGain: initial_gamma"``), the value it
+got and what would be accepted, so a user can fix the call without reading
+the source.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ofrl_drake.errors import ModelError
+
+__all__ = [
+    "finite_vector",
+    "nonnegative_matrix",
+    "positive_number",
+    "positive_vector",
+    "spd_matrix",
+]
+
+
+def _finite_array(name: str, value: Any) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ModelError(f"{name} must be numeric; got {value!r}.") from err
+    if not np.all(np.isfinite(arr)):
+        raise ModelError(f"{name} must be finite; got {arr.tolist()}.")
+    return arr
+
+
+def positive_number(name: str, value: Any, *, allow_zero: bool = False) -> float:
+    """``value`` as a float, checked finite and ``> 0`` (``>= 0`` with ``allow_zero``)."""
+    arr = _finite_array(name, value)
+    if arr.ndim != 0:
+        raise ModelError(f"{name} must be a number; got shape {arr.shape}.")
+    x = float(arr)
+    if x < 0 or (x == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ModelError(f"{name} must be {bound}; got {x}.")
+    return x
+
+
+def finite_vector(name: str, value: Any, size: int | None = None) -> np.ndarray:
+    """``value`` as a finite, non-empty 1-D array, of length ``size`` if given."""
+    arr = _finite_array(name, value)
+    if arr.ndim != 1 or arr.size == 0:
+        raise ModelError(f"{name} must be a non-empty 1-D vector; got shape {arr.shape}.")
+    if size is not None and arr.size != size:
+        raise ModelError(f"{name} must have length {size}; got {arr.size}.")
+    return arr
+
+
+def positive_vector(name: str, value: Any, size: int | None = None) -> np.ndarray:
+    """A :func:`finite_vector` whose entries are all ``> 0``."""
+    arr = finite_vector(name, value, size)
+    if np.any(arr <= 0):
+        raise ModelError(f"{name} must have entries > 0; got {arr.tolist()}.")
+    return arr
+
+
+def _symmetric(name: str, value: Any, size: int | None) -> np.ndarray:
+    arr = _finite_array(name, value)
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or arr.size == 0:
+        raise ModelError(f"{name} must be a square matrix; got shape {arr.shape}.")
+    if size is not None and arr.shape[0] != size:
+        raise ModelError(f"{name} must have shape ({size}, {size}); got {arr.shape}.")
+    if not np.allclose(arr, arr.T, rtol=1e-10, atol=1e-12):
+        asym = float(np.max(np.abs(arr - arr.T)))
+        raise ModelError(f"{name} must be symmetric; max |M - M^T| = {asym:.3g}.")
+    return arr
+
+
+def spd_matrix(name: str, value: Any, size: int | None = None) -> np.ndarray:
+    """A finite, symmetric, positive definite square matrix."""
+    arr = _symmetric(name, value, size)
+    lam = float(np.linalg.eigvalsh(arr)[0])
+    if lam <= 0:
+        raise ModelError(f"{name} must be positive definite; its smallest eigenvalue is {lam:.3g}.")
+    return arr
+
+
+def nonnegative_matrix(name: str, value: Any, size: int | None = None) -> np.ndarray:
+    """A finite, symmetric, positive semidefinite square matrix."""
+    arr = _symmetric(name, value, size)
+    lam = float(np.linalg.eigvalsh(arr)[0])
+    if lam < -1e-12 * max(1.0, float(np.max(np.abs(arr)))):
+        raise ModelError(
+            f"{name} must be positive semidefinite; its smallest eigenvalue is {lam:.3g}."
+        )
+    return arr

@@ -1,0 +1,62 @@
+"""ofrl_drake.checks: accepted values pass through; bad ones raise, naming themselves."""
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from ofrl_drake.checks import (
+    finite_vector,
+    nonnegative_matrix,
+    positive_number,
+    positive_vector,
+    spd_matrix,
+)
+from ofrl_drake.errors import ModelError
+
+
+def test_accepted_values_come_back_as_float_arrays():
+    np.testing.assert_array_equal(finite_vector("w", [1, -2, 0]), [1.0, -2.0, 0.0])
+    np.testing.assert_array_equal(positive_vector("r", [0.5, 2], size=2), [0.5, 2.0])
+    assert positive_number("k", 0, allow_zero=True) == 0.0
+    assert positive_number("k", np.float32(2.5)) == 2.5
+    np.testing.assert_array_equal(spd_matrix("G", [[2, 1], [1, 2]], size=2), [[2, 1], [1, 2]])
+    np.testing.assert_array_equal(nonnegative_matrix("Q", np.zeros((2, 2))), np.zeros((2, 2)))
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda: positive_number("k", 0.0), r"k must be > 0; got 0.0"),
+        (lambda: positive_number("k", -1e-9, allow_zero=True), r"k must be >= 0"),
+        (lambda: positive_number("k", [1.0, 2.0]), r"k must be a number; got shape \(2,\)"),
+        (lambda: positive_number("k", np.inf), r"k must be finite"),
+        (lambda: positive_number("k", "fast"), r"k must be numeric; got 'fast'"),
+        (
+            lambda: finite_vector("w", [], None),
+            r"w must be a non-empty 1-D vector; got shape",
+        ),
+        (lambda: finite_vector("w", [1.0, 2.0], 3), r"w must have length 3; got 2"),
+        (lambda: positive_vector("r", [1.0, -1.0]), r"r must have entries > 0; got \[1.0, -1.0\]"),
+        (lambda: spd_matrix("G", np.eye(3), 2), r"G must have shape \(2, 2\); got \(3, 3\)"),
+        (
+            lambda: spd_matrix("G", [[1.0, 0.5], [0.0, 1.0]]),
+            r"G must be symmetric; max \|M - M\^T\|",
+        ),
+        (lambda: spd_matrix("G", np.diag([1.0, 0.0])), r"G must be positive definite; .* is 0"),
+        (lambda: nonnegative_matrix("Q", np.diag([1.0, -0.1])), r"Q must be positive semidefinite"),
+    ],
+)
+def test_bad_values_raise_model_error_naming_the_value(call, message):
+    with pytest.raises(ModelError, match=message):
+        call()
+
+
+@given(arrays(np.float64, (3, 3), elements=st.floats(-10, 10)))
+def test_gram_matrices_pass_and_their_negations_fail(A):
+    """A A^T + I is positive definite; its negation never is."""
+    M = A @ A.T + np.eye(3)
+    np.testing.assert_allclose(spd_matrix("M", M), M, rtol=0, atol=0)
+    with pytest.raises(ModelError, match="positive definite"):
+        spd_matrix("M", -M)
