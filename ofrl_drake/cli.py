@@ -137,6 +137,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         )
     if result.validity is not None and not result.validity.valid:
         print(result.validity.warning(), file=sys.stderr)
+    elif result.validity is not None and not result.validity.box_checked:
+        print(f"note: {result.validity.note}.", file=sys.stderr)
     if loop.design is not None and not loop.design.is_decay_certified:
         print(
             f"note: the observer gains satisfy the {loop.design.formulation!r} LMI but not "

@@ -77,7 +77,9 @@ SIGNALS = {
 #: Signals logged when the block providing them has them (key -> (slot, port)).
 OPTIONAL_LOGGED = {
     "observer_gains": ("observer", "observer_gains"),
+    "certified_box": ("observer", "certified_box"),
     "solve_failed": ("observer", "solve_failed"),
+    "solve_counts": ("observer", "solve_counts"),
 }
 
 #: Log key -> signal name. Every variant logs these.

@@ -2,25 +2,42 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import math
+import os
 import sys
+import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
+from pydrake.systems.framework import System
 
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
+from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.scenario import Scenario
-from ofrl_drake.validity import ValidityReport, validity_report
+from ofrl_drake.systems import ThreeGainObserver
+from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
-__all__ = ["TRAJECTORY_KEYS", "SimulationResult", "simulate", "simulator_config"]
+__all__ = [
+    "EXTRA_LOGS_FILE",
+    "TRAJECTORY_KEYS",
+    "SimulationResult",
+    "simulate",
+    "simulator_config",
+]
 
 #: Keys of ``trajectories.npz``, in order.
 TRAJECTORY_KEYS = ("t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost")
+
+#: File written by :meth:`SimulationResult.save` when there are extra logs.
+EXTRA_LOGS_FILE = "extra_logs.npz"
 
 
 @dataclass
@@ -43,7 +60,9 @@ class SimulationResult:
     integrator : dict
         Integrator settings and statistics.
     validity : ValidityReport
-        When x or xhat left the certified box or ``|u_k|`` exceeded lambda_bar.
+        When x or xhat left the certified box in force or ``|u_k|`` exceeded
+        lambda_bar; its ``box_check`` and ``note`` say which box applied, or
+        why none did.
     design : dict or None
         The observer design as a JSON-ready dict, with its certificate.
     extra : dict of ndarray
@@ -85,8 +104,33 @@ class SimulationResult:
             raise ValueError(f"no sample of {key!r} at t = {time}; the log ends at {self.t[-1]}.")
         return getattr(self, key)[i]
 
+    def solve_counts(self) -> dict[str, Any] | None:
+        """Observer re-solves run and failed up to the last sample; None if not logged.
+
+        Read from the ``solve_counts`` log of an observer that re-designs its
+        gains (:class:`~ofrl_drake.systems.ScheduledThreeGainObserver`), which
+        counts every re-solve, so the numbers are exact.
+        """
+        if "solve_counts" not in self.extra:
+            return None
+        counts = np.asarray(self.extra["solve_counts"]).reshape(self.t.size, 2)
+        run, failed = (int(c) for c in np.rint(counts[-1]))
+        flagged = np.flatnonzero(np.diff(counts[:, 1], prepend=0.0) > 0)
+        return {
+            "resolves": run,
+            "failed_solves": failed,
+            "at_time": float(self.t[-1]),
+            "first_failure_logged_at": float(self.t[flagged[0]]) if flagged.size else None,
+        }
+
     def summary(self) -> dict[str, Any]:
-        """The contents of ``summary.json``."""
+        """The contents of ``summary.json``.
+
+        Besides the final values it holds ``validity`` (when checked),
+        ``observer_design`` (when designed), ``extra_logs`` (the keys of
+        :data:`EXTRA_LOGS_FILE`) and, when the observer re-solves its design,
+        ``failed_solves`` and ``observer_resolves`` (:meth:`solve_counts`).
+        """
         Gamma_T = 0.5 * (self.Gamma[-1] + self.Gamma[-1].T)
         out = {
             "scenario": self.scenario_name,
@@ -106,16 +150,62 @@ class SimulationResult:
             out["validity"] = self.validity.to_dict()
         if self.design is not None:
             out["observer_design"] = self.design
+        keys = self._extra_log_arrays()
+        if keys:
+            out["extra_logs"] = sorted(keys)
+        counts = self.solve_counts()
+        if counts is not None:
+            out["failed_solves"] = counts["failed_solves"]
+            out["observer_resolves"] = counts
         return out
 
+    def _extra_log_arrays(self) -> dict[str, np.ndarray]:
+        """What :data:`EXTRA_LOGS_FILE` holds: ``t`` and the extra logs."""
+        arrays = {k: np.asarray(v) for k, v in self.extra.items()}
+        if arrays:
+            arrays = {"t": np.asarray(self.t), **arrays}
+        return arrays
+
     def save(self, directory: str | Path) -> None:
-        """Write ``trajectories.npz`` and ``summary.json`` into ``directory``."""
+        """Write the result's files into ``directory``.
+
+        * ``trajectories.npz``: :data:`TRAJECTORY_KEYS`;
+        * ``extra_logs.npz`` (only if there are extra logs): ``t`` and every
+          key of :attr:`extra` under its own name (a stale file from an
+          earlier save is removed when there are none);
+        * ``summary.json``: :meth:`summary`.
+
+        Each file is written to a temporary file in ``directory`` and renamed
+        into place, so none is ever left half-written.
+        """
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        np.savez(directory / "trajectories.npz", **{k: getattr(self, k) for k in TRAJECTORY_KEYS})
-        with open(directory / "summary.json", "w") as fh:
+        with _atomic_file(directory / "trajectories.npz", "wb") as fh:
+            np.savez(fh, **{k: getattr(self, k) for k in TRAJECTORY_KEYS})
+        extra = self._extra_log_arrays()
+        if extra:
+            with _atomic_file(directory / EXTRA_LOGS_FILE, "wb") as fh:
+                np.savez(fh, **extra)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                (directory / EXTRA_LOGS_FILE).unlink()
+        with _atomic_file(directory / "summary.json", "w") as fh:
             json.dump(self.summary(), fh, indent=2)
             fh.write("\n")
+
+
+@contextlib.contextmanager
+def _atomic_file(target: Path, mode: str) -> Iterator[IO[Any]]:
+    """Open a temporary file next to ``target``; rename it onto ``target`` on success."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
 
 
 def simulator_config(scenario: Scenario) -> SimulatorConfig:
@@ -141,6 +231,101 @@ def _progress(fraction: float, start: float) -> None:
     sys.stderr.flush()
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Equality of scenario values that may hold lists or numpy arrays."""
+    if a is b:
+        return True
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        return type(a) is type(b) and all(
+            _same(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)
+        )
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):  # numpy arrays: element-wise ==
+        try:
+            return bool(np.array_equal(np.asarray(a, dtype=float), np.asarray(b, dtype=float)))
+        except (TypeError, ValueError):
+            return False
+
+
+def _check_loop_arguments(
+    scenario: Scenario, loop: ClosedLoop, design: Any, swaps: dict[str, Any]
+) -> None:
+    """Raise if ``simulate(scenario, loop=loop, ...)`` got arguments it would ignore."""
+    if design is not None:
+        raise SwapError(
+            "design: simulate(..., loop=...) runs the loop as built, with the observer "
+            "design it was built with; pass design= to build_closed_loop(scenario, "
+            "design=...) instead, or drop loop= to build the loop here."
+        )
+    if swaps:
+        name = sorted(swaps)[0]
+        raise SwapError(
+            f"{name}: simulate(..., loop=...) cannot swap blocks of a loop that is already "
+            f"built; pass {name}=... to build_closed_loop(scenario, {name}=...) instead, or "
+            "drop loop= to build the loop here."
+        )
+    built = loop.parts.scenario
+    if built is scenario:
+        return
+    if dataclasses.is_dataclass(built) and type(built) is type(scenario):
+        differing = [
+            f.name
+            for f in dataclasses.fields(built)
+            if not _same(getattr(built, f.name), getattr(scenario, f.name))
+        ]
+    else:
+        differing = [] if _same(built, scenario) else ["type"]
+    if differing:
+        raise ScenarioError(
+            f"scenario: the loop was built from a different scenario (it differs in "
+            f"{', '.join(differing)}); pass the scenario the loop was built from "
+            "(loop.parts.scenario), or rebuild the loop with build_closed_loop(scenario)."
+        )
+
+
+def _certified_region(
+    loop: ClosedLoop, logs: dict[str, np.ndarray], t: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray] | BoxSchedule | None, str | None]:
+    """The box x and xhat are checked against, and a note for the report.
+
+    An observer that logs ``certified_box`` (one that re-designs its gains
+    along the run) is checked, sample by sample, against the box its gains in
+    force are certified on. Otherwise a fixed box applies only if the observer
+    block runs the gains of ``loop.design``; any other observer (none
+    designed, or a block that ignores the design) has no certified box.
+    """
+    observer: System = loop.blocks["observer"]
+    kind = type(observer).__name__
+    if "certified_box" in logs:
+        schedule = BoxSchedule.from_samples(t, logs["certified_box"])
+        note = (
+            f"observer {kind} re-designs its gains along the run: x and xhat checked "
+            f"against the box of the design in force ({schedule.times.size - 1} box "
+            "changes), not against one fixed box"
+        )
+        return schedule, note
+    design = loop.design
+    if design is None:
+        return None, (
+            f"no observer design (observer block {kind}): box checks not applicable; "
+            "only |u_k| <= lambda_bar was checked"
+        )
+    runs_design = isinstance(observer, ThreeGainObserver) and all(
+        np.array_equal(
+            np.asarray(getattr(observer.gains, name), float),
+            np.asarray(getattr(design, name), float),
+        )
+        for name in ("L", "H", "K")
+    )
+    if not runs_design:
+        return None, (
+            f"the observer block ({kind}) does not run the observer design's gains: "
+            "box checks not applicable; only |u_k| <= lambda_bar was checked"
+        )
+    return (np.asarray(design.box.lower, float), np.asarray(design.box.upper, float)), None
+
+
 def simulate(
     scenario: Scenario,
     *,
@@ -155,20 +340,36 @@ def simulate(
     ----------
     scenario : Scenario
     design : ObserverDesign, optional
-        Observer design; computed from the scenario if omitted.
+        Observer design; computed from the scenario if omitted. Not allowed
+        with ``loop``.
     progress : bool, optional
         Draw a progress bar on stderr; by default only when stderr is a terminal.
     loop : ClosedLoop, optional
-        An already-built loop to simulate (then ``design`` and ``swaps`` are unused).
+        An already-built loop to simulate; it must have been built from
+        ``scenario`` (or an equal one), and ``design`` and ``swaps`` must then
+        be omitted (give them to :func:`~ofrl_drake.build_closed_loop`).
     **swaps
         Block replacements, as for :func:`~ofrl_drake.build_closed_loop`.
+        Not allowed with ``loop``.
 
     Returns
     -------
     SimulationResult
+        Its ``validity`` always checks ``|u_k| <= lambda_bar``; x and xhat
+        are checked against the certified box when the observer has one (see
+        :mod:`ofrl_drake.validity`).
+
+    Raises
+    ------
+    SwapError
+        If ``loop`` is given together with ``design`` or a swap.
+    ScenarioError
+        If ``loop`` was built from a scenario that differs from ``scenario``.
     """
     if loop is None:
         loop = build_closed_loop(scenario, design=design, **swaps)
+    else:
+        _check_loop_arguments(scenario, loop, design, swaps)
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(simulator_config(scenario), simulator)
     simulator.Initialize()
@@ -207,11 +408,7 @@ def simulate(
         "smallest_step": _finite(integ.get_smallest_adapted_step_size_taken()),
         "largest_step": _finite(integ.get_largest_step_size_taken()),
     }
-    design_dict = None
-    box = None
-    if loop.design is not None:
-        design_dict = loop.design.to_dict()
-        box = (np.asarray(loop.design.box.lower), np.asarray(loop.design.box.upper))
+    design_dict = loop.design.to_dict() if loop.design is not None else None
     result = SimulationResult(
         t=np.asarray(t),
         x=logs["x"],
@@ -227,10 +424,10 @@ def simulate(
         scenario_name=scenario.name,
         extra={k: v for k, v in logs.items() if k not in LOGGED},
     )
-    if box is not None:
-        result.validity = validity_report(
-            result.t, result.x, result.xhat, result.u, box, scenario.input_bound
-        )
+    box, note = _certified_region(loop, logs, result.t)
+    result.validity = validity_report(
+        result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note
+    )
     return result
 
 

@@ -169,3 +169,19 @@ def test_run_replaces_its_own_earlier_output(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert not (out / "stale.txt").exists() and (out / "summary.json").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenario.yaml"]
+
+
+def test_run_without_a_certified_box_says_what_was_checked(tmp_path):
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    variant = dict(data.get("variant") or {})
+    variant["observer"] = "true_state"
+    proc = _cli(
+        "run", _short_scenario(tmp_path, duration=0.2, variant=variant), "--out", tmp_path / "o"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert (
+        "note: no observer design (observer block FullStateObserver): box checks not "
+        "applicable; only |u_k| <= lambda_bar was checked." in proc.stderr
+    )
+    validity = json.loads((tmp_path / "o" / "summary.json").read_text())["validity"]
+    assert validity["box_check"] == "not_applicable" and validity["box_checked"] is False

@@ -3,8 +3,9 @@
 The paper reports "final values from the simulation" for P, L, H, K, which
 suggests gains re-solved as the estimate moves. This block re-solves the
 observer LMI at a fixed period over a box centred on the current estimate,
-holding the gains in discrete state between solves. A failed solve keeps the
-previous gains and is flagged on the ``solve_failed`` output.
+holding the gains, and the box they are certified on, in discrete state
+between solves. A failed solve keeps the previous gains and box, is flagged on
+the ``solve_failed`` output and counted on ``solve_counts``.
 """
 
 from __future__ import annotations
@@ -34,7 +35,9 @@ class ScheduledThreeGainObserver(LeafSystem):
         output_ports:
         - estimated_state
         - observer_gains
+        - certified_box
         - solve_failed
+        - solve_counts
 
     Parameters
     ----------
@@ -58,8 +61,12 @@ class ScheduledThreeGainObserver(LeafSystem):
     Notes
     -----
     ``observer_gains`` is ``[vec(L), vec(H), vec(K)]`` (row-major, ``3 n q``
-    entries); ``solve_failed`` is 1 after a re-solve that found no certified
-    design (the previous gains stay in force), else 0.
+    entries); ``certified_box`` is ``[lower, upper]`` (``2 n``) of the box
+    the gains in force are certified on; ``solve_failed`` is 1 after a
+    re-solve that found no certified design (the previous gains and box stay
+    in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
+    failed]`` since the start. All four are discrete state, so a logger
+    sampling at a re-solve time reads the values from before it.
     """
 
     def __init__(
@@ -98,12 +105,19 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._xhat_index = self.DeclareContinuousState(BasicVector(x0))
         self._gains_index = self.DeclareDiscreteState(self._pack_gains(gains))
         self._bounds_index = self.DeclareDiscreteState(self._pack_bounds(gains))
+        box = initial_design.box
+        self._box_index = self.DeclareDiscreteState(
+            np.concatenate([np.asarray(box.lower, float), np.asarray(box.upper, float)])
+        )
         self._failed_index = self.DeclareDiscreteState(1)
+        self._counts_index = self.DeclareDiscreteState(2)
         self._y_port = self.DeclareVectorInputPort("y", q)
         self._u_port = self.DeclareVectorInputPort("u", system.m)
         self._xhat_port = self.DeclareStateOutputPort("estimated_state", self._xhat_index)
         self._gains_port = self.DeclareStateOutputPort("observer_gains", self._gains_index)
+        self._box_port = self.DeclareStateOutputPort("certified_box", self._box_index)
         self._failed_port = self.DeclareStateOutputPort("solve_failed", self._failed_index)
+        self._counts_port = self.DeclareStateOutputPort("solve_counts", self._counts_index)
         self.DeclarePeriodicDiscreteUpdateEvent(period, period, self._resolve)
 
     # ------------------------------------------------------------- accessors
@@ -123,9 +137,17 @@ class ScheduledThreeGainObserver(LeafSystem):
         """``[vec(L), vec(H), vec(K)]`` currently in force (size 3 n q)."""
         return self._gains_port
 
+    def get_certified_box_output_port(self) -> OutputPort:
+        """``[lower, upper]`` of the box the gains in force are certified on (size 2 n)."""
+        return self._box_port
+
     def get_solve_failed_output_port(self) -> OutputPort:
         """1 if the latest re-solve failed, else 0 (size 1)."""
         return self._failed_port
+
+    def get_solve_counts_output_port(self) -> OutputPort:
+        """``[re-solves run, re-solves failed]`` since the start (size 2)."""
+        return self._counts_port
 
     # --------------------------------------------------------------- packing
     @staticmethod
@@ -165,16 +187,24 @@ class ScheduledThreeGainObserver(LeafSystem):
 
         xhat = context.get_continuous_state_vector().CopyToVector()
         box = Box(xhat - self._half_width, xhat + self._half_width)
+        counts = context.get_discrete_state(self._counts_index).CopyToVector()
         try:
             design = design_observer(
                 self.system, box, self.input_bound, self.alpha, **(self.design_options or {})
             )
         except OfrlError:
             discrete_state.get_mutable_vector(self._failed_index).SetFromVector([1.0])
+            discrete_state.get_mutable_vector(self._counts_index).SetFromVector(counts + 1.0)
             return
         gains = ObserverGains.from_design(self.system, design)
         discrete_state.get_mutable_vector(self._gains_index).SetFromVector(self._pack_gains(gains))
         discrete_state.get_mutable_vector(self._bounds_index).SetFromVector(
             self._pack_bounds(gains)
         )
+        discrete_state.get_mutable_vector(self._box_index).SetFromVector(
+            np.concatenate([box.lower, box.upper])
+        )
         discrete_state.get_mutable_vector(self._failed_index).SetFromVector([0.0])
+        discrete_state.get_mutable_vector(self._counts_index).SetFromVector(
+            counts + np.array([1.0, 0.0])
+        )

@@ -1,0 +1,357 @@
+"""simulate(): argument checks, the validity monitor per observer, and save()."""
+
+import copy
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from pydrake.systems.framework import LeafSystem
+
+from ofrl_drake import ScenarioError, SimulationResult, SwapError, build_closed_loop, simulate
+from ofrl_drake.simulation import EXTRA_LOGS_FILE, TRAJECTORY_KEYS
+from ofrl_drake.systems import CriticWeights
+from ofrl_drake.systems.baselines import FullStateObserver
+from ofrl_drake.validity import validity_report
+
+LBAR = 3.0  # the paper scenario's input bound
+
+
+def _short(scenario, duration=0.5, observer=None, variant=None, **top):
+    return dataclasses.replace(
+        scenario,
+        observer=dataclasses.replace(scenario.observer, **(observer or {})),
+        simulation=dataclasses.replace(scenario.simulation, duration=duration),
+        variant=dataclasses.replace(scenario.variant, **(variant or {})),
+        **top,
+    )
+
+
+def _fixed_box(scenario):
+    o = scenario.observer
+    return np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)
+
+
+class _Constant(LeafSystem):
+    """A block with one constant output port ``name`` and no inputs."""
+
+    def __init__(self, name, value):
+        super().__init__()
+        value = np.atleast_1d(np.asarray(value, float))
+        self.DeclareVectorOutputPort(name, value.size, lambda _c, out: out.SetFromVector(value))
+
+
+# --------------------------------------------------------- simulate(loop=...)
+@pytest.fixture(scope="module")
+def short_scenario(paper_scenario):
+    return _short(paper_scenario)
+
+
+@pytest.fixture(scope="module")
+def short_loop(short_scenario, paper_design):
+    return build_closed_loop(short_scenario, design=paper_design)
+
+
+def test_loop_with_design_raises_naming_design(short_scenario, short_loop, paper_design):
+    with pytest.raises(
+        SwapError,
+        match=r"^design: simulate\(\.\.\., loop=\.\.\.\) runs the loop as built.*pass design= "
+        r"to build_closed_loop\(scenario, design=\.\.\.\) instead, or drop loop=",
+    ):
+        simulate(short_scenario, loop=short_loop, design=paper_design, progress=False)
+
+
+def test_loop_with_a_swap_raises_naming_the_slot(short_scenario, short_loop):
+    with pytest.raises(
+        SwapError,
+        match=r"^critic: simulate\(\.\.\., loop=\.\.\.\) cannot swap blocks of a loop that is "
+        r"already built; pass critic=\.\.\. to build_closed_loop\(scenario, critic=\.\.\.\)",
+    ):
+        simulate(
+            short_scenario,
+            loop=short_loop,
+            critic=CriticWeights(short_scenario.critic.W0, kc=0.0),
+            progress=False,
+        )
+
+
+def test_loop_built_from_another_scenario_raises_naming_the_difference(short_scenario, short_loop):
+    other = _short(short_scenario, duration=0.25)
+    with pytest.raises(
+        ScenarioError,
+        match=r"^scenario: the loop was built from a different scenario \(it differs in "
+        r"simulation\); pass the scenario the loop was built from \(loop\.parts\.scenario\), "
+        r"or rebuild the loop with build_closed_loop\(scenario\)\.$",
+    ):
+        simulate(other, loop=short_loop, progress=False)
+    renamed = dataclasses.replace(short_scenario, name="other", input_bound=2.0)
+    with pytest.raises(ScenarioError, match=r"differs in input_bound, name\)"):
+        simulate(renamed, loop=short_loop, progress=False)
+
+
+def test_loop_with_an_equal_scenario_runs(short_scenario, short_loop):
+    same = copy.deepcopy(short_scenario)
+    assert same is not short_scenario
+    r = simulate(same, loop=short_loop, progress=False)
+    assert r.t[-1] == pytest.approx(0.5, abs=1e-9)
+    # Equal values held as numpy arrays compare equal too.
+    as_arrays = dataclasses.replace(short_scenario, x0=np.asarray(short_scenario.x0))
+    r = simulate(as_arrays, loop=short_loop, progress=False)
+    assert r.t[-1] == pytest.approx(0.5, abs=1e-9)
+
+
+# ------------------------------------------------------- validity per observer
+def test_fixed_design_is_checked_against_its_box(paper_result, paper_scenario):
+    v = paper_result.validity
+    assert v.box_check == "fixed" and v.note is None
+    expected = validity_report(
+        paper_result.t,
+        paper_result.x,
+        paper_result.xhat,
+        paper_result.u,
+        _fixed_box(paper_scenario),
+        LBAR,
+    )
+    assert v == expected
+    # xhat(0) = (2, 1.5) sits on the box edge and overshoots it; x stays inside.
+    assert v.estimate_outside is True and v.state_outside is False
+
+
+@pytest.mark.parametrize(
+    ("choice", "block"),
+    [("true_state", "FullStateObserver"), ("drake_luenberger", "LinearizedLuenbergerObserver")],
+)
+def test_observer_without_design_still_checks_the_input_bound(
+    paper_scenario, tmp_path, choice, block
+):
+    r = simulate(_short(paper_scenario, variant={"observer": choice}), progress=False)
+    assert r.design is None
+    v = r.validity
+    assert v is not None and v.box_check == "not_applicable" and not v.box_checked
+    assert v.note == (
+        f"no observer design (observer block {block}): box checks not applicable; "
+        "only |u_k| <= lambda_bar was checked"
+    )
+    assert v.state_outside is None and v.estimate_outside is None
+    assert v.input_exceeded is False and v.valid
+    r.save(tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["validity"]["box_checked"] is False
+    assert summary["validity"]["note"].startswith("no observer design")
+
+
+def test_input_above_the_bound_is_reported_without_a_design(paper_scenario):
+    s = _short(paper_scenario, variant={"observer": "true_state"})
+    r = simulate(
+        s,
+        controller=_Constant("u", 3.5),  # |u| = 3.5 > lambda_bar = 3
+        running_cost=_Constant("cost", 0.0),  # U(u) is undefined beyond the bound
+        progress=False,
+    )
+    np.testing.assert_array_equal(r.u, np.full((r.t.size, 1), 3.5))
+    v = r.validity
+    assert v.box_check == "not_applicable"
+    assert v.input_exceeded is True and not v.valid
+    assert v.first_exit_time == pytest.approx(0.0, abs=1e-12)
+    assert v.fraction_outside == pytest.approx(1.0, abs=1e-12)
+    assert v.state_outside is None and v.estimate_outside is None
+    assert v.warning().startswith(
+        "warning: |u| exceeded the input bound at t = 0.000 s (100.0% of the horizon in "
+        "violation); x and xhat were not checked against a box: no observer design "
+        "(observer block FullStateObserver)"
+    )
+
+
+def test_observer_that_ignores_the_design_gets_no_box_check(paper_scenario, paper_design):
+    r = simulate(
+        _short(paper_scenario), design=paper_design, observer=FullStateObserver(2), progress=False
+    )
+    assert r.design is not None  # the design is still reported ...
+    v = r.validity
+    assert v.box_check == "not_applicable"  # ... but the observer does not run it
+    assert v.note == (
+        "the observer block (FullStateObserver) does not run the observer design's gains: "
+        "box checks not applicable; only |u_k| <= lambda_bar was checked"
+    )
+    assert v.state_outside is None and v.input_exceeded is False
+
+
+# ----------------------------------------------------------- scheduled observer
+SCHEDULE = {"schedule_period": 0.1, "schedule_half_width": [1.0, 1.0]}
+
+
+@pytest.fixture(scope="module")
+def scheduled(paper_scenario, paper_design):
+    # xhat(0) inside [-2, 2]^2; the boxes xhat +- 1 around the estimate do not always hold x.
+    s = _short(paper_scenario, observer=SCHEDULE, xhat0=[-0.5, 0.5])
+    return s, simulate(s, design=paper_design, progress=False)
+
+
+RESOLVE_TIMES = (0.1, 0.2, 0.3, 0.4)  # a re-solve due at T = 0.5 does not run
+
+
+def _in_force(r, design_box):
+    """Reference box in force at each sample, rebuilt from the xhat and solve_failed logs.
+
+    The re-solve at t_k centres its box on xhat(t_k); the logs sample discrete
+    state before an update due at the same time, so its outcome shows on the
+    samples after t_k.
+    """
+    lower = np.tile(design_box[0], (r.t.size, 1))
+    upper = np.tile(design_box[1], (r.t.size, 1))
+    failed = []
+    for tk in RESOLVE_TIMES:
+        later = r.t > tk + 1e-9
+        failed.append(bool(r.extra["solve_failed"][later][0, 0] > 0.5))
+        if not failed[-1]:
+            lower[later] = r.at("xhat", tk) - 1.0
+            upper[later] = r.at("xhat", tk) + 1.0
+    return lower, upper, np.array(failed)
+
+
+def test_scheduled_observer_logs_the_box_in_force_and_exact_counts(scheduled, paper_scenario):
+    _, r = scheduled
+    lower, upper, failed = _in_force(r, _fixed_box(paper_scenario))
+    np.testing.assert_allclose(r.extra["certified_box"], np.hstack([lower, upper]), atol=1e-12)
+    # solve_counts = [re-solves run, failed], sample by sample.
+    run = np.array([np.sum(np.array(RESOLVE_TIMES) < t - 1e-9) for t in r.t])
+    fails = np.array([np.sum(failed[np.array(RESOLVE_TIMES) < t - 1e-9]) for t in r.t])
+    np.testing.assert_array_equal(r.extra["solve_counts"], np.column_stack([run, fails]))
+    # Both outcomes occur in this run, so the checks are not vacuous.
+    assert failed.any() and not failed.all()
+    counts = r.solve_counts()
+    assert counts["resolves"] == 4 and counts["failed_solves"] == int(failed.sum())
+
+
+def test_scheduled_observer_is_checked_against_the_box_in_force(scheduled, paper_scenario):
+    _, r = scheduled
+    v = r.validity
+    assert v.box_check == "scheduled"
+    assert v.note.startswith(
+        "observer ScheduledThreeGainObserver re-designs its gains along the run"
+    )
+    lower, upper, failed = _in_force(r, _fixed_box(paper_scenario))
+    x_out = np.any((r.x < lower - 1e-9) | (r.x > upper + 1e-9), axis=1)
+    xhat_out = np.any((r.xhat < lower - 1e-9) | (r.xhat > upper + 1e-9), axis=1)
+    assert v.state_outside == bool(x_out.any()) and v.estimate_outside == bool(xhat_out.any())
+    assert v.first_exit_time == pytest.approx(r.t[np.argmax(x_out | xhat_out)], abs=1e-12)
+    # Here x leaves a box centred on the estimate, although it never leaves the
+    # fixed design box: a fixed-box check would call this run valid.
+    assert v.state_outside is True and not v.valid
+    first_ok = np.array(RESOLVE_TIMES)[~failed][0]
+    assert v.first_exit_time > first_ok
+    fixed = validity_report(r.t, r.x, r.xhat, r.u, _fixed_box(paper_scenario), LBAR)
+    assert fixed.valid
+
+
+def test_scheduled_observer_whose_resolves_all_fail_keeps_the_design_box(
+    paper_scenario, paper_design
+):
+    # No design certifies alpha = 500: every re-solve fails, the first box stays.
+    s = _short(paper_scenario, observer={"schedule_period": 0.2, "alpha": 500.0})
+    r = simulate(s, design=paper_design, progress=False)
+    np.testing.assert_array_equal(r.extra["solve_counts"][-1], [2, 2])
+    np.testing.assert_array_equal(
+        r.extra["certified_box"], np.tile(np.hstack(_fixed_box(paper_scenario)), (r.t.size, 1))
+    )
+    v = r.validity
+    assert v.box_check == "scheduled" and "(0 box changes)" in v.note
+    fixed = validity_report(r.t, r.x, r.xhat, r.u, _fixed_box(paper_scenario), LBAR)
+    assert (v.first_exit_time, v.fraction_outside) == (
+        fixed.first_exit_time,
+        fixed.fraction_outside,
+    )
+    assert (v.state_outside, v.estimate_outside, v.input_exceeded) == (
+        fixed.state_outside,
+        fixed.estimate_outside,
+        fixed.input_exceeded,
+    )
+    assert r.summary()["failed_solves"] == 2
+
+
+# ------------------------------------------------------------------------ save
+def test_save_writes_extra_logs_and_the_failed_solve_count(scheduled, tmp_path):
+    _, r = scheduled
+    r.save(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        EXTRA_LOGS_FILE,
+        "summary.json",
+        "trajectories.npz",
+    ]
+    with np.load(tmp_path / "trajectories.npz") as data:
+        assert data.files == list(TRAJECTORY_KEYS)
+    extra_keys = ["certified_box", "observer_gains", "solve_counts", "solve_failed", "t"]
+    with np.load(tmp_path / EXTRA_LOGS_FILE) as data:
+        assert sorted(data.files) == extra_keys
+        np.testing.assert_array_equal(data["t"], r.t)
+        for key in extra_keys[:-1]:
+            np.testing.assert_array_equal(data[key], r.extra[key])
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["failed_solves"] == int(r.extra["solve_counts"][-1, 1])
+    assert summary["observer_resolves"]["resolves"] == 4
+    assert summary["extra_logs"] == extra_keys
+    assert summary["validity"]["box_check"] == "scheduled"
+
+
+def test_save_without_extra_logs_writes_no_extra_file_and_removes_a_stale_one(
+    paper_result, tmp_path
+):
+    (tmp_path / EXTRA_LOGS_FILE).write_bytes(b"stale")
+    paper_result.save(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json", "trajectories.npz"]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert "failed_solves" not in summary and "extra_logs" not in summary
+
+
+def _synthetic(counts):
+    T = len(counts)
+    return SimulationResult(
+        t=np.arange(T, dtype=float),
+        x=np.zeros((T, 1)),
+        xhat=np.zeros((T, 1)),
+        W=np.zeros((T, 1)),
+        Gamma=np.ones((T, 1, 1)),
+        u=np.zeros((T, 1)),
+        learning_condition=np.ones(T),
+        cost=np.zeros(T),
+        extra={"solve_counts": np.asarray(counts, float)},
+    )
+
+
+def test_solve_counts_read_the_last_sample_and_the_first_failure():
+    counts = _synthetic([[0, 0], [1, 0], [2, 1], [3, 1], [4, 3]]).solve_counts()
+    assert counts == {
+        "resolves": 4,
+        "failed_solves": 3,
+        "at_time": 4.0,
+        "first_failure_logged_at": 2.0,
+    }
+    assert _synthetic([[0, 0], [1, 0]]).summary()["failed_solves"] == 0
+    assert _synthetic([[0, 0], [1, 0]]).solve_counts()["first_failure_logged_at"] is None
+
+
+def test_save_replaces_files_atomically(tmp_path):
+    r = _synthetic([[0, 0], [1, 1], [2, 1]])
+    r.save(tmp_path)
+    before = (tmp_path / "summary.json").read_bytes()
+    names = {"trajectories.npz", EXTRA_LOGS_FILE, "summary.json"}
+    assert {p.name for p in tmp_path.iterdir()} == names
+    r.design = {"not_json": object()}  # summary.json fails half-way through
+    with pytest.raises(TypeError, match=r"not JSON serializable"):
+        r.save(tmp_path)
+    assert {p.name for p in tmp_path.iterdir()} == names  # no temporary file left behind
+    assert (tmp_path / "summary.json").read_bytes() == before  # the old one is intact
+    with np.load(tmp_path / "trajectories.npz") as data:
+        assert data.files == list(TRAJECTORY_KEYS)
+
+
+def test_progress_bar_gives_the_same_schedule(scheduled, paper_design, capsys):
+    s, r = scheduled
+    shown = simulate(s, design=paper_design, progress=True)
+    assert "100.0%" in capsys.readouterr().err
+    np.testing.assert_array_equal(shown.extra["solve_counts"], r.extra["solve_counts"])
+    # More stops change the integrator's steps, within its accuracy only.
+    np.testing.assert_allclose(
+        shown.extra["certified_box"], r.extra["certified_box"], rtol=0, atol=1e-4
+    )
+    assert shown.validity.box_check == "scheduled"
