@@ -9,7 +9,11 @@ blocks lives here:
   its linearization ``(A, B, C)`` at ``x = 0, u = 0`` by Drake's ``Linearize``.
   The origin must be an equilibrium (``f(0) = 0``).
 * :func:`luenberger_poles` and :func:`luenberger_gain`: an observer gain ``L``
-  placing the eigenvalues of ``A - L C`` by pole placement.
+  placing the eigenvalues of ``A - L C`` by pole placement, and
+  :func:`linearized_observer_certificate`: a Lyapunov matrix proving that the
+  *linearized* error ``e' = (A - L C) e`` decays at rate alpha, re-checkable
+  in numpy. It is local: it says nothing about the nonlinear error away from
+  the origin, which the three-gain LMI certificate covers on its box.
 * :func:`linear_observer_design`: the scenario's observer LMI with the
   injection gains pinned to ``H = K = 0``, a linear-correction observer.
 * :func:`point_offsets`: the extrapolation points of a scenario as offsets from
@@ -18,11 +22,13 @@ blocks lives here:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydrake.symbolic import MakeVectorVariable
 from pydrake.systems.primitives import Linearize, LinearSystem, SymbolicVectorSystem
+from scipy.linalg import solve_continuous_lyapunov
 from scipy.signal import place_poles
 
 from ofrl_drake.errors import ModelError, ScenarioError
@@ -33,8 +39,10 @@ if TYPE_CHECKING:
     from ofrl_drake.design import ObserverDesign
 
 __all__ = [
+    "LinearizedObserverCertificate",
     "linear_observer_design",
     "linearize_at_origin",
+    "linearized_observer_certificate",
     "luenberger_gain",
     "luenberger_poles",
     "point_offsets",
@@ -133,6 +141,88 @@ def luenberger_gain(A: np.ndarray, C: np.ndarray, poles: np.ndarray) -> np.ndarr
         )
     placed = place_poles(A.T, C.T, np.asarray(poles, dtype=float))
     return np.asarray(placed.gain_matrix, dtype=float).T
+
+
+@dataclass(frozen=True)
+class LinearizedObserverCertificate:
+    """Decay certificate of a Luenberger gain on the linearization ``(A, C)``.
+
+    ``P`` proves that ``V(e) = e^T P e`` decays at rate ``2 alpha`` along
+    ``e' = (A - L C) e`` when :meth:`certificate` is negative and ``P`` is
+    positive definite, both recomputed in numpy from ``A, C, L, P, alpha``.
+    The scope is the linear model: Drake's ``LuenbergerObserver`` on the
+    linearization has no guarantee for the nonlinear plant away from the
+    origin.
+
+    Attributes
+    ----------
+    A : ndarray, shape (n, n)
+    C : ndarray, shape (q, n)
+    L : ndarray, shape (n, q)
+    alpha : float
+    P : ndarray, shape (n, n)
+    """
+
+    A: np.ndarray
+    C: np.ndarray
+    L: np.ndarray
+    alpha: float
+    P: np.ndarray
+
+    def certificate(self) -> float:
+        """Largest eigenvalue of ``(A - L C)^T P + P (A - L C) + 2 alpha P``."""
+        Acl = self.A - self.L @ self.C
+        M = Acl.T @ self.P + self.P @ Acl + 2.0 * self.alpha * self.P
+        return float(np.linalg.eigvalsh(0.5 * (M + M.T))[-1])
+
+    @property
+    def is_certified(self) -> bool:
+        """True if ``P > 0`` and :meth:`certificate` ``< 0``."""
+        P = 0.5 * (self.P + self.P.T)
+        return bool(np.linalg.eigvalsh(P)[0] > 0 and self.certificate() < 0)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the matrices, the eigenvalues of ``A - L C`` and the certificate."""
+        poles = np.linalg.eigvals(self.A - self.L @ self.C)
+        return {
+            "kind": "linearized_luenberger",
+            "scope": "linear error dynamics e' = (A - L C) e at the origin only",
+            "A": self.A.tolist(),
+            "C": self.C.tolist(),
+            "L": self.L.tolist(),
+            "alpha": self.alpha,
+            "P": self.P.tolist(),
+            "poles": {"real": poles.real.tolist(), "imag": poles.imag.tolist()},
+            "certificate_max_eigenvalue": self.certificate(),
+            "certified": self.is_certified,
+        }
+
+
+def linearized_observer_certificate(
+    A: np.ndarray, C: np.ndarray, L: np.ndarray, alpha: float
+) -> LinearizedObserverCertificate:
+    """The Lyapunov certificate of ``e' = (A - L C) e`` at decay rate ``alpha``.
+
+    Solves ``(A - L C + alpha I)^T P + P (A - L C + alpha I) = -I``, which has
+    a positive definite solution exactly when every eigenvalue of ``A - L C``
+    has real part below ``-alpha``; the result reports honestly (through
+    :attr:`~LinearizedObserverCertificate.is_certified`) whether it does.
+
+    Raises
+    ------
+    ModelError
+        If the shapes do not match or ``alpha`` is not a positive number.
+    """
+    A = np.asarray(A, dtype=float)
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    L = np.asarray(L, dtype=float).reshape(A.shape[0], C.shape[0])
+    if A.shape != (A.shape[0], A.shape[0]) or C.shape[1] != A.shape[0]:
+        raise ModelError(f"A must be (n, n) and C (q, n); got {A.shape} and {C.shape}.")
+    if not (np.isfinite(alpha) and alpha > 0):
+        raise ModelError(f"alpha must be a positive number; got {alpha!r}.")
+    shifted = A - L @ C + alpha * np.eye(A.shape[0])
+    P = solve_continuous_lyapunov(shifted.T, -np.eye(A.shape[0]))
+    return LinearizedObserverCertificate(A=A, C=C, L=L, alpha=float(alpha), P=0.5 * (P + P.T))
 
 
 def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> ObserverDesign:

@@ -19,10 +19,11 @@ import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
 from pydrake.systems.framework import System
 
+from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.scenario import Scenario
-from ofrl_drake.systems import ThreeGainObserver
+from ofrl_drake.systems import LinearizedLuenbergerObserver, ThreeGainObserver
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
 __all__ = [
@@ -306,6 +307,12 @@ def _certified_region(
         )
         return schedule, note
     design = loop.design
+    if design is None and isinstance(observer, LinearizedLuenbergerObserver):
+        return None, (
+            f"observer {kind} runs the linearization: its gain has a local certificate "
+            "(observer_design) for the linear error dynamics only, and no box; "
+            "only |u_k| <= lambda_bar was checked"
+        )
     if design is None:
         return None, (
             f"no observer design (observer block {kind}): box checks not applicable; "
@@ -324,6 +331,19 @@ def _certified_region(
             "box checks not applicable; only |u_k| <= lambda_bar was checked"
         )
     return (np.asarray(design.box.lower, float), np.asarray(design.box.upper, float)), None
+
+
+def _design_dict(loop: ClosedLoop, scenario: Scenario) -> dict[str, Any] | None:
+    """The observer's design with its certificate, as reported in ``summary.json``."""
+    if loop.design is not None:
+        return loop.design.to_dict()
+    observer = loop.blocks["observer"]
+    if isinstance(observer, LinearizedLuenbergerObserver):
+        lin = observer.linearization
+        return linearized_observer_certificate(
+            lin.A(), lin.C(), observer.gain, scenario.observer.alpha
+        ).to_dict()
+    return None
 
 
 def simulate(
@@ -408,7 +428,7 @@ def simulate(
         "smallest_step": _finite(integ.get_smallest_adapted_step_size_taken()),
         "largest_step": _finite(integ.get_largest_step_size_taken()),
     }
-    design_dict = loop.design.to_dict() if loop.design is not None else None
+    design_dict = _design_dict(loop, scenario)
     result = SimulationResult(
         t=np.asarray(t),
         x=logs["x"],
