@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from ofrl_drake.ablation_metrics import optimality_ratio, run_metrics
+from ofrl_drake.atomic import atomic_file, atomic_write_text, ensure_parent
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.optimal import (
     Mesh,
@@ -500,17 +501,15 @@ def _run_file(runs_dir: Path, variant: str, label: str) -> Path:
 def _save_run(runs_dir: Path, outcome: RunOutcome) -> None:
     if not outcome.logs:
         return
-    runs_dir.mkdir(parents=True, exist_ok=True)
     path = _run_file(runs_dir, outcome.variant, outcome.initial_state)
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez(
-        tmp,
-        variant=outcome.variant,
-        initial_state=outcome.initial_state,
-        learned=outcome.learned,
-        **outcome.logs,
-    )
-    os.replace(tmp, path)
+    with atomic_file(path, "wb") as fh:
+        np.savez(
+            fh,
+            variant=outcome.variant,
+            initial_state=outcome.initial_state,
+            learned=outcome.learned,
+            **outcome.logs,
+        )
 
 
 def load_run(runs_dir: str | os.PathLike[str], variant: str, label: str) -> dict[str, Any] | None:
@@ -631,7 +630,7 @@ def _plan_file(out: Path, scenario: Scenario, duration: float | None, resume: bo
                 f"({old.get('scenario')!r}, {old.get('duration')} s); choose another --out."
             )
         return
-    path.write_text(json.dumps(plan, indent=2) + "\n")
+    atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
 
 
 @dataclass
@@ -663,7 +662,15 @@ class _Sweep:
         """Read the rows and optima already on disk; open the table for appending."""
         if self.out_dir is None:
             return
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        out = self.out_dir
+        if out.exists() and not out.is_dir():
+            raise AblationError(f"--out: {out} exists and is not a folder; choose another path.")
+        if out.is_dir() and any(out.iterdir()) and not (out / PLAN_NAME).is_file():
+            raise AblationError(
+                f"--out: {out} is not empty and was not written by ofrl-drake ablate "
+                f"(no {PLAN_NAME}); choose a new folder or empty this one."
+            )
+        ensure_parent(out / PLAN_NAME)
         table = self.out_dir / CSV_NAME
         if table.exists() and not resume:
             raise AblationError(

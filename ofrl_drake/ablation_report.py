@@ -26,6 +26,7 @@ from matplotlib.figure import Figure
 
 from ofrl_drake.ablation import load_run
 from ofrl_drake.ablation_metrics import settling_time
+from ofrl_drake.atomic import atomic_file, atomic_write_text
 from ofrl_drake.optimal import Trajectory
 
 __all__ = [
@@ -237,9 +238,13 @@ def write_report(
         "",
     ]
     md = out / "ablation.md"
-    md.write_text("\n".join(text))
+    atomic_write_text(md, "\n".join(text))
     ratio = figures / "optimality_ratio.png"
-    plot_optimality_ratio(rows, variants).savefig(ratio, dpi=DPI)
+    with atomic_file(ratio, "wb") as fh:
+        plot_optimality_ratio(rows, variants).savefig(fh, dpi=DPI, format="png")
     traj = figures / "trajectories.png"
-    plot_trajectories(out / "runs", variants, x0_label, optimum).savefig(traj, dpi=DPI)
+    with atomic_file(traj, "wb") as fh:
+        plot_trajectories(out / "runs", variants, x0_label, optimum).savefig(
+            fh, dpi=DPI, format="png"
+        )
     return [md, ratio, traj]

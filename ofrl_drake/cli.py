@@ -24,7 +24,8 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.atomic import atomic_write_text, ensure_parent, umask_mode
+from ofrl_drake.errors import OfrlError, OutputError
 
 __all__ = ["OUTPUT_MARKER", "OutputError", "atomic_directory", "check_output_directory", "main"]
 
@@ -35,10 +36,6 @@ EXIT_BAD_INPUT = 2
 
 #: Written into every output folder of ``run``; only such folders are replaced.
 OUTPUT_MARKER = ".ofrl_drake_output"
-
-
-class OutputError(OfrlError):
-    """The output path cannot be written safely."""
 
 
 def check_output_directory(target: Path) -> Path:
@@ -69,13 +66,11 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     at any point leaves ``target`` as it was and no temporary folder behind.
     """
     target = check_output_directory(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    ensure_parent(target)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     backup = target.with_name(f".{target.name}.old")
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        tmp.chmod(0o777 & ~umask)
+        tmp.chmod(umask_mode(0o777))
         yield tmp
         (tmp / OUTPUT_MARKER).write_text("written by ofrl-drake run\n")
         shutil.rmtree(backup, ignore_errors=True)
@@ -88,21 +83,6 @@ def atomic_directory(target: Path) -> Iterator[Path]:
             backup.rename(target)
         raise
     shutil.rmtree(backup, ignore_errors=True)
-
-
-def atomic_write_text(target: Path, text: str) -> None:
-    """Write ``text`` to ``target`` via a temporary file and a rename."""
-    target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def _cmd_run(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ that one type; the command-line tool prints them on one line and exits 2.
 
 from __future__ import annotations
 
-__all__ = ["ModelError", "OfrlError", "ScenarioError", "SwapError"]
+__all__ = ["ModelError", "OfrlError", "OutputError", "ScenarioError", "SwapError"]
 
 
 class OfrlError(ValueError):
@@ -24,3 +24,7 @@ class ScenarioError(OfrlError):
 
 class SwapError(OfrlError):
     """A block swapped into the closed loop does not have the expected ports."""
+
+
+class OutputError(OfrlError):
+    """An output path cannot be written safely (a file in the way, a foreign folder...)."""

@@ -54,7 +54,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -67,6 +66,7 @@ from pydrake.symbolic import MakeVectorVariable, log
 from pydrake.systems.primitives import SymbolicVectorSystem
 from pydrake.trajectories import PiecewisePolynomial
 
+from ofrl_drake.atomic import atomic_file
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
@@ -520,11 +520,8 @@ class OptimalCostCache:
         path = self.path(scenario, np.asarray(result.x0))
         self._dir.mkdir(parents=True, exist_ok=True)
         if result.trajectory is not None:
-            tmp = path.with_name(f".{path.stem}.tmp.npz")
-            np.savez(tmp, **asdict(result.trajectory))
-            os.replace(tmp, path.with_suffix(".npz"))
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=self._dir)
-        with os.fdopen(fd, "w") as fh:
+            with atomic_file(path.with_suffix(".npz"), "wb") as fh:
+                np.savez(fh, **asdict(result.trajectory))
+        with atomic_file(path, "w") as fh:
             json.dump({**result.to_dict(), "scenario": scenario.name}, fh, indent=2)
             fh.write("\n")
-        os.replace(tmp, path)

@@ -6,19 +6,17 @@ import contextlib
 import dataclasses
 import json
 import math
-import os
 import sys
-import tempfile
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
 from pydrake.systems.framework import System
 
+from ofrl_drake.atomic import atomic_file
 from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
@@ -181,32 +179,18 @@ class SimulationResult:
         """
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        with _atomic_file(directory / "trajectories.npz", "wb") as fh:
+        with atomic_file(directory / "trajectories.npz", "wb") as fh:
             np.savez(fh, **{k: getattr(self, k) for k in TRAJECTORY_KEYS})
         extra = self._extra_log_arrays()
         if extra:
-            with _atomic_file(directory / EXTRA_LOGS_FILE, "wb") as fh:
+            with atomic_file(directory / EXTRA_LOGS_FILE, "wb") as fh:
                 np.savez(fh, **extra)
         else:
             with contextlib.suppress(FileNotFoundError):
                 (directory / EXTRA_LOGS_FILE).unlink()
-        with _atomic_file(directory / "summary.json", "w") as fh:
+        with atomic_file(directory / "summary.json", "w") as fh:
             json.dump(self.summary(), fh, indent=2)
             fh.write("\n")
-
-
-@contextlib.contextmanager
-def _atomic_file(target: Path, mode: str) -> Iterator[IO[Any]]:
-    """Open a temporary file next to ``target``; rename it onto ``target`` on success."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-    try:
-        with os.fdopen(fd, mode) as fh:
-            yield fh
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def simulator_config(scenario: Scenario) -> SimulatorConfig:

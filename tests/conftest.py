@@ -2,7 +2,7 @@
 
 import os
 
-os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ["MPLBACKEND"] = "Agg"  # figures render off-screen, whatever the shell says
 
 from pathlib import Path
 

@@ -190,8 +190,23 @@ def test_ablate_rejects_bad_input(paper_scenario, tmp_path):
     with pytest.raises(AblationError, match=r"repeated states"):
         ablate(paper_scenario, [Variant("a")], [[0.1, 0.2], [0.1, 0.2]])
     (tmp_path / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
+    (tmp_path / "ablation.json").write_text("{}\n")  # an earlier sweep's plan
     with pytest.raises(AblationError, match=r"ablation.csv exists; pass --resume"):
         ablate(paper_scenario, [Variant("a")], out=tmp_path)
+
+
+def test_ablate_never_writes_into_a_folder_it_did_not_create(paper_scenario, tmp_path):
+    foreign = tmp_path / "mine"
+    (foreign / "figures").mkdir(parents=True)
+    (foreign / "figures" / "trajectories.png").write_bytes(b"my figure")
+    with pytest.raises(AblationError, match=r"mine is not empty and was not written by ofrl-drake"):
+        ablate(paper_scenario, [Variant("a")], [[0.1, 0.2]], out=foreign)
+    assert (foreign / "figures" / "trajectories.png").read_bytes() == b"my figure"
+    assert sorted(p.name for p in foreign.rglob("*")) == ["figures", "trajectories.png"]
+    a_file = tmp_path / "afile"
+    a_file.write_text("x")
+    with pytest.raises(AblationError, match=r"afile exists and is not a folder"):
+        ablate(paper_scenario, [Variant("a")], [[0.1, 0.2]], out=a_file)
 
 
 # ---------------------------------------------------------- robustness
@@ -346,6 +361,9 @@ def test_cli_errors_are_one_line(short_files, tmp_path, capsys):
     assert "variants.x.observer: unknown choice 'kalman'" in capsys.readouterr().err
     (tmp_path / "o").mkdir()
     (tmp_path / "o" / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
+    assert main([*args, "--variants", str(variants_file)]) == 2
+    assert "o is not empty and was not written by ofrl-drake ablate" in capsys.readouterr().err
+    (tmp_path / "o" / "ablation.json").write_text("{}\n")  # now it is an earlier sweep
     assert main([*args, "--variants", str(variants_file)]) == 2
     assert "ablation.csv exists; pass --resume" in capsys.readouterr().err
     assert main([*args, "--variants", str(tmp_path / "missing.yaml")]) == 2

@@ -185,3 +185,14 @@ def test_run_without_a_certified_box_says_what_was_checked(tmp_path):
     )
     validity = json.loads((tmp_path / "o" / "summary.json").read_text())["validity"]
     assert validity["box_check"] == "not_applicable" and validity["box_checked"] is False
+
+
+def test_bad_out_paths_exit_2_with_one_line(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    proc = _cli("run", PAPER_SCENARIO, "--out", tmp_path / "afile" / "sub")
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "afile is a file, so" in proc.stderr
+    proc = _cli("design-observer", PAPER_SCENARIO, "--out", tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "is a folder; name a file inside it" in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

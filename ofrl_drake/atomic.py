@@ -1,0 +1,76 @@
+"""Files written whole or not at all: a temporary file beside the target, then a rename.
+
+Every file ofrl_drake writes goes through :func:`atomic_file`, so a crash, a
+full disk or a bad value half-way through never leaves a half-written file,
+and the finished file gets the permissions the user's umask asks for (as a
+plain ``open`` would), not the ``0600`` of :func:`tempfile.mkstemp`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+from ofrl_drake.errors import OutputError
+
+__all__ = ["atomic_file", "atomic_write_text", "ensure_parent", "umask_mode"]
+
+
+def umask_mode(base: int = 0o666) -> int:
+    """``base`` with the process umask applied (``0o644`` under the usual ``022``)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return base & ~umask
+
+
+def ensure_parent(target: Path, what: str = "--out") -> Path:
+    """Create ``target``'s parent folders, or raise :class:`OutputError` naming the path.
+
+    Raises
+    ------
+    OutputError
+        If a parent of ``target`` is a file or cannot be created.
+    """
+    target = Path(target).expanduser()
+    for parent in reversed(target.parents):
+        if parent.exists() and not parent.is_dir():
+            raise OutputError(
+                f"{what}: {parent} is a file, so {target} cannot be created; choose another path."
+            )
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"{what}: cannot create {target.parent} ({err.strerror}).") from err
+    return target
+
+
+@contextlib.contextmanager
+def atomic_file(target: str | Path, mode: str = "w", *, what: str = "output") -> Iterator[IO[Any]]:
+    """Open a temporary file next to ``target``; rename it onto ``target`` on success.
+
+    On any exception the temporary file is removed and ``target`` is left as
+    it was.
+    """
+    target = ensure_parent(Path(target), what)
+    if target.is_dir():
+        raise OutputError(f"{what}: {target} is a folder; name a file inside it.")
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+    try:
+        os.chmod(tmp, umask_mode())
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(target: str | Path, text: str, *, what: str = "--out") -> None:
+    """Write ``text`` to ``target`` whole or not at all (see :func:`atomic_file`)."""
+    with atomic_file(target, "w", what=what) as fh:
+        fh.write(text)
