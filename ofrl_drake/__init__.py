@@ -12,7 +12,7 @@ least-squares gain Gamma and a saturated controller.
 from ofrl_drake.ablation import Variant, ablate
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.diagram import ClosedLoop, build_closed_loop
-from ofrl_drake.errors import OfrlError, ScenarioError, SwapError
+from ofrl_drake.errors import ModelError, OfrlError, OutputError, ScenarioError, SwapError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.scenario import Scenario, load_scenario
 from ofrl_drake.simulation import SimulationResult, simulate
@@ -22,7 +22,9 @@ __version__ = "0.1.0"
 __all__ = [
     "ClosedLoop",
     "ControlAffineSystem",
+    "ModelError",
     "OfrlError",
+    "OutputError",
     "PolynomialBasis",
     "Scenario",
     "ScenarioError",

@@ -109,6 +109,7 @@ __all__ = [
     "SOLVERS",
     "DesignError",
     "ObserverDesign",
+    "ObserverDesignInaccurate",
     "ObserverDesignInfeasible",
     "design_observer",
     "max_decay_rate",
@@ -166,6 +167,16 @@ class ObserverDesignInfeasible(OfrlError):
         self.status = status
         self.solver = solver
         self.formulation = formulation
+
+
+class ObserverDesignInaccurate(ObserverDesignInfeasible):
+    """The solver reported a solution, but its numbers fail the numpy certificate.
+
+    Not a proof of infeasibility: the solver (typically a first-order one such
+    as SCS on a badly scaled LMI) was not accurate enough. A subclass of
+    :class:`ObserverDesignInfeasible`, since no certified design came back
+    either way; the message suggests a more accurate solver.
+    """
 
 
 # ----------------------------------------------------------- the SDP problem
@@ -949,10 +960,21 @@ def _finish(
         f"{box.lower.tolist()}..{box.upper.tolist()}, |u_k| <= {input_bound:g}"
     )
 
-    def fail(reason: str, inaccurate: bool = True) -> ObserverDesignInfeasible:
-        return ObserverDesignInfeasible(
-            f"no certified observer for {where} ({solver}/{backend}: {reason}); "
-            f"{_relax_hint(max_gain, inaccurate)}.",
+    pinned = problem.L is not None
+
+    def fail(
+        reason: str, inaccurate: bool = True, kind: type = ObserverDesignInfeasible
+    ) -> ObserverDesignInfeasible:
+        if pinned:
+            head = f"the given gains L, H, K are not certified for {where}: no P >= I found"
+            hint = (
+                "if they come from a scenario, remove observer.L/H/K to let the LMI design "
+                f"the gains, or {_relax_hint(max_gain, inaccurate)}"
+            )
+        else:
+            head, hint = f"no certified observer for {where}", _relax_hint(max_gain, inaccurate)
+        return kind(
+            f"{head} ({solver}/{backend}: {reason}); {hint}.",
             alpha=problem.alpha,
             box=box,
             input_bound=input_bound,
@@ -965,7 +987,9 @@ def _finish(
         raise fail(f"solver status {sol.status}", inaccurate=not sol.infeasible)
     numbers = [sol.P, sol.R, sol.H, sol.K]
     if not all(np.all(np.isfinite(a)) for a in numbers):
-        raise fail(f"solver status {sol.status}, non-finite solution")
+        raise fail(
+            f"solver status {sol.status}, non-finite solution", kind=ObserverDesignInaccurate
+        )
     P = 0.5 * (sol.P + sol.P.T)
     if problem.L is not None:
         L = problem.L
@@ -973,7 +997,9 @@ def _finish(
         try:
             L = np.linalg.solve(P, sol.R)
         except np.linalg.LinAlgError:
-            raise fail(f"solver status {sol.status}, singular P") from None
+            raise fail(
+                f"solver status {sol.status}, singular P", kind=ObserverDesignInaccurate
+            ) from None
     design = ObserverDesign(
         P=P,
         L=L,
@@ -996,8 +1022,10 @@ def _finish(
     )
     if not design.is_certified:
         raise fail(
-            f"solver status {sol.status}, but the numpy certificate fails with max "
-            f"eigenvalue {design.max_eigenvalue:.3g}"
+            f"solver status {sol.status}, but its solution fails the numpy certificate "
+            f"with max eigenvalue {design.max_eigenvalue:.3g}: the solver was not accurate "
+            "enough, which proves nothing about feasibility",
+            kind=ObserverDesignInaccurate,
         )
     if max_gain is not None and design.gain_norm > max_gain * (1 + 1e-6):
         raise fail(f"||L|| = {design.gain_norm:.4g} exceeds max_gain", False)

@@ -1,5 +1,6 @@
 """Observer design: both formulations, soundness, backends, persistence, errors."""
 
+import dataclasses
 import json
 import warnings
 
@@ -13,6 +14,7 @@ from hypothesis.extra.numpy import arrays
 from ofrl_drake.design import (
     DesignError,
     ObserverDesign,
+    ObserverDesignInaccurate,
     ObserverDesignInfeasible,
     design_observer,
     max_decay_rate,
@@ -530,3 +532,75 @@ def test_linear_certificate_implies_decay(formulation, data, n, q, alpha):
         for t in np.linspace(0.0, 3.0 / alpha, 13)[1:]:
             e = scipy.linalg.expm(Acl * t) @ e0
             assert e @ d.P @ e <= np.exp(-2 * alpha * t) * V0 * (1 + 1e-6) + 1e-12
+
+
+@pytest.mark.parametrize(
+    ("formulation", "half", "alpha", "feasible"),
+    [
+        ("paper", 0.5, 0.5, True),
+        ("paper", 0.5, 50.0, False),
+        ("polytopic", 0.5, 0.5, True),
+        ("polytopic", 0.5, 5.0, False),
+    ],
+)
+def test_backends_agree_on_feasibility_with_scs(two_state, formulation, half, alpha, feasible):
+    box = ([-half, -half], [half, half])
+    bounds = jacobian_bounds(two_state, box)
+    outcomes = []
+    for backend in ("drake", "cvxpy"):
+        try:
+            d = design_observer(
+                two_state,
+                box,
+                3.0,
+                alpha,
+                bounds=bounds,
+                backend=backend,
+                formulation=formulation,
+                solver="scs",
+            )
+        except ObserverDesignInfeasible:
+            outcomes.append(False)
+        else:
+            assert d.is_certified and d.solver == "scs"
+            outcomes.append(True)
+    assert outcomes == [feasible, feasible]
+
+
+def test_a_solution_that_fails_the_certificate_is_inaccurate_not_infeasible(
+    two_state, bounds2, monkeypatch
+):
+    import ofrl_drake.design as design_module
+
+    real = design_module._solve
+
+    def sloppy(problem, solver, backend):  # a solver that returns R off by a factor 3
+        sol = real(problem, solver, backend)
+        return dataclasses.replace(sol, R=3.0 * sol.R)
+
+    monkeypatch.setattr(design_module, "_solve", sloppy)
+    with pytest.raises(
+        ObserverDesignInaccurate,
+        match=r"fails the numpy certificate with max eigenvalue .*: the solver was not accurate "
+        r"enough, which proves nothing about feasibility\); .*a more accurate solver",
+    ):
+        design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, formulation="paper")
+
+
+def test_pinned_gains_that_fail_say_so(two_state, bounds2):
+    with pytest.raises(
+        ObserverDesignInfeasible,
+        match=r"the given gains L, H, K are not certified for formulation=paper, alpha=2.*"
+        r"remove observer.L/H/K to let the LMI design the gains",
+    ):
+        ObserverDesign.from_gains(
+            two_state,
+            BOX2,
+            3.0,
+            2.0,
+            L=[[1.0], [1.0]],
+            H=[[0.0], [0.0]],
+            K=[[0.0], [0.0]],
+            bounds=bounds2,
+            formulation="paper",
+        )
