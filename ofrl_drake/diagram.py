@@ -78,6 +78,8 @@ SIGNALS = {
 OPTIONAL_LOGGED = {
     "observer_gains": ("observer", "observer_gains"),
     "certified_box": ("observer", "certified_box"),
+    "lyapunov_matrix": ("observer", "lyapunov_matrix"),
+    "certificate": ("observer", "certificate"),
     "solve_failed": ("observer", "solve_failed"),
     "solve_counts": ("observer", "solve_counts"),
 }

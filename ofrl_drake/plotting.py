@@ -140,14 +140,28 @@ def plot_comparison(results: dict, key: str = "x", component: int = 0) -> Figure
 
 
 def plot_gain_schedule(t: np.ndarray, gains: np.ndarray, failed: np.ndarray) -> Figure:
-    """Scheduled observer gains over time; failed re-solves marked with crosses."""
-    fig, ax = _axes()
-    for k in range(gains.shape[1]):
-        ax.step(t, gains[:, k], where="post", lw=1.4, label=rf"$L_{{{k + 1}}}$")
-    if np.any(failed):
-        ax.plot(t[failed], gains[failed, 0], "kx", label="re-solve failed")
-    ax.set_ylabel("observer gain $L$")
-    ax.legend(fontsize=8)
+    """Scheduled observer gains L, H and K over time; failed re-solves marked.
+
+    Parameters
+    ----------
+    t : ndarray, shape (T,)
+    gains : ndarray, shape (T, 3 n q)
+        The ``observer_gains`` log, ``[vec(L), vec(H), vec(K)]`` row-major.
+    failed : ndarray of bool, shape (T,)
+        True where the latest re-solve failed (previous gains kept).
+    """
+    k = gains.shape[1] // 3
+    with plt.rc_context(_STYLE):
+        fig, axes = plt.subplots(3, 1, sharex=True, figsize=(6.0, 6.4), constrained_layout=True)
+    for ax, (name, block) in zip(axes, (("L", 0), ("H", 1), ("K", 2)), strict=True):
+        part = gains[:, block * k : (block + 1) * k]
+        for j in range(k):
+            ax.step(t, part[:, j], where="post", lw=1.4, label=rf"${name}_{{{j + 1}}}$")
+        if np.any(failed):
+            ax.plot(t[failed], part[failed, 0], "kx", ms=4, label="re-solve failed")
+        ax.set_ylabel(f"gain ${name}$")
+        ax.legend(fontsize=8, ncol=min(k + 1, 4))
+    axes[-1].set_xlabel(r"time $t$ [s]")
     return fig
 
 
@@ -212,11 +226,8 @@ def save_figures(
     figures["overview"] = plot_overview(result, input_bound)
     extra = getattr(result, "extra", {})
     if "observer_gains" in extra:
-        n_q = extra["observer_gains"].shape[1] // 3  # packed [vec L, vec H, vec K]
         failed = extra.get("solve_failed", np.zeros((result.t.size, 1)))[:, 0] > 0.5
-        figures["gain_schedule"] = plot_gain_schedule(
-            result.t, extra["observer_gains"][:, :n_q], failed
-        )
+        figures["gain_schedule"] = plot_gain_schedule(result.t, extra["observer_gains"], failed)
     paths = []
     for name, fig in figures.items():
         path = directory / f"{name}.png"

@@ -56,3 +56,39 @@ def test_bad_half_width(paper_scenario):
     s = _scheduled(paper_scenario, schedule_period=1.0, schedule_half_width=[1.0, -1.0])
     with pytest.raises(ScenarioError, match=r"observer\.schedule_half_width: entries must be > 0"):
         validate_scenario(s)
+
+
+def test_every_gain_in_force_rechecks_in_numpy_from_the_logs(paper_scenario, paper_design):
+    """P, box and gains of each design in force are logged; numpy re-certifies them."""
+    from ofrl_drake.design import ObserverDesign
+    from ofrl_drake.examples import make_system
+
+    s = _scheduled(paper_scenario, schedule_period=1.0, schedule_half_width=[1.0, 1.0])
+    r = simulate(s, design=paper_design, progress=False)
+    system, n = make_system("two_state"), 2
+    P, cert, box = (
+        r.extra["lyapunov_matrix"],
+        r.extra["certificate"][:, 0],
+        r.extra["certified_box"],
+    )
+    gains = r.extra["observer_gains"]
+    np.testing.assert_allclose(P[0], paper_design.P.ravel(), rtol=0, atol=0)
+    # One sample per design in force: before the first re-solve, and after each one.
+    for t in (0.5, 1.5, 2.5):
+        k = int(np.argmin(np.abs(r.t - t)))
+        recheck = ObserverDesign.from_gains(
+            system,
+            (box[k, :n], box[k, n:]),
+            s.input_bound,
+            s.observer.alpha,
+            L=gains[k, 0:2].reshape(2, 1),
+            H=gains[k, 2:4].reshape(2, 1),
+            K=gains[k, 4:6].reshape(2, 1),
+            P=P[k].reshape(2, 2),
+            jacobian_method=s.observer.jacobian_method,
+            formulation=s.observer.formulation,
+        )
+        assert recheck.is_certified
+        assert recheck.max_eigenvalue == pytest.approx(cert[k], rel=1e-6, abs=1e-9)
+        assert cert[k] < 0
+    assert len({tuple(row) for row in box}) == 3  # three different boxes were in force

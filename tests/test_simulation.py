@@ -290,7 +290,15 @@ def test_save_writes_extra_logs_and_the_failed_solve_count(scheduled, tmp_path):
     ]
     with np.load(tmp_path / "trajectories.npz") as data:
         assert data.files == list(TRAJECTORY_KEYS)
-    extra_keys = ["certified_box", "observer_gains", "solve_counts", "solve_failed", "t"]
+    extra_keys = [
+        "certificate",
+        "certified_box",
+        "lyapunov_matrix",
+        "observer_gains",
+        "solve_counts",
+        "solve_failed",
+        "t",
+    ]
     with np.load(tmp_path / EXTRA_LOGS_FILE) as data:
         assert sorted(data.files) == extra_keys
         np.testing.assert_array_equal(data["t"], r.t)

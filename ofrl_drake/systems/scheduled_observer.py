@@ -36,6 +36,8 @@ class ScheduledThreeGainObserver(LeafSystem):
         - estimated_state
         - observer_gains
         - certified_box
+        - lyapunov_matrix
+        - certificate
         - solve_failed
         - solve_counts
 
@@ -62,7 +64,12 @@ class ScheduledThreeGainObserver(LeafSystem):
     -----
     ``observer_gains`` is ``[vec(L), vec(H), vec(K)]`` (row-major, ``3 n q``
     entries); ``certified_box`` is ``[lower, upper]`` (``2 n``) of the box
-    the gains in force are certified on; ``solve_failed`` is 1 after a
+    the gains in force are certified on; ``lyapunov_matrix`` is their ``P``
+    (row-major, ``n^2``) and ``certificate`` the largest eigenvalue of their
+    LMI over the input vertices (negative when certified), so every gain in
+    force can be re-checked in numpy from the logs
+    (:meth:`ObserverDesign.from_gains` with ``P`` and the logged box);
+    ``solve_failed`` is 1 after a
     re-solve that found no certified design (the previous gains and box stay
     in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
     failed]`` since the start. All four are discrete state, so a logger
@@ -109,6 +116,10 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._box_index = self.DeclareDiscreteState(
             np.concatenate([np.asarray(box.lower, float), np.asarray(box.upper, float)])
         )
+        self._P_index = self.DeclareDiscreteState(np.asarray(initial_design.P, float).ravel())
+        self._certificate_index = self.DeclareDiscreteState(
+            np.array([float(initial_design.max_eigenvalue)])
+        )
         self._failed_index = self.DeclareDiscreteState(1)
         self._counts_index = self.DeclareDiscreteState(2)
         self._y_port = self.DeclareVectorInputPort("y", q)
@@ -116,6 +127,8 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._xhat_port = self.DeclareStateOutputPort("estimated_state", self._xhat_index)
         self._gains_port = self.DeclareStateOutputPort("observer_gains", self._gains_index)
         self._box_port = self.DeclareStateOutputPort("certified_box", self._box_index)
+        self._P_port = self.DeclareStateOutputPort("lyapunov_matrix", self._P_index)
+        self._certificate_port = self.DeclareStateOutputPort("certificate", self._certificate_index)
         self._failed_port = self.DeclareStateOutputPort("solve_failed", self._failed_index)
         self._counts_port = self.DeclareStateOutputPort("solve_counts", self._counts_index)
         self.DeclarePeriodicDiscreteUpdateEvent(period, period, self._resolve)
@@ -140,6 +153,14 @@ class ScheduledThreeGainObserver(LeafSystem):
     def get_certified_box_output_port(self) -> OutputPort:
         """``[lower, upper]`` of the box the gains in force are certified on (size 2 n)."""
         return self._box_port
+
+    def get_lyapunov_matrix_output_port(self) -> OutputPort:
+        """``P`` of the design in force, row-major (size n^2)."""
+        return self._P_port
+
+    def get_certificate_output_port(self) -> OutputPort:
+        """Largest LMI eigenvalue of the design in force over the input vertices (size 1)."""
+        return self._certificate_port
 
     def get_solve_failed_output_port(self) -> OutputPort:
         """1 if the latest re-solve failed, else 0 (size 1)."""
@@ -203,6 +224,12 @@ class ScheduledThreeGainObserver(LeafSystem):
         )
         discrete_state.get_mutable_vector(self._box_index).SetFromVector(
             np.concatenate([box.lower, box.upper])
+        )
+        discrete_state.get_mutable_vector(self._P_index).SetFromVector(
+            np.asarray(design.P, float).ravel()
+        )
+        discrete_state.get_mutable_vector(self._certificate_index).SetFromVector(
+            [float(design.max_eigenvalue)]
         )
         discrete_state.get_mutable_vector(self._failed_index).SetFromVector([0.0])
         discrete_state.get_mutable_vector(self._counts_index).SetFromVector(
