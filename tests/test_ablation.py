@@ -308,6 +308,38 @@ def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path
             assert min(image.info["dpi"]) >= 149.9, figure
 
 
+def test_cli_with_an_embedded_local_cluster(short_files, tmp_path):
+    """`--workers 2`, the README's command: the CLI starts and stops its own LocalCluster."""
+    scenario_file, variants_file = short_files
+    out = tmp_path / "local"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ofrl_drake",
+            "ablate",
+            str(scenario_file),
+            "--out",
+            str(out),
+            "--variants",
+            str(variants_file),
+            "--initial-states",
+            "1",
+            "--workers",
+            "2",
+        ],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert f"wrote {out}: 6 runs (6 ok)" in proc.stdout
+    rows = read_rows(out / "ablation.csv")
+    assert len(rows) == 6 and {r["status"] for r in rows} == {"ok"}
+
+
 def test_resume_after_killing_the_command(short_files, tmp_path):
     scenario_file, variants_file = short_files
     out = tmp_path / "killed"

@@ -1,6 +1,7 @@
 """The ofrl-drake command line: outputs, exit codes, and no partial files."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -196,3 +197,21 @@ def test_bad_out_paths_exit_2_with_one_line(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "is a folder; name a file inside it" in proc.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_run_without_dot_writes_the_source_and_says_so(tmp_path):
+    """CI installs graphviz; this hides it to exercise the fallback."""
+    empty_bin = tmp_path / "bin"
+    empty_bin.mkdir()
+    out = tmp_path / "o"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", "run", _short_scenario(tmp_path, 0.2), "--out", out],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env={**os.environ, "PATH": str(empty_bin)},
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert not (out / "diagram.svg").exists()
+    assert (out / "diagram.dot").read_text().lstrip().startswith("digraph")
+    assert [line for line in proc.stdout.splitlines() if "diagram.dot" in line], proc.stdout
