@@ -120,6 +120,18 @@ BACKENDS = ("drake", "cvxpy")
 OBJECTIVES = ("min_gain", "min_condition", "feasibility")
 FORMULATIONS = ("polytopic", "paper")
 DEFAULT_MARGIN = 1e-3
+#: SCS exit codes (scs.h) that Drake folds into its SolutionResult.
+_SCS_STATUS = {
+    1: "solved",
+    2: "solved inaccurate",
+    -1: "unbounded",
+    -2: "infeasible",
+    -3: "indeterminate",
+    -4: "interrupted",
+    -5: "signal",
+    -6: "unbounded inaccurate",
+    -7: "infeasible inaccurate",
+}
 # SCS (first order) needs tight tolerances to return numbers that certify.
 _DRAKE_OPTIONS: dict[str, dict[str, float | int]] = {
     "scs": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iters": 200_000},
@@ -414,6 +426,11 @@ def _solve_drake(problem: LmiProblem, solver_name: str) -> SdpSolution:
     details = result.get_solver_details()
     if hasattr(details, "status") and isinstance(details.status, str):
         status = f"{status} ({details.status})"
+    scs = getattr(details, "scs_status", None)
+    if scs is not None:
+        # Drake reports SCS's "solved inaccurate" (2) as kSolutionFound; say which.
+        name = _SCS_STATUS.get(int(scs), f"code {int(scs)}")
+        status = f"{status} (SCS: {name}, {details.iter} iterations)"
     infeasible = code in (
         SolutionResult.kInfeasibleConstraints,
         SolutionResult.kInfeasibleOrUnbounded,
