@@ -563,6 +563,8 @@ def test_backends_agree_on_feasibility_with_scs(two_state, formulation, half, al
             outcomes.append(False)
         else:
             assert d.is_certified and d.solver == "scs"
+            if backend == "drake":  # SCS's own exit status, not only Drake's summary
+                assert "(SCS: solved" in d.status, d.status
             outcomes.append(True)
     assert outcomes == [feasible, feasible]
 
