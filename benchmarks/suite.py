@@ -116,23 +116,24 @@ def _ours(scenario: Scenario) -> Callable[[], Any]:
     return lambda: simulate(scenario, progress=False)
 
 
-def _baseline(scenario: Scenario, design: Any, times: np.ndarray) -> Callable[[], Any]:
-    """Build the fused loop (point features included) and integrate it."""
+def _solve_fused(scenario: Scenario, design: Any, times: np.ndarray | None = None) -> tuple:
+    """Build the fused loop (point features included) and integrate it: ``(loop, sol)``."""
     rtol, atol = BASELINE_TOLERANCES
+    loop = fused_loop(scenario, design)
+    sol = loop.solve(
+        initial_state(scenario, loop),
+        scenario.simulation.duration,
+        method=BASELINE_METHOD,
+        rtol=rtol,
+        atol=atol,
+        t_eval=times,
+    )
+    return loop, sol
 
-    def run() -> Any:
-        loop = fused_loop(scenario, design)
-        sol = loop.solve(
-            initial_state(scenario, loop),
-            scenario.simulation.duration,
-            method=BASELINE_METHOD,
-            rtol=rtol,
-            atol=atol,
-            t_eval=times,
-        )
-        return loop, sol
 
-    return run
+def _baseline(scenario: Scenario, design: Any, times: np.ndarray) -> Callable[[], Any]:
+    """The timed baseline run: :func:`_solve_fused` sampled at ``times``."""
+    return lambda: _solve_fused(scenario, design, times)
 
 
 def _ours_summary(timing: Timing, advance: list[float], result: Any, ref: Reference) -> dict:
@@ -173,15 +174,7 @@ def _baseline_summary(timing: Timing, run: Any, ref: Reference, steps: int) -> d
 
 def _baseline_steps(scenario: Scenario, design: Any) -> int:
     """LSODA's accepted steps (an untimed run without ``t_eval``)."""
-    rtol, atol = BASELINE_TOLERANCES
-    loop = fused_loop(scenario, design)
-    sol = loop.solve(
-        initial_state(scenario, loop),
-        scenario.simulation.duration,
-        method=BASELINE_METHOD,
-        rtol=rtol,
-        atol=atol,
-    )
+    _, sol = _solve_fused(scenario, design)
     return int(sol.t.size - 1)
 
 

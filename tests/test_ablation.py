@@ -308,26 +308,31 @@ def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path
             assert min(image.info["dpi"]) >= 149.9, figure
 
 
+def _ablate_command(scenario_file, variants_file, out, *, initial_states, workers):
+    """``python -m ofrl_drake ablate ...`` as a subprocess argument list."""
+    return [
+        sys.executable,
+        "-m",
+        "ofrl_drake",
+        "ablate",
+        str(scenario_file),
+        "--out",
+        str(out),
+        "--variants",
+        str(variants_file),
+        "--initial-states",
+        str(initial_states),
+        "--workers",
+        str(workers),
+    ]
+
+
 def test_cli_with_an_embedded_local_cluster(short_files, tmp_path):
     """`--workers 2`, the README's command: the CLI starts and stops its own LocalCluster."""
     scenario_file, variants_file = short_files
     out = tmp_path / "local"
     proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ofrl_drake",
-            "ablate",
-            str(scenario_file),
-            "--out",
-            str(out),
-            "--variants",
-            str(variants_file),
-            "--initial-states",
-            "1",
-            "--workers",
-            "2",
-        ],
+        _ablate_command(scenario_file, variants_file, out, initial_states=1, workers=2),
         cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
         capture_output=True,
@@ -343,21 +348,7 @@ def test_cli_with_an_embedded_local_cluster(short_files, tmp_path):
 def test_resume_after_killing_the_command(short_files, tmp_path):
     scenario_file, variants_file = short_files
     out = tmp_path / "killed"
-    command = [
-        sys.executable,
-        "-m",
-        "ofrl_drake",
-        "ablate",
-        str(scenario_file),
-        "--out",
-        str(out),
-        "--variants",
-        str(variants_file),
-        "--initial-states",
-        "2",
-        "--workers",
-        "0",
-    ]
+    command = _ablate_command(scenario_file, variants_file, out, initial_states=2, workers=0)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(command, cwd=ROOT, env=env, stderr=subprocess.PIPE)
     table = out / "ablation.csv"

@@ -259,6 +259,34 @@ def test_paper_sector_design_is_infeasible_at_alpha_2(two_state, bounds2):
 
 
 # ------------------------------------------------------------------ backends
+def _feasible_in_both_backends(system, formulation, half, alpha, solver):
+    """[drake, cvxpy]: whether each certified a design on ``[-half, half]^2``."""
+    box = ([-half, -half], [half, half])
+    bounds = jacobian_bounds(system, box)
+    outcomes = []
+    for backend in ("drake", "cvxpy"):
+        try:
+            d = design_observer(
+                system,
+                box,
+                3.0,
+                alpha,
+                bounds=bounds,
+                backend=backend,
+                formulation=formulation,
+                solver=solver,
+            )
+        except ObserverDesignInfeasible:
+            outcomes.append(False)
+        else:
+            assert d.is_certified and d.backend == backend and d.formulation == formulation
+            assert d.solver == solver
+            if solver == "scs" and backend == "drake":  # SCS's own exit status, too
+                assert "(SCS: solved" in d.status, d.status
+            outcomes.append(True)
+    return outcomes
+
+
 @pytest.mark.parametrize(
     ("formulation", "half", "alpha", "feasible"),
     [
@@ -277,19 +305,7 @@ def test_paper_sector_design_is_infeasible_at_alpha_2(two_state, bounds2):
     ],
 )
 def test_backends_agree_on_feasibility(two_state, formulation, half, alpha, feasible):
-    box = ([-half, -half], [half, half])
-    bounds = jacobian_bounds(two_state, box)
-    outcomes = []
-    for backend in ("drake", "cvxpy"):
-        try:
-            d = design_observer(
-                two_state, box, 3.0, alpha, bounds=bounds, backend=backend, formulation=formulation
-            )
-        except ObserverDesignInfeasible:
-            outcomes.append(False)
-        else:
-            assert d.is_certified and d.backend == backend and d.formulation == formulation
-            outcomes.append(True)
+    outcomes = _feasible_in_both_backends(two_state, formulation, half, alpha, "clarabel")
     assert outcomes == [feasible, feasible]
 
 
@@ -544,28 +560,7 @@ def test_linear_certificate_implies_decay(formulation, data, n, q, alpha):
     ],
 )
 def test_backends_agree_on_feasibility_with_scs(two_state, formulation, half, alpha, feasible):
-    box = ([-half, -half], [half, half])
-    bounds = jacobian_bounds(two_state, box)
-    outcomes = []
-    for backend in ("drake", "cvxpy"):
-        try:
-            d = design_observer(
-                two_state,
-                box,
-                3.0,
-                alpha,
-                bounds=bounds,
-                backend=backend,
-                formulation=formulation,
-                solver="scs",
-            )
-        except ObserverDesignInfeasible:
-            outcomes.append(False)
-        else:
-            assert d.is_certified and d.solver == "scs"
-            if backend == "drake":  # SCS's own exit status, not only Drake's summary
-                assert "(SCS: solved" in d.status, d.status
-            outcomes.append(True)
+    outcomes = _feasible_in_both_backends(two_state, formulation, half, alpha, "scs")
     assert outcomes == [feasible, feasible]
 
 
