@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from ofrl_drake.ablation_metrics import optimality_ratio, run_metrics
-from ofrl_drake.atomic import atomic_file, atomic_write_text, ensure_parent
+from ofrl_drake.atomic import atomic_file, atomic_write_text, check_output_folder, ensure_parent
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.optimal import (
     Mesh,
@@ -662,15 +662,8 @@ class _Sweep:
         """Read the rows and optima already on disk; open the table for appending."""
         if self.out_dir is None:
             return
-        out = self.out_dir
-        if out.exists() and not out.is_dir():
-            raise AblationError(f"--out: {out} exists and is not a folder; choose another path.")
-        if out.is_dir() and any(out.iterdir()) and not (out / PLAN_NAME).is_file():
-            raise AblationError(
-                f"--out: {out} is not empty and was not written by ofrl-drake ablate "
-                f"(no {PLAN_NAME}); choose a new folder or empty this one."
-            )
-        ensure_parent(out / PLAN_NAME)
+        check_output_folder(self.out_dir, marker=PLAN_NAME, command="ablate", error=AblationError)
+        ensure_parent(self.out_dir / PLAN_NAME)
         table = self.out_dir / CSV_NAME
         if table.exists() and not resume:
             raise AblationError(

@@ -17,7 +17,13 @@ from typing import IO, Any
 
 from ofrl_drake.errors import OutputError
 
-__all__ = ["atomic_file", "atomic_write_text", "ensure_parent", "umask_mode"]
+__all__ = [
+    "atomic_file",
+    "atomic_write_text",
+    "check_output_folder",
+    "ensure_parent",
+    "umask_mode",
+]
 
 
 def umask_mode(base: int = 0o666) -> int:
@@ -45,6 +51,26 @@ def ensure_parent(target: Path, what: str = "--out") -> Path:
         target.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise OutputError(f"{what}: cannot create {target.parent} ({err.strerror}).") from err
+    return target
+
+
+def check_output_folder(
+    target: Path, *, marker: str, command: str, error: type[Exception] = OutputError
+) -> Path:
+    """Refuse an output folder that a command of ours did not write.
+
+    ``target`` may be absent, an empty folder, or a folder holding ``marker``
+    (written there by an earlier ``ofrl-drake <command>``). Anything else, a
+    file or someone else's non-empty folder, raises ``error`` naming it.
+    """
+    target = Path(target).expanduser()
+    if target.exists() and not target.is_dir():
+        raise error(f"--out: {target} exists and is not a folder; choose another path.")
+    if target.is_dir() and any(target.iterdir()) and not (target / marker).exists():
+        raise error(
+            f"--out: {target} is not empty and was not written by ofrl-drake {command} "
+            f"(no {marker}); choose a new folder or empty this one."
+        )
     return target
 
 

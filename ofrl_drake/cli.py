@@ -24,7 +24,7 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from ofrl_drake.atomic import atomic_write_text, ensure_parent, umask_mode
+from ofrl_drake.atomic import atomic_write_text, check_output_folder, ensure_parent, umask_mode
 from ofrl_drake.errors import OfrlError, OutputError
 
 __all__ = ["OUTPUT_MARKER", "OutputError", "atomic_directory", "check_output_directory", "main"]
@@ -47,15 +47,7 @@ def check_output_directory(target: Path) -> Path:
     target = Path(target).expanduser().resolve()
     if target == target.parent:
         raise OutputError(f"--out: {target} is a filesystem root; name an output folder.")
-    if target.exists():
-        if not target.is_dir():
-            raise OutputError(f"--out: {target} exists and is not a folder; choose another path.")
-        if any(target.iterdir()) and not (target / OUTPUT_MARKER).exists():
-            raise OutputError(
-                f"--out: {target} is not empty and was not written by ofrl-drake run; "
-                "choose a new folder or empty this one."
-            )
-    return target
+    return check_output_folder(target, marker=OUTPUT_MARKER, command="run")
 
 
 @contextlib.contextmanager
