@@ -16,12 +16,16 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from ofrl_drake.errors import ModelError
 
-__all__ = ["ControlAffineSystem"]
+__all__ = ["ControlAffineSystem", "ShiftedSystem"]
+
+#: Largest ``max |f(x*) + g(x*) u*|`` accepted by :meth:`ControlAffineSystem.shifted`.
+EQUILIBRIUM_TOL = 1e-8
 
 ArrayFunction = Callable[[np.ndarray], np.ndarray]
 
@@ -45,6 +49,10 @@ class ControlAffineSystem:
         Output matrix.
     name : str, optional
         A label used in diagrams and reports.
+    source : object, optional
+        Where ``f`` and ``g`` came from, kept for blocks that can use it (the
+        Drake ``System`` of :meth:`from_drake`, the model of
+        :meth:`from_multibody`); None for hand-written plants.
 
     Attributes
     ----------
@@ -80,11 +88,13 @@ class ControlAffineSystem:
         C: np.ndarray,
         *,
         name: str = "control_affine_system",
+        source: Any = None,
     ) -> None:
         self.f = f
         self.g = g
         self.C = C
         self.name = name
+        self.source = source
 
         C_arr = np.asarray(C, dtype=float)
         if C_arr.ndim != 2 or C_arr.shape[0] < 1 or C_arr.shape[1] < 1:
@@ -174,5 +184,169 @@ class ControlAffineSystem:
         """``C x``."""
         return self._C @ x
 
+    # ------------------------------------------------------ operating points
+    def shifted(
+        self, x_eq: Any, u_eq: Any | None = None, *, tol: float = EQUILIBRIUM_TOL
+    ) -> ShiftedSystem:
+        """The system in coordinates whose origin is the equilibrium ``(x*, u*)``.
+
+        ``z = x - x*`` and ``v = u - u*``:
+
+            z' = f~(z) + g~(z) v,  f~(z) = f(z + x*) + g(z + x*) u*,
+            g~(z) = g(z + x*),     y~ = C z = y - C x*.
+
+        Parameters
+        ----------
+        x_eq : array_like, shape (n,)
+            The equilibrium state ``x*``.
+        u_eq : array_like, shape (m,), optional
+            The equilibrium input ``u*`` (zeros if omitted).
+        tol : float
+            Largest accepted ``max_i |f(x*) + g(x*) u*|_i``, absolute, in the
+            units of ``x'`` (default :data:`EQUILIBRIUM_TOL`).
+
+        Returns
+        -------
+        ShiftedSystem
+            A :class:`ControlAffineSystem` (same ``C``) that keeps ``x_eq``,
+            ``u_eq``, the unshifted ``base`` and the ``residual``.
+
+        Raises
+        ------
+        ModelError
+            If ``x_eq`` or ``u_eq`` has the wrong length or is not finite, or
+            ``(x*, u*)`` is not an equilibrium to within ``tol``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> pendulum = ControlAffineSystem(
+        ...     f=lambda x: np.array([x[1], -np.sin(x[0])]),
+        ...     g=lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        ...     C=[[1.0, 0.0]],
+        ... )
+        >>> up = pendulum.shifted([np.pi, 0.0])
+        >>> bool(np.allclose(up.f(np.zeros(2)), 0.0))
+        True
+        """
+        return ShiftedSystem(self, x_eq, u_eq, tol=tol)
+
     def __repr__(self) -> str:
         return f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, q={self.q})"
+
+
+def _as_vector(value: Any, size: int, what: str, fix: str) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ModelError(f"{what} must be a list of {size} numbers; got {value!r}. {fix}") from None
+    if arr.shape != (size,):
+        raise ModelError(
+            f"{what} must have length {size}; got shape {arr.shape} ({value!r}). {fix}"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ModelError(f"{what} must be finite; got {arr.tolist()}. {fix}")
+    arr.setflags(write=False)
+    return arr
+
+
+class ShiftedSystem(ControlAffineSystem):
+    """A :class:`ControlAffineSystem` seen from an equilibrium ``(x*, u*)``.
+
+    Built by :meth:`ControlAffineSystem.shifted`; see there for the formulas.
+    ``f`` and ``g`` call the base system's ``f`` and ``g``, so they accept the
+    same scalar types (floats, batches ``(n, N)``, ``AutoDiffXd``, symbolic
+    expressions), and certified Jacobian bounds of the shifted system are
+    bounds of the base Jacobians over the shifted box.
+
+    Parameters
+    ----------
+    base : ControlAffineSystem
+        The system in original coordinates.
+    x_eq : array_like, shape (n,)
+        ``x*``.
+    u_eq : array_like, shape (m,), optional
+        ``u*`` (zeros if omitted).
+    tol : float
+        Largest accepted ``max |f(x*) + g(x*) u*|``.
+
+    Attributes
+    ----------
+    x_eq, u_eq : ndarray
+        The equilibrium as float arrays (read-only).
+    residual : ndarray, shape (n,)
+        ``f(x*) + g(x*) u*`` at construction (within ``tol`` of zero).
+
+    Raises
+    ------
+    ModelError
+        See :meth:`ControlAffineSystem.shifted`.
+    """
+
+    def __init__(
+        self,
+        base: ControlAffineSystem,
+        x_eq: Any,
+        u_eq: Any | None = None,
+        *,
+        tol: float = EQUILIBRIUM_TOL,
+    ) -> None:
+        self.base = base
+        self.tol = tol
+        fix = "Give the equilibrium in the system's original coordinates."
+        self.x_eq = _as_vector(x_eq, base.n, "equilibrium x", fix)
+        u = np.zeros(base.m) if u_eq is None else u_eq
+        self.u_eq = _as_vector(u, base.m, "equilibrium u", fix)
+        if not (np.isfinite(tol) and tol >= 0):
+            raise ModelError(f"tol must be a non-negative number; got {tol!r}.")
+        residual = np.asarray(base.f(self.x_eq), dtype=float) + np.asarray(
+            base.g(self.x_eq), dtype=float
+        ) @ np.asarray(self.u_eq)
+        self.residual = residual
+        worst = int(np.argmax(np.abs(residual)))
+        if not abs(residual[worst]) <= tol:
+            raise ModelError(
+                f"{base.name}: (x*, u*) = ({self.x_eq.tolist()}, {self.u_eq.tolist()}) is "
+                f"not an equilibrium: f(x*) + g(x*) u* = {residual.tolist()}, whose row "
+                f"{worst} is {residual[worst]:.3g} (tolerance {tol:g}); choose x* and u* "
+                "with f(x*) + g(x*) u* = 0, e.g. solve for u* given x*."
+            )
+        self._zero_input = not np.any(self.u_eq)
+        super().__init__(
+            self._shifted_f,
+            self._shifted_g,
+            base.C,
+            name=base.name,
+            source=base.source,
+        )
+
+    def _column(self, vector: np.ndarray, z: np.ndarray) -> np.ndarray:
+        return vector.reshape((-1,) + (1,) * (np.ndim(z) - 1))
+
+    def _shifted_f(self, z: Any) -> Any:
+        z = np.asarray(z)
+        x = z + self._column(self.x_eq, z)
+        fx = np.asarray(self.base.f(x))
+        if self._zero_input:
+            return fx
+        gx = np.asarray(self.base.g(x))
+        u = self.u_eq.reshape((1, -1) + (1,) * (gx.ndim - 2))
+        return fx + (gx * u).sum(axis=1)
+
+    def _shifted_g(self, z: Any) -> Any:
+        z = np.asarray(z)
+        return self.base.g(z + self._column(self.x_eq, z))
+
+    def to_original_state(self, z: np.ndarray) -> np.ndarray:
+        """``x = z + x*`` for ``z`` of shape ``(n,)`` or ``(..., n)`` (time first)."""
+        return np.asarray(z, dtype=float) + self.x_eq
+
+    def to_original_input(self, v: np.ndarray) -> np.ndarray:
+        """``u = v + u*`` for ``v`` of shape ``(m,)`` or ``(..., m)`` (time first)."""
+        return np.asarray(v, dtype=float) + self.u_eq
+
+    def __repr__(self) -> str:
+        return (
+            f"ShiftedSystem(name={self.name!r}, n={self.n}, m={self.m}, q={self.q}, "
+            f"x_eq={self.x_eq.tolist()}, u_eq={self.u_eq.tolist()})"
+        )
