@@ -1,0 +1,643 @@
+"""Falsify an observer design against the true nonlinear error dynamics.
+
+An observer design claims ``d/dt (e^T P e) <= -2 alpha e^T P e`` for every
+``x, xhat`` in its box and every ``|u_k| <= lambda_bar``, with ``e = x - xhat``.
+The LMI behind the claim bounds the error dynamics; :func:`verify_observer`
+checks the claim on the dynamics themselves, the plant ``x' = f(x) + g(x) u``
+and the observer of :mod:`ofrl_drake.observer`, by searching for the largest
+
+    r(x, xhat, u) = (d/dt e^T P e) / (e^T P e) = 2 e^T P e' / e^T P e.
+
+Three searches, all vectorized over points:
+
+* **finite errors**: ``x`` and ``xhat`` drawn uniformly in the box;
+* **the small-error limit**: as ``e -> 0`` along a direction ``d``,
+  ``r -> d^T (A^T P + P A) d / d^T P d`` with ``A = de'/de`` at ``e = 0``,
+
+      A(x, u) = (Df(x) + Dg_u(x)) - Df(x) H C - Dg_u(x) K C - (L - M_f1 H) C + M_ug1(u) K C,
+
+  ``Dg_u = sum_k u_k Dg_k``; the worst direction at each sampled ``x`` is the
+  top generalized eigenvector of ``(A^T P + P A, P)``. The Jacobians come from
+  ``f`` and ``g`` themselves (``pydrake.symbolic.Jacobian``);
+* **local refinement**: multi-start L-BFGS-B (scipy) from the worst samples of
+  both searches, within the box.
+
+The input is not sampled: ``e'`` is affine in ``u`` on each orthant (the
+sector ``M_ug1(u)`` breaks only at ``u_k = 0``), so ``r`` at fixed ``x, xhat``
+and the convex ``lambda_max`` of the limit are largest at one of the ``3**m``
+inputs ``u_k in {-lambda_bar, 0, +lambda_bar}``, and every one is evaluated
+(for ``3**m > MAX_INPUT_VERTICES``, a random vertex per sample).
+
+Sampling can only find counterexamples: a report that is not ``falsified``
+means that none was found with this budget, not that the claim holds. A
+``polytopic`` design is a proof (when its bounds are certified); a ``paper``
+design is not, and on the two-state example it is falsified (README).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.jacobian_bounds import Box, symbolic_jacobians
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer import ObserverGains, observer_rhs_batch
+from ofrl_drake.sector import input_vertices
+
+__all__ = [
+    "DEFAULT_SAMPLES",
+    "DEFAULT_TOLERANCE",
+    "MAX_INPUT_VERTICES",
+    "VerificationError",
+    "VerificationReport",
+    "error_jacobians",
+    "error_rates",
+    "small_error_rates",
+    "verify_observer",
+]
+
+#: Points (and pairs) sampled by default: the paper design falsifies well within it.
+DEFAULT_SAMPLES = 10_000
+#: A rate above ``-2 alpha + tol * max(1, 2 alpha)`` falsifies the claim.
+DEFAULT_TOLERANCE = 1e-6
+#: Beyond this many input vertices ``3**m``, each sample gets one random vertex.
+MAX_INPUT_VERTICES = 81
+_CHUNK = 50_000  # point evaluations per batch (bounds memory)
+_MIN_FINITE_ERROR = 1e-4  # relative to the box width: smaller errors are the limit's job
+
+
+class VerificationError(OfrlError):
+    """A verification was asked for with a bad argument (samples, seed, design...)."""
+
+
+# -------------------------------------------------------------------- report
+def _vec(a: Any) -> np.ndarray:
+    arr = np.array(a, dtype=float).ravel()
+    arr.setflags(write=False)
+    return arr
+
+
+def _fmt(v: np.ndarray) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in np.asarray(v, float).ravel()) + ")"
+
+
+@dataclass(frozen=True, eq=False)
+class VerificationReport:
+    """What a falsification attempt found.
+
+    Attributes
+    ----------
+    alpha : float
+        The design's decay rate; the claim is ``r <= claimed_rate = -2 alpha``.
+    worst_rate : float
+        The largest ``r`` found (finite errors, the small-error limit, refined).
+    x, xhat, u : ndarray
+        Where: the state, the estimate and the input. For the small-error
+        limit ``xhat = x`` and :attr:`direction` is the error direction.
+    direction : ndarray or None
+        Unit error direction of the worst point in the small-error limit; None
+        when the worst point has a finite error ``e = x - xhat``.
+    kind : str
+        ``"small_error_limit"`` or ``"finite_error"``: which search found it.
+    worst_small_error_rate, worst_finite_rate : float
+        The best of each search (refined).
+    violating_fraction : float
+        Fraction of the sampled ``(x, u)`` (each sampled ``x`` at each input
+        vertex) at which some error direction violates the claim in the
+        small-error limit.
+    finite_violating_fraction : float
+        Fraction of the sampled ``(x, xhat, u)`` violating it.
+    samples : int
+        Points ``x`` for the limit, and as many pairs ``(x, xhat)``.
+    input_vertices : int
+        Inputs evaluated per sample.
+    seed : int
+        Seed of the samples.
+    refined : bool
+        Whether the local refinement ran.
+    tolerance : float
+        Relative tolerance: falsified when ``worst_rate > claimed_rate +
+        tolerance * max(1, |claimed_rate|)``.
+    wall_time : float
+        Seconds spent.
+    box : Box
+        The design's box; ``input_bound`` its ``lambda_bar``.
+    input_bound : float
+    jacobians : str
+        ``"symbolic"`` (``pydrake.symbolic.Jacobian``) or ``"finite_difference"``
+        (when ``f`` or ``g`` cannot be differentiated symbolically).
+    """
+
+    alpha: float
+    worst_rate: float
+    x: np.ndarray
+    xhat: np.ndarray
+    u: np.ndarray
+    direction: np.ndarray | None
+    kind: str
+    worst_small_error_rate: float
+    worst_finite_rate: float
+    violating_fraction: float
+    finite_violating_fraction: float
+    samples: int
+    input_vertices: int
+    seed: int
+    refined: bool
+    tolerance: float
+    wall_time: float
+    box: Box
+    input_bound: float
+    jacobians: str
+
+    def __post_init__(self) -> None:
+        for key in ("x", "xhat", "u"):
+            object.__setattr__(self, key, _vec(getattr(self, key)))
+        if self.direction is not None:
+            object.__setattr__(self, "direction", _vec(self.direction))
+
+    @property
+    def claimed_rate(self) -> float:
+        """``-2 alpha``: the design claims ``r <= -2 alpha`` everywhere."""
+        return -2.0 * self.alpha
+
+    @property
+    def threshold(self) -> float:
+        """The rate above which a point falsifies the claim."""
+        return self.claimed_rate + self.tolerance * max(1.0, abs(self.claimed_rate))
+
+    @property
+    def falsified(self) -> bool:
+        """True if some point violates the claim by more than the tolerance."""
+        return bool(self.worst_rate > self.threshold)
+
+    def summary_line(self) -> str:
+        """One line: "decay-certified..." or "claims alpha = ...; falsified: ..."."""
+        if not self.falsified:
+            return (
+                f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); not falsified: "
+                f"worst r = {self.worst_rate:+.4g} over {self.samples} samples "
+                f"(seed {self.seed}{', refined' if self.refined else ''})"
+            )
+        where = f"x = {_fmt(self.x)}, u = {_fmt(self.u)}"
+        if self.direction is not None:
+            where += f", e -> 0 along {_fmt(self.direction)}"
+        else:
+            where += f", xhat = {_fmt(self.xhat)}"
+        return (
+            f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); falsified: "
+            f"r = {self.worst_rate:+.4g} at {where}"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict of every attribute plus ``claimed_rate`` and ``falsified``."""
+        return {
+            "claimed_rate": self.claimed_rate,
+            "alpha": self.alpha,
+            "worst_rate": self.worst_rate,
+            "falsified": self.falsified,
+            "x": self.x.tolist(),
+            "xhat": self.xhat.tolist(),
+            "u": self.u.tolist(),
+            "direction": None if self.direction is None else self.direction.tolist(),
+            "kind": self.kind,
+            "worst_small_error_rate": self.worst_small_error_rate,
+            "worst_finite_rate": self.worst_finite_rate,
+            "violating_fraction": self.violating_fraction,
+            "finite_violating_fraction": self.finite_violating_fraction,
+            "samples": self.samples,
+            "input_vertices": self.input_vertices,
+            "seed": self.seed,
+            "refined": self.refined,
+            "tolerance": self.tolerance,
+            "threshold": self.threshold,
+            "wall_time": self.wall_time,
+            "box": self.box.to_dict(),
+            "input_bound": self.input_bound,
+            "jacobians": self.jacobians,
+            "summary": self.summary_line(),
+        }
+
+
+# ---------------------------------------------------------------- jacobians
+_JACOBIANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _jacobian_function(
+    system: ControlAffineSystem,
+) -> tuple[Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], str]:
+    """``X (n, N) -> (Jf (n, n, N), Jg (n, n, m, N))`` and how it is computed.
+
+    Symbolic (exact) when ``f`` and ``g`` take ``pydrake.symbolic`` states and
+    use supported functions; central differences of ``f_batch``/``g_batch``
+    otherwise. Cached per system.
+    """
+    cached = _JACOBIANS.get(system)
+    if cached is not None:
+        return cached
+    from ofrl_drake.interval import ExpressionEvaluator
+
+    n, m = system.n, system.m
+    try:
+        x, Jf, Jg = symbolic_jacobians(system)
+        evaluator = ExpressionEvaluator(np.concatenate([Jf.ravel(), Jg.ravel()]), x)
+    except OfrlError:
+        evaluator = None
+    if evaluator is not None:
+
+        def symbolic(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            vals = evaluator(X)
+            N = X.shape[1]
+            return vals[: n * n].reshape(n, n, N), vals[n * n :].reshape(n, n, m, N)
+
+        result = (symbolic, "symbolic")
+    else:
+
+        def central(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            N = X.shape[1]
+            h = 1e-6 * np.maximum(1.0, np.abs(X))
+            Jf = np.empty((n, n, N))
+            Jg = np.empty((n, n, m, N))
+            for j in range(n):  # a loop over state dimensions, vectorized over points
+                step = np.zeros_like(X)
+                step[j] = h[j]
+                Jf[:, j] = (system.f_batch(X + step) - system.f_batch(X - step)) / (2 * h[j])
+                Jg[:, j] = (system.g_batch(X + step) - system.g_batch(X - step)) / (2 * h[j])
+            return Jf, Jg
+
+        result = (central, "finite_difference")
+    _JACOBIANS[system] = result
+    return result
+
+
+# --------------------------------------------------------------------- rates
+def _design_numbers(design: Any, system: ControlAffineSystem) -> tuple[Any, ...]:
+    try:
+        P = np.asarray(design.P, dtype=float)
+        gains = ObserverGains.from_design(system, design)
+        box = Box.coerce(design.box, system.n)
+        alpha = float(design.alpha)
+        input_bound = float(design.input_bound)
+    except AttributeError as err:
+        raise VerificationError(
+            f"design must be an ObserverDesign (with P, L, H, K, alpha, box, input_bound "
+            f"and bounds); got {type(design).__name__} ({err})."
+        ) from None
+    n = system.n
+    if P.shape != (n, n) or not np.all(np.isfinite(P)):
+        raise VerificationError(f"design.P must be a finite ({n}, {n}) matrix; got {P.shape}.")
+    P = 0.5 * (P + P.T)
+    if np.linalg.eigvalsh(P)[0] <= 0:
+        raise VerificationError(
+            "design.P is not positive definite, so e^T P e is no Lyapunov function; "
+            "there is no decay claim to verify."
+        )
+    return P, gains, box, alpha, input_bound
+
+
+def error_rates(design: Any, system: ControlAffineSystem, X: Any, Xhat: Any, U: Any) -> np.ndarray:
+    """``r = 2 e^T P e' / e^T P e`` under the true dynamics, one per column.
+
+    Parameters
+    ----------
+    design : ObserverDesign
+    system : ControlAffineSystem
+    X, Xhat : array_like, shape (n, N)
+        States and estimates (``e = x - xhat`` must be nonzero).
+    U : array_like, shape (m, N)
+        Inputs.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+    """
+    P, gains, *_ = _design_numbers(design, system)
+    return _rates(system, gains, P, *(np.asarray(a, float) for a in (X, Xhat, U)))
+
+
+def _rates(
+    system: ControlAffineSystem,
+    gains: ObserverGains,
+    P: np.ndarray,
+    X: np.ndarray,
+    Xhat: np.ndarray,
+    U: np.ndarray,
+) -> np.ndarray:
+    xdot = system.f_batch(X) + np.einsum("ikN,kN->iN", system.g_batch(X), U)
+    xhatdot = observer_rhs_batch(system, gains, Xhat, system.output_matrix @ X, U)
+    E = X - Xhat
+    PE = P @ E
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return 2.0 * np.einsum("iN,iN->N", PE, xdot - xhatdot) / np.einsum("iN,iN->N", PE, E)
+
+
+def error_jacobians(design: Any, system: ControlAffineSystem, X: Any, U: Any) -> np.ndarray:
+    """``A = de'/de`` at ``e = 0`` (``xhat = x``), one per column: shape ``(N, n, n)``.
+
+    See the module docstring for the formula; ``Df``, ``Dg`` from ``f`` and ``g``.
+    """
+    _, gains, *_ = _design_numbers(design, system)
+    X, U = np.asarray(X, float), np.asarray(U, float)
+    jac, _ = _jacobian_function(system)
+    return _error_jacobians(system, gains, jac, X, U)
+
+
+def _error_jacobians(
+    system: ControlAffineSystem,
+    gains: ObserverGains,
+    jac: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    X: np.ndarray,
+    U: np.ndarray,
+) -> np.ndarray:
+    C = system.output_matrix
+    n = system.n
+    Jf, Jg = jac(X)
+    Df = np.moveaxis(Jf, -1, 0)  # (N, n, n)
+    Dgu = np.einsum("ijkN,kN->Nij", Jg, U)  # sum_k u_k Dg_k
+    eye = np.eye(n)
+    # M_ug1(u) K: the sector is piecewise linear in u with breaks at u_k = 0.
+    lo = np.minimum(gains.Mg1, gains.Mg2)
+    hi = np.maximum(gains.Mg1, gains.Mg2)
+    Mug1 = np.einsum("ijk,kN->Nij", lo, np.maximum(U, 0.0)) + np.einsum(
+        "ijk,kN->Nij", hi, np.minimum(U, 0.0)
+    )
+    fixed = (gains.Mf1 @ gains.H - gains.L) @ C  # - (L - M_f1 H) C
+    return Df @ (eye - gains.H @ C) + Dgu @ (eye - gains.K @ C) + fixed + Mug1 @ gains.K @ C
+
+
+def _limit_from_jacobians(A: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Largest generalized eigenvalue of ``(A^T P + P A, P)`` and its unit eigenvector."""
+    Lc = np.linalg.cholesky(P)
+    Li = np.linalg.inv(Lc)  # P = Lc Lc^T; e = Li^T w gives e^T P e = w^T w
+    S = np.swapaxes(A, -1, -2) @ P + P @ A
+    M = Li @ S @ Li.T
+    w, V = np.linalg.eigh(0.5 * (M + np.swapaxes(M, -1, -2)))
+    d = Li.T @ V[..., -1][..., None]
+    d = d[..., 0] / np.linalg.norm(d[..., 0], axis=-1, keepdims=True)
+    return w[..., -1], d
+
+
+def small_error_rates(
+    design: Any, system: ControlAffineSystem, X: Any, U: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """The small-error limit of ``r`` at each column, and its worst direction.
+
+    Returns
+    -------
+    rates : ndarray, shape (N,)
+        ``max_d d^T (A^T P + P A) d / d^T P d`` with ``A`` from :func:`error_jacobians`.
+    directions : ndarray, shape (N, n)
+        Unit directions attaining it: ``r(x, x - eps d, u) -> rates`` as ``eps -> 0``.
+    """
+    P, *_ = _design_numbers(design, system)
+    return _limit_from_jacobians(error_jacobians(design, system, X, U), P)
+
+
+# ---------------------------------------------------------------- sampling
+def _inputs(input_bound: float, m: int) -> np.ndarray:
+    """The input vertices, shape (V, m); empty when there are too many."""
+    if 3**m > MAX_INPUT_VERTICES:
+        return np.zeros((0, m))
+    return input_vertices(input_bound, m)
+
+
+def _tile(
+    rng: np.random.Generator, points: list[np.ndarray], input_bound: float, m: int
+) -> tuple[list[np.ndarray], np.ndarray, int]:
+    """Repeat each point column for every input vertex; returns (points, U, V)."""
+    vertices = _inputs(input_bound, m)
+    N = points[0].shape[1]
+    if vertices.shape[0] == 0:
+        U = input_bound * rng.integers(-1, 2, size=(m, N)).astype(float)
+        return points, U, 1
+    V = vertices.shape[0]
+    return [np.repeat(p, V, axis=1) for p in points], np.tile(vertices.T, (1, N)), V
+
+
+@dataclass
+class _Best:
+    rate: float = -math.inf
+    x: np.ndarray | None = None
+    xhat: np.ndarray | None = None
+    u: np.ndarray | None = None
+    direction: np.ndarray | None = None
+
+
+def _chunks(N: int, per_point: int) -> list[slice]:
+    step = max(1, _CHUNK // max(1, per_point))
+    return [slice(i, min(N, i + step)) for i in range(0, N, step)]
+
+
+# -------------------------------------------------------------- refinement
+def _refine(
+    objective: Callable[[np.ndarray], np.ndarray],
+    z0: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """Maximize a batched objective from ``z0`` with L-BFGS-B in the bounds.
+
+    ``objective(Z)`` takes columns ``Z (d, K)``; the gradient is by central
+    differences, all ``2 d + 1`` points in one call.
+    """
+    d = z0.size
+    h = 1e-7 * np.maximum(1.0, upper - lower)
+
+    def fun(z: np.ndarray) -> tuple[float, np.ndarray]:
+        plus = np.minimum(z[:, None] + np.diag(h), upper[:, None])
+        minus = np.maximum(z[:, None] - np.diag(h), lower[:, None])
+        vals = objective(np.concatenate([z[:, None], plus, minus], axis=1))
+        if not np.all(np.isfinite(vals)):
+            return math.inf, np.zeros(d)
+        grad = (vals[1 : d + 1] - vals[d + 1 :]) / np.maximum(
+            np.diag(plus - minus), np.finfo(float).tiny
+        )
+        return -float(vals[0]), -grad
+
+    res = minimize(
+        fun,
+        z0,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=list(zip(lower, upper, strict=True)),
+        options={"maxiter": 200},
+    )
+    z = np.clip(res.x, lower, upper)
+    return z, float(objective(z[:, None])[0])
+
+
+# ---------------------------------------------------------------- verifier
+def verify_observer(
+    design: Any,
+    system: ControlAffineSystem,
+    *,
+    samples: int = DEFAULT_SAMPLES,
+    seed: int = 0,
+    refine: bool = True,
+    starts: int = 8,
+    tol: float = DEFAULT_TOLERANCE,
+) -> VerificationReport:
+    """Search for the worst decay rate of ``e^T P e`` under the true error dynamics.
+
+    Parameters
+    ----------
+    design : ObserverDesign
+        The design to falsify: its ``P, L, H, K``, Jacobian bounds, ``alpha``,
+        ``box`` and ``input_bound``.
+    system : ControlAffineSystem
+        The plant the design is for.
+    samples : int
+        Points ``x`` for the small-error limit, and as many pairs ``(x, xhat)``
+        for finite errors, uniform in the box; each at every input vertex.
+    seed : int
+        Seed of the samples.
+    refine : bool
+        Run multi-start local refinement from the worst samples.
+    starts : int
+        Refinement starts per search.
+    tol : float
+        Relative tolerance of :attr:`VerificationReport.falsified`.
+
+    Returns
+    -------
+    VerificationReport
+
+    Raises
+    ------
+    VerificationError
+        For a bad ``samples``, ``seed``, ``starts`` or ``tol``, or a design
+        without a positive definite ``P``.
+
+    Examples
+    --------
+    >>> from ofrl_drake.design import design_observer
+    >>> from ofrl_drake.examples import make_system
+    >>> system = make_system("two_state")
+    >>> sound = design_observer(system, ([-2, -2], [2, 2]), 3.0, 0.5)
+    >>> verify_observer(sound, system, samples=2000).falsified
+    False
+    """
+    for name, value, least in (("samples", samples, 1), ("starts", starts, 0)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
+            raise VerificationError(f"{name} must be an integer >= {least}; got {value!r}.")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise VerificationError(f"seed must be an integer >= 0; got {seed!r}.")
+    if not (isinstance(tol, int | float) and math.isfinite(tol) and tol >= 0):
+        raise VerificationError(f"tol must be a finite number >= 0; got {tol!r}.")
+    start = time.perf_counter()
+    P, gains, box, alpha, input_bound = _design_numbers(design, system)
+    jac, jac_kind = _jacobian_function(system)
+    n, m = system.n, system.m
+    rng = np.random.default_rng(int(seed))
+    lo, hi, width = box.lower, box.upper, box.width
+    threshold = -2.0 * alpha + tol * max(1.0, 2.0 * alpha)
+
+    def uniform(N: int) -> np.ndarray:
+        return lo[:, None] + rng.random((n, N)) * width[:, None]
+
+    # -- the small-error limit at sampled x, every input vertex
+    X = uniform(samples)
+    limit = _Best()
+    limit_violations = 0
+    limit_starts: list[tuple[float, np.ndarray, np.ndarray]] = []
+    V = 1
+    for sl in _chunks(samples, 3**m if 3**m <= MAX_INPUT_VERTICES else 1):
+        (Xs,), Us, V = _tile(rng, [X[:, sl]], input_bound, m)
+        rates, dirs = _limit_from_jacobians(_error_jacobians(system, gains, jac, Xs, Us), P)
+        per = rates.reshape(-1, V)
+        arg = per.argmax(axis=1)
+        limit_violations += int(np.count_nonzero(rates > threshold))
+        cols = np.arange(per.shape[0]) * V + arg
+        for c in cols[np.argsort(per.max(axis=1))[::-1][:starts]]:
+            limit_starts.append((float(rates[c]), Xs[:, c].copy(), Us[:, c].copy()))
+        i = int(np.argmax(rates))
+        if rates[i] > limit.rate:
+            limit = _Best(
+                float(rates[i]), Xs[:, i].copy(), Xs[:, i].copy(), Us[:, i].copy(), dirs[i]
+            )
+    violating = limit_violations / float(samples * V)
+
+    # -- finite errors at sampled pairs, every input vertex
+    X1, X2 = uniform(samples), uniform(samples)
+    finite = _Best()
+    finite_violations = 0
+    finite_starts: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
+    for sl in _chunks(samples, 3**m if 3**m <= MAX_INPUT_VERTICES else 1):
+        (Xs, Xh), Us, V = _tile(rng, [X1[:, sl], X2[:, sl]], input_bound, m)
+        rates = _rates(system, gains, P, Xs, Xh, Us)
+        rates = np.where(np.isfinite(rates), rates, -math.inf)
+        per = rates.reshape(-1, V)
+        arg = per.argmax(axis=1)
+        finite_violations += int(np.count_nonzero(rates > threshold))
+        cols = np.arange(per.shape[0]) * V + arg
+        for c in cols[np.argsort(per.max(axis=1))[::-1][:starts]]:
+            finite_starts.append(
+                (float(rates[c]), Xs[:, c].copy(), Xh[:, c].copy(), Us[:, c].copy())
+            )
+        i = int(np.argmax(rates))
+        if rates[i] > finite.rate:
+            finite = _Best(float(rates[i]), Xs[:, i].copy(), Xh[:, i].copy(), Us[:, i].copy())
+    finite_violating = finite_violations / float(samples * V)
+
+    # -- local refinement from the worst samples of each search
+    if refine and starts > 0:
+        limit_starts.sort(key=lambda s: -s[0])
+        for _, x0, u0 in limit_starts[:starts]:
+
+            def limit_objective(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
+                U = np.repeat(u0[:, None], Z.shape[1], axis=1)
+                A = _error_jacobians(system, gains, jac, Z, U)
+                return _limit_from_jacobians(A, P)[0]
+
+            z, value = _refine(limit_objective, x0, lo, hi)
+            if value > limit.rate:
+                u = u0.copy()
+                A = _error_jacobians(system, gains, jac, z[:, None], u[:, None])
+                _, d = _limit_from_jacobians(A, P)
+                limit = _Best(value, z, z.copy(), u, d[0])
+        finite_starts.sort(key=lambda s: -s[0])
+        floor = _MIN_FINITE_ERROR * float(np.max(width))
+        for _, x0, xh0, u0 in finite_starts[:starts]:
+
+            def finite_objective(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
+                U = np.repeat(u0[:, None], Z.shape[1], axis=1)
+                r = _rates(system, gains, P, Z[:n], Z[n:], U)
+                small = np.linalg.norm(Z[:n] - Z[n:], axis=0) < floor
+                return np.where(small | ~np.isfinite(r), -math.inf, r)
+
+            z, value = _refine(
+                finite_objective, np.concatenate([x0, xh0]), np.tile(lo, 2), np.tile(hi, 2)
+            )
+            if np.isfinite(value) and value > finite.rate:
+                finite = _Best(value, z[:n], z[n:], u0.copy())
+
+    best = limit if limit.rate >= finite.rate else finite
+    return VerificationReport(
+        alpha=alpha,
+        worst_rate=best.rate,
+        x=best.x,
+        xhat=best.xhat,
+        u=best.u,
+        direction=best.direction,
+        kind="small_error_limit" if best is limit else "finite_error",
+        worst_small_error_rate=limit.rate,
+        worst_finite_rate=finite.rate,
+        violating_fraction=violating,
+        finite_violating_fraction=finite_violating,
+        samples=int(samples),
+        input_vertices=V,
+        seed=int(seed),
+        refined=bool(refine and starts > 0),
+        tolerance=float(tol),
+        wall_time=time.perf_counter() - start,
+        box=box,
+        input_bound=input_bound,
+        jacobians=jac_kind,
+    )

@@ -1,0 +1,215 @@
+"""Falsification of observer designs against the true nonlinear error dynamics."""
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ofrl_drake.design import ObserverDesign
+from ofrl_drake.diagram import design_for
+from ofrl_drake.examples import make_system
+from ofrl_drake.observer import ObserverGains, observer_rhs, observer_rhs_batch
+from ofrl_drake.scenario import load_scenario
+from ofrl_drake.verification import (
+    VerificationError,
+    error_jacobians,
+    error_rates,
+    small_error_rates,
+    verify_observer,
+)
+from tests.conftest import MIMO_SCENARIO, ROOT
+
+SOUND_SCENARIO = ROOT / "diagrams" / "two_state_sound.yaml"
+
+
+@pytest.fixture(scope="module")
+def two_state():
+    return make_system("two_state")
+
+
+@pytest.fixture(scope="module")
+def sound_design():
+    return design_for(load_scenario(SOUND_SCENARIO))
+
+
+def _edot(system, design, X, Xhat, U):
+    """e' = x' - xhat' from the single-point observer, column by column."""
+    gains = ObserverGains.from_design(system, design)
+    out = []
+    for x, xh, u in zip(X.T, Xhat.T, U.T, strict=True):
+        xdot = system.f(x) + system.g(x) @ u
+        out.append(xdot - observer_rhs(system, gains, xh, system.output(x), u))
+    return np.stack(out, axis=1)
+
+
+# ------------------------------------------------------------ structure
+def test_batched_observer_matches_the_single_point_observer(two_state, paper_design):
+    rng = np.random.default_rng(0)
+    gains = ObserverGains.from_design(two_state, paper_design)
+    X, Xhat = rng.uniform(-2, 2, (2, 50)), rng.uniform(-2, 2, (2, 50))
+    U = rng.uniform(-3, 3, (1, 50))
+    U[0, :5] = 0.0
+    batch = observer_rhs_batch(two_state, gains, Xhat, two_state.output_matrix @ X, U)
+    single = np.stack(
+        [
+            observer_rhs(two_state, gains, xh, two_state.output(x), u)
+            for x, xh, u in zip(X.T, Xhat.T, U.T, strict=True)
+        ],
+        axis=1,
+    )
+    np.testing.assert_allclose(batch, single, rtol=1e-12, atol=1e-12)
+
+
+def test_rates_are_the_quotient_of_the_true_error_dynamics(two_state, paper_design):
+    rng = np.random.default_rng(1)
+    X, Xhat = rng.uniform(-2, 2, (2, 20)), rng.uniform(-2, 2, (2, 20))
+    U = rng.choice([-3.0, 0.0, 3.0], (1, 20))
+    E = X - Xhat
+    Edot = _edot(two_state, paper_design, X, Xhat, U)
+    P = paper_design.P
+    expected = 2 * np.einsum("iN,iN->N", P @ E, Edot) / np.einsum("iN,iN->N", P @ E, E)
+    np.testing.assert_allclose(
+        error_rates(paper_design, two_state, X, Xhat, U), expected, rtol=1e-10
+    )
+
+
+# ---------------------------------------------- derivatives vs finite differences
+@pytest.mark.parametrize("u", [-3.0, 0.0, 3.0])
+def test_error_jacobian_matches_central_differences_of_the_nonlinear_dynamics(
+    two_state, paper_design, u
+):
+    rng = np.random.default_rng(2)
+    X = rng.uniform(-2, 2, (2, 6))
+    U = np.full((1, 6), u)
+    A = error_jacobians(paper_design, two_state, X, U)
+    h = 1e-6
+    for j in range(2):
+        step = np.zeros((2, 1))
+        step[j] = h
+        # xhat = x - e: e = +h e_j and e = -h e_j
+        fd = (
+            _edot(two_state, paper_design, X, X - step, U)
+            - _edot(two_state, paper_design, X, X + step, U)
+        ) / (2 * h)
+        np.testing.assert_allclose(A[:, :, j], fd.T, rtol=1e-6, atol=1e-6)
+
+
+def test_small_error_limit_is_the_limit_of_the_finite_rates(two_state, paper_design):
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-1.9, 1.9, (2, 8))
+    U = rng.choice([-3.0, 3.0], (1, 8))
+    rates, directions = small_error_rates(paper_design, two_state, X, U)
+    for eps, rtol in ((1e-3, 2e-2), (1e-5, 2e-4)):
+        finite = error_rates(paper_design, two_state, X, X - eps * directions.T, U)
+        np.testing.assert_allclose(finite, rates, rtol=rtol, atol=rtol)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.floats(-2, 2),
+    st.floats(-2, 2),
+    st.floats(-3, 3),
+    st.floats(0, 2 * np.pi),
+)
+def test_no_direction_beats_the_worst_small_error_direction(
+    two_state, paper_design, x1, x2, u, angle
+):
+    X, U = np.array([[x1], [x2]]), np.array([[u]])
+    rate, _ = small_error_rates(paper_design, two_state, X, U)
+    d = np.array([[np.cos(angle)], [np.sin(angle)]])
+    along = error_rates(paper_design, two_state, X, X - 1e-6 * d, U)
+    assert along[0] <= rate[0] + 1e-3 * max(1.0, abs(rate[0]))
+
+
+# ------------------------------------------------------------ falsification
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_paper_design_is_falsified_within_the_default_budget(two_state, paper_design, seed):
+    report = verify_observer(paper_design, two_state, seed=seed)
+    assert report.falsified
+    assert report.claimed_rate == -4.0
+    assert report.worst_rate > 70.0  # about +79, against a claim of -4
+    assert report.violating_fraction > 0.3
+    box = paper_design.box
+    for point in (report.x, report.xhat):
+        assert np.all(box.lower <= point) and np.all(point <= box.upper)
+    assert abs(report.u[0]) == pytest.approx(3.0)
+    # The reported point reproduces the rate from the dynamics alone.
+    if report.direction is not None:
+        xhat = report.x - 1e-6 * report.direction
+    else:
+        xhat = report.xhat
+    again = error_rates(
+        paper_design, two_state, report.x[:, None], xhat[:, None], report.u[:, None]
+    )
+    assert again[0] == pytest.approx(report.worst_rate, rel=1e-3)
+    assert "falsified: r = +" in report.summary_line()
+
+
+def test_sound_two_state_design_is_not_falsified(two_state, sound_design):
+    report = verify_observer(sound_design, two_state, seed=0)
+    assert not report.falsified
+    assert report.worst_rate <= report.claimed_rate
+    assert report.violating_fraction == 0.0 and report.finite_violating_fraction == 0.0
+    assert "not falsified" in report.summary_line()
+
+
+def test_sound_coupled_design_is_not_falsified():
+    scenario = load_scenario(MIMO_SCENARIO)
+    system = make_system(scenario.system)
+    report = verify_observer(design_for(scenario, system), system, seed=0)
+    assert not report.falsified
+    assert report.input_vertices == 9  # 3**m, m = 2
+    assert report.worst_rate <= report.claimed_rate
+
+
+def test_sampling_alone_finds_the_paper_counterexample(two_state, paper_design):
+    report = verify_observer(paper_design, two_state, samples=2000, seed=5, refine=False)
+    assert report.falsified and not report.refined
+
+
+def test_report_is_json_ready(two_state, sound_design):
+    data = json.loads(json.dumps(verify_observer(sound_design, two_state, samples=200).to_dict()))
+    assert data["falsified"] is False
+    assert data["claimed_rate"] == pytest.approx(-2 * sound_design.alpha)
+    assert data["samples"] == 200 and data["seed"] == 0
+    assert data["jacobians"] == "symbolic"
+    assert data["summary"].startswith("claims alpha = 0.9")
+
+
+# ---------------------------------------------------------------- errors
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"samples": 0}, r"samples must be an integer >= 1; got 0"),
+        ({"samples": 1.5}, r"samples must be an integer >= 1; got 1.5"),
+        ({"seed": -1}, r"seed must be an integer >= 0; got -1"),
+        ({"starts": -2}, r"starts must be an integer >= 0; got -2"),
+        ({"tol": float("nan")}, r"tol must be a finite number >= 0; got nan"),
+    ],
+)
+def test_bad_arguments_raise(two_state, sound_design, kwargs, match):
+    with pytest.raises(VerificationError, match=match):
+        verify_observer(sound_design, two_state, **kwargs)
+
+
+def test_a_design_without_positive_definite_P_has_nothing_to_verify(two_state, sound_design):
+    bad = ObserverDesign.from_gains(
+        two_state,
+        sound_design.box,
+        3.0,
+        0.5,
+        L=sound_design.L,
+        H=sound_design.H,
+        K=sound_design.K,
+        P=-np.eye(2),
+        bounds=sound_design.bounds,
+    )
+    with pytest.raises(VerificationError, match=r"design.P is not positive definite"):
+        verify_observer(bad, two_state)
+
+
+def test_something_that_is_not_a_design_raises(two_state):
+    with pytest.raises(VerificationError, match=r"design must be an ObserverDesign"):
+        verify_observer(object(), two_state)
