@@ -184,6 +184,39 @@ class ControlAffineSystem:
         """``C x``."""
         return self._C @ x
 
+    # ------------------------------------------------------------ from Drake
+    @classmethod
+    def from_drake(
+        cls, system: Any, C: Any, input_port: int | str = 0, **options: Any
+    ) -> ControlAffineSystem:
+        """A model of a Drake ``System``, extracted with symbolic scalars.
+
+        Delegates to :func:`ofrl_drake.drake_models.from_drake` (see there for
+        the options, the affinity checks and the errors); ``f`` and ``g`` are
+        ``pydrake.symbolic`` expressions and ``source`` keeps the system.
+
+        Examples
+        --------
+        >>> from pydrake.examples import PendulumPlant
+        >>> ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]]).n
+        2
+        """
+        from ofrl_drake.drake_models import from_drake
+
+        return from_drake(system, C, input_port, **options)
+
+    @classmethod
+    def from_multibody(cls, model: Any, C: Any = None, **options: Any) -> ControlAffineSystem:
+        """A model of a multibody plant: state ``[q; v]``, input the actuation.
+
+        Delegates to :func:`ofrl_drake.drake_models.from_multibody` (see there);
+        ``model`` is a file path, a ``package://`` URL or a finalized continuous
+        ``MultibodyPlant``, and ``C`` defaults to measuring the positions.
+        """
+        from ofrl_drake.drake_models import from_multibody
+
+        return from_multibody(model, C, **options)
+
     # ------------------------------------------------------ operating points
     def shifted(
         self, x_eq: Any, u_eq: Any | None = None, *, tol: float = EQUILIBRIUM_TOL

@@ -1,0 +1,556 @@
+"""Control-affine models from Drake systems and multibody models.
+
+Two routes turn a Drake model into a :class:`~ofrl_drake.model.ControlAffineSystem`
+whose ``f`` and ``g`` are ``pydrake.symbolic`` expressions
+(:class:`~ofrl_drake.expression_function.ExpressionFunction`), so they evaluate
+over ``(n, N)`` batches, differentiate symbolically and admit certified
+Jacobian bounds:
+
+* :func:`from_drake`: any Drake ``System`` with one continuous state vector and
+  a vector input that supports the symbolic scalar type (``ToSymbolic``).
+  ``f(x) = xdot(x, u = 0)`` and ``g(x) = d xdot / d u`` come from the
+  symbolic ``EvalTimeDerivatives``.
+* :func:`from_multibody`: a model file, a ``package://`` URL or a finalized
+  continuous ``MultibodyPlant``. ``f = [v; M^-1 (tau_g + tau_app - C(q, v) v)]``
+  and ``g = [0; M^-1 B]`` are assembled from ``CalcMassMatrix``,
+  ``CalcBiasTerm``, ``CalcGravityGeneralizedForces``, the joint damping and
+  ``MakeActuationMatrix`` on the symbolic plant.
+
+The system keeps where it came from in ``source`` (:class:`DrakeSystemSource`
+or :class:`MultibodySource`) so blocks can use the Drake model itself, e.g. to
+draw it.
+
+>>> from pydrake.examples import PendulumPlant
+>>> from ofrl_drake.model import ControlAffineSystem
+>>> pendulum = ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]])
+>>> (pendulum.n, pendulum.m, pendulum.q)
+(2, 1, 1)
+>>> cart_pole = ControlAffineSystem.from_multibody(
+...     "package://drake/examples/multibody/cart_pole/cart_pole.sdf")
+>>> (cart_pole.n, cart_pole.m, cart_pole.q)
+(4, 1, 2)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydrake.symbolic import Expression, Jacobian, MakeVectorVariable, Variable
+from pydrake.systems.framework import InputPort, PortDataType, System
+
+from ofrl_drake.errors import ModelError
+from ofrl_drake.expression_function import ExpressionFunction
+from ofrl_drake.model import ControlAffineSystem
+
+__all__ = [
+    "AFFINITY_POINTS",
+    "AFFINITY_RTOL",
+    "DrakeSystemSource",
+    "MultibodySource",
+    "from_drake",
+    "from_multibody",
+]
+
+#: Random (x, u) points at which the extracted f + g u is compared with the
+#: system's own double-precision ``EvalTimeDerivatives``.
+AFFINITY_POINTS = 20
+#: Relative tolerance of that comparison: ``|xdot - (f + g u)| <= rtol (1 + |xdot|)``.
+AFFINITY_RTOL = 1e-8
+
+
+@dataclass(frozen=True, eq=False)
+class DrakeSystemSource:
+    """The Drake system a :func:`from_drake` model was extracted from.
+
+    Attributes
+    ----------
+    system : System
+        The system as given (double scalar type).
+    input_port : str
+        Name of its input port that is ``u``.
+    fixed_inputs : dict of str to ndarray
+        Every other vector input port, by name, with the value it was held at
+        while extracting ``f`` and ``g`` (zeros); a block that runs ``system``
+        must feed these ports the same values.
+    state_size : int
+        ``n``.
+    """
+
+    system: System
+    input_port: str
+    fixed_inputs: dict[str, np.ndarray] = field(default_factory=dict)
+    state_size: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class MultibodySource:
+    """The multibody model a :func:`from_multibody` model was built from.
+
+    Attributes
+    ----------
+    plant : MultibodyPlant
+        The finalized double plant the equations come from.
+    model : str or None
+        The file path or ``package://`` URL it was parsed from, or None when a
+        plant was given; re-parse it next to a ``SceneGraph`` to draw the model.
+    position_names, velocity_names, actuator_names : tuple of str
+        Names of the entries of ``q``, ``v`` and ``u``, in order.
+    """
+
+    plant: Any
+    model: str | None
+    position_names: tuple[str, ...] = ()
+    velocity_names: tuple[str, ...] = ()
+    actuator_names: tuple[str, ...] = ()
+
+
+# ------------------------------------------------------------- Drake systems
+def _resolve_input_port(system: System, input_port: int | str) -> InputPort:
+    names = [system.get_input_port(i).get_name() for i in range(system.num_input_ports())]
+    if not names:
+        raise ModelError(
+            f"{system.get_name() or type(system).__name__} has no input port; "
+            "from_drake needs a vector input u."
+        )
+    if isinstance(input_port, str):
+        if not system.HasInputPort(input_port):
+            raise ModelError(
+                f"input_port {input_port!r} is not an input port of the system; "
+                f"choose one of {names}."
+            )
+        port = system.GetInputPort(input_port)
+    else:
+        if int(input_port) != input_port or not 0 <= input_port < len(names):
+            raise ModelError(
+                f"input_port {input_port!r} is out of range; the system has input "
+                f"ports {names} (index 0..{len(names) - 1}, or give the name)."
+            )
+        port = system.get_input_port(int(input_port))
+    if port.get_data_type() != PortDataType.kVectorValued:
+        raise ModelError(
+            f"input_port {port.get_name()!r} is abstract-valued; u must be a vector port."
+        )
+    return port
+
+
+def _check_output_matrix(label: str, C: Any, n: int) -> None:
+    """A clear error when C does not have one column per state."""
+    try:
+        shape = np.shape(np.asarray(C, dtype=float))
+    except (TypeError, ValueError):
+        return  # ControlAffineSystem names the bad entries
+    if len(shape) == 2 and shape[1] != n:
+        raise ModelError(
+            f"{label}: C has {shape[1]} columns but the system has n = {n} states; "
+            f"give C one column per state (shape (q, {n}))."
+        )
+
+
+def _system_label(system: System) -> str:
+    return system.get_name() or type(system).__name__
+
+
+def from_drake(
+    system: System,
+    C: Any,
+    input_port: int | str = 0,
+    *,
+    name: str | None = None,
+    check_points: int = AFFINITY_POINTS,
+    seed: int = 0,
+) -> ControlAffineSystem:
+    """A control-affine model of a Drake system, extracted symbolically.
+
+    The system is converted with ``ToSymbolic()``; its default context (so
+    its default parameters) gets symbolic state ``x``, input ``u`` and time
+    ``t``, every other vector input port is held at zero, and
+    ``EvalTimeDerivatives`` gives ``xdot(x, u)``. Then
+    ``f(x) = xdot(x, 0)`` and ``g(x) = d xdot / d u``.
+
+    Affinity in ``u`` is checked twice: symbolically (``d xdot / d u`` must not
+    depend on ``u``), and numerically, by comparing ``f(x) + g(x) u`` with the
+    system's own double-precision ``EvalTimeDerivatives`` at ``check_points``
+    random ``(x, u)`` (standard normal, seeded), to a relative
+    :data:`AFFINITY_RTOL`.
+
+    Parameters
+    ----------
+    system : pydrake.systems.framework.System
+        One continuous state vector (no discrete or abstract state), a vector
+        input, and support for the symbolic scalar type; for example
+        ``pydrake.examples.PendulumPlant()``.
+    C : array_like, shape (q, n)
+        Output matrix, ``y = C x``.
+    input_port : int or str
+        The input port that is ``u``, by index or name.
+    name : str, optional
+        The model's name; defaults to the system's name or class name.
+    check_points : int
+        Random points of the numerical check.
+    seed : int
+        Seed of those points.
+
+    Returns
+    -------
+    ControlAffineSystem
+        With ``source`` a :class:`DrakeSystemSource`.
+
+    Raises
+    ------
+    ModelError
+        If the system does not support symbolic scalars, has other kinds of
+        state, time-varying dynamics, no such vector input port, dynamics that
+        are not affine in ``u`` (the message names the state rows), or if
+        ``C`` does not fit.
+    """
+    label = name or _system_label(system)
+    if not isinstance(system, System):
+        raise ModelError(f"from_drake needs a Drake System; got {type(system).__name__}.")
+    try:
+        symbolic = system.ToSymbolic()
+    except Exception as err:
+        raise ModelError(
+            f"{label}: the system does not support the symbolic scalar type "
+            f"({type(err).__name__}: {str(err).splitlines()[0]}); from_drake needs "
+            "ToSymbolic(). Write f and g in numpy and use ControlAffineSystem(f, g, C) "
+            "instead."
+        ) from err
+    port = _resolve_input_port(system, input_port)
+    context = symbolic.CreateDefaultContext()
+    n = context.num_continuous_states()
+    if n == 0 or context.num_discrete_state_groups() or context.num_abstract_states():
+        raise ModelError(
+            f"{label}: from_drake needs exactly one continuous state vector and no "
+            f"discrete or abstract state; the system has {n} continuous states, "
+            f"{context.num_discrete_state_groups()} discrete groups and "
+            f"{context.num_abstract_states()} abstract states."
+        )
+    m = port.size()
+    x = MakeVectorVariable(n, "x")
+    u = MakeVectorVariable(m, "u")
+    t = Variable("t")
+    context.SetTime(Expression(t))
+    context.SetContinuousState([Expression(v) for v in x])
+    sym_port = symbolic.get_input_port(port.get_index())
+    sym_port.FixValue(context, [Expression(v) for v in u])
+    fixed: dict[str, np.ndarray] = {}
+    for i in range(symbolic.num_input_ports()):
+        other = symbolic.get_input_port(i)
+        if i == port.get_index() or other.get_data_type() != PortDataType.kVectorValued:
+            continue
+        fixed[other.get_name()] = np.zeros(other.size())
+        other.FixValue(context, np.zeros(other.size()))
+    try:
+        xdot = np.asarray(symbolic.EvalTimeDerivatives(context).CopyToVector(), dtype=object)
+    except Exception as err:
+        raise ModelError(
+            f"{label}: symbolic EvalTimeDerivatives failed ({type(err).__name__}: "
+            f"{str(err).splitlines()[0]}); the system must compute its derivatives "
+            "from the state and the vector inputs with symbolic scalars."
+        ) from err
+    xdot = np.array([Expression(e) if not isinstance(e, Expression) else e for e in xdot])
+    timed = [i for i, e in enumerate(xdot) if e.GetVariables().include(t)]
+    if timed:
+        raise ModelError(
+            f"{label}: the dynamics depend on time in state rows {timed}; ofrl_drake "
+            "needs a time-invariant plant x' = f(x) + g(x) u."
+        )
+    try:
+        B = Jacobian(xdot, list(u))
+    except RuntimeError as err:
+        raise ModelError(
+            f"{label}: d xdot / d u cannot be taken symbolically ({err}); the "
+            "dynamics must be differentiable in u (and affine: x' = f(x) + g(x) u)."
+        ) from err
+    bad = sorted(
+        {i for i in range(n) for k in range(m) if any(B[i, k].GetVariables().include(v) for v in u)}
+    )
+    if bad:
+        raise ModelError(
+            f"{label}: the dynamics are not affine in u: d xdot / d u depends on u in "
+            f"state rows {bad} (e.g. row {bad[0]}: xdot = {xdot[bad[0]]}); "
+            "ofrl_drake needs x' = f(x) + g(x) u."
+        )
+    zero_u = {v: Expression(0.0) for v in u}
+    f_expr = np.array([e.Substitute(zero_u) for e in xdot], dtype=object)
+    f = ExpressionFunction(f_expr, x)
+    g = ExpressionFunction(B, x)
+    _check_output_matrix(label, C, n)
+    source = DrakeSystemSource(system, port.get_name(), fixed, n)
+    _check_against_double(label, system, port, fixed, f, g, n, m, check_points, seed)
+    return ControlAffineSystem(f, g, C, name=label, source=source)
+
+
+def _check_against_double(
+    label: str,
+    system: System,
+    port: InputPort,
+    fixed: dict[str, np.ndarray],
+    f: ExpressionFunction,
+    g: ExpressionFunction,
+    n: int,
+    m: int,
+    points: int,
+    seed: int,
+) -> None:
+    """Compare f + g u with the double system's derivatives at random points."""
+    rng = np.random.default_rng(seed)
+    X = rng.standard_normal((n, points))
+    U = rng.standard_normal((m, points))
+    context = system.CreateDefaultContext()
+    for name, value in fixed.items():
+        system.GetInputPort(name).FixValue(context, value)
+    fX, gX = f(X), g(X)
+    bad_rows: set[int] = set()
+    worst = (0.0, -1, None)
+    for k in range(points):
+        context.SetContinuousState(X[:, k])
+        port.FixValue(context, U[:, k])
+        xdot = system.EvalTimeDerivatives(context).CopyToVector()
+        model = fX[:, k] + gX[:, :, k] @ U[:, k]
+        err = np.abs(xdot - model)
+        rows = np.flatnonzero(~(err <= AFFINITY_RTOL * (1.0 + np.abs(xdot))))
+        bad_rows.update(int(i) for i in rows)
+        if rows.size and err[rows].max() > worst[0]:
+            worst = (float(err[rows].max()), k, int(rows[np.argmax(err[rows])]))
+    if bad_rows:
+        _, k, row = worst
+        raise ModelError(
+            f"{label}: the dynamics are not affine in u: xdot differs from "
+            f"f(x) + g(x) u in state rows {sorted(bad_rows)} (row {row} by {worst[0]:.3g} "
+            f"at x = {X[:, k].tolist()}, u = {U[:, k].tolist()}); ofrl_drake needs "
+            "x' = f(x) + g(x) u."
+        )
+
+
+# ---------------------------------------------------------- multibody models
+def _load_plant(model: Any) -> tuple[Any, str | None, str]:
+    """The finalized double plant, the model path/URL (or None) and a name."""
+    from pathlib import Path
+
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    if isinstance(model, MultibodyPlant):
+        if not model.is_finalized():
+            raise ModelError(
+                "from_multibody: the MultibodyPlant is not finalized; call plant.Finalize() first."
+            )
+        return model, None, model.get_name() or "multibody_plant"
+    if not isinstance(model, str | Path):
+        raise ModelError(
+            f"from_multibody: model must be a file path, a package:// URL or a "
+            f"MultibodyPlant; got {type(model).__name__}."
+        )
+    text = str(model)
+    plant = MultibodyPlant(time_step=0.0)
+    parser = Parser(plant)
+    try:
+        if "://" in text:
+            parser.AddModels(url=text)
+        else:
+            if not Path(text).is_file():
+                raise ModelError(
+                    f"from_multibody: model file {text!r} does not exist; give an SDF, "
+                    "URDF or MJCF file or a package:// URL."
+                )
+            parser.AddModels(file_name=text)
+        plant.Finalize()
+    except ModelError:
+        raise
+    except Exception as err:
+        raise ModelError(
+            f"from_multibody: cannot load {text!r}: {str(err).splitlines()[0]}"
+        ) from err
+    stem = text.rstrip("/").rsplit("/", 1)[-1].split(".", 1)[0]
+    return plant, text, stem or "multibody_plant"
+
+
+def _solve_spd(M: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``M^-1 R`` for a symbolic symmetric positive definite ``M`` (LDL^T, no pivoting).
+
+    A mass matrix has positive pivots everywhere, so no pivoting is needed and
+    the result is one expression per entry, without square roots.
+    """
+    k = M.shape[0]
+    L = np.empty((k, k), dtype=object)
+    D = np.empty(k, dtype=object)
+    for j in range(k):
+        D[j] = M[j, j] - sum((L[j, i] * L[j, i] * D[i] for i in range(j)), Expression(0.0))
+        for r in range(j + 1, k):
+            s = M[r, j] - sum((L[r, i] * L[j, i] * D[i] for i in range(j)), Expression(0.0))
+            L[r, j] = s / D[j]
+    Y = np.empty(R.shape, dtype=object)
+    for r in range(k):
+        Y[r] = R[r] - sum((L[r, i] * Y[i] for i in range(r)), Expression(0.0) * R[r])
+    X = np.empty(R.shape, dtype=object)
+    for r in reversed(range(k)):
+        X[r] = Y[r] / D[r] - sum((L[i, r] * X[i] for i in range(r + 1, k)), Expression(0.0) * R[r])
+    return X
+
+
+def from_multibody(
+    model: Any,
+    C: Any = None,
+    *,
+    name: str | None = None,
+    check_points: int = AFFINITY_POINTS,
+    seed: int = 0,
+) -> ControlAffineSystem:
+    """A control-affine model of a continuous multibody plant.
+
+    With state ``x = [q; v]`` and input ``u`` the actuation,
+
+        f(x) = [N(q) v; M(q)^-1 (tau_app(q, v) - C(q, v) v)],
+        g(x) = [0; M(q)^-1 B],
+
+    where ``N`` is ``MapVelocityToQDot`` (the identity for revolute and
+    prismatic joints), ``M`` is ``CalcMassMatrix``, ``C(q, v) v`` is
+    ``CalcBiasTerm``, ``B`` is ``MakeActuationMatrix`` and ``tau_app`` is every
+    force the plant's force elements apply: gravity
+    (``CalcGravityGeneralizedForces``) plus the generalized forces of
+    ``CalcForceElementsContribution`` (joint damping) when gravity is the only
+    force element; otherwise ``-CalcInverseDynamics`` at zero acceleration
+    with all the force elements' forces (which covers body forces such as
+    springs between bodies). ``M^-1`` is applied by a symbolic ``LDL^T`` solve.
+
+    Not modelled: contact forces, joint-limit penalty forces and effort
+    limits; a plant with finite position or effort limits is refused.
+    The equations are compared with the plant's own double-precision
+    ``EvalTimeDerivatives`` at ``check_points`` random ``(x, u)``.
+
+    Parameters
+    ----------
+    model : str, pathlib.Path or MultibodyPlant
+        An SDF/URDF/MJCF file, a ``package://`` URL (parsed into a continuous
+        plant without geometry), or a finalized continuous plant.
+    C : array_like, shape (q, n), optional
+        Output matrix; by default the positions ``y = q``.
+    name : str, optional
+        Defaults to the file's stem or the plant's name.
+    check_points : int
+        Random points of the check against ``EvalTimeDerivatives``.
+    seed : int
+        Their seed.
+
+    Returns
+    -------
+    ControlAffineSystem
+        With ``source`` a :class:`MultibodySource`.
+
+    Raises
+    ------
+    ModelError
+        If the model cannot be loaded, the plant is discrete or not finalized,
+        has quaternion (floating) joints, limits, no actuators, or the
+        equations disagree with ``EvalTimeDerivatives``.
+    """
+    plant, path, stem = _load_plant(model)
+    label = name or stem
+    if plant.time_step() != 0.0:
+        raise ModelError(
+            f"{label}: the plant is discrete (time_step = {plant.time_step()}); "
+            "from_multibody needs a continuous plant, MultibodyPlant(time_step=0)."
+        )
+    nq, nv, nu = plant.num_positions(), plant.num_velocities(), plant.num_actuators()
+    if nq != nv:
+        raise ModelError(
+            f"{label}: the plant has {nq} positions but {nv} velocities (a quaternion "
+            "floating body or ball joint); from_multibody needs qdot = N(q) v with as "
+            "many positions as velocities: weld the floating body or use RPY joints."
+        )
+    if nu == 0:
+        raise ModelError(f"{label}: the plant has no actuators, so no input u.")
+    for what, lo, hi in (
+        ("position", plant.GetPositionLowerLimits(), plant.GetPositionUpperLimits()),
+        ("effort", plant.GetEffortLowerLimits(), plant.GetEffortUpperLimits()),
+    ):
+        finite = np.flatnonzero(np.isfinite(lo) | np.isfinite(hi))
+        if finite.size:
+            raise ModelError(
+                f"{label}: the plant has finite {what} limits (entry {int(finite[0])}); "
+                "their penalty forces or saturation are not control-affine. Remove the "
+                f"{what} limits from the model."
+            )
+    # numpy's object loops flag "invalid value" on Drake expressions; harmless.
+    with np.errstate(invalid="ignore"):
+        f, g = _multibody_equations(plant, nq, nv, nu)
+    if C is None:
+        C = np.hstack([np.eye(nq), np.zeros((nq, nv))])
+    _check_output_matrix(label, C, nq + nv)
+    source = MultibodySource(
+        plant,
+        path,
+        tuple(plant.GetPositionNames(False)),
+        tuple(plant.GetVelocityNames(False)),
+        tuple(plant.GetActuatorNames(False)),
+    )
+    _check_multibody(label, plant, f, g, nq + nv, nu, check_points, seed)
+    return ControlAffineSystem(f, g, C, name=label, source=source)
+
+
+def _multibody_equations(
+    plant: Any, nq: int, nv: int, nu: int
+) -> tuple[ExpressionFunction, ExpressionFunction]:
+    """``f`` and ``g`` of :func:`from_multibody` from the symbolic plant."""
+    from pydrake.multibody.tree import MultibodyForces_
+
+    symbolic = plant.ToSymbolic()
+    context = symbolic.CreateDefaultContext()
+    q = MakeVectorVariable(nq, "q")
+    v = MakeVectorVariable(nv, "v")
+    symbolic.SetPositions(context, [Expression(s) for s in q])
+    symbolic.SetVelocities(context, [Expression(s) for s in v])
+    qdot = np.asarray(symbolic.MapVelocityToQDot(context, [Expression(s) for s in v]))
+    M = np.asarray(symbolic.CalcMassMatrix(context))
+    forces = MultibodyForces_[Expression](symbolic)
+    symbolic.CalcForceElementsContribution(context, forces)
+    if plant.num_force_elements() == 1:  # the gravity field only
+        tau = (
+            np.asarray(symbolic.CalcGravityGeneralizedForces(context))
+            + np.asarray(forces.generalized_forces())
+            - np.asarray(symbolic.CalcBiasTerm(context))
+        )
+    else:
+        zero = [Expression(0.0)] * nv
+        tau = -np.asarray(symbolic.CalcInverseDynamics(context, zero, forces))
+    B = np.asarray(plant.MakeActuationMatrix(), dtype=float)
+    rhs = np.concatenate([tau.reshape(nv, 1), B.astype(object) + Expression(0.0)], axis=1)
+    solved = _solve_spd(M, rhs)
+    f_expr = np.concatenate([qdot, solved[:, 0]])
+    g_expr = np.concatenate([np.full((nq, nu), Expression(0.0), dtype=object), solved[:, 1:]])
+    x = np.concatenate([q, v])
+    return ExpressionFunction(f_expr, x), ExpressionFunction(g_expr, x)
+
+
+def _check_multibody(
+    label: str,
+    plant: Any,
+    f: ExpressionFunction,
+    g: ExpressionFunction,
+    n: int,
+    m: int,
+    points: int,
+    seed: int,
+) -> None:
+    context = plant.CreateDefaultContext()
+    port = plant.get_actuation_input_port()
+    rng = np.random.default_rng(seed)
+    X = rng.standard_normal((n, points))
+    U = rng.standard_normal((m, points))
+    fX, gX = f(X), g(X)
+    for k in range(points):
+        plant.SetPositionsAndVelocities(context, X[:, k])
+        port.FixValue(context, U[:, k])
+        xdot = plant.EvalTimeDerivatives(context).CopyToVector()
+        err = np.abs(xdot - (fX[:, k] + gX[:, :, k] @ U[:, k]))
+        rows = np.flatnonzero(~(err <= AFFINITY_RTOL * (1.0 + np.abs(xdot))))
+        if rows.size:
+            raise ModelError(
+                f"{label}: the assembled equations differ from the plant's "
+                f"EvalTimeDerivatives in state rows {rows.tolist()} (by up to "
+                f"{err[rows].max():.3g} at x = {X[:, k].tolist()}, u = {U[:, k].tolist()}); "
+                "the plant applies a force from_multibody does not model (contact?)."
+            )

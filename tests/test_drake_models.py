@@ -1,0 +1,271 @@
+"""Control-affine models from Drake systems and multibody models."""
+
+import numpy as np
+import pytest
+from pydrake.autodiffutils import ExtractGradient, InitializeAutoDiff
+from pydrake.examples import PendulumParams, PendulumPlant
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import LinearSpringDamper
+from pydrake.symbolic import Expression, MakeVectorVariable
+from pydrake.symbolic import sin as sym_sin
+from pydrake.systems.framework import LeafSystem, LeafSystem_
+from pydrake.systems.primitives import SymbolicVectorSystem
+from pydrake.systems.scalar_conversion import TemplateSystem
+
+from ofrl_drake.drake_models import DrakeSystemSource, MultibodySource
+from ofrl_drake.errors import ModelError
+from ofrl_drake.expression_function import ExpressionFunction
+from ofrl_drake.jacobian_bounds import jacobian_bounds
+from ofrl_drake.model import ControlAffineSystem
+
+CART_POLE = "package://drake/examples/multibody/cart_pole/cart_pole.sdf"
+ACROBOT = "package://drake/examples/acrobot/Acrobot.urdf"
+
+
+# ------------------------------------------------------------------ from_drake
+def _pendulum_closed_form():
+    p = PendulumParams()
+    inertia = p.mass() * p.length() ** 2
+
+    def f(x):
+        return np.array(
+            [
+                x[1],
+                -(p.damping() * x[1] + p.mass() * p.gravity() * p.length() * np.sin(x[0]))
+                / inertia,
+            ]
+        )
+
+    def g(x):
+        return np.array([[0 * x[0]], [1 / inertia + 0 * x[0]]])
+
+    return f, g
+
+
+def test_from_drake_pendulum_matches_closed_form():
+    system = ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]])
+    f, g = _pendulum_closed_form()
+    assert (system.n, system.m, system.q) == (2, 1, 1)
+    assert system.vectorized and system.name == "PendulumPlant"
+    X = np.random.default_rng(0).uniform(-4, 4, size=(2, 50))
+    np.testing.assert_allclose(system.f_batch(X), f(X), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(system.g_batch(X), g(X), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(system.f(X[:, 0]), f(X[:, 0]), rtol=1e-13, atol=1e-13)
+    # Default parameters: m = 1, l = 0.5, b = 0.1, g = 9.81 -> 1 / (m l^2) = 4.
+    np.testing.assert_allclose(system.g(np.zeros(2)), [[0.0], [4.0]], atol=1e-15)
+    assert isinstance(system.source, DrakeSystemSource)
+    assert system.source.input_port == "tau" and system.source.fixed_inputs == {}
+
+
+def test_from_drake_input_port_by_name_and_errors():
+    plant = PendulumPlant()
+    assert ControlAffineSystem.from_drake(plant, [[1.0, 0.0]], input_port="tau").m == 1
+    with pytest.raises(ModelError, match=r"input_port 'torque' is not an input port.*\['tau'\]"):
+        ControlAffineSystem.from_drake(plant, [[1.0, 0.0]], input_port="torque")
+    with pytest.raises(ModelError, match=r"input_port 3 is out of range"):
+        ControlAffineSystem.from_drake(plant, [[1.0, 0.0]], input_port=3)
+    with pytest.raises(ModelError, match=r"C has 3 columns but the system has n = 2 states"):
+        ControlAffineSystem.from_drake(plant, [[1.0, 0.0, 0.0]])
+
+
+@TemplateSystem.define("_Quadratic_")
+def _Quadratic_(T):
+    class Impl(LeafSystem_[T]):
+        """x0' = x1, x1' = u**2 - x0: not affine in u (row 1)."""
+
+        def _construct(self, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self.DeclareContinuousState(2)
+            self._u = self.DeclareVectorInputPort("u", 1)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, converter=converter)
+
+        def DoCalcTimeDerivatives(self, context, derivatives):
+            x = context.get_continuous_state_vector().CopyToVector()
+            u = self._u.Eval(context)
+            derivatives.get_mutable_vector().SetFromVector([x[1], u[0] ** 2 - x[0]])
+
+    return Impl
+
+
+def test_from_drake_non_affine_leaf_system_names_its_row():
+    with pytest.raises(ModelError, match=r"not affine in u.*state rows \[1\]"):
+        ControlAffineSystem.from_drake(_Quadratic_[float](), C=[[1.0, 0.0]])
+
+
+@TemplateSystem.define("_TwoFaced_")
+def _TwoFaced_(T):
+    class Impl(LeafSystem_[T]):
+        """Affine for symbolic scalars, but u**3 in row 1 in double precision."""
+
+        def _construct(self, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self.DeclareContinuousState(2)
+            self._u = self.DeclareVectorInputPort("u", 1)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, converter=converter)
+
+        def DoCalcTimeDerivatives(self, context, derivatives):
+            x = context.get_continuous_state_vector().CopyToVector()
+            u = self._u.Eval(context)[0]
+            push = u**3 if T is float else u
+            derivatives.get_mutable_vector().SetFromVector([x[1], push - x[0]])
+
+    return Impl
+
+
+def test_from_drake_numerical_check_compares_with_the_double_system():
+    # The symbolic check passes (the symbolic path is affine); only the comparison
+    # with the double-precision derivatives can catch the u**3.
+    with pytest.raises(
+        ModelError, match=r"xdot differs from f\(x\) \+ g\(x\) u in state rows \[1\]"
+    ):
+        ControlAffineSystem.from_drake(_TwoFaced_[float](), C=[[1.0, 0.0]])
+
+
+def test_from_drake_refuses_time_varying_and_non_symbolic_systems():
+    x = MakeVectorVariable(1, "x")
+    u = MakeVectorVariable(1, "u")
+    from pydrake.symbolic import Variable
+
+    t = Variable("t")
+    timed = SymbolicVectorSystem(time=t, state=x, input=u, dynamics=[-x[0] + sym_sin(t) * u[0]])
+    with pytest.raises(ModelError, match=r"depend on time in state rows \[0\]"):
+        ControlAffineSystem.from_drake(timed, C=[[1.0]])
+
+    class DoubleOnly(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.DeclareContinuousState(1)
+            self.DeclareVectorInputPort("u", 1)
+
+    with pytest.raises(ModelError, match=r"does not support the symbolic scalar type"):
+        ControlAffineSystem.from_drake(DoubleOnly(), C=[[1.0]])
+
+
+def test_from_drake_holds_other_inputs_at_zero():
+    x = MakeVectorVariable(2, "x")
+    u = MakeVectorVariable(2, "u")
+    sys = SymbolicVectorSystem(state=x, input=u, dynamics=[x[1] + u[1], -x[0] + u[0]])
+    model = ControlAffineSystem.from_drake(sys, C=[[1.0, 0.0]])
+    assert model.m == 2  # one vector input port of size 2
+    np.testing.assert_allclose(model.g(np.zeros(2)), [[0.0, 1.0], [1.0, 0.0]])
+
+
+def test_certified_bounds_on_pendulum_contain_sampled_jacobians():
+    system = ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]])
+    box = ([-1.0, -2.0], [2.0, 2.0])
+    b = jacobian_bounds(system, box, "certified", tol=1e-6)
+    assert b.excess.converged
+    X = np.random.default_rng(3).uniform(box[0], box[1], size=(5000, 2)).T
+    p = PendulumParams()
+    d21 = -p.gravity() / p.length() * np.cos(X[0])  # d f2 / d theta
+    assert b.Mf1[1, 0] <= d21.min() and d21.max() <= b.Mf2[1, 0]
+    np.testing.assert_allclose(b.Mf1[0], [0.0, 1.0]) and np.testing.assert_allclose(
+        b.Mf2[0], [0.0, 1.0]
+    )
+    np.testing.assert_allclose(
+        [b.Mf1[1, 1], b.Mf2[1, 1]], -p.damping() / (p.mass() * p.length() ** 2)
+    )
+    np.testing.assert_array_equal(b.Mg1, 0.0) and np.testing.assert_array_equal(b.Mg2, 0.0)
+    # Bounds are tight: the exact range of -g/l cos over [-1, 2] is [-19.62, 8.165...].
+    assert b.Mf1[1, 0] == pytest.approx(-p.gravity() / p.length(), abs=1e-5)
+    assert b.Mf2[1, 0] == pytest.approx(-p.gravity() / p.length() * np.cos(2.0), abs=1e-5)
+
+
+# ------------------------------------------------------------ ExpressionFunction
+def test_expression_function_types():
+    x = MakeVectorVariable(2, "x")
+    F = ExpressionFunction([[x[0] * x[1]], [sym_sin(x[0]) + 2.0]], x)
+    assert F.shape == (2, 1)
+    z = np.array([0.4, -1.3])
+    J = ExtractGradient(F(InitializeAutoDiff(z).ravel()).ravel())
+    np.testing.assert_allclose(J, [[z[1], z[0]], [np.cos(z[0]), 0.0]], atol=1e-15)
+    y = MakeVectorVariable(2, "y")
+    sym = F(np.array([Expression(y[0]) + 1.0, Expression(y[1])]))
+    assert sym[0, 0].EqualTo((y[0] + 1.0) * y[1])
+    with pytest.raises(ModelError, match=r"shape \(2,\) or \(2, N\)"):
+        F(np.zeros(3))
+
+
+# --------------------------------------------------------------- from_multibody
+def _plant(url):
+    plant = MultibodyPlant(time_step=0.0)
+    Parser(plant).AddModels(url=url)
+    return plant
+
+
+def _check_against_plant(system, plant, points=100, seed=7):
+    context = plant.CreateDefaultContext()
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-np.pi, np.pi, size=(system.n, points))
+    U = rng.uniform(-5, 5, size=(system.m, points))
+    fX, gX = system.f_batch(X), system.g_batch(X)
+    for k in range(points):
+        plant.SetPositionsAndVelocities(context, X[:, k])
+        plant.get_actuation_input_port().FixValue(context, U[:, k])
+        xdot = plant.EvalTimeDerivatives(context).CopyToVector()
+        np.testing.assert_allclose(fX[:, k] + gX[:, :, k] @ U[:, k], xdot, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("url", [CART_POLE, ACROBOT])
+def test_from_multibody_matches_eval_time_derivatives(url):
+    system = ControlAffineSystem.from_multibody(url)
+    plant = _plant(url)
+    plant.Finalize()
+    assert (system.n, system.m, system.q) == (4, 1, 2)
+    np.testing.assert_array_equal(system.output_matrix, np.hstack([np.eye(2), np.zeros((2, 2))]))
+    _check_against_plant(system, plant)
+    assert isinstance(system.source, MultibodySource) and system.source.model == url
+    assert len(system.source.position_names) == 2 and len(system.source.actuator_names) == 1
+
+
+def test_from_multibody_cart_pole_structure():
+    system = ControlAffineSystem.from_multibody(CART_POLE, C=[[1, 0, 0, 0], [0, 1, 0, 0]])
+    assert system.name == "cart_pole"
+    assert system.source.position_names == ("CartSlider_x", "PolePin_q")
+    x = np.array([0.3, 1.1, -0.4, 0.8])
+    np.testing.assert_allclose(system.f(x)[:2], x[2:], atol=0)
+    np.testing.assert_allclose(system.g(x)[:2], 0.0, atol=0)
+    # The upright is an equilibrium; the shifted system has f(0) = 0.
+    upright = system.shifted([0.0, np.pi, 0.0, 0.0], [0.0])
+    np.testing.assert_allclose(upright.f(np.zeros(4)), 0.0, atol=1e-14)
+
+
+def test_from_multibody_with_a_spring_between_bodies_and_a_given_plant():
+    plant = _plant(ACROBOT)
+    link1, link2 = plant.GetBodyByName("upper_link"), plant.GetBodyByName("lower_link")
+    plant.AddForceElement(
+        LinearSpringDamper(link1, [0.0, 0.0, -0.5], link2, [0.0, 0.0, -1.0], 0.5, 30.0, 2.0)
+    )
+    plant.Finalize()
+    system = ControlAffineSystem.from_multibody(plant)
+    assert system.source.model is None and system.source.plant is plant
+    _check_against_plant(system, plant, points=50)
+
+
+def test_from_multibody_errors(tmp_path):
+    with pytest.raises(ModelError, match=r"model file '.*nothing.sdf' does not exist"):
+        ControlAffineSystem.from_multibody(str(tmp_path / "nothing.sdf"))
+    with pytest.raises(ModelError, match=r"model must be a file path.*got int"):
+        ControlAffineSystem.from_multibody(3)
+    with pytest.raises(ModelError, match=r"cannot load 'package://drake/nope.sdf'"):
+        ControlAffineSystem.from_multibody("package://drake/nope.sdf")
+    unfinished = _plant(CART_POLE)
+    with pytest.raises(ModelError, match=r"not finalized; call plant.Finalize\(\)"):
+        ControlAffineSystem.from_multibody(unfinished)
+    discrete = MultibodyPlant(time_step=0.01)
+    Parser(discrete).AddModels(url=CART_POLE)
+    discrete.Finalize()
+    with pytest.raises(ModelError, match=r"discrete \(time_step = 0.01\)"):
+        ControlAffineSystem.from_multibody(discrete)
+    floating = MultibodyPlant(time_step=0.0)
+    from pydrake.multibody.tree import SpatialInertia
+
+    floating.AddRigidBody("ball", SpatialInertia.SolidSphereWithMass(1.0, 0.1))
+    floating.Finalize()
+    with pytest.raises(ModelError, match=r"7 positions but 6 velocities \(a quaternion"):
+        ControlAffineSystem.from_multibody(floating)
