@@ -54,6 +54,7 @@ __all__ = [
     "ClosedLoopParts",
     "build_closed_loop",
     "design_for",
+    "drake_plant",
     "extrapolation_points",
 ]
 
@@ -211,6 +212,20 @@ def _default_block(slot: str, parts: ClosedLoopParts) -> System:
     if slot == "running_cost":
         return RunningCost(parts.Q, parts.r, s.input_bound)
     raise AssertionError(slot)  # pragma: no cover
+
+
+def drake_plant(parts: ClosedLoopParts) -> System:
+    """Plant-slot factory: the model's own multibody plant, running in C++.
+
+    For a system built by ``ControlAffineSystem.from_multibody`` (possibly
+    shifted), ``build_closed_loop(scenario, plant=drake_plant)`` puts a
+    :class:`~ofrl_drake.systems.DrakePlant` in the plant slot instead of the
+    :class:`~ofrl_drake.systems.ControlAffinePlant` that evaluates ``f`` and
+    ``g``; it starts from ``scenario.x0``, whose velocities must be zero.
+    """
+    from ofrl_drake.systems.drake_plant import DrakePlant
+
+    return DrakePlant(parts.system, initial_state=parts.scenario.x0)
 
 
 def build_closed_loop(

@@ -10,6 +10,7 @@ from ofrl_drake.systems.bellman import BellmanExtrapolator
 from ofrl_drake.systems.controller import SaturatedController
 from ofrl_drake.systems.cost import RunningCost
 from ofrl_drake.systems.critic import CriticWeights
+from ofrl_drake.systems.drake_plant import DrakePlant
 from ofrl_drake.systems.gamma import GammaGain
 from ofrl_drake.systems.observer import ThreeGainObserver
 from ofrl_drake.systems.plant import ControlAffinePlant
@@ -19,6 +20,7 @@ __all__ = [
     "BellmanExtrapolator",
     "ControlAffinePlant",
     "CriticWeights",
+    "DrakePlant",
     "FullStateObserver",
     "GammaGain",
     "LinearizedLuenbergerObserver",

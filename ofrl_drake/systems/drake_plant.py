@@ -1,0 +1,122 @@
+"""The plant block as the Drake model itself: a multibody plant running in C++."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pydrake.systems.framework import Diagram, DiagramBuilder, InputPort, OutputPort
+from pydrake.systems.primitives import AffineSystem
+
+from ofrl_drake.drake_models import MultibodySource
+from ofrl_drake.errors import ModelError
+from ofrl_drake.model import ControlAffineSystem, ShiftedSystem
+
+__all__ = ["DrakePlant"]
+
+
+class DrakePlant(Diagram):
+    """The source ``MultibodyPlant`` of a model, with the ports of the plant slot.
+
+    Runs (a clone of) the continuous ``MultibodyPlant`` a model was built from
+    with :meth:`ControlAffineSystem.from_multibody`, in the coordinates of
+    ``system``: for a :class:`~ofrl_drake.model.ShiftedSystem` the input ``u``
+    is the offset ``u - u*`` and the outputs are ``x - x*`` and ``C (x - x*)``.
+    Three stateless ``AffineSystem`` blocks do the shifts:
+
+    * ``add_input_offset``: actuation ``= u + u*``;
+    * ``state_offset``: ``state = x - x*``;
+    * ``output_map``: ``y = C (x - x*)``.
+
+    Only the plant's state is continuous state, so this block and
+    :class:`~ofrl_drake.systems.ControlAffinePlant` are interchangeable in the
+    loop; their trajectories agree to the integrator's accuracy.
+
+    .. pydrake_system::
+
+        name: DrakePlant
+        input_ports:
+        - u
+        output_ports:
+        - y
+        - state
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        A model from :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody`,
+        possibly shifted.
+    initial_state : array_like, shape (n,), optional
+        Default state, in the coordinates of ``system`` (zeros if omitted). It
+        becomes the clone's default positions; a multibody plant has no default
+        velocities, so the initial velocities ``v(0)`` (original coordinates)
+        must be zero.
+
+    Raises
+    ------
+    ModelError
+        If ``system`` was not built from a multibody plant, ``initial_state``
+        has the wrong length, or asks for nonzero initial velocities.
+    """
+
+    def __init__(
+        self, system: ControlAffineSystem, initial_state: Sequence[float] | None = None
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.initial_state = initial_state
+        source = system.source
+        if not isinstance(source, MultibodySource):
+            raise ModelError(
+                f"{system.name}: DrakePlant runs the multibody plant of a model built by "
+                "ControlAffineSystem.from_multibody; this model has none "
+                f"(source = {type(source).__name__}). Use ControlAffinePlant instead."
+            )
+        n, m = system.n, system.m
+        x_eq = system.x_eq if isinstance(system, ShiftedSystem) else np.zeros(n)
+        u_eq = system.u_eq if isinstance(system, ShiftedSystem) else np.zeros(m)
+        z0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
+        if z0.shape != (n,):
+            raise ModelError(
+                f"{system.name}: initial_state must have length n = {n}; got shape {z0.shape}."
+            )
+        x0 = z0 + x_eq
+        plant = source.plant.Clone()
+        nq = plant.num_positions()
+        if np.any(x0[nq:] != 0.0):
+            raise ModelError(
+                f"{system.name}: DrakePlant starts from the plant's default state, whose "
+                f"velocities are zero; the initial velocities are {x0[nq:].tolist()}. Start "
+                "at rest or use ControlAffinePlant, which takes any initial state."
+            )
+        plant.SetDefaultPositions(x0[:nq])
+        builder = DiagramBuilder()
+        self._plant = builder.AddNamedSystem("multibody_plant", plant)
+        offset = builder.AddNamedSystem("add_input_offset", AffineSystem(D=np.eye(m), y0=u_eq))
+        state = builder.AddNamedSystem("state_offset", AffineSystem(D=np.eye(n), y0=-x_eq))
+        C = system.output_matrix
+        output = builder.AddNamedSystem("output_map", AffineSystem(D=C, y0=-C @ x_eq))
+        builder.Connect(offset.get_output_port(), plant.get_actuation_input_port())
+        builder.Connect(plant.get_state_output_port(), state.get_input_port())
+        builder.Connect(plant.get_state_output_port(), output.get_input_port())
+        builder.ExportInput(offset.get_input_port(), "u")
+        builder.ExportOutput(output.get_output_port(), "y")
+        builder.ExportOutput(state.get_output_port(), "state")
+        builder.BuildInto(self)
+
+    @property
+    def plant(self):
+        """The ``MultibodyPlant`` inside (a clone of ``system.source.plant``)."""
+        return self._plant
+
+    def get_u_input_port(self) -> InputPort:
+        """The input ``u`` (size m), relative to ``u*`` for a shifted model."""
+        return self.GetInputPort("u")
+
+    def get_y_output_port(self) -> OutputPort:
+        """The measured output ``y = C (x - x*)`` (size q)."""
+        return self.GetOutputPort("y")
+
+    def get_state_output_port(self) -> OutputPort:
+        """The state ``x - x*`` (size n)."""
+        return self.GetOutputPort("state")

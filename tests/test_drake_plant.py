@@ -1,0 +1,66 @@
+"""DrakePlant: the source multibody plant as the plant block."""
+
+import numpy as np
+import pytest
+from pydrake.examples import PendulumPlant
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+
+from ofrl_drake.errors import ModelError
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.systems import ControlAffinePlant, DrakePlant
+
+CART_POLE = "package://drake/examples/multibody/cart_pole/cart_pole.sdf"
+UPRIGHT = [0.0, np.pi, 0.0, 0.0]
+
+
+def _run(block, u, duration=1.0):
+    builder = DiagramBuilder()
+    plant = builder.AddSystem(block)
+    source = builder.AddSystem(ConstantVectorSource(u))
+    builder.Connect(source.get_output_port(), plant.get_u_input_port())
+    x_log = LogVectorOutput(plant.get_state_output_port(), builder, 0.05)
+    y_log = LogVectorOutput(plant.get_y_output_port(), builder, 0.05)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    simulator.get_mutable_integrator().set_target_accuracy(1e-10)
+    simulator.AdvanceTo(duration)
+    context = simulator.get_context()
+    return x_log.FindLog(context).data(), y_log.FindLog(context).data()
+
+
+def test_drake_plant_ports():
+    system = ControlAffineSystem.from_multibody(CART_POLE, C=[[1, 0, 0, 0], [0, 1, 0, 0]])
+    block = DrakePlant(system.shifted(UPRIGHT))
+    assert [block.get_input_port(i).get_name() for i in range(block.num_input_ports())] == ["u"]
+    names = [block.get_output_port(i).get_name() for i in range(block.num_output_ports())]
+    assert sorted(names) == ["state", "y"]
+    assert block.get_u_input_port().size() == 1
+    assert block.get_y_output_port().size() == 2 and block.get_state_output_port().size() == 4
+    assert block.num_continuous_states() == 4
+    assert block.plant is not system.source.plant  # a clone; the model's plant is untouched
+
+
+def test_drake_plant_matches_the_python_plant_in_shifted_coordinates():
+    system = ControlAffineSystem.from_multibody(CART_POLE, C=[[1, 0, 0, 0], [0, 1, 0, 0]])
+    upright = system.shifted(UPRIGHT, [0.0])
+    z0 = [0.2, 0.15, 0.0, 0.0]
+    x_drake, y_drake = _run(DrakePlant(upright, initial_state=z0), [3.0])
+    x_model, y_model = _run(ControlAffinePlant(upright, initial_state=z0), [3.0])
+    np.testing.assert_allclose(x_drake[:, 0], z0, atol=0)
+    np.testing.assert_allclose(x_drake, x_model, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(y_drake, y_model, rtol=0, atol=1e-6)
+    # The pole falls away from the upright: the run did move.
+    assert abs(x_drake[1, -1]) > 1.0
+
+
+def test_drake_plant_errors():
+    pendulum = ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]])
+    with pytest.raises(ModelError, match=r"has none \(source = DrakeSystemSource\)"):
+        DrakePlant(pendulum)
+    system = ControlAffineSystem.from_multibody(CART_POLE)
+    with pytest.raises(ModelError, match=r"initial velocities are \[0.0, 0.5\]"):
+        DrakePlant(system, initial_state=[0.0, 0.1, 0.0, 0.5])
+    with pytest.raises(ModelError, match=r"initial_state must have length n = 4"):
+        DrakePlant(system, initial_state=[0.0, 0.1])
