@@ -9,22 +9,76 @@ evaluates that list with numpy operations on whole arrays:
 * :meth:`ExpressionEvaluator.interval` evaluates over ``B`` axis-aligned boxes
   at once, in interval arithmetic.
 
-The interval arithmetic is *outward-safe*: every computed lower end is rounded
-down and every upper end rounded up (by a few units in the last place, more for
-library functions than for the correctly rounded ``+ - * /``), ``sin``/``cos``
-find their extrema by range reduction with a slack that can only add an
-extremum, and ``tan`` returns the whole line when a pole may lie inside. So the
-returned interval contains the value of the expression at every point of the
-box. Functions that are defined on part of a box only (``log``, ``sqrt``,
-``asin``, ``acos``, a real power) are enclosed over that part, as in IEEE 1788;
-a box wholly outside the domain raises :class:`IntervalDomainError`.
+What the interval evaluation guarantees
+---------------------------------------
+For every box, the returned ``[lo, hi]`` contains the real value of the
+expression at every point of the box where it is defined, where the expression
+is the tree Drake stores and each stored constant stands for every real number
+within one ulp of it (see *Constants*). In particular:
 
-Supported kinds: ``Constant``, ``Var``, ``Add``, ``Mul``, ``Div``, ``Pow``
-(integer and real exponents, variable exponents on positive bases), ``Exp``,
-``Log``, ``Sqrt``, ``Sin``, ``Cos``, ``Tan``, ``Asin``, ``Acos``, ``Atan``,
-``Sinh``, ``Cosh``, ``Tanh``, ``Abs``, ``Min``, ``Max``, ``Ceil``, ``Floor``;
-``Atan2`` at points only. Anything else raises
-:class:`UnsupportedExpressionError`, naming the function and the expression.
+* Ends are rounded outward: one ulp for the correctly rounded ``+ - * /``, eight
+  for numpy's library functions (accurate to a few ulp). A lower end never is
+  +inf and an upper end never -inf: an end that overflows becomes the largest
+  finite double, or the infinity on the outward side (IEEE 1788). Division is
+  done by its case table, never as ``a * (1 / b)``; integer powers call ``pow``
+  at the ends, never ``1 / x**k``.
+* No end is NaN. ``0 * inf`` is 0 for sets; the other indeterminate forms
+  cannot arise because of the rule on infinite ends, and a stray NaN in the
+  rounding step would become the outward infinity.
+* ``sin``/``cos`` find their extrema by range reduction with a slack that can
+  only add an extremum (arguments beyond 1e12 give [-1, 1]); ``tan`` gives the
+  whole line when a pole may be inside.
+* Functions defined on part of a box only (``log``, ``sqrt``, ``asin``,
+  ``acos``, a real power) are enclosed over that part, as in IEEE 1788. Values
+  at a pole (``1/x``, ``x**-k`` at 0) are undefined: the side of the pole the
+  box reaches is unbounded, and a divisor box ``[0, 0]`` gives the whole line.
+* ``pow(x, y)`` is enclosed wherever numpy and Drake define it: ``x**k`` for an
+  integer constant ``k`` of any magnitude (handled as an integer, also above
+  2**31) on any base; otherwise on ``x >= 0`` for every ``y``, and on ``x < 0``
+  at the integers the exponent box holds (a variable or widened exponent).
+* A point value of ``inf`` (numpy's overflow) lies inside when the real value
+  is beyond the largest double: ``exp(710)`` encloses as ``[1.797e308, inf]``.
+
+Constants
+---------
+Drake folds constant subexpressions into one double while it builds an
+expression (``-x - 0.1 * x`` is stored as ``-1.1000000000000001 * x``, the
+derivative of ``x / 3`` as the double nearest 1/3), so a stored constant may
+carry the rounding error of a fold that cannot be seen afterwards. Every stored
+constant (a ``Constant``, the constant term of a sum, the constant factor of a
+product, an exponent) is therefore widened to ``[nextafter(c, -inf),
+nextafter(c, inf)]``, which holds the exact result of any fold with one
+rounding, except when ``c`` is a multiple of ``2**-10`` with ``|c| <= 2**20``
+(integers, halves, quarters, ...). Those are taken as exact: they are the
+constants written exactly (exponents, polynomial coefficients, ``0.5``), their
+sums stay exact in this range, and keeping them points keeps the
+enclosures of constant Jacobian entries points. Constants ``+-inf`` stand for
+``[max double, inf]`` and ``[-inf, -max double]``.
+
+Not guaranteed: a fold whose accumulated error exceeds one ulp of its result
+(``x + 1e16 + 1 - 1e16`` is stored as ``x``), a fold of other numbers whose
+result rounds onto an exact constant or cancels away (``10 * (0.1 * x)`` is
+stored as ``x``, though ``10 * 0.1`` is 1 + 5.6e-17 exactly), and anything
+outside the tree Drake stores (the user's decimal literals are the doubles
+Python gives them).
+
+Refused
+-------
+* Kinds other than the supported ones (below), Drake's ``NaN`` kind (what
+  Drake folds an undefined constant to, e.g. ``sin(inf)``) and a variable not
+  in ``variables``: :class:`UnsupportedExpressionError` when the evaluator is
+  built, naming the function and the expression. ``Atan2`` evaluates at points
+  only; :meth:`ExpressionEvaluator.interval` refuses it the same way.
+* A box on which some function has no defined value at all (``log`` of
+  ``[-2, -1]``, ``pow(x, 0.5)`` or ``pow(x, y)`` with ``x < 0`` and no integer
+  ``y``): :class:`IntervalDomainError`.
+* Boxes with a NaN corner, ``lower > upper``, or no real point (``lower = +inf``
+  or ``upper = -inf``): :class:`~ofrl_drake.errors.ModelError`.
+
+Supported kinds: ``Constant``, ``Var``, ``Add``, ``Mul``, ``Div``, ``Pow``,
+``Exp``, ``Log``, ``Sqrt``, ``Sin``, ``Cos``, ``Tan``, ``Asin``, ``Acos``,
+``Atan``, ``Sinh``, ``Cosh``, ``Tanh``, ``Abs``, ``Min``, ``Max``, ``Ceil``,
+``Floor``; ``Atan2`` at points only.
 """
 
 from __future__ import annotations
@@ -55,6 +109,12 @@ _ULP_ARITH = 1
 _ULP_LIBM = 8
 # Beyond this magnitude, range reduction of sin/cos/tan is not trusted.
 _TRIG_MAX_ARG = 1e12
+_MAX = float(np.finfo(float).max)
+_MAX_ULP = 2.0**971  # the gap below the largest double
+# Constants that are multiples of 2**-10 of magnitude at most 2**20 are taken as
+# exact; every other stored constant is widened by one ulp each way.
+_EXACT_SCALE = 1024.0
+_EXACT_MAX = 2.0**20
 
 _POINT_KINDS = {
     "Constant",
@@ -135,37 +195,66 @@ def _as_interval(v: Interval | float) -> Interval:
 
 
 # --------------------------------------------------------------------- rounding
+def _ulp(x: np.ndarray) -> np.ndarray:
+    """The gap from finite ``x`` to the next double away from zero (``2**971`` at the top)."""
+    return np.where(np.abs(x) == _MAX, _MAX_ULP, np.abs(np.spacing(x)))
+
+
 def _down(x: np.ndarray, ulps: int) -> np.ndarray:
+    """Round a computed lower end down by ``ulps`` units in the last place.
+
+    A lower end that overflowed to +inf becomes the largest finite double (the
+    exact value is larger still, but it is a real number, so +inf would be
+    wrong); a NaN, which the kernels never produce, would become -inf.
+    """
     x = np.asarray(x, dtype=float)
-    with np.errstate(invalid="ignore"):
-        step = np.abs(np.spacing(x))
-    return np.where(np.isfinite(x), x - ulps * step, x)
+    x = np.where(x == np.inf, _MAX, np.where(np.isnan(x), -np.inf, x))
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.where(np.isfinite(x), x - ulps * _ulp(x), x)
 
 
 def _up(x: np.ndarray, ulps: int) -> np.ndarray:
+    """Round a computed upper end up (the mirror image of :func:`_down`)."""
     x = np.asarray(x, dtype=float)
-    with np.errstate(invalid="ignore"):
-        step = np.abs(np.spacing(x))
-    return np.where(np.isfinite(x), x + ulps * step, x)
+    x = np.where(x == -np.inf, -_MAX, np.where(np.isnan(x), np.inf, x))
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.where(np.isfinite(x), x + ulps * _ulp(x), x)
 
 
-def _nan_to(x: np.ndarray, value: float) -> np.ndarray:
-    return np.where(np.isnan(x), value, x)
+def _is_exact_constant(c: float) -> bool:
+    """Whether a stored constant is taken as exact (see the module docstring)."""
+    return abs(c) <= _EXACT_MAX and float(c * _EXACT_SCALE).is_integer()
+
+
+def _constant_interval(c: float) -> tuple[float, float]:
+    """The enclosure of a constant as Drake stores it (Drake keeps NaN as its own kind)."""
+    if c == np.inf:
+        return _MAX, np.inf
+    if c == -np.inf:
+        return -np.inf, -_MAX
+    if _is_exact_constant(c):
+        return c, c
+    return float(np.nextafter(c, -np.inf)), float(np.nextafter(c, np.inf))
 
 
 # ------------------------------------------------------------ interval kernels
 def _i_add(a: Interval, b: Interval) -> Interval:
-    with np.errstate(invalid="ignore"):
-        lo = _nan_to(a.lo + b.lo, -np.inf)
-        hi = _nan_to(a.hi + b.hi, np.inf)
+    # Ends are never +inf (lower) or -inf (upper), so inf - inf cannot occur.
+    with np.errstate(over="ignore"):
+        lo = a.lo + b.lo
+        hi = a.hi + b.hi
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
 
-def _i_scale(c: float, a: Interval) -> Interval:
-    if c == 0.0:
+def _i_scale(c_lo: float, c_hi: float, a: Interval) -> Interval:
+    """``[c_lo, c_hi] * a``, with a fast path for an exact finite constant."""
+    if c_lo == c_hi == 0.0:
         zero = np.zeros(np.broadcast(a.lo, a.hi).shape)
         return Interval(zero, zero.copy())
-    with np.errstate(invalid="ignore", over="ignore"):
+    if c_lo != c_hi or not np.isfinite(c_lo):
+        return _i_mul(Interval(np.asarray(c_lo), np.asarray(c_hi)), a)
+    c = c_lo
+    with np.errstate(over="ignore"):
         lo, hi = (c * a.lo, c * a.hi) if c > 0 else (c * a.hi, c * a.lo)
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
@@ -179,19 +268,41 @@ def _i_mul(a: Interval, b: Interval) -> Interval:
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
 
-def _i_recip(a: Interval) -> Interval:
-    lo, hi = np.broadcast_arrays(a.lo, a.hi)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        r_lo = 1.0 / hi
-        r_hi = 1.0 / lo
-    pos = lo > 0
-    neg = hi < 0
-    # [0, b] -> [1/b, inf]; [a, 0] -> [-inf, 1/a]; a straddle -> everything.
-    lo_zero = (lo == 0) & (hi > 0)
-    hi_zero = (hi == 0) & (lo < 0)
-    out_lo = np.where(pos | neg | lo_zero, r_lo, -np.inf)
-    out_hi = np.where(pos | neg | hi_zero, r_hi, np.inf)
-    return Interval(_down(out_lo, _ULP_ARITH), _up(out_hi, _ULP_ARITH))
+def _nan_to(x: np.ndarray, value: float) -> np.ndarray:
+    return np.where(np.isnan(x), value, x)
+
+
+def _i_div(a: Interval, b: Interval) -> Interval:
+    """``a / b`` by the IEEE 1788 case table, one correctly rounded quotient per end.
+
+    Never through ``1 / b`` (which overflows for ``|b| < 2**-1024`` although
+    ``a / b`` may be moderate). The ends are never +inf (lower) or -inf (upper),
+    so no quotient below is ``inf / inf`` or ``0 / 0``. Values at ``b = 0`` are
+    undefined; a divisor box ``[0, 0]`` gives the whole line.
+    """
+    alo, ahi, blo, bhi = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (a.lo, a.hi, b.lo, b.hi))
+    )
+    a_ge0, a_le0 = alo >= 0, ahi <= 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        # b > 0
+        pos_lo = np.where(a_ge0, alo / bhi, alo / blo)
+        pos_hi = np.where(ahi >= 0, ahi / blo, ahi / bhi)
+        # b < 0
+        neg_lo = np.where(ahi >= 0, ahi / bhi, ahi / blo)
+        neg_hi = np.where(a_ge0, alo / blo, alo / bhi)
+        # b = [0, bhi] with bhi > 0, and b = [blo, 0] with blo < 0
+        zp_lo = np.where(a_ge0, alo / bhi, -np.inf)
+        zp_hi = np.where(a_le0, ahi / bhi, np.inf)
+        zn_lo = np.where(a_le0, ahi / blo, -np.inf)
+        zn_hi = np.where(a_ge0, alo / blo, np.inf)
+    b_pos, b_neg = blo > 0, bhi < 0
+    b_zp = (blo == 0) & (bhi > 0)
+    b_zn = (bhi == 0) & (blo < 0)
+    a_zero = a_ge0 & a_le0
+    lo = np.select([b_pos, b_neg, a_zero, b_zp, b_zn], [pos_lo, neg_lo, 0.0, zp_lo, zn_lo], -np.inf)
+    hi = np.select([b_pos, b_neg, a_zero, b_zp, b_zn], [pos_hi, neg_hi, 0.0, zp_hi, zn_hi], np.inf)
+    return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
 
 def _i_monotone(fn: Any, a: Interval, increasing: bool = True) -> Interval:
@@ -202,15 +313,21 @@ def _i_monotone(fn: Any, a: Interval, increasing: bool = True) -> Interval:
     return Interval(_down(f_lo, _ULP_LIBM), _up(f_hi, _ULP_LIBM))
 
 
-def _i_even(fn: Any, a: Interval) -> Interval:
-    """For ``fn`` even and increasing on ``[0, inf)`` (``cosh``, ``abs``)."""
+def _i_cosh(a: Interval) -> Interval:
+    """``cosh``: even, increasing on ``[0, inf)``, at least 1."""
     with np.errstate(over="ignore"):
-        f_lo, f_hi = fn(a.lo), fn(a.hi)
-        f0 = fn(np.zeros_like(np.asarray(a.lo, dtype=float)))
+        f_lo, f_hi = np.cosh(a.lo), np.cosh(a.hi)
     straddles = (a.lo < 0) & (a.hi > 0)
-    lo = np.where(straddles, f0, np.minimum(f_lo, f_hi))
-    hi = np.maximum(f_lo, f_hi)
-    return Interval(_down(lo, _ULP_LIBM), _up(hi, _ULP_LIBM))
+    lo = np.where(straddles, 1.0, _down(np.minimum(f_lo, f_hi), _ULP_LIBM))
+    hi = _up(np.maximum(f_lo, f_hi), _ULP_LIBM)
+    return Interval(np.maximum(lo, 1.0), hi)
+
+
+def _i_abs(a: Interval) -> Interval:
+    """``|x|``, exact (no rounding)."""
+    m_lo, m_hi = np.abs(a.lo), np.abs(a.hi)
+    straddles = (a.lo < 0) & (a.hi > 0)
+    return Interval(np.where(straddles, 0.0, np.minimum(m_lo, m_hi)), np.maximum(m_lo, m_hi))
 
 
 def _contains_grid_point(lo: np.ndarray, hi: np.ndarray, offset: float, period: float):
@@ -267,60 +384,113 @@ def _i_tan(a: Interval) -> Interval:
     return Interval(out_lo, out_hi)
 
 
+def _domain_error(
+    name: str, lo: np.ndarray, hi: np.ndarray, outside: np.ndarray, domain: str, expr: str
+):
+    idx = np.flatnonzero(np.broadcast_to(outside, np.shape(lo)).ravel())[0]
+    return IntervalDomainError(
+        f"{name} is evaluated on [{np.ravel(lo)[idx]:.6g}, {np.ravel(hi)[idx]:.6g}], "
+        f"wholly outside its domain {domain}, in expression {expr}; shrink the box "
+        "so the function is defined on it."
+    )
+
+
 def _restrict(a: Interval, lower: float, upper: float, name: str, expr: str):
     """Intersect ``a`` with a function's domain ``[lower, upper]``."""
     lo, hi = np.broadcast_arrays(np.asarray(a.lo, dtype=float), np.asarray(a.hi, dtype=float))
     outside = (hi < lower) | (lo > upper)
     if np.any(outside):
-        idx = np.flatnonzero(outside.ravel())[0]
-        raise IntervalDomainError(
-            f"{name} is evaluated on [{lo.ravel()[idx]:.6g}, "
-            f"{hi.ravel()[idx]:.6g}], wholly outside its domain "
-            f"[{lower:g}, {upper:g}], in expression {expr}; shrink the box so "
-            "the function is defined on it."
-        )
+        raise _domain_error(name, lo, hi, outside, f"[{lower:g}, {upper:g}]", expr)
     return Interval(np.maximum(lo, lower), np.minimum(hi, upper))
 
 
-def _i_pow_int(a: Interval, p: int) -> Interval:
-    if p == 0:
-        one = np.ones(np.broadcast(a.lo, a.hi).shape)
-        return Interval(one, one.copy())
-    k = abs(p)
-    lo, hi = np.broadcast_arrays(np.asarray(a.lo, dtype=float), np.asarray(a.hi, dtype=float))
-    with np.errstate(over="ignore"):
-        p_lo = np.power(lo, k)
-        p_hi = np.power(hi, k)
-    if k % 2 == 1:
-        out = Interval(_down(p_lo, _ULP_LIBM), _up(p_hi, _ULP_LIBM))
-    else:
-        straddles = (lo < 0) & (hi > 0)
-        low = _down(np.minimum(p_lo, p_hi), _ULP_LIBM)
-        # x**k >= 0 for even k: keep the exact 0 and never round below it.
-        low = np.where(straddles, 0.0, np.maximum(low, 0.0))
-        out = Interval(low, _up(np.maximum(p_lo, p_hi), _ULP_LIBM))
-    return out if p > 0 else _i_recip(out)
+def _i_pow_int(a: Interval, k: Any) -> Interval:
+    """``x**k`` for integer-valued (finite, any magnitude) ``k``, a scalar or an array.
+
+    ``pow`` is evaluated at the ends directly (never as ``1 / x**|k|``, which
+    would lose a result near the overflow threshold), and the piecewise
+    monotonicity of ``x**k`` picks the ends. At a pole (``0`` in the box for
+    ``k < 0``) the side of the pole the box reaches is unbounded.
+    """
+    lo, hi, kk = np.broadcast_arrays(
+        np.asarray(a.lo, dtype=float), np.asarray(a.hi, dtype=float), np.asarray(k, dtype=float)
+    )
+    with np.errstate(all="ignore"):
+        p_lo = np.power(lo, kk)
+        p_hi = np.power(hi, kk)
+    odd = np.fmod(kk, 2.0) != 0
+    k_pos, k_neg = kk > 0, kk < 0
+    straddles = (lo < 0) & (hi > 0)
+    has_zero = (lo <= 0) & (hi >= 0)
+    # Even k: x**k is |x|**k, monotone in |x|.
+    even_lo = np.where(k_pos & straddles, 0.0, np.minimum(p_lo, p_hi))
+    even_hi = np.where(k_neg & has_zero, np.inf, np.maximum(p_lo, p_hi))
+    # Odd k > 0: increasing. Odd k < 0: decreasing on each side of the pole.
+    right = (lo == 0) & (hi > 0)  # only the right side of the pole
+    left = (hi == 0) & (lo < 0)  # only the left side
+    odd_lo = np.select([k_pos, ~has_zero, right], [p_lo, p_hi, p_hi], -np.inf)
+    odd_hi = np.select([k_pos, ~has_zero, left], [p_hi, p_lo, p_lo], np.inf)
+    out_lo = _down(np.where(odd, odd_lo, even_lo), _ULP_LIBM)
+    out_hi = _up(np.where(odd, odd_hi, even_hi), _ULP_LIBM)
+    out_lo = np.where(odd, out_lo, np.maximum(out_lo, 0.0))  # even powers are >= 0
+    zero = kk == 0  # x**0 is 1 everywhere (numpy and Drake: also at 0 and inf)
+    return Interval(np.where(zero, 1.0, out_lo), np.where(zero, 1.0, out_hi))
 
 
-def _i_pow_real(a: Interval, p: float, expr: str) -> Interval:
-    d = _restrict(a, 0.0, np.inf, f"pow(., {p:g})", expr)
-    with np.errstate(divide="ignore", over="ignore"):
-        p_lo, p_hi = np.power(d.lo, p), np.power(d.hi, p)
-    if p < 0:
-        p_lo, p_hi = p_hi, p_lo
-    return Interval(np.maximum(_down(p_lo, _ULP_LIBM), 0.0), _up(p_hi, _ULP_LIBM))
+def _corner_powers(x1, x2, y1, y2) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max of ``x**y`` over the corners of ``[x1, x2] x [y1, y2]``, ``x >= 0``.
+
+    For ``x >= 0``, ``x**y`` is monotone in ``x`` for fixed ``y`` and monotone
+    in ``y`` for fixed ``x`` (in directions that may depend on the other), so
+    its extremes over the rectangle are at corners.
+    """
+    with np.errstate(all="ignore"):
+        c = [np.power(x, y) for x in (x1, x2) for y in (y1, y2)]
+    lo = np.minimum(np.minimum(c[0], c[1]), np.minimum(c[2], c[3]))
+    hi = np.maximum(np.maximum(c[0], c[1]), np.maximum(c[2], c[3]))
+    return lo, hi
 
 
 def _i_pow(base: Interval, exponent: Interval, expr: str) -> Interval:
-    e_lo, e_hi = np.asarray(exponent.lo), np.asarray(exponent.hi)
-    if e_lo.ndim == 0 and e_lo == e_hi and np.isfinite(e_lo):
-        p = float(e_lo)
-        if p == np.round(p) and abs(p) <= 2**31:
-            return _i_pow_int(base, int(p))
-        return _i_pow_real(base, p, expr)
-    # General case x**y = exp(y log x), defined for x > 0.
-    log_base = _i_log(base, expr)
-    return _i_monotone(np.exp, _i_mul(exponent, log_base))
+    """``x**y`` wherever numpy and Drake define it.
+
+    Exactly integer constant exponents go to :func:`_i_pow_int`. Otherwise the
+    box splits into ``x >= 0``, where ``x**y`` is defined for every ``y`` (and is
+    enclosed by its corner values), and ``x < 0``, where it is defined only at
+    integer ``y``: for one integer ``k`` in ``[y1, y2]`` that is ``x**k``, for
+    several it is bounded by ``+-max |x|**y`` over the corners. A box where
+    neither part has a defined value raises :class:`IntervalDomainError`.
+    """
+    y_lo = np.asarray(exponent.lo, dtype=float)
+    y_hi = np.asarray(exponent.hi, dtype=float)
+    if y_lo.ndim == 0 and y_lo == y_hi and np.isfinite(y_lo) and float(y_lo).is_integer():
+        return _i_pow_int(base, float(y_lo))
+    lo, hi, y1, y2 = np.broadcast_arrays(
+        np.asarray(base.lo, dtype=float), np.asarray(base.hi, dtype=float), y_lo, y_hi
+    )
+    # x >= 0 (adding 0.0 turns -0.0 into +0.0, so pow(0, odd negative) is +inf).
+    has_pos = hi >= 0
+    p_lo, p_hi = _corner_powers(np.maximum(lo, 0.0) + 0.0, np.maximum(hi, 0.0) + 0.0, y1, y2)
+    p_lo = np.maximum(_down(p_lo, _ULP_LIBM), 0.0)
+    p_hi = _up(p_hi, _ULP_LIBM)
+    # x < 0, integer exponents only.
+    k1, k2 = np.ceil(y1), np.floor(y2)
+    has_neg = (lo < 0) & (k1 <= k2)
+    single = has_neg & (k1 == k2)
+    neg_hi = np.minimum(hi, 0.0)
+    one = _i_pow_int(Interval(lo, neg_hi), np.where(single, k1, 1.0))
+    _, m = _corner_powers(-neg_hi + 0.0, np.maximum(-lo, 0.0), k1, k2)
+    m = _up(m, _ULP_LIBM)
+    n_lo = np.where(single, one.lo, -m)
+    n_hi = np.where(single, one.hi, m)
+    defined = has_pos | has_neg
+    if not np.all(defined):
+        raise _domain_error(
+            "pow", lo, hi, ~defined, "(x >= 0, or x < 0 with an integer exponent)", expr
+        )
+    out_lo = np.minimum(np.where(has_pos, p_lo, np.inf), np.where(has_neg, n_lo, np.inf))
+    out_hi = np.maximum(np.where(has_pos, p_hi, -np.inf), np.where(has_neg, n_hi, -np.inf))
+    return Interval(out_lo, out_hi)
 
 
 def _i_log(a: Interval, expr: str) -> Interval:
@@ -336,6 +506,8 @@ class _Node:
     args: tuple[int, ...]
     value: float = 0.0  # the constant of Constant, Add and Mul nodes
     text: str = ""
+    lo: float = 0.0  # the enclosure of ``value`` (see _constant_interval)
+    hi: float = 0.0
 
 
 class ExpressionEvaluator:
@@ -429,7 +601,8 @@ class ExpressionEvaluator:
         else:
             args = [self._add(self._as_expression(a)) for a in raw_args]
         index = len(self._nodes)
-        self._nodes.append(_Node(kind, tuple(args), value, key))
+        c_lo, c_hi = (value, value) if kind == "Var" else _constant_interval(value)
+        self._nodes.append(_Node(kind, tuple(args), value, key, c_lo, c_hi))
         self._memo.setdefault(key, []).append((e, index))
         return index
 
@@ -542,6 +715,9 @@ class ExpressionEvaluator:
             If an expression uses ``Atan2`` (enclosed at points only).
         IntervalDomainError
             If a function is applied on a box wholly outside its domain.
+        ModelError
+            If the boxes have the wrong shape, ``lower > upper``, a NaN corner,
+            or contain no real point (``lower = +inf`` or ``upper = -inf``).
         """
         unsupported = self._kinds - _INTERVAL_KINDS
         if unsupported:
@@ -551,6 +727,7 @@ class ExpressionEvaluator:
                 f"{node.text}); supported: {', '.join(sorted(_INTERVAL_KINDS))}. "
                 "Use method='sampled' or rewrite f and g with these functions."
             )
+
         lo = np.asarray(lower, dtype=float)
         hi = np.asarray(upper, dtype=float)
         single = lo.ndim == 1
@@ -562,8 +739,14 @@ class ExpressionEvaluator:
                 f"lower and upper must both have shape ({n},) or ({n}, B); got "
                 f"{lo.shape} and {hi.shape}."
             )
+        if np.any(np.isnan(lo2)) or np.any(np.isnan(hi2)):
+            raise ModelError("box corners must not be NaN.")
         if np.any(lo2 > hi2):
             raise ModelError("every box needs lower <= upper.")
+        if np.any(lo2 == np.inf) or np.any(hi2 == -np.inf):
+            raise ModelError(
+                "every box must contain a real point: lower = +inf or upper = -inf is empty."
+            )
         B = lo2.shape[1]
         vals: list[Interval] = []
         for node in self._nodes:
@@ -581,27 +764,27 @@ class ExpressionEvaluator:
         k = node.kind
         a = [vals[i] for i in node.args]
         if k == "Constant":
-            c = np.asarray(node.value)
-            return Interval(c, c)
+            return Interval(np.asarray(node.lo), np.asarray(node.hi))
         if k == "Var":
             i = int(node.value)
             return Interval(lo[i], hi[i])
         if k == "Add":
-            c = np.asarray(node.value)
-            total = Interval(c, c)
-            for term in a:
+            if node.value == 0.0:
+                total, terms = a[0], a[1:]
+            else:
+                total, terms = Interval(np.asarray(node.lo), np.asarray(node.hi)), a
+            for term in terms:
                 total = _i_add(total, term)
             return total
         if k == "Mul":
-            c = np.asarray(node.value)
             if not a:
-                return Interval(c, c)
-            prod = _i_scale(node.value, a[0])
+                return Interval(np.asarray(node.lo), np.asarray(node.hi))
+            prod = _i_scale(node.lo, node.hi, a[0])
             for factor in a[1:]:
                 prod = _i_mul(prod, factor)
             return prod
         if k == "Div":
-            return _i_mul(a[0], _i_recip(a[1]))
+            return _i_div(a[0], a[1])
         if k == "Pow":
             return _i_pow(a[0], a[1], node.text)
         if k in ("Min", "Max"):
@@ -621,17 +804,18 @@ class ExpressionEvaluator:
             d = _restrict(a[0], -1.0, 1.0, k.lower(), node.text)
             fn = np.arcsin if k == "Asin" else np.arccos
             return _i_monotone(fn, d, increasing=k == "Asin")
-        if k in ("Cosh", "Abs"):
-            fn = np.cosh if k == "Cosh" else np.abs
-            out = _i_even(fn, a[0])
-            return Interval(np.maximum(out.lo, 0.0 if k == "Abs" else 1.0), out.hi)
+        if k == "Cosh":
+            return _i_cosh(a[0])
+        if k == "Abs":
+            return _i_abs(a[0])
+        if k in ("Ceil", "Floor"):  # exact, and monotone
+            fn = np.ceil if k == "Ceil" else np.floor
+            return Interval(fn(a[0].lo), fn(a[0].hi))
         monotone = {
             "Exp": np.exp,
             "Atan": np.arctan,
             "Sinh": np.sinh,
             "Tanh": np.tanh,
-            "Ceil": np.ceil,
-            "Floor": np.floor,
         }
         out = _i_monotone(monotone[k], a[0])
         if k == "Exp":
