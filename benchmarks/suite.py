@@ -336,12 +336,12 @@ def lmi_design(scenarios: list[Scenario], settings: Settings) -> list[dict]:
     """The observer LMI through each (backend, solver), Jacobian bounds precomputed."""
     from ofrl_drake.design import design_observer
     from ofrl_drake.errors import OfrlError
-    from ofrl_drake.examples import make_system
     from ofrl_drake.jacobian_bounds import jacobian_bounds
+    from ofrl_drake.plants import resolve_system
 
     rows = []
     for scenario in scenarios:
-        system = make_system(scenario.system)
+        system = resolve_system(scenario)
         o = scenario.observer
         box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
         options: dict[str, Any] = {"jacobian_method": o.jacobian_method}

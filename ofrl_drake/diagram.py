@@ -29,7 +29,7 @@ from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import PointFeatures, point_features
 from ofrl_drake.errors import SwapError
-from ofrl_drake.examples import make_system
+from ofrl_drake.plants import resolve_system
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.points import grid_points, uniform_points
@@ -150,7 +150,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
     """
     from ofrl_drake.design import ObserverDesign, design_observer
 
-    system = system or make_system(scenario.system)
+    system = system or resolve_system(scenario)
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
     if o.L is not None:
@@ -272,7 +272,7 @@ def build_closed_loop(
     if unknown:
         raise SwapError(f"{unknown[0]}: unknown slot; swap one of {list(SLOTS)}.")
     validate_scenario(scenario)
-    system = make_system(scenario.system)
+    system = resolve_system(scenario)
     basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
     Q = np.asarray(scenario.cost.Q, dtype=float)
     r = np.asarray(scenario.cost.R, dtype=float)

@@ -68,8 +68,8 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from ofrl_drake.atomic import atomic_file
 from ofrl_drake.errors import OfrlError
-from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import Scenario
 
 __all__ = [
@@ -429,7 +429,7 @@ def optimal_control(
     solver: str | None = None,
 ) -> OptimalControlResult:
     """``J*`` of ``scenario`` from ``x0`` (default: the scenario's own) over its horizon."""
-    system = make_system(scenario.system)
+    system = resolve_system(scenario)
     return solve_optimal_control(
         system,
         np.asarray(scenario.x0 if x0 is None else x0, dtype=float),

@@ -280,9 +280,9 @@ def validate_scenario(scenario: Scenario) -> None:
     # Imported here: the registry imports model code, the scenario does not need it
     # for parsing.
     from ofrl_drake.basis import PolynomialBasis
-    from ofrl_drake.examples import make_system
+    from ofrl_drake.plants import resolve_system
 
-    system = make_system(scenario.system)
+    system = resolve_system(scenario)
     n, m, q = system.n, system.m, system.q
     _vector("x0", scenario.x0, n)
     _vector("xhat0", scenario.xhat0, n)
@@ -400,6 +400,18 @@ def variant_choices(scenario: Scenario) -> dict[str, str]:
     }
 
 
+def _locate_files(scenario: Scenario, folder: Path) -> None:
+    """Make entries that name files relative to the scenario's folder absolute.
+
+    A ``system: "module:callable"`` whose module lies beside the scenario file
+    becomes ``"/abs/module.py:callable"``, which any process (a Dask worker
+    started elsewhere) can import.
+    """
+    from ofrl_drake.plants import locate_system_entry
+
+    scenario.system = locate_system_entry(scenario.system, folder.resolve())
+
+
 def load_scenario(path: str | Path) -> Scenario:
     """Load and validate a scenario YAML file.
 
@@ -430,6 +442,7 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f"{path}: {err}") from None
     scenario = yaml_load_typed(schema=Scenario, filename=str(path), allow_schema_with_no_yaml=True)
     try:
+        _locate_files(scenario, path.parent)
         validate_scenario(scenario)
     except ScenarioError as err:
         raise ScenarioError(f"{path}: {err}") from None

@@ -33,7 +33,8 @@ def make_system(name: str) -> ControlAffineSystem:
         factory = EXAMPLES[name]
     except KeyError:
         raise ScenarioError(
-            f"system: unknown example {name!r}; choose one of {sorted(EXAMPLES)} "
-            "or register yours with ofrl_drake.examples.register()."
+            f"system: unknown example {name!r}; choose one of {sorted(EXAMPLES)}, "
+            "or name your own plant as 'module.path:callable' (a function of no arguments "
+            "returning a ControlAffineSystem)."
         ) from None
     return factory()

@@ -1,0 +1,212 @@
+"""Which plant a scenario runs: the one place where ``scenario.system`` is resolved.
+
+``system:`` in a scenario is either
+
+* the name of a registered example (:mod:`ofrl_drake.examples`), or
+* an import path ``"module.path:callable"``: a callable that takes no
+  arguments and returns a :class:`~ofrl_drake.model.ControlAffineSystem`.
+  The module is looked up first in the scenario file's folder, then on
+  ``sys.path``. :func:`locate_system_entry` (called by
+  :func:`~ofrl_drake.scenario.load_scenario`) rewrites a module found in the
+  scenario's folder to the absolute file form ``"/abs/path/module.py:callable"``,
+  so the scenario can be shipped to Dask workers that start in any directory.
+
+Every failure (bad entry, missing module or callable, an import error or any
+exception raised inside the user's module, a wrong return type) raises
+:class:`~ofrl_drake.errors.ScenarioError` with a one-line message that names
+the entry.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import re
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from ofrl_drake.errors import ScenarioError
+from ofrl_drake.model import ControlAffineSystem
+
+__all__ = ["is_import_path", "load_callable", "locate_system_entry", "resolve_system"]
+
+_DOTTED = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
+
+
+def is_import_path(entry: str) -> bool:
+    """True if ``entry`` is meant as ``"module.path:callable"`` (it holds a colon)."""
+    return ":" in entry
+
+
+def _one_line(err: BaseException) -> str:
+    text = " ".join(str(err).split())
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def _split(entry: str, key: str) -> tuple[str, str]:
+    """``"module.path:callable"`` or ``"/file.py:callable"`` -> (module, attribute)."""
+    module, sep, attr = entry.rpartition(":")
+    is_file = module.endswith(".py")
+    if not sep or not module or not _DOTTED.match(attr) or not (is_file or _DOTTED.match(module)):
+        raise ScenarioError(
+            f"{key}: {entry!r} is not an import path; write 'module.path:callable' (a module "
+            "beside the scenario file or on sys.path, and a function of no arguments), "
+            "e.g. 'my_plant:make_plant'."
+        )
+    return module, attr
+
+
+def _module_file(module: str, folder: Path) -> Path | None:
+    """``folder/a/b.py`` or ``folder/a/b/__init__.py`` for module ``a.b``, if it exists."""
+    base = folder.joinpath(*module.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate.resolve()
+    return None
+
+
+def locate_system_entry(entry: str, folder: str | Path | None, *, key: str = "system") -> str:
+    """``entry`` with a module found in ``folder`` rewritten to its absolute file.
+
+    Registered names and modules not in ``folder`` are returned unchanged
+    (those are imported from ``sys.path``); a relative file form
+    ``"plants/cart.py:make"`` is made absolute against ``folder``.
+
+    Raises
+    ------
+    ScenarioError
+        If ``entry`` holds a colon but is not a well-formed import path.
+    """
+    if not is_import_path(entry):
+        return entry
+    module, attr = _split(entry, key)
+    if folder is None:
+        return entry
+    folder = Path(folder)
+    if module.endswith(".py"):
+        path = Path(module)
+        return f"{(path if path.is_absolute() else folder / path).resolve()}:{attr}"
+    found = _module_file(module, folder)
+    return entry if found is None else f"{found}:{attr}"
+
+
+def _load_file(path: Path, entry: str, key: str) -> ModuleType:
+    """Import the file ``path`` under a private name, once per process."""
+    if not path.is_file():
+        raise ScenarioError(f"{key}: {entry!r}: no such module file {path}.")
+    digest = hashlib.sha256(str(path).encode()).hexdigest()[:12]
+    stem = re.sub(r"\W", "_", path.stem)
+    name = f"_ofrl_drake_user_{digest}_{stem}"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    # Sibling modules of the file import as they would from a script in its folder.
+    root = str(path.parent)
+    sys.path.insert(0, root)
+    try:
+        spec.loader.exec_module(module)
+    except KeyboardInterrupt:
+        del sys.modules[name]
+        raise
+    except BaseException as err:  # anything the user's module raises, SystemExit included
+        del sys.modules[name]
+        raise ScenarioError(
+            f"{key}: {entry!r}: importing {path} failed: {_one_line(err)}"
+        ) from None
+    finally:
+        if root in sys.path:
+            sys.path.remove(root)
+    return module
+
+
+def _import(module: str, entry: str, key: str) -> ModuleType:
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        if err.name is not None and (module == err.name or module.startswith(err.name + ".")):
+            raise ScenarioError(
+                f"{key}: {entry!r}: no module {module!r} beside the scenario file or on "
+                "sys.path; put the module in the scenario's folder or install it."
+            ) from None
+        raise ScenarioError(
+            f"{key}: {entry!r}: importing {module} failed: {_one_line(err)}"
+        ) from None
+    except KeyboardInterrupt:
+        raise
+    except BaseException as err:
+        raise ScenarioError(
+            f"{key}: {entry!r}: importing {module} failed: {_one_line(err)}"
+        ) from None
+
+
+def load_callable(entry: str, *, key: str = "system") -> Any:
+    """The object named by ``entry`` (``"module.path:name"`` or ``"/file.py:name"``).
+
+    Raises
+    ------
+    ScenarioError
+        If the entry is malformed, the module cannot be found or fails to
+        import, or it has no attribute of that name.
+    """
+    module_name, attr = _split(entry, key)
+    if module_name.endswith(".py"):
+        module = _load_file(Path(module_name), entry, key)
+    else:
+        module = _import(module_name, entry, key)
+    try:
+        return getattr(module, attr)
+    except AttributeError:
+        raise ScenarioError(
+            f"{key}: {entry!r}: module {module_name} has no attribute {attr!r}; "
+            "name a function defined there."
+        ) from None
+
+
+def _call_factory(entry: str, key: str) -> ControlAffineSystem:
+    factory = load_callable(entry, key=key)
+    if not callable(factory):
+        raise ScenarioError(
+            f"{key}: {entry!r} is an object of type {type(factory).__name__}, not a "
+            "callable; name a function of no arguments that returns a ControlAffineSystem."
+        )
+    try:
+        system = factory()
+    except KeyboardInterrupt:
+        raise
+    except BaseException as err:
+        raise ScenarioError(f"{key}: {entry!r} raised {_one_line(err)}") from None
+    if not isinstance(system, ControlAffineSystem):
+        raise ScenarioError(
+            f"{key}: {entry!r} returned an object of type {type(system).__name__}; it "
+            "must return an ofrl_drake.ControlAffineSystem."
+        )
+    return system
+
+
+def system_from_entry(entry: str, *, key: str = "system") -> ControlAffineSystem:
+    """The system named by ``entry``: a registered example or an import path."""
+    if is_import_path(entry):
+        return _call_factory(entry, key)
+    from ofrl_drake.examples import make_system
+
+    return make_system(entry)
+
+
+def resolve_system(scenario: Any) -> ControlAffineSystem:
+    """The :class:`ControlAffineSystem` that ``scenario`` runs.
+
+    Every module that needs the scenario's plant (validation, observer design,
+    diagram, optimal cost) calls this.
+
+    Raises
+    ------
+    ScenarioError
+        Naming the entry, if the system cannot be built.
+    """
+    return system_from_entry(scenario.system)

@@ -1,0 +1,214 @@
+"""User plants named as ``system: "module.path:callable"``, through the CLI and Python."""
+
+import json
+import os
+import re
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_dump, yaml_load
+
+from ofrl_drake import load_scenario
+from ofrl_drake.ablation import read_rows
+from ofrl_drake.cli import main
+from ofrl_drake.errors import ScenarioError
+from ofrl_drake.plants import locate_system_entry, resolve_system
+
+from .conftest import PAPER_SCENARIO, ROOT
+
+#: The paper's plant, written out by a user in their own module.
+USER_PLANT = textwrap.dedent(
+    """
+    import numpy as np
+    from ofrl_drake import ControlAffineSystem
+
+    def f(x):
+        c = np.cos(2 * x[0]) + 2
+        return np.array([-x[0] + x[1], -x[0] - 0.5 * x[1] * (1 - c**2)])
+
+    def g(x):
+        return np.array([[0 * x[0]], [np.cos(2 * x[0]) + 2]])
+
+    def make_plant():
+        return ControlAffineSystem(f, g, [[0.0, 1.0]], name="users_plant")
+
+    def returns_a_number():
+        return 42
+
+    def raises():
+        raise RuntimeError("the user's plant\\nis broken")
+
+    not_a_function = 3
+    """
+)
+
+
+def _scenario(folder, system, duration=1.0):
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["system"] = system
+    data["simulation"]["duration"] = duration
+    path = folder / "scenario.yaml"
+    path.write_text(yaml_dump(data))
+    return path
+
+
+@pytest.fixture
+def plant_folder(tmp_path):
+    folder = tmp_path / "experiment"
+    folder.mkdir()
+    (folder / "users_plant.py").write_text(USER_PLANT)
+    (folder / "fails_on_import.py").write_text("import numpy\n1 / 0\n")
+    (folder / "missing_dependency.py").write_text("import no_such_package_ofrl\n")
+    return folder
+
+
+def _cli(*args, cwd):
+    return subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+    )
+
+
+def test_cli_runs_a_plant_from_a_module_beside_the_scenario(plant_folder, tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    scenario = _scenario(plant_folder, "users_plant:make_plant")
+    out = tmp_path / "out"
+    proc = _cli("run", scenario, "--out", out, "--quiet", cwd=elsewhere)
+    assert proc.returncode == 0, proc.stderr
+    mine = np.load(out / "trajectories.npz")
+    # The same equations as the registered example: the same closed loop.
+    reference = _scenario(tmp_path, "two_state")
+    assert main(["run", str(reference), "--out", str(tmp_path / "ref"), "--quiet"]) == 0
+    ref = np.load(tmp_path / "ref" / "trajectories.npz")
+    np.testing.assert_allclose(mine["x"], ref["x"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(mine["W"], ref["W"], rtol=0, atol=1e-12)
+    assert json.loads((out / "summary.json").read_text())["final_time"] == pytest.approx(1.0)
+
+
+def test_the_module_is_located_once_and_shipped_as_an_absolute_file(plant_folder, monkeypatch):
+    scenario = load_scenario(_scenario(plant_folder, "users_plant:make_plant"))
+    assert scenario.system == f"{(plant_folder / 'users_plant.py').resolve()}:make_plant"
+    # A process that starts in another folder (a Dask worker) builds it too.
+    monkeypatch.chdir(ROOT)
+    assert resolve_system(scenario).name == "users_plant"
+
+
+def test_modules_on_sys_path_and_registered_names_stay_as_written(tmp_path):
+    assert locate_system_entry("ofrl_drake.examples:two_state", tmp_path) == (
+        "ofrl_drake.examples:two_state"
+    )
+    assert locate_system_entry("two_state", tmp_path) == "two_state"
+    scenario = load_scenario(_scenario(tmp_path, "ofrl_drake.examples:two_state"))
+    assert scenario.system == "ofrl_drake.examples:two_state"
+
+
+ERRORS = [
+    (
+        "no_such_module:make_plant",
+        r"system: 'no_such_module:make_plant': no module 'no_such_module' beside the "
+        r"scenario file or on sys.path",
+    ),
+    (
+        "users_plant:no_such_function",
+        r"system: '.*users_plant.py:no_such_function': module .*users_plant.py has no "
+        r"attribute 'no_such_function'",
+    ),
+    (
+        "fails_on_import:make_plant",
+        r"system: '.*fails_on_import.py:make_plant': importing .*fails_on_import.py failed: "
+        r"ZeroDivisionError: division by zero",
+    ),
+    (
+        "missing_dependency:make_plant",
+        r"importing .*missing_dependency.py failed: ModuleNotFoundError: No module named "
+        r"'no_such_package_ofrl'",
+    ),
+    (
+        "users_plant:returns_a_number",
+        r"system: '.*users_plant.py:returns_a_number' returned an object of type int; it must "
+        r"return an ofrl_drake.ControlAffineSystem",
+    ),
+    (
+        "users_plant:raises",
+        r"system: '.*users_plant.py:raises' raised RuntimeError: the user's plant is broken",
+    ),
+    (
+        "users_plant:not_a_function",
+        r"system: '.*users_plant.py:not_a_function' is an object of type int, not a callable",
+    ),
+    ("users_plant:", r"system: 'users_plant:' is not an import path; write 'module.path:callable'"),
+    ("no_such_example", r"system: unknown example 'no_such_example'.*'module.path:callable'"),
+]
+
+
+@pytest.mark.parametrize(("entry", "match"), ERRORS, ids=[e for e, _ in ERRORS])
+def test_bad_entries_raise_a_scenario_error_naming_the_entry(plant_folder, entry, match):
+    with pytest.raises(ScenarioError, match=match):
+        load_scenario(_scenario(plant_folder, entry))
+
+
+@pytest.mark.parametrize(("entry", "match"), ERRORS, ids=[e for e, _ in ERRORS])
+def test_cli_prints_bad_entries_on_one_line_and_exits_2(plant_folder, tmp_path, entry, match):
+    out = tmp_path / "out"
+    proc = _cli("run", _scenario(plant_folder, entry), "--out", out, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: ")
+    assert "scenario.yaml: " in lines[0]
+    assert not list(tmp_path.glob("out*"))
+    assert re.search(match, lines[0]), lines[0]
+    assert "Traceback" not in proc.stderr
+
+
+def _worker_view():
+    """What a worker sees: its folder, and whether the user's module imports by name."""
+    import importlib.util
+
+    return os.getcwd(), importlib.util.find_spec("users_plant") is not None
+
+
+def test_ablate_on_a_dask_cluster_whose_workers_start_elsewhere(
+    plant_folder, tmp_path, capsys, monkeypatch
+):
+    """Workers import the user's module from its absolute path, not from their folder."""
+    from distributed import Client, LocalCluster
+
+    elsewhere = tmp_path / "workers_start_here"
+    elsewhere.mkdir()
+    scenario = _scenario(plant_folder, "users_plant:make_plant")
+    variants = tmp_path / "variants.yaml"
+    variants.write_text("baseline: {}\n")
+    out = tmp_path / "ablation"
+    monkeypatch.chdir(elsewhere)
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        with Client(cluster) as client:
+            views = list(client.run(_worker_view).values())
+        assert views == [(str(elsewhere), False)]
+        code = main(
+            [
+                "ablate",
+                str(scenario),
+                "--out",
+                str(out),
+                "--variants",
+                str(variants),
+                "--scheduler",
+                cluster.scheduler_address,
+            ]
+        )
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert f"wrote {out}: 1 runs (1 ok)" in captured.out
+    (row,) = read_rows(out / "ablation.csv")
+    assert row["status"] == "ok"
+    assert row["optimal_cost"] > 0  # J* solved by the worker, with the user's plant
