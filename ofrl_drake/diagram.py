@@ -29,9 +29,9 @@ from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import PointFeatures, point_features
 from ofrl_drake.errors import SwapError
-from ofrl_drake.plants import resolve_system
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains
+from ofrl_drake.plants import resolve_system
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import Scenario, validate_scenario, variant_choices
 from ofrl_drake.systems import (
