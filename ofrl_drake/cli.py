@@ -119,8 +119,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     s = result.summary()
+    distance = "|x(T)|" if result.x_equilibrium is None else "|x(T) - x*|"
     print(
-        f"wrote {out}: |x(T)| = {s['final_state_norm']:.3g}, "
+        f"wrote {out}: {distance} = {s['final_state_norm']:.3g}, "
         f"|e(T)| = {s['final_estimation_error_norm']:.3g}, J(T) = {s['final_cost']:.4g}, "
         f"{s['wall_time']:.2f} s"
     )

@@ -11,14 +11,26 @@
   scenario's folder to the absolute file form ``"/abs/path/module.py:callable"``,
   so the scenario can be shipped to Dask workers that start in any directory.
 
+A scenario may instead name a Drake plant under ``plant:`` (a multibody model
+file or URL, or a Drake ``System`` by import path, with ``C``), built by
+:meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody` and
+:meth:`~ofrl_drake.model.ControlAffineSystem.from_drake`. With an
+``equilibrium:`` the system is then :meth:`shifted
+<ofrl_drake.model.ControlAffineSystem.shifted>` so that the origin is that
+point.
+
 Every failure (bad entry, missing module or callable, an import error or any
-exception raised inside the user's module, a wrong return type) raises
-:class:`~ofrl_drake.errors.ScenarioError` with a one-line message that names
-the entry.
+exception raised inside the user's module, a wrong return type, a bad
+equilibrium) raises :class:`~ofrl_drake.errors.ScenarioError` with a one-line
+message that names the entry.
+
+Built systems are kept per process (keyed by the scenario's plant entries), so
+validating, designing and wiring one scenario builds its plant once.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib
 import importlib.util
@@ -28,10 +40,17 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from ofrl_drake.errors import ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError
 from ofrl_drake.model import ControlAffineSystem
 
-__all__ = ["is_import_path", "load_callable", "locate_system_entry", "resolve_system"]
+__all__ = [
+    "is_import_path",
+    "load_callable",
+    "locate_model_file",
+    "locate_system_entry",
+    "resolve_system",
+    "system_from_entry",
+]
 
 _DOTTED = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
@@ -198,15 +217,129 @@ def system_from_entry(entry: str, *, key: str = "system") -> ControlAffineSystem
     return make_system(entry)
 
 
+def locate_model_file(model: str, folder: str | Path | None) -> str:
+    """A relative model file made absolute against ``folder``; URLs unchanged."""
+    if not model or "://" in model or folder is None or Path(model).is_absolute():
+        return model
+    return str((Path(folder) / model).resolve())
+
+
+def _drake_system(plant: Any) -> ControlAffineSystem:
+    from pydrake.systems.framework import System
+
+    entry, key = plant.drake_system, "plant.drake_system"
+    factory = load_callable(entry, key=key)
+    if not callable(factory):
+        raise ScenarioError(
+            f"{key}: {entry!r} is an object of type {type(factory).__name__}; name a Drake "
+            "System class or a function of no arguments returning a System."
+        )
+    try:
+        system = factory()
+    except KeyboardInterrupt:
+        raise
+    except BaseException as err:
+        raise ScenarioError(f"{key}: {entry!r} raised {_one_line(err)}") from None
+    if not isinstance(system, System):
+        raise ScenarioError(
+            f"{key}: {entry!r} returned an object of type {type(system).__name__}; it must "
+            "return a Drake System (pydrake.systems.framework.System)."
+        )
+    if plant.C is None:
+        raise ScenarioError(
+            f"plant.C: required with plant.drake_system; give the output matrix y = C x "
+            f"as a list of rows of length {system.num_continuous_states()}."
+        )
+    try:
+        return ControlAffineSystem.from_drake(system, plant.C, plant.input_port or 0)
+    except ModelError as err:
+        raise ScenarioError(f"{key}: {entry!r}: {err}") from None
+
+
+def _multibody(plant: Any) -> ControlAffineSystem:
+    try:
+        return ControlAffineSystem.from_multibody(plant.multibody, plant.C)
+    except ModelError as err:
+        raise ScenarioError(f"plant.multibody: {err}") from None
+
+
+def _base_system(scenario: Any) -> ControlAffineSystem:
+    plant = getattr(scenario, "plant", None)
+    if plant is None:
+        if not scenario.system:
+            raise ScenarioError(
+                "system: missing; name the plant with system: (a registered example or "
+                "'module.path:callable') or with plant: (multibody: or drake_system:)."
+            )
+        return system_from_entry(scenario.system)
+    if scenario.system:
+        raise ScenarioError(
+            f"plant: the scenario names its plant twice (system: {scenario.system!r} and "
+            "plant:); keep one of them."
+        )
+    if bool(plant.multibody) == bool(plant.drake_system):
+        raise ScenarioError(
+            "plant: give exactly one of plant.multibody (a model file or package:// URL) "
+            "and plant.drake_system ('module.path:callable' of a Drake System)."
+        )
+    if plant.input_port and plant.multibody:
+        raise ScenarioError(
+            "plant.input_port: only for plant.drake_system; a multibody plant's input is "
+            "its actuation."
+        )
+    return _multibody(plant) if plant.multibody else _drake_system(plant)
+
+
+def _shift(system: ControlAffineSystem, equilibrium: Any) -> ControlAffineSystem:
+    x, u = list(equilibrium.x), list(equilibrium.u)
+    if len(x) != system.n:
+        raise ScenarioError(
+            f"equilibrium.x: expected {system.n} entries (the plant's state); got {len(x)}."
+        )
+    if u and len(u) != system.m:
+        raise ScenarioError(
+            f"equilibrium.u: expected {system.m} entries (the plant's inputs); got {len(u)}."
+        )
+    try:
+        return system.shifted(x, u or None)
+    except ModelError as err:
+        raise ScenarioError(f"equilibrium: {err}") from None
+
+
+def _cache_key(scenario: Any) -> str:
+    plant = getattr(scenario, "plant", None)
+    eq = getattr(scenario, "equilibrium", None)
+    return repr(
+        (
+            scenario.system,
+            None if plant is None else dataclasses.astuple(plant),
+            None if eq is None else dataclasses.astuple(eq),
+        )
+    )
+
+
+_BUILT: dict[str, ControlAffineSystem] = {}
+
+
 def resolve_system(scenario: Any) -> ControlAffineSystem:
     """The :class:`ControlAffineSystem` that ``scenario`` runs.
 
     Every module that needs the scenario's plant (validation, observer design,
-    diagram, optimal cost) calls this.
+    diagram, optimal cost) calls this. With ``scenario.equilibrium`` it is the
+    shifted system (a :class:`~ofrl_drake.model.ShiftedSystem`, whose
+    ``x_eq``/``u_eq`` map results back to the plant's coordinates).
 
     Raises
     ------
     ScenarioError
         Naming the entry, if the system cannot be built.
     """
-    return system_from_entry(scenario.system)
+    key = _cache_key(scenario)
+    system = _BUILT.get(key)
+    if system is None:
+        system = _base_system(scenario)
+        equilibrium = getattr(scenario, "equilibrium", None)
+        if equilibrium is not None:
+            system = _shift(system, equilibrium)
+        _BUILT[key] = system
+    return system

@@ -51,6 +51,16 @@ def _math_label(label: str) -> str:
     )
 
 
+def _shown(result, key: str) -> np.ndarray:
+    """``x``, ``xhat`` or ``u`` in the plant's own coordinates (a run with an equilibrium)."""
+    original = getattr(result, "original", None)
+    return getattr(result, key) if original is None else original(key)
+
+
+def _equilibrium(result, key: str) -> np.ndarray | None:
+    return getattr(result, f"{key}_equilibrium", None)
+
+
 def _axes(title: str | None = None) -> tuple[Figure, plt.Axes]:
     with plt.rc_context(_STYLE):
         fig, ax = plt.subplots(constrained_layout=True)
@@ -63,9 +73,14 @@ def _axes(title: str | None = None) -> tuple[Figure, plt.Axes]:
 def plot_state(result, i: int) -> Figure:
     """``x_i`` and ``xhat_i`` against time (the paper's Figs. 1 and 2)."""
     fig, ax = _axes()
-    ax.plot(result.t, result.x[:, i], lw=1.6, label=rf"$x_{{{i + 1}}}$")
-    ax.plot(result.t, result.xhat[:, i], lw=1.4, ls="--", label=rf"$\hat{{x}}_{{{i + 1}}}$")
+    ax.plot(result.t, _shown(result, "x")[:, i], lw=1.6, label=rf"$x_{{{i + 1}}}$")
+    xhat = _shown(result, "xhat")[:, i]
+    ax.plot(result.t, xhat, lw=1.4, ls="--", label=rf"$\hat{{x}}_{{{i + 1}}}$")
     ax.set_ylabel(rf"state $x_{{{i + 1}}}$")
+    x_eq = _equilibrium(result, "x")
+    if x_eq is not None:
+        ax.axhline(x_eq[i], color="k", lw=0.8, ls=":", label=rf"$x^*_{{{i + 1}}}$ (equilibrium)")
+        ax.set_ylabel(rf"state $x_{{{i + 1}}}$ (plant coordinates)")
     ax.legend()
     return fig
 
@@ -96,12 +111,17 @@ def plot_weights(result, labels: Sequence[str] | None = None) -> Figure:
 def plot_input(result, input_bound: float | None = None) -> Figure:
     """The saturated input ``u(t)`` (the paper's Fig. 5), with the bound."""
     fig, ax = _axes()
-    for k in range(result.u.shape[1]):
-        ax.plot(result.t, result.u[:, k], lw=1.4, label=rf"$u_{{{k + 1}}}$")
+    u = _shown(result, "u")
+    for k in range(u.shape[1]):
+        ax.plot(result.t, u[:, k], lw=1.4, label=rf"$u_{{{k + 1}}}$")
+    u_eq = _equilibrium(result, "u")
     if input_bound is not None:
-        for s in (-1, 1):
-            ax.axhline(s * input_bound, color="k", lw=0.8, ls=":")
-    ax.set_ylabel(r"control input $u$")
+        centers = np.zeros(u.shape[1]) if u_eq is None else np.unique(u_eq)
+        for c in centers:
+            for s in (-1, 1):
+                ax.axhline(c + s * input_bound, color="k", lw=0.8, ls=":")
+    bound = r"input $u$ ($|u - u^*| \leq \bar\lambda$)"
+    ax.set_ylabel(r"control input $u$" if u_eq is None else bound)
     ax.legend()
     return fig
 
@@ -170,17 +190,22 @@ def plot_overview(result, input_bound: float | None = None) -> Figure:
     with plt.rc_context({**_STYLE, "figure.figsize": (9.0, 6.0)}):
         fig, axes = plt.subplots(2, 2, sharex=True, constrained_layout=True)
     ax = axes[0, 0]
+    x, xhat = _shown(result, "x"), _shown(result, "xhat")
     for i in range(result.x.shape[1]):
-        (line,) = ax.plot(result.t, result.x[:, i], lw=1.5, label=rf"$x_{{{i + 1}}}$")
+        (line,) = ax.plot(result.t, x[:, i], lw=1.5, label=rf"$x_{{{i + 1}}}$")
         ax.plot(
             result.t,
-            result.xhat[:, i],
+            xhat[:, i],
             lw=1.3,
             ls="--",
             color=line.get_color(),
             label=rf"$\hat{{x}}_{{{i + 1}}}$",
         )
-    ax.set_ylabel("state and estimate")
+    ax.set_ylabel(
+        "state and estimate"
+        if _equilibrium(result, "x") is None
+        else "state and estimate (plant coordinates)"
+    )
     ax.legend(ncol=2, fontsize=8)
     ax = axes[0, 1]
     for i in range(result.x.shape[1]):
@@ -193,11 +218,14 @@ def plot_overview(result, input_bound: float | None = None) -> Figure:
     ax.set_ylabel(r"critic weights $\hat{W}_c$")
     ax.legend(ncol=3, fontsize=8)
     ax = axes[1, 1]
-    for k in range(result.u.shape[1]):
-        ax.plot(result.t, result.u[:, k], lw=1.3, label=rf"$u_{{{k + 1}}}$")
+    u = _shown(result, "u")
+    for k in range(u.shape[1]):
+        ax.plot(result.t, u[:, k], lw=1.3, label=rf"$u_{{{k + 1}}}$")
     if input_bound is not None:
-        for s in (-1, 1):
-            ax.axhline(s * input_bound, color="k", lw=0.8, ls=":")
+        u_eq = _equilibrium(result, "u")
+        for c in np.zeros(1) if u_eq is None else np.unique(u_eq):
+            for s in (-1, 1):
+                ax.axhline(c + s * input_bound, color="k", lw=0.8, ls=":")
     ax.set_ylabel("control input $u$")
     for ax in axes[1]:
         ax.set_xlabel(r"time $t$ [s]")

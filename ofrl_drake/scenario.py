@@ -30,7 +30,9 @@ __all__ = [
     "BoxConfig",
     "CostConfig",
     "CriticConfig",
+    "EquilibriumConfig",
     "ObserverConfig",
+    "PlantConfig",
     "PointsConfig",
     "Scenario",
     "SimulationConfig",
@@ -148,10 +150,49 @@ class VariantConfig:
 
 
 @dataclass
-class Scenario:
-    """One closed-loop experiment. ``name`` and ``variant`` are optional."""
+class PlantConfig:
+    """A Drake plant: exactly one of ``multibody`` and ``drake_system``.
 
-    system: str = ""
+    ``multibody`` is a model file (SDF, URDF, MJCF; a relative path is taken
+    from the scenario file's folder) or a ``package://`` URL; the state is
+    ``[q; v]``, the input the actuation. ``drake_system`` is
+    ``"module.path:callable"`` of a Drake ``System`` class or of a function of
+    no arguments returning one, e.g. ``pydrake.examples:PendulumPlant``.
+    Optional: ``C`` (required with ``drake_system``; for ``multibody`` the
+    default measures the positions q), ``input_port`` (the name of the
+    ``drake_system``'s input port; default: its first).
+    """
+
+    multibody: str = field(default="", metadata=_OPTIONAL)
+    drake_system: str = field(default="", metadata=_OPTIONAL)
+    C: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
+    input_port: str = field(default="", metadata=_OPTIONAL)
+
+
+@dataclass
+class EquilibriumConfig:
+    """The operating point ``(x*, u*)`` to regulate to, in the plant's own coordinates.
+
+    The method then runs on ``z = x - x*``, ``v = u - u*``; ``u`` is optional
+    (zeros).
+    """
+
+    x: list[float] = field(default_factory=list)
+    u: list[float] = field(default_factory=list, metadata=_OPTIONAL)
+
+
+@dataclass
+class Scenario:
+    """One closed-loop experiment.
+
+    The plant is named by exactly one of ``system`` (a registered example or
+    ``"module.path:callable"``) and ``plant`` (a Drake system or multibody
+    model). Optional: ``system``/``plant`` (one of them), ``equilibrium``
+    (then ``x0``, ``xhat0``, the boxes, the points and ``input_bound`` are
+    relative to it), ``name``, ``variant``.
+    """
+
+    system: str = field(default="", metadata=_OPTIONAL)
     x0: list[float] = field(default_factory=list)
     xhat0: list[float] = field(default_factory=list)
     input_bound: float = 1.0
@@ -162,6 +203,8 @@ class Scenario:
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     name: str = field(default="scenario", metadata=_OPTIONAL)
     variant: VariantConfig = field(default_factory=VariantConfig, metadata=_OPTIONAL)
+    plant: Optional[PlantConfig] = field(default=None, metadata=_OPTIONAL)
+    equilibrium: Optional[EquilibriumConfig] = field(default=None, metadata=_OPTIONAL)
 
 
 # --------------------------------------------------------------------------
@@ -405,11 +448,17 @@ def _locate_files(scenario: Scenario, folder: Path) -> None:
 
     A ``system: "module:callable"`` whose module lies beside the scenario file
     becomes ``"/abs/module.py:callable"``, which any process (a Dask worker
-    started elsewhere) can import.
+    started elsewhere) can import; so do ``plant.drake_system`` and a relative
+    ``plant.multibody`` file.
     """
-    from ofrl_drake.plants import locate_system_entry
+    from ofrl_drake.plants import locate_model_file, locate_system_entry
 
     scenario.system = locate_system_entry(scenario.system, folder.resolve())
+    if scenario.plant is not None:
+        scenario.plant.drake_system = locate_system_entry(
+            scenario.plant.drake_system, folder.resolve(), key="plant.drake_system"
+        )
+        scenario.plant.multibody = locate_model_file(scenario.plant.multibody, folder.resolve())
 
 
 def load_scenario(path: str | Path) -> Scenario:

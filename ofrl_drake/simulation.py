@@ -67,6 +67,11 @@ class SimulationResult:
     extra : dict of ndarray
         Further logs of the loop beyond :data:`~ofrl_drake.diagram.LOGGED`
         (e.g. ``observer_gains`` of a scheduled observer), time first.
+    x_equilibrium, u_equilibrium : ndarray or None
+        The scenario's equilibrium ``(x*, u*)``, when it has one. ``x``,
+        ``xhat`` and ``u`` are then the method's coordinates ``x - x*`` and
+        ``u - u*``; :meth:`original` gives the plant's own, which the saved
+        files and figures show.
     """
 
     t: np.ndarray
@@ -83,6 +88,14 @@ class SimulationResult:
     design: dict[str, Any] | None = None
     scenario_name: str = ""
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    x_equilibrium: np.ndarray | None = None
+    u_equilibrium: np.ndarray | None = None
+
+    def original(self, key: str) -> np.ndarray:
+        """``x``, ``xhat`` or ``u`` in the plant's own coordinates (``+ x*``, ``+ u*``)."""
+        offset = self.u_equilibrium if key == "u" else self.x_equilibrium
+        data = getattr(self, key)
+        return data if offset is None else data + offset
 
     @property
     def e(self) -> np.ndarray:
@@ -129,12 +142,15 @@ class SimulationResult:
         ``observer_design`` (when designed), ``extra_logs`` (the keys of
         :data:`EXTRA_LOGS_FILE`) and, when the observer re-solves its design,
         ``failed_solves`` and ``observer_resolves`` (:meth:`solve_counts`).
+        With an equilibrium, ``final_state`` is in the plant's own coordinates,
+        ``final_state_norm`` is ``|x(T) - x*|`` and ``equilibrium`` holds
+        ``x*`` and ``u*``.
         """
         Gamma_T = 0.5 * (self.Gamma[-1] + self.Gamma[-1].T)
         out = {
             "scenario": self.scenario_name,
             "final_time": float(self.t[-1]),
-            "final_state": self.x[-1].tolist(),
+            "final_state": self.original("x")[-1].tolist(),
             "final_state_norm": float(np.linalg.norm(self.x[-1])),
             "final_estimation_error": self.e[-1].tolist(),
             "final_estimation_error_norm": float(np.linalg.norm(self.e[-1])),
@@ -145,6 +161,11 @@ class SimulationResult:
             "wall_time": self.wall_time,
             "integrator": self.integrator,
         }
+        if self.x_equilibrium is not None:
+            out["equilibrium"] = {
+                "x": np.asarray(self.x_equilibrium, float).tolist(),
+                "u": np.asarray(self.u_equilibrium, float).tolist(),
+            }
         if self.validity is not None:
             out["validity"] = self.validity.to_dict()
         if self.design is not None:
@@ -168,7 +189,9 @@ class SimulationResult:
     def save(self, directory: str | Path) -> None:
         """Write the result's files into ``directory``.
 
-        * ``trajectories.npz``: :data:`TRAJECTORY_KEYS`;
+        * ``trajectories.npz``: :data:`TRAJECTORY_KEYS`, with ``x``, ``xhat``
+          and ``u`` in the plant's own coordinates, and ``x_equilibrium`` and
+          ``u_equilibrium`` when there is an equilibrium;
         * ``extra_logs.npz`` (only if there are extra logs): ``t`` and every
           key of :attr:`extra` under its own name (a stale file from an
           earlier save is removed when there are none);
@@ -180,7 +203,12 @@ class SimulationResult:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         with atomic_file(directory / "trajectories.npz", "wb") as fh:
-            np.savez(fh, **{k: getattr(self, k) for k in TRAJECTORY_KEYS})
+            arrays = {k: getattr(self, k) for k in TRAJECTORY_KEYS}
+            if self.x_equilibrium is not None:
+                arrays.update({k: self.original(k) for k in ("x", "xhat", "u")})
+                arrays["x_equilibrium"] = np.asarray(self.x_equilibrium, float)
+                arrays["u_equilibrium"] = np.asarray(self.u_equilibrium, float)
+            np.savez(fh, **arrays)
         extra = self._extra_log_arrays()
         if extra:
             with atomic_file(directory / EXTRA_LOGS_FILE, "wb") as fh:
@@ -428,6 +456,10 @@ def simulate(
         scenario_name=scenario.name,
         extra={k: v for k, v in logs.items() if k not in LOGGED},
     )
+    system = loop.parts.system
+    if getattr(system, "x_eq", None) is not None:  # a ShiftedSystem
+        result.x_equilibrium = np.asarray(system.x_eq, float)
+        result.u_equilibrium = np.asarray(system.u_eq, float)
     box, note = _certified_region(loop, logs, result.t)
     result.validity = validity_report(
         result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note

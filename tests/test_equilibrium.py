@@ -1,0 +1,169 @@
+"""Scenarios with an ``equilibrium:``: the plant is shifted, results show its own coordinates."""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_dump
+
+from ofrl_drake import load_scenario
+from ofrl_drake.errors import ScenarioError
+from ofrl_drake.model import ShiftedSystem
+from ofrl_drake.plants import resolve_system
+from ofrl_drake.plotting import plot_input, plot_state
+
+#: A damped pendulum held at a right angle, x* = (pi/2, 0), by the torque u* = 1.
+HELD_PENDULUM = textwrap.dedent(
+    """
+    import numpy as np
+    from ofrl_drake import ControlAffineSystem
+
+
+    def make_plant():
+        def f(x):
+            return np.array([x[1], -np.sin(x[0]) - 0.1 * x[1]])
+
+        def g(x):
+            return np.array([[0 * x[0]], [1 + 0 * x[0]]])
+
+        return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name="held_pendulum")
+    """
+)
+
+X_EQ = [float(np.pi / 2), 0.0]
+
+
+def _data(**edits):
+    data = {
+        "name": "held_pendulum",
+        "system": "held_pendulum:make_plant",
+        "equilibrium": {"x": X_EQ, "u": [1.0]},
+        "x0": [0.3, 0.0],
+        "xhat0": [0.3, 0.5],
+        "input_bound": 0.5,
+        "cost": {"Q": [[1.0, 0.0], [0.0, 1.0]], "R": [1.0]},
+        "critic": {
+            "basis_degrees": [2],
+            "W0": [1.7, 2.0, 1.7],  # the LQR value x^T P x of the linearization
+            "Gamma0": [[10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]],
+            "kc": 0.01,
+            "nu": 0.7,
+            "beta": 0.2,
+        },
+        "points": {"kind": "grid", "lower": [-0.5, -0.5], "upper": [0.5, 0.5], "counts": [5, 5]},
+        "observer": {"alpha": 1.0, "box": {"lower": [-1.0, -2.0], "upper": [1.0, 2.0]}},
+        "simulation": {
+            "duration": 15.0,
+            "integrator": "runge_kutta3",
+            "accuracy": 1e-4,
+            "max_step": 0.1,
+            "log_period": 0.05,
+        },
+    }
+    for key, value in edits.items():
+        if value is None:
+            del data[key]
+        else:
+            data[key] = value
+    return data
+
+
+@pytest.fixture
+def folder(tmp_path):
+    (tmp_path / "held_pendulum.py").write_text(HELD_PENDULUM)
+    return tmp_path
+
+
+def _write(folder, **edits):
+    path = folder / "scenario.yaml"
+    path.write_text(yaml_dump(_data(**edits)))
+    return path
+
+
+def test_the_scenario_runs_the_shifted_system(folder):
+    system = resolve_system(load_scenario(_write(folder)))
+    assert isinstance(system, ShiftedSystem)
+    np.testing.assert_allclose(system.x_eq, X_EQ)
+    np.testing.assert_allclose(system.u_eq, [1.0])
+    np.testing.assert_allclose(system.f(np.zeros(2)), 0.0, atol=1e-15)
+    z = np.array([0.2, -0.1])
+    # f~(z) = f(z + x*) + g(z + x*) u*
+    expected = [z[1], -np.sin(z[0] + X_EQ[0]) - 0.1 * z[1] + 1.0]
+    np.testing.assert_allclose(system.f(z), expected, rtol=1e-14)
+
+
+BAD = [
+    (
+        {"equilibrium": {"x": [0.5, 0.0], "u": [1.0]}},
+        r"equilibrium: held_pendulum: \(x\*, u\*\) = \(\[0.5, 0.0\], \[1.0\]\) is not an "
+        r"equilibrium: f\(x\*\) \+ g\(x\*\) u\* = .*row 1",
+    ),
+    ({"equilibrium": {"x": [0.5], "u": [1.0]}}, r"equilibrium.x: expected 2 entries .*got 1"),
+    ({"equilibrium": {"x": X_EQ, "u": [1.0, 0.0]}}, r"equilibrium.u: expected 1 entries"),
+    ({"equilibrium": {"x": X_EQ, "v": [1.0]}}, r"equilibrium.v: unknown key in equilibrium"),
+    ({"equilibrium": {"u": [1.0]}}, r"equilibrium.x: missing required key"),
+    ({"system": None}, r"system: missing; name the plant with system: .* or with plant:"),
+    (
+        {"plant": {"drake_system": "pydrake.examples:PendulumPlant", "C": [[1.0, 0.0]]}},
+        r"plant: the scenario names its plant twice",
+    ),
+    (
+        {"system": None, "plant": {"C": [[1.0, 0.0]]}},
+        r"plant: give exactly one of plant.multibody .* and plant.drake_system",
+    ),
+    ({"system": None, "plant": {"urdf": "a.urdf"}}, r"plant.urdf: unknown key in plant"),
+]
+
+
+@pytest.mark.parametrize(("edits", "match"), BAD)
+def test_bad_equilibrium_and_plant_entries_name_the_key(folder, edits, match):
+    with pytest.raises(ScenarioError, match=match):
+        load_scenario(_write(folder, **edits))
+
+
+def test_cli_writes_the_plant_s_own_coordinates_and_bounds_u_minus_u_star(folder, tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", "run", str(_write(folder)), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "|x(T) - x*| = " in proc.stdout
+    data = np.load(out / "trajectories.npz")
+    np.testing.assert_array_equal(data["x_equilibrium"], X_EQ)
+    np.testing.assert_array_equal(data["u_equilibrium"], [1.0])
+    np.testing.assert_allclose(data["x"][0], np.add([0.3, 0.0], X_EQ), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(data["xhat"][0], np.add([0.3, 0.5], X_EQ), rtol=0, atol=1e-15)
+    # The bound holds for u - u*, not for u: u itself stays around u* = 1 > 0.5.
+    assert np.all(np.abs(data["u"] - 1.0) <= 0.5)
+    assert data["u"].min() > 0.4
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["equilibrium"] == {"x": X_EQ, "u": [1.0]}
+    final = np.asarray(summary["final_state"])
+    assert summary["final_state_norm"] == pytest.approx(np.linalg.norm(final - X_EQ), abs=1e-12)
+    assert summary["final_state_norm"] < 1e-4
+    assert summary["validity"]["valid"]
+
+
+def test_figures_label_the_plant_s_coordinates(folder):
+    from ofrl_drake import simulate
+
+    scenario = load_scenario(_write(folder, simulation={**_data()["simulation"], "duration": 1.0}))
+    result = simulate(scenario, progress=False)
+    np.testing.assert_allclose(result.original("x"), result.x + X_EQ)
+    np.testing.assert_allclose(result.original("u"), result.u + 1.0)
+    fig = plot_state(result, 0)
+    ax = fig.axes[0]
+    np.testing.assert_allclose(ax.lines[0].get_ydata(), result.x[:, 0] + X_EQ[0])
+    assert "plant coordinates" in ax.get_ylabel()
+    assert any("equilibrium" in line.get_label() for line in ax.lines)
+    fig = plot_input(result, 0.5)
+    bounds = sorted({line.get_ydata()[0] for line in fig.axes[0].lines[1:]})
+    assert bounds == pytest.approx([0.5, 1.5])
+    assert "u^*" in fig.axes[0].get_ylabel()
