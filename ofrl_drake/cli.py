@@ -77,6 +77,26 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     shutil.rmtree(backup, ignore_errors=True)
 
 
+def _write_animation(scenario, result, folder: Path) -> str | None:
+    """``animation.html`` of a multibody scenario's run; a note if Meshcat cannot start.
+
+    Written only for ``plant.multibody`` scenarios whose model has geometry.
+    """
+    plant = scenario.plant
+    if plant is None or not plant.multibody:
+        return None
+    from ofrl_drake.animation import MeshcatUnavailable, animation_html
+
+    x = result.original("x")
+    try:
+        html = animation_html(plant.multibody, result.t, x[:, : x.shape[1] // 2])
+    except MeshcatUnavailable as err:
+        return f"note: Meshcat cannot start ({err}); no animation.html written."
+    if html is not None:
+        (folder / "animation.html").write_text(html)
+    return None
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.graph import render_diagram
@@ -102,6 +122,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 json.dumps(loop.design.to_dict(), indent=2) + "\n"
             )
         graph = render_diagram(loop.diagram, tmp)
+        animation_note = _write_animation(scenario, result, tmp)
+    if animation_note:
+        print(animation_note, file=sys.stderr)
     if graph.suffix == ".dot":
         print(
             f"note: Graphviz 'dot' not found; wrote {out / graph.name} instead of "
