@@ -448,7 +448,8 @@ def problem_key(
 ) -> str:
     """A hash of everything ``J*`` depends on: the scenario's problem data and ``x0``.
 
-    The problem data are the system, ``Q``, ``R``, ``lambda_bar`` and the horizon;
+    The problem data are the system (``system``, or ``plant`` and ``equilibrium``
+    when given), ``Q``, ``R``, ``lambda_bar`` and the horizon;
     the key also covers the mesh and the solver, so a change to either is not
     served from a stale cache.
     """
@@ -463,6 +464,9 @@ def problem_key(
         "solver": _solver(solver)[0],
         "x0": [float(a).hex() for a in np.asarray(x0, dtype=float)],
     }
+    for name in ("plant", "equilibrium"):  # a Drake plant, an operating point
+        if getattr(scenario, name, None) is not None:
+            payload[name] = asdict(getattr(scenario, name))
     text = json.dumps(payload, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 

@@ -167,3 +167,22 @@ def test_figures_label_the_plant_s_coordinates(folder):
     bounds = sorted({line.get_ydata()[0] for line in fig.axes[0].lines[1:]})
     assert bounds == pytest.approx([0.5, 1.5])
     assert "u^*" in fig.axes[0].get_ylabel()
+
+
+def test_the_optimum_s_cache_key_tells_plants_and_equilibria_apart(folder):
+    import dataclasses
+
+    from ofrl_drake.optimal import problem_key
+    from ofrl_drake.scenario import EquilibriumConfig, PlantConfig
+
+    scenario = load_scenario(_write(folder))
+    x0 = np.asarray(scenario.x0)
+    other_point = dataclasses.replace(
+        scenario, equilibrium=EquilibriumConfig(x=[-X_EQ[0], 0.0], u=[-1.0])
+    )
+    pendulum = PlantConfig(drake_system="pydrake.examples:PendulumPlant", C=[[1.0, 0.0]])
+    drake_plant = dataclasses.replace(scenario, system="", plant=pendulum)
+    keys = {problem_key(s, x0) for s in (scenario, other_point, drake_plant)}
+    assert len(keys) == 3
+    unshifted = dataclasses.replace(scenario, equilibrium=None)
+    assert problem_key(unshifted, x0) != problem_key(scenario, x0)
