@@ -83,3 +83,18 @@ def test_a_drift_is_seen():
     ]
     renamed = [(k, "integer" if k == "critic.kc" else t, r) for k, t, r in table]
     assert problems(renamed, schema) == ["critic.kc: README says integer, the schema number"]
+
+
+def test_the_your_own_plant_example_builds_a_vectorized_system(tmp_path):
+    """The README's module, saved beside a scenario, is what `system: my_plant:make_plant` runs."""
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Your own plant", 1)[1]
+    module = re.search(r"```python\n(.*?)```", section, flags=re.DOTALL)[1]
+    assert "# my_plant.py" in module
+    assert "system: my_plant:make_plant" in section
+    (tmp_path / "my_plant.py").write_text(module)
+    from ofrl_drake.plants import system_from_entry
+
+    system = system_from_entry(f"{tmp_path / 'my_plant.py'}:make_plant")
+    assert (system.n, system.m, system.q) == (2, 1, 1)
+    assert system.vectorized  # the 0 * x[0] convention makes f and g accept batches
