@@ -129,13 +129,15 @@ def plot_trajectories(
     variants: Sequence[str],
     initial_state: str,
     optimum: Trajectory | None = None,
+    equilibrium: Sequence[float] | None = None,
 ) -> Figure:
     """Each variant's state from one initial state (saved runs).
 
     One panel per state component, zoomed on the transient (until every run has
     settled, :func:`~ofrl_drake.ablation_metrics.settling_time`), and a last
     panel with ``|x(t)|`` on a log scale over the whole horizon. The optimal
-    trajectory behind ``J*``, if given, is drawn dashed in black.
+    trajectory behind ``J*``, if given, is drawn dashed in black. With an
+    ``equilibrium`` x* the runs are in ``x - x*``, and the axes say so.
     """
     runs = {name: run for name in variants if (run := load_run(runs_dir, name, initial_state))}
     curves = [(name, run["t"], run["x"]) for name, run in runs.items()]
@@ -155,14 +157,18 @@ def plot_trajectories(
         settled = max(settled, ts if math.isfinite(ts) else float(t[-1]))
     zoom = min(horizon, 1.5 * settled) if settled > 0 else horizon
     for i in range(n):
-        axes[i].set_ylabel(rf"$x_{i + 1}$")
+        label = rf"$x_{i + 1}$" if equilibrium is None else rf"$x_{i + 1} - x^*_{i + 1}$"
+        axes[i].set_ylabel(label)
         axes[i].set_xlim(0.0, zoom or 1.0)
-    axes[n].set_ylabel(r"$\|x\|$")
+    axes[n].set_ylabel(r"$\|x\|$" if equilibrium is None else r"$\|x - x^*\|$")
     axes[n].set_xlim(0.0, horizon or 1.0)
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.set_xlabel(r"time $t$ [s]")
-    axes[0].set_title(f"state from x0 = {initial_state}", fontsize=10)
+    title = f"state from x0 = {initial_state}"
+    if equilibrium is not None:
+        title = f"state relative to x* = {list(equilibrium)}, from x0 - x* = {initial_state}"
+    axes[0].set_title(title, fontsize=10)
     if curves:
         axes[0].legend(fontsize=7, ncols=2, frameon=False)
     return fig
@@ -178,6 +184,7 @@ def write_report(
     duration: float,
     solver: str = "SNOPT",
     optimum: Trajectory | None = None,
+    equilibrium: Sequence[float] | None = None,
 ) -> list[Path]:
     """Write ``ablation.md`` and the figures into ``out``; return the paths written.
 
@@ -199,6 +206,8 @@ def write_report(
         Solver of J*, for the text.
     optimum : Trajectory, optional
         The optimal trajectory from the scenario's ``x0``, drawn with the variants.
+    equilibrium : sequence of float, optional
+        The scenario's x*: states and initial states are then ``x - x*``.
     """
     out = Path(out)
     figures = out / "figures"
@@ -216,6 +225,14 @@ def write_report(
         "",
         summary_table(rows, variants),
         "",
+    ]
+    if equilibrium is not None:
+        text += [
+            f"States and initial states are relative to the equilibrium x* = "
+            f"{list(equilibrium)} (the method's coordinates x - x*).",
+            "",
+        ]
+    text += [
         "## Optimal cost per initial state",
         "",
         _optimal_table(rows),
@@ -244,7 +261,7 @@ def write_report(
         plot_optimality_ratio(rows, variants).savefig(fh, dpi=DPI, format="png")
     traj = figures / "trajectories.png"
     with atomic_file(traj, "wb") as fh:
-        plot_trajectories(out / "runs", variants, x0_label, optimum).savefig(
+        plot_trajectories(out / "runs", variants, x0_label, optimum, equilibrium).savefig(
             fh, dpi=DPI, format="png"
         )
     return [md, ratio, traj]

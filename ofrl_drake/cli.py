@@ -242,6 +242,7 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         x0_label=x0_label,
         duration=scenario.simulation.duration,
         optimum=optimum.trajectory if optimum is not None else None,
+        equilibrium=scenario.equilibrium.x if scenario.equilibrium is not None else None,
     )
     ok = sum(r["status"] == "ok" for r in rows)
     print(summary_table(rows, [v.name for v in variants]))

@@ -186,3 +186,20 @@ def test_the_optimum_s_cache_key_tells_plants_and_equilibria_apart(folder):
     assert len(keys) == 3
     unshifted = dataclasses.replace(scenario, equilibrium=None)
     assert problem_key(unshifted, x0) != problem_key(scenario, x0)
+
+
+def test_ablate_reports_states_relative_to_the_equilibrium(folder, tmp_path):
+    from ofrl_drake.ablation import read_rows
+    from ofrl_drake.cli import main
+
+    scenario = _write(folder, simulation={**_data()["simulation"], "duration": 3.0})
+    variants = tmp_path / "variants.yaml"
+    variants.write_text("baseline: {}\n")
+    out = tmp_path / "ablation"
+    args = ["ablate", str(scenario), "--out", str(out), "--variants", str(variants)]
+    assert main([*args, "--workers", "0"]) == 0
+    (row,) = read_rows(out / "ablation.csv")
+    assert row["status"] == "ok" and row["optimality_ratio"] >= 1.0 - 1e-3
+    assert row["initial_state"] == "[0.3, 0.0]"  # x0 - x*, as in the scenario
+    md = (out / "ablation.md").read_text()
+    assert f"relative to the equilibrium x* = {X_EQ}" in md
