@@ -197,7 +197,7 @@ def _as_interval(v: Interval | float) -> Interval:
 # --------------------------------------------------------------------- rounding
 def _ulp(x: np.ndarray) -> np.ndarray:
     """The gap from finite ``x`` to the next double away from zero (``2**971`` at the top)."""
-    return np.where(np.abs(x) == _MAX, _MAX_ULP, np.abs(np.spacing(x)))
+    return np.minimum(np.abs(np.spacing(x)), _MAX_ULP)
 
 
 def _down(x: np.ndarray, ulps: int) -> np.ndarray:
@@ -205,19 +205,23 @@ def _down(x: np.ndarray, ulps: int) -> np.ndarray:
 
     A lower end that overflowed to +inf becomes the largest finite double (the
     exact value is larger still, but it is a real number, so +inf would be
-    wrong); a NaN, which the kernels never produce, would become -inf.
+    wrong); -inf stays; a NaN, which the kernels never produce, would become -inf.
     """
     x = np.asarray(x, dtype=float)
-    x = np.where(x == np.inf, _MAX, np.where(np.isnan(x), -np.inf, x))
     with np.errstate(invalid="ignore", over="ignore"):
+        if np.isfinite(x).all():  # the common case, without the special values
+            return x - ulps * _ulp(x)
+        x = np.where(x == np.inf, _MAX, np.where(np.isnan(x), -np.inf, x))
         return np.where(np.isfinite(x), x - ulps * _ulp(x), x)
 
 
 def _up(x: np.ndarray, ulps: int) -> np.ndarray:
     """Round a computed upper end up (the mirror image of :func:`_down`)."""
     x = np.asarray(x, dtype=float)
-    x = np.where(x == -np.inf, -_MAX, np.where(np.isnan(x), np.inf, x))
     with np.errstate(invalid="ignore", over="ignore"):
+        if np.isfinite(x).all():
+            return x + ulps * _ulp(x)
+        x = np.where(x == -np.inf, -_MAX, np.where(np.isnan(x), np.inf, x))
         return np.where(np.isfinite(x), x + ulps * _ulp(x), x)
 
 

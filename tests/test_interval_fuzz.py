@@ -23,7 +23,7 @@ from fractions import Fraction
 import numpy as np
 import pydrake.symbolic as sym
 import pytest
-from hypothesis import HealthCheck, given, reject, settings
+from hypothesis import HealthCheck, example, given, reject, settings
 from hypothesis import strategies as st
 
 from ofrl_drake.interval import (
@@ -278,6 +278,16 @@ def _check(expr: sym.Expression, lo: np.ndarray, hi: np.ndarray, seed: int) -> N
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
 )
 @given(recipe=RECIPES, box=BOXES, seed=st.integers(0, 2**16))
+# The classes of issue 14, checked by the exact and the numpy oracles.
+@example(("div", ("x",), ("y",)), (np.full(2, 1e-310), np.full(2, 2e-310)), 0)
+@example(("div", ("c", 1e-8), ("y",)), (np.array([0, 1e-310]), np.array([0, 1e-310])), 0)
+@example(("ipow", ("x",), 3), (np.array([1e155, 0]), np.array([1e155, 0])), 0)
+@example(("ipow", ("x",), 4), (np.array([1e103, 0]), np.array([2e103, 0])), 0)
+@example(("pow", ("x",), ("y",)), (np.array([-2.0, 2.0]), np.array([1.0, 2.0])), 0)
+@example(("pow", ("x",), ("y",)), (np.array([-2.0, 1.0]), np.array([1.0, 3.0])), 0)
+@example(("ipow", ("x",), 7), (np.array([-1.0, 0]), np.array([0.0, 0])), 0)
+@example(("ipow", ("x",), 8), (np.array([-1.0, 0]), np.array([0.0, 0])), 0)
+@example(("mul", ("c", math.inf), ("x",)), (np.array([-1.0, 0]), np.array([1.0, 0])), 0)
 def test_fuzzed_enclosures_contain_every_defined_value(recipe, box, seed):
     try:
         with np.errstate(all="ignore"):
