@@ -10,29 +10,87 @@ import itertools
 from collections.abc import Sequence
 
 import numpy as np
+from numba import njit
 
 from ofrl_drake.errors import ModelError
 
-__all__ = ["PolynomialBasis"]
+__all__ = ["PolynomialBasis", "gradient_kernel", "monomials", "value_gradient_kernel"]
 
 
-def _gradient_table(exponents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct lowered exponents ``e - 1_j`` and the factors ``e_j``.
+def _gradient_table(exponents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct lowered exponents ``e - 1_j`` and where each gradient entry takes one.
 
-    Returns ``(lowered, factors)``, shapes ``(K, n)`` and ``(L n, K)``, such that
-    ``grad sigma(x).ravel() = factors @ prod(x ** lowered, axis=1)``.
+    Returns ``(lowered, index, factor)``, shapes ``(K, n)``, ``(L, n)`` and
+    ``(L, n)``, such that ``d sigma_l / d x_j = factor[l, j] * prod(x ** lowered[index[l, j]])``
+    (``factor`` is the exponent ``e_j``; entries with ``e_j = 0`` have factor 0
+    and index 0).
     """
     size, n = exponents.shape
-    index: dict[tuple[int, ...], int] = {}
-    entries = []
+    keys: dict[tuple[int, ...], int] = {}
+    index = np.zeros((size, n), dtype=np.int64)
+    factor = np.zeros((size, n))
     for l, e in enumerate(exponents):
         for j in np.flatnonzero(e):
             key = tuple(int(p) - (k == j) for k, p in enumerate(e))
-            entries.append((l * n + j, index.setdefault(key, len(index)), float(e[j])))
-    factors = np.zeros((size * n, len(index)))
-    for row, k, value in entries:
-        factors[row, k] = value
-    return np.array(list(index), dtype=float).reshape(-1, n), factors
+            index[l, j] = keys.setdefault(key, len(keys))
+            factor[l, j] = float(e[j])
+    lowered = np.array(list(keys), dtype=np.int64).reshape(-1, n)
+    return lowered, index, factor
+
+
+@njit(cache=True)
+def monomials(x: np.ndarray, exponents: np.ndarray, out: np.ndarray) -> None:
+    """``out[k] = prod_j x_j ** exponents[k, j]`` at one point ``x`` (integer powers)."""
+    for k in range(exponents.shape[0]):
+        p = 1.0
+        for j in range(x.shape[0]):
+            e = exponents[k, j]
+            if e == 1:
+                p *= x[j]
+            elif e > 1:
+                p *= x[j] ** e
+        out[k] = p
+
+
+@njit(cache=True)
+def gradient_kernel(
+    X: np.ndarray, lowered: np.ndarray, index: np.ndarray, factor: np.ndarray
+) -> np.ndarray:
+    """``d sigma / d x`` at the columns of ``X`` (shape ``(n, N)``): shape ``(L, n, N)``."""
+    size, n = index.shape
+    N = X.shape[1]
+    out = np.empty((size, n, N))
+    mono = np.empty(lowered.shape[0])
+    x = np.empty(n)
+    for i in range(N):
+        for j in range(n):
+            x[j] = X[j, i]
+        monomials(x, lowered, mono)
+        for l in range(size):
+            for j in range(n):
+                out[l, j, i] = factor[l, j] * mono[index[l, j]]
+    return out
+
+
+@njit(cache=True)
+def value_gradient_kernel(
+    x: np.ndarray,
+    W: np.ndarray,
+    lowered: np.ndarray,
+    index: np.ndarray,
+    factor: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """``out = grad sigma(x)^T W`` (shape ``(n,)``), the gradient of ``V = W^T sigma``."""
+    size, n = index.shape
+    mono = np.empty(lowered.shape[0])
+    monomials(x, lowered, mono)
+    for j in range(n):
+        out[j] = 0.0
+    for l in range(size):
+        w = W[l]
+        for j in range(n):
+            out[j] += w * factor[l, j] * mono[index[l, j]]
 
 
 class PolynomialBasis:
@@ -95,7 +153,7 @@ class PolynomialBasis:
         self.exponents = np.array(rows, dtype=int)
         self.size = self.exponents.shape[0]
         self._powers = self.exponents.astype(float)
-        self._lowered, self._factors = _gradient_table(self.exponents)
+        self._lowered, self._index, self._factor = _gradient_table(self.exponents)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """``sigma(x)``: shape ``(L,)`` for ``x`` of shape ``(n,)``, or ``(L, N)``
@@ -107,15 +165,37 @@ class PolynomialBasis:
         return (x[None, :, :] ** self._powers[:, :, None]).prod(axis=1)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """``d sigma / d x``: shape ``(L, n)`` for one point, ``(L, n, N)`` for a batch."""
+        """``d sigma / d x``: shape ``(L, n)`` for one point, ``(L, n, N)`` for a batch.
+
+        Compiled (:func:`gradient_kernel`): ``d/dx_j`` of ``x^e`` is
+        ``e_j x^(e - 1_j)``, each distinct lowered monomial evaluated once.
+        """
         x = np.asarray(x, dtype=float)
-        # d/dx_j of x^e is e_j x^(e - 1_j): the distinct lowered monomials,
-        # evaluated once, times a constant (L n, K) table of the factors e_j.
         if x.ndim == 1:
-            lowered = (x**self._lowered).prod(axis=1)  # (K,)
-            return (self._factors @ lowered).reshape(self.size, self.n)
-        lowered = (x[None, :, :] ** self._lowered[:, :, None]).prod(axis=1)  # (K, N)
-        return (self._factors @ lowered).reshape(self.size, self.n, x.shape[1])
+            X = np.ascontiguousarray(x.reshape(-1, 1))
+            return gradient_kernel(X, self._lowered, self._index, self._factor)[:, :, 0]
+        return gradient_kernel(np.ascontiguousarray(x), self._lowered, self._index, self._factor)
+
+    def value_gradient(self, x: np.ndarray, W: np.ndarray, out: np.ndarray | None = None):
+        """``grad V(x) = grad sigma(x)^T W``, shape ``(n,)``, for one point ``x``.
+
+        ``out``, if given (float, shape ``(n,)``), receives the result.
+        """
+        result = np.empty(self.n) if out is None else out
+        value_gradient_kernel(
+            np.asarray(x, dtype=float),
+            np.asarray(W, dtype=float),
+            self._lowered,
+            self._index,
+            self._factor,
+            result,
+        )
+        return result
+
+    @property
+    def gradient_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(lowered, index, factor)`` for the compiled kernels (:func:`gradient_kernel`)."""
+        return self._lowered, self._index, self._factor
 
     def labels(self, names: Sequence[str] | None = None) -> list[str]:
         """Readable names such as ``"x1^2"``, ``"x1 x2"``, for plots and tables."""

@@ -18,8 +18,11 @@ so that ``W' = -k_c Gamma critic_sum`` and
 (Assumption 2) is ``c = lambda_min(gain_sum)``.
 
 Everything that does not depend on ``W`` is precomputed once per point set in
-:class:`PointFeatures`; :func:`extrapolate` is then a handful of dense numpy
-operations over arrays laid out ``L x N``, with no loop over points.
+:class:`PointFeatures`. The ``W``-dependent part is one compiled loop over
+the points (:func:`bellman_kernel`, numba ``@njit``) that accumulates both
+sums without forming per-point arrays, unless they are asked for
+(:func:`extrapolate`). The update laws themselves, :func:`critic_rate` and
+:func:`gamma_rate`, are compiled too.
 """
 
 from __future__ import annotations
@@ -27,17 +30,22 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.cost import input_cost_from_D, state_cost
+from ofrl_drake.cost import saturation_cost, state_cost, tanh_log_cosh
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
     "BellmanExtrapolation",
+    "BellmanSums",
     "Extrapolator",
     "PointFeatures",
+    "bellman_kernel",
+    "critic_rate",
     "extrapolate",
+    "gamma_rate",
     "learning_condition",
     "point_features",
 ]
@@ -69,7 +77,28 @@ class PointFeatures:
 
 
 @dataclass(frozen=True)
-class BellmanExtrapolation:
+class BellmanSums:
+    """The two normalized sums the update laws need.
+
+    Attributes
+    ----------
+    critic_sum : ndarray, shape (L,)
+        ``(1/N) sum omega_i delta_i / rho_i``.
+    gain_sum : ndarray, shape (L, L)
+        ``(1/N) sum omega_i omega_i^T / rho_i^2``.
+    """
+
+    critic_sum: np.ndarray
+    gain_sum: np.ndarray
+
+    @property
+    def learning_condition(self) -> float:
+        """``c = lambda_min(gain_sum)``."""
+        return learning_condition(self.gain_sum)
+
+
+@dataclass(frozen=True)
+class BellmanExtrapolation(BellmanSums):
     """Bellman errors at the extrapolation points and their sums.
 
     Attributes
@@ -79,24 +108,15 @@ class BellmanExtrapolation:
     omega : ndarray, shape (L, N)
     delta : ndarray, shape (N,)
     rho : ndarray, shape (N,)
-    critic_sum : ndarray, shape (L,)
-        ``(1/N) sum omega_i delta_i / rho_i``.
-    gain_sum : ndarray, shape (L, L)
-        ``(1/N) sum omega_i omega_i^T / rho_i^2``.
+    critic_sum, gain_sum
+        As in :class:`BellmanSums`.
     """
 
-    D: np.ndarray
-    u: np.ndarray
-    omega: np.ndarray
-    delta: np.ndarray
-    rho: np.ndarray
-    critic_sum: np.ndarray
-    gain_sum: np.ndarray
-
-    @property
-    def learning_condition(self) -> float:
-        """``c = lambda_min(gain_sum)``."""
-        return learning_condition(self.gain_sum)
+    D: np.ndarray = None  # type: ignore[assignment]
+    u: np.ndarray = None  # type: ignore[assignment]
+    omega: np.ndarray = None  # type: ignore[assignment]
+    delta: np.ndarray = None  # type: ignore[assignment]
+    rho: np.ndarray = None  # type: ignore[assignment]
 
 
 def point_features(
@@ -122,12 +142,113 @@ def point_features(
     )
 
 
+@njit(cache=True)
+def bellman_kernel(
+    W: np.ndarray,
+    data: np.ndarray,
+    num_inputs: int,
+    weight: np.ndarray,
+    input_bound: float,
+    nu: float,
+    per_point: np.ndarray,
+    critic_sum: np.ndarray,
+    gain_sum: np.ndarray,
+) -> None:
+    """The Bellman extrapolation at ``N`` points: per-point values and both sums.
+
+    Each stage is a loop over the points with the point index innermost
+    (contiguous rows), so the stages without transcendental functions
+    vectorize.
+
+    Parameters
+    ----------
+    W : (L,)
+    data : (2 m L + L + 1, N)
+        The ``W``-independent point data, rows stacked: ``policy_input``
+        (``m L`` rows, ``(grad sigma_i g_i)^T / (2 lbar r_k)``, input-major,
+        so ``D_k = W @ policy_input[k]``), ``input`` (``m L`` rows,
+        ``(grad sigma_i g_i)^T``), ``drift`` (``L`` rows,
+        ``grad sigma_i f_i``) and ``Q(x_i)`` (one row).
+    num_inputs : int
+        m.
+    weight : (m,)
+        ``lbar^2 r_k``, the factor of :func:`~ofrl_drake.cost.saturation_cost`.
+    input_bound, nu : float
+    per_point : (2 m + L + 2, N)
+        Output: rows ``D`` (m), ``u`` (m), ``omega`` (L), ``delta``, ``rho``.
+    critic_sum : (L,); gain_sum : (L, L)
+        Outputs: the normalized sums.
+    """
+    m = num_inputs
+    L = W.shape[0]
+    N = data.shape[1]
+    mL = m * L
+    # Row offsets of the blocks in ``data`` and ``per_point``.
+    inp0, drift0, cost_row = mL, 2 * mL, 2 * mL + L
+    u0, omega0 = m, 2 * m
+    delta_row, rho_row = 2 * m + L, 2 * m + L + 1
+    delta = per_point[delta_row]
+    rho = per_point[rho_row]
+    for i in range(N):
+        delta[i] = data[cost_row, i]
+    for a in range(L):
+        omega = per_point[omega0 + a]
+        drift = data[drift0 + a]
+        for i in range(N):
+            omega[i] = drift[i]
+    for k in range(m):
+        D = per_point[k]
+        u = per_point[u0 + k]
+        for i in range(N):
+            D[i] = 0.0
+        for a in range(L):
+            w = W[a]
+            row = data[k * L + a]
+            for i in range(N):
+                D[i] += w * row[i]
+        wk = weight[k]
+        for i in range(N):
+            t, lc = tanh_log_cosh(D[i])
+            u[i] = -input_bound * t
+            delta[i] += wk * saturation_cost(D[i], t, lc)
+        for a in range(L):
+            omega = per_point[omega0 + a]
+            row = data[inp0 + k * L + a]
+            for i in range(N):
+                omega[i] += row[i] * u[i]
+    for i in range(N):
+        rho[i] = 0.0
+    for a in range(L):
+        w = W[a]
+        omega = per_point[omega0 + a]
+        for i in range(N):
+            delta[i] += w * omega[i]
+            rho[i] += omega[i] * omega[i]
+    for i in range(N):
+        rho[i] = 1.0 + nu * rho[i]
+    scale = 1.0 / N
+    for a in range(L):
+        omega_a = per_point[omega0 + a]
+        acc = 0.0
+        for i in range(N):
+            acc += omega_a[i] * delta[i] / rho[i]
+        critic_sum[a] = acc * scale
+        for b in range(a + 1):
+            omega_b = per_point[omega0 + b]
+            acc = 0.0
+            for i in range(N):
+                acc += omega_a[i] * omega_b[i] / (rho[i] * rho[i])
+            gain_sum[a, b] = acc * scale
+            gain_sum[b, a] = gain_sum[a, b]
+
+
 class Extrapolator:
     """:func:`extrapolate` for fixed ``r``, ``lbar`` and ``nu``.
 
     The scalings that do not depend on ``W`` are applied to the point data
-    once here, so that each call is only the ``W``-dependent work; the
-    Bellman-extrapolation block holds one of these.
+    once here, and the data stacked into the one array
+    :func:`bellman_kernel` reads, so that each call is only the
+    ``W``-dependent work; the Bellman-extrapolation block holds one of these.
 
     Parameters
     ----------
@@ -139,6 +260,12 @@ class Extrapolator:
         lbar.
     nu : float
         Normalization gain of ``rho_i = 1 + nu omega_i^T omega_i``.
+
+    Notes
+    -----
+    :meth:`sums` reuses one per-point scratch array held here (its values
+    are consumed inside the one kernel call), so a derivative evaluation
+    allocates only the two sums it returns.
     """
 
     def __init__(
@@ -148,36 +275,57 @@ class Extrapolator:
         self.r = np.asarray(r, dtype=float)
         self.input_bound = float(input_bound)
         self.nu = float(nu)
-        # D = W @ policy_input, policy_input[k] = input[k] / (2 lbar r_k).
-        denominator = 2.0 * self.input_bound * self.r
-        self._policy_input = features.input / denominator[:, None, None]
+        inp = np.asarray(features.input, dtype=float)  # (m, L, N)
+        m, L, N = inp.shape
+        # D_k = W @ policy_input[k], policy_input = input / (2 lbar r_k).
+        policy_input = inp / (2.0 * self.input_bound * self.r)[:, None, None]
+        self._data = np.ascontiguousarray(
+            np.concatenate(
+                [
+                    policy_input.reshape(m * L, N),
+                    inp.reshape(m * L, N),
+                    np.asarray(features.drift, dtype=float),
+                    np.asarray(features.state_cost, dtype=float).reshape(1, N),
+                ]
+            )
+        )
+        self._shape = (m, L, N)
+        self._weight = self.input_bound**2 * self.r
+        self._scratch = np.empty((2 * m + L + 2, N))
+
+    def _run(self, W: np.ndarray, per_point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m, L, _ = self._shape
+        critic_sum, gain_sum = np.empty(L), np.empty((L, L))
+        bellman_kernel(
+            np.asarray(W, dtype=float),
+            self._data,
+            m,
+            self._weight,
+            self.input_bound,
+            self.nu,
+            per_point,
+            critic_sum,
+            gain_sum,
+        )
+        return critic_sum, gain_sum
+
+    def sums(self, W: np.ndarray) -> BellmanSums:
+        """Only the two sums for critic weights ``W`` (shape ``(L,)``): what the loop needs."""
+        return BellmanSums(*self._run(W, self._scratch))
 
     def __call__(self, W: np.ndarray) -> BellmanExtrapolation:
-        """The extrapolation for critic weights ``W`` (shape ``(L,)``)."""
-        f = self.features
-        W = np.asarray(W, dtype=float)
-        D = np.matmul(W, self._policy_input)  # (m, N)
-        tanh_D = np.tanh(D)
-        u = -self.input_bound * tanh_D
-        omega = f.drift.copy()  # (L, N)
-        for k in range(u.shape[0]):  # a loop over inputs, not points
-            omega += f.input[k] * u[k]
-        delta = W @ omega
-        delta += f.state_cost
-        delta += input_cost_from_D(D, self.r, self.input_bound, tanh_D=tanh_D)
-        rho = (omega * omega).sum(axis=0)
-        rho *= self.nu
-        rho += 1.0
-        weighted = omega / rho
-        n_points = omega.shape[1]
+        """The extrapolation for critic weights ``W`` (shape ``(L,)``), per-point values too."""
+        m, L, N = self._shape
+        per_point = np.empty((2 * m + L + 2, N))
+        critic_sum, gain_sum = self._run(W, per_point)
         return BellmanExtrapolation(
-            D=D,
-            u=u,
-            omega=omega,
-            delta=delta,
-            rho=rho,
-            critic_sum=(weighted @ delta) / n_points,
-            gain_sum=(weighted @ weighted.T) / n_points,
+            critic_sum=critic_sum,
+            gain_sum=gain_sum,
+            D=per_point[:m],
+            u=per_point[m : 2 * m],
+            omega=per_point[2 * m : 2 * m + L],
+            delta=per_point[2 * m + L],
+            rho=per_point[2 * m + L + 1],
         )
 
 
@@ -210,6 +358,55 @@ def extrapolate(
     return Extrapolator(features, r, input_bound, nu)(W)
 
 
+@njit(cache=True)
+def _min_eigenvalue(S: np.ndarray) -> float:
+    return np.linalg.eigvalsh(S)[0]
+
+
 def learning_condition(gain_sum: np.ndarray) -> float:
     """``lambda_min`` of the symmetric matrix ``gain_sum`` (Assumption 2)."""
-    return float(np.linalg.eigvalsh(gain_sum)[0])
+    return float(_min_eigenvalue(np.ascontiguousarray(gain_sum, dtype=float)))
+
+
+@njit(cache=True)
+def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.ndarray) -> None:
+    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,)."""
+    L = critic_sum.shape[0]
+    for a in range(L):
+        acc = 0.0
+        for b in range(L):
+            acc += gamma[a * L + b] * critic_sum[b]
+        out[a] = -kc * acc
+
+
+@njit(cache=True)
+def gamma_rate(
+    gamma: np.ndarray, gain_sum: np.ndarray, kc: float, beta: float, out: np.ndarray
+) -> None:
+    """(gamma): ``out = beta G - k_c G S G`` with ``G`` the symmetric part of Gamma.
+
+    ``gamma`` and ``gain_sum`` (``S``) are flattened row-major (L*L,); so is
+    ``out``, which is exactly symmetric, so Gamma stays symmetric to round-off.
+    """
+    L = int(np.sqrt(gamma.shape[0]) + 0.5)
+    G = np.empty((L, L))
+    for a in range(L):
+        for b in range(L):
+            G[a, b] = 0.5 * (gamma[a * L + b] + gamma[b * L + a])
+    GS = np.empty((L, L))
+    for a in range(L):
+        for b in range(L):
+            acc = 0.0
+            for c in range(L):
+                acc += G[a, c] * gain_sum[c * L + b]
+            GS[a, b] = acc
+    for a in range(L):
+        for b in range(a + 1):
+            acc1 = 0.0
+            acc2 = 0.0
+            for c in range(L):
+                acc1 += GS[a, c] * G[c, b]
+                acc2 += GS[b, c] * G[c, a]
+            value = beta * G[a, b] - kc * 0.5 * (acc1 + acc2)
+            out[a * L + b] = value
+            out[b * L + a] = value

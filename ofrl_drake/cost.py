@@ -7,8 +7,13 @@
 At ``u = -lbar tanh(D)`` this is ``sum_k r_k lbar^2 (2 D_k tanh D_k - 2 ln cosh D_k)``,
 which is finite for every ``D``; the ``u`` form overflows once ``tanh(D)``
 rounds to one. So where ``D`` is known (the policy, the Bellman errors) ``U``
-is evaluated from ``D`` with a stable log-cosh (NOTES.md, "stage cost");
+is evaluated from ``D`` with a stable log-cosh (:func:`tanh_log_cosh`);
 :func:`input_cost` takes ``u`` itself, for the cost of an applied input.
+
+The scalar laws are compiled with numba (``@njit``): :func:`tanh_log_cosh`
+and :func:`saturation_cost` are called per point inside the Bellman kernel
+(:mod:`ofrl_drake.bellman`), and :func:`stage_cost_rate` is the running-cost
+block's whole derivative. The array functions below are thin loops over them.
 """
 
 from __future__ import annotations
@@ -16,13 +21,28 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit, vectorize
 
 from ofrl_drake.errors import ModelError
 
-__all__ = ["input_cost", "input_cost_from_D", "log_cosh", "stage_cost", "state_cost"]
+__all__ = [
+    "input_cost",
+    "input_cost_from_D",
+    "log_cosh",
+    "saturation_cost",
+    "stage_cost",
+    "stage_cost_rate",
+    "state_cost",
+    "tanh_log_cosh",
+]
 
 #: Beyond this |D|, ln cosh D = |D| - ln 2 to double precision (e^{-2|D|} < 1e-34).
 _LOG_COSH_LINEAR = 40.0
+
+#: Below this |D| the log-cosh uses the cancellation-free ``log1p(2 sinh^2(D/2))``.
+_LOG_COSH_SMALL = 0.5
+
+_LN2 = math.log(2.0)
 
 
 def state_cost(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -33,20 +53,52 @@ def state_cost(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return np.sum(x * (Q @ x), axis=0)
 
 
-def log_cosh(D: np.ndarray) -> np.ndarray:
-    """``ln cosh D``, exact and finite for every real ``D``."""
-    a = np.abs(D)
-    # ln cosh a = log1p(2 sinh^2(a/2)) has no cancellation near zero; past
-    # a = 40 it is a - ln 2 to double precision, so clamp there (no overflow of
-    # sinh) and add the linear remainder.
-    clamped = np.minimum(a, _LOG_COSH_LINEAR)
-    s = np.sinh(0.5 * clamped)
-    return np.log1p(2.0 * s * s) + (a - clamped)
+@njit(cache=True)
+def tanh_log_cosh(d: float) -> tuple[float, float]:
+    """``(tanh d, ln cosh d)``, both exact and finite for every real ``d``.
+
+    Two transcendental calls in every case. For ``|d| >= 0.5`` one exponential
+    ``e = exp(-2|d|)`` gives ``tanh |d| = (1 - e) / (1 + e)`` and
+    ``ln cosh |d| = |d| - ln 2 + log1p(e)`` (no cancellation there; ``e``
+    underflows harmlessly to 0 for large ``|d|``). Below, with
+    ``s = sinh(|d|/2)``, ``ln cosh d = log1p(2 s^2)`` has no cancellation near
+    zero and ``tanh |d| = 2 s sqrt(1 + s^2) / (1 + 2 s^2)``.
+    """
+    a = abs(d)
+    if a < _LOG_COSH_SMALL:
+        s = math.sinh(0.5 * a)
+        s2 = 2.0 * s * s
+        t = 2.0 * s * math.sqrt(1.0 + s * s) / (1.0 + s2)
+        lc = math.log1p(s2)
+    elif a > _LOG_COSH_LINEAR:
+        t = 1.0
+        lc = a - _LN2
+    else:
+        e = math.exp(-2.0 * a)
+        t = (1.0 - e) / (1.0 + e)
+        lc = a - _LN2 + math.log1p(e)
+    return (t if d >= 0.0 else -t), lc
 
 
-def input_cost_from_D(
-    D: np.ndarray, r: np.ndarray, input_bound: float, tanh_D: np.ndarray | None = None
-) -> np.ndarray:
+@vectorize(["float64(float64)"], cache=True)
+def log_cosh(d: float) -> float:  # pragma: no cover - compiled
+    """``ln cosh D``, exact and finite for every real ``D`` (a numpy ufunc)."""
+    return tanh_log_cosh(d)[1]
+
+
+@njit(cache=True)
+def saturation_cost(d: float, tanh_d: float, log_cosh_d: float) -> float:
+    """``2 (d tanh d - ln cosh d)``: ``U / (r_k lbar^2)`` for one input at ``D_k = d``."""
+    return 2.0 * (d * tanh_d - log_cosh_d)
+
+
+@vectorize(["float64(float64)"], cache=True)
+def _saturation_cost_of_D(d: float) -> float:  # pragma: no cover - compiled
+    t, lc = tanh_log_cosh(d)
+    return saturation_cost(d, t, lc)
+
+
+def input_cost_from_D(D: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:
     """``U(-lbar tanh D)`` summed over inputs (axis 0).
 
     Parameters
@@ -56,16 +108,52 @@ def input_cost_from_D(
         Diagonal of R.
     input_bound : float
         lbar.
-    tanh_D : ndarray, optional
-        ``tanh(D)``, if the caller already has it.
     """
     D = np.asarray(D, dtype=float)
-    per_input = D * (np.tanh(D) if tanh_D is None else tanh_D)
-    per_input -= log_cosh(D)
-    weight = (2.0 * input_bound**2) * np.asarray(r, dtype=float)
+    per_input = _saturation_cost_of_D(D)
+    weight = input_bound**2 * np.asarray(r, dtype=float)
     if D.ndim <= 2:
         return weight @ per_input
     return (weight @ per_input.reshape(D.shape[0], -1)).reshape(D.shape[1:])
+
+
+@njit(cache=True)
+def _input_cost_of_ratio(v: float) -> float:
+    """``2 v atanh v + ln(1 - v^2)`` for ``|v| <= 1``, clipped just inside the bound."""
+    v = min(max(v, -1.0 + 1e-16), 1.0 - 1e-16)
+    log_1mv2 = math.log1p(-v * v) if abs(v) < 0.5 else math.log1p(v) + math.log1p(-v)
+    return 2.0 * v * math.atanh(v) + log_1mv2
+
+
+@vectorize(["float64(float64)"], cache=True)
+def _input_cost_ufunc(v: float) -> float:  # pragma: no cover - compiled
+    return _input_cost_of_ratio(v)
+
+
+@njit(cache=True)
+def stage_cost_rate(
+    x: np.ndarray, u: np.ndarray, Q: np.ndarray, r: np.ndarray, input_bound: float
+) -> tuple[float, float]:
+    """``(Q(x) + U(u), max_k |u_k| / lbar)`` at one state and input.
+
+    The running-cost block's derivative in one compiled call; the caller
+    checks the second value (see :func:`input_cost`) since ``U`` is only
+    defined for ``|u_k| <= lbar``.
+    """
+    n = x.shape[0]
+    total = 0.0
+    for i in range(n):
+        row = 0.0
+        for j in range(n):
+            row += Q[i, j] * x[j]
+        total += x[i] * row
+    worst = 0.0
+    cost = 0.0
+    for k in range(u.shape[0]):
+        v = u[k] / input_bound
+        worst = max(worst, abs(v))
+        cost += r[k] * _input_cost_of_ratio(v)
+    return total + input_bound * input_bound * cost, worst
 
 
 def input_cost(u: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:
@@ -84,29 +172,18 @@ def input_cost(u: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:
         If some ``|u_k| > lbar``: no finite cost exists there.
     """
     u = np.asarray(u, dtype=float)
-    if u.ndim == 1:
-        # One input vector, evaluated at every derivative evaluation of the
-        # running cost: scalar ``math`` beats numpy calls on a handful of entries.
-        ratios = [uk / input_bound for uk in u.tolist()]
-        if any(abs(v) > 1.0 + 1e-12 for v in ratios):
-            _raise_out_of_bound(u, input_bound)
-        total = 0.0
-        for v, rk in zip(ratios, np.asarray(r, dtype=float).tolist(), strict=True):
-            v = min(max(v, -1.0 + 1e-16), 1.0 - 1e-16)
-            log_1mv2 = math.log1p(-v * v) if abs(v) < 0.5 else math.log1p(v) + math.log1p(-v)
-            total += rk * (2.0 * v * math.atanh(v) + log_1mv2)
-        return np.float64(input_bound**2 * total)
     ratio = u / input_bound
     if np.any(np.abs(ratio) > 1.0 + 1e-12):
-        _raise_out_of_bound(u, input_bound)
-    v = np.clip(ratio, -1.0 + 1e-16, 1.0 - 1e-16)
-    log_1mv2 = np.where(np.abs(v) < 0.5, np.log1p(-v * v), np.log1p(v) + np.log1p(-v))
-    per_input = 2.0 * v * np.arctanh(v) + log_1mv2
+        raise_input_out_of_bound(u, input_bound)
+    per_input = _input_cost_ufunc(ratio)
     weight = input_bound**2 * np.asarray(r, dtype=float)
+    if u.ndim == 1:
+        return np.float64(weight @ per_input)
     return (weight @ per_input.reshape(u.shape[0], -1)).reshape(u.shape[1:])
 
 
-def _raise_out_of_bound(u: np.ndarray, input_bound: float) -> None:
+def raise_input_out_of_bound(u: np.ndarray, input_bound: float) -> None:
+    """Raise the :class:`ModelError` of an input beyond ``lbar``."""
     raise ModelError(
         f"input_cost: |u| = {np.max(np.abs(u)):.6g} exceeds the input bound "
         f"{input_bound}; U(u) is only defined for |u_k| <= lambda_bar."

@@ -6,7 +6,10 @@ With ``ytil = y - C xhat`` the observer simplifies exactly to (NOTES.md)::
 
 where ``M_ug1(u)`` is the sign-correct lower input sector
 (:func:`ofrl_drake.sector.input_sector`), here applied as precomputed
-products with K (see :class:`ObserverGains`).
+products with K (see :class:`ObserverGains`). The linear algebra around the
+two calls of the model's ``f`` and ``g`` is compiled with numba
+(:func:`injection_kernel`, :func:`correction_kernel`); ``f`` and ``g`` stay the
+model's own Python functions.
 """
 
 from __future__ import annotations
@@ -15,11 +18,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 
-__all__ = ["ObserverGains", "observer_rhs", "observer_rhs_batch"]
+__all__ = [
+    "ObserverGains",
+    "correction_kernel",
+    "injection_kernel",
+    "observer_rhs",
+    "observer_rhs_batch",
+]
 
 
 def _matrix(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -105,6 +115,51 @@ class ObserverGains:
         return cls.from_arrays(system, design.L, design.H, design.K, b.Mf1, b.Mg1, b.Mg2)
 
 
+@njit(cache=True)
+def injection_kernel(
+    C: np.ndarray, stacked: np.ndarray, xhat: np.ndarray, y: np.ndarray, v: np.ndarray
+) -> None:
+    """``v = stacked @ (y - C xhat)``, then ``xhat`` added to its first two blocks.
+
+    So ``v[:n] = xhat + H ytil`` and ``v[n:2n] = xhat + K ytil`` are the points
+    where ``f`` and ``g`` are evaluated; the other blocks are as in
+    :attr:`ObserverGains.stacked`.
+    """
+    q, n = C.shape
+    ytil = np.empty(q)
+    for i in range(q):
+        acc = y[i]
+        for j in range(n):
+            acc -= C[i, j] * xhat[j]
+        ytil[i] = acc
+    for r in range(stacked.shape[0]):
+        acc = 0.0
+        for i in range(q):
+            acc += stacked[r, i] * ytil[i]
+        v[r] = acc
+    for j in range(n):
+        v[j] += xhat[j]
+        v[n + j] += xhat[j]
+
+
+@njit(cache=True)
+def correction_kernel(
+    f_value: np.ndarray, g_value: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray
+) -> None:
+    """``out = f + g u + (L - M_f1 H) ytil - M_ug1(u) K ytil`` from the blocks of ``v``."""
+    n, m = g_value.shape
+    for j in range(n):
+        acc = f_value[j] + v[2 * n + j]
+        for k in range(m):
+            acc += g_value[j, k] * u[k]
+        out[j] = acc
+    for k in range(m):
+        uk = u[k]
+        start = (3 + k if uk >= 0.0 else 3 + m + k) * n
+        for j in range(n):
+            out[j] -= uk * v[start + j]
+
+
 def observer_rhs(
     system: ControlAffineSystem,
     gains: ObserverGains,
@@ -113,19 +168,21 @@ def observer_rhs(
     u: np.ndarray,
 ) -> np.ndarray:
     """``xhat'`` of the three-gain observer at one time."""
-    xhat, u = np.asarray(xhat, dtype=float), np.asarray(u, dtype=float)
-    n, m = xhat.shape[0], u.shape[0]
-    ytil = y - system.output_matrix @ xhat
-    # [H ytil; K ytil; (L - M_f1 H) ytil; sector-lower K ytil (m); sector-upper K ytil (m)]
-    v = gains.stacked @ ytil
-    rhs = (
-        np.asarray(system.f(xhat + v[:n]), dtype=float)
-        + np.asarray(system.g(xhat + v[n : 2 * n]), dtype=float) @ u
-        + v[2 * n : 3 * n]
+    xhat = np.asarray(xhat, dtype=float)
+    u = np.asarray(u, dtype=float)
+    y = np.asarray(y, dtype=float)
+    n = xhat.shape[0]
+    # [xhat + H ytil; xhat + K ytil; (L - M_f1 H) ytil; sector-lower K ytil (m); upper (m)]
+    v = np.empty(gains.stacked.shape[0])
+    injection_kernel(system.output_matrix, gains.stacked, xhat, y, v)
+    rhs = np.empty(n)
+    correction_kernel(
+        np.asarray(system.f(v[:n]), dtype=float),
+        np.asarray(system.g(v[n : 2 * n]), dtype=float),
+        u,
+        v,
+        rhs,
     )
-    for k, uk in enumerate(u.tolist()):  # a loop over inputs: - M_ug1(u) K ytil
-        start = (3 + k if uk >= 0.0 else 3 + m + k) * n
-        rhs -= uk * v[start : start + n]
     return rhs
 
 

@@ -1,40 +1,64 @@
 """The saturated policy ``u = -lbar tanh(D)`` of (u_app).
 
 ``D = (1 / (2 lbar)) R^{-1} g(x)^T grad sigma(x)^T W`` (NOTES.md: ``1/2 lambda``
-means ``1/(2 lbar)``).
+means ``1/(2 lbar)``). With ``grad V = grad sigma^T W`` and the per-input
+scale ``s_k = 1 / (2 lbar r_k)`` this is ``D_k = s_k (g^T grad V)_k``;
+:func:`saturate` is that law, compiled with numba, and
+:func:`policy_kernel` adds the basis gradient, so the controller block makes
+one compiled call per evaluation.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
-__all__ = ["policy_argument", "saturated_policy"]
+from ofrl_drake.basis import value_gradient_kernel
+
+__all__ = ["policy_kernel", "policy_scale", "saturate", "saturated_policy"]
 
 
-def policy_argument(
-    grad_sigma_g: np.ndarray, W: np.ndarray, r: np.ndarray, input_bound: float
+def policy_scale(r: np.ndarray, input_bound: float) -> np.ndarray:
+    """``s_k = 1 / (2 lbar r_k)``, so that ``D_k = s_k (g^T grad V)_k``."""
+    return 1.0 / (2.0 * input_bound * np.asarray(r, dtype=float))
+
+
+@njit(cache=True)
+def saturate(
+    grad_V: np.ndarray, g: np.ndarray, scale: np.ndarray, input_bound: float, u: np.ndarray
+) -> None:
+    """``u_k = -lbar tanh(s_k sum_j g[j, k] grad_V[j])``, written into ``u`` (shape (m,))."""
+    n, m = g.shape
+    for k in range(m):
+        D = 0.0
+        for j in range(n):
+            D += g[j, k] * grad_V[j]
+        u[k] = -input_bound * math.tanh(scale[k] * D)
+
+
+@njit(cache=True)
+def policy_kernel(
+    x: np.ndarray,
+    g: np.ndarray,
+    W: np.ndarray,
+    lowered: np.ndarray,
+    index: np.ndarray,
+    factor: np.ndarray,
+    scale: np.ndarray,
+    input_bound: float,
 ) -> np.ndarray:
-    """``D`` from ``b = grad sigma(x) g(x)``.
+    """``u`` at state ``x`` with input matrix ``g = g(x)``; the basis by its gradient tables.
 
-    Parameters
-    ----------
-    grad_sigma_g : ndarray, shape (m, L) or (m, L, N)
-        ``(grad sigma g)^T`` for one point or a batch (inputs first).
-    W : ndarray, shape (L,)
-    r : ndarray, shape (m,)
-        Diagonal of R.
-    input_bound : float
-
-    Returns
-    -------
-    D : ndarray, shape (m,) or (m, N)
+    ``(lowered, index, factor)`` is
+    :attr:`~ofrl_drake.basis.PolynomialBasis.gradient_tables`.
     """
-    denominator = 2.0 * input_bound * np.asarray(r, dtype=float)
-    if grad_sigma_g.ndim == 2:
-        return (grad_sigma_g @ W) / denominator
-    D = np.matmul(W, grad_sigma_g)  # (m, N), a fresh array
-    D /= denominator.reshape(D.shape[:1] + (1,) * (D.ndim - 1))
-    return D
+    grad_V = np.empty(x.shape[0])
+    value_gradient_kernel(x, W, lowered, index, factor, grad_V)
+    u = np.empty(g.shape[1])
+    saturate(grad_V, g, scale, input_bound, u)
+    return u
 
 
 def saturated_policy(
@@ -63,7 +87,8 @@ def saturated_policy(
     -------
     u : ndarray, shape (m,)
     """
-    # D = scale * g^T (grad sigma^T W): two small products, no (m, L) intermediate.
-    grad_V = W @ grad_sigma  # (n,)
-    D = (grad_V @ g) / (2.0 * input_bound * np.asarray(r, dtype=float))
-    return -input_bound * np.tanh(D)
+    grad_V = np.asarray(W, dtype=float) @ np.asarray(grad_sigma, dtype=float)
+    g = np.ascontiguousarray(g, dtype=float)
+    u = np.empty(g.shape[1])
+    saturate(grad_V, g, policy_scale(r, input_bound), float(input_bound), u)
+    return u

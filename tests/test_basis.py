@@ -70,3 +70,13 @@ def test_every_basis_vanishes_with_its_gradient_at_the_origin(n, degrees):
 def test_bad_degrees_raise(degrees, match):
     with pytest.raises(ModelError, match=match):
         PolynomialBasis(2, degrees)
+
+
+@pytest.mark.parametrize(("n", "degrees"), [(2, [2]), (2, [2, 4]), (4, [2]), (3, [2, 3])])
+def test_value_gradient_is_gradient_transposed_times_weights(n, degrees):
+    basis = PolynomialBasis(n, degrees)
+    rng = np.random.default_rng(7)
+    x, W = rng.normal(size=n), rng.normal(size=basis.size)
+    np.testing.assert_allclose(basis.value_gradient(x, W), basis.gradient(x).T @ W, rtol=1e-13)
+    out = np.empty(n)
+    assert basis.value_gradient(x, W, out=out) is out

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ofrl_drake import PolynomialBasis
-from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.bellman import Extrapolator, extrapolate, learning_condition, point_features
 from ofrl_drake.cost import input_cost_from_D
 from ofrl_drake.examples import make_system
 from ofrl_drake.points import grid_points, uniform_points
@@ -126,3 +126,19 @@ def test_points_must_match_system_dimension():
         ValueError, match=r"points must have shape \(n, N\) = \(2, N\); got \(3, 4\)"
     ):
         point_features(system, PolynomialBasis(2), np.zeros((3, 4)), np.eye(2))
+
+
+def test_sums_alone_equal_the_full_extrapolation():
+    system = make_system("coupled_two_state")
+    basis = PolynomialBasis(4)
+    F = point_features(
+        system, basis, uniform_points(-np.ones(4), np.ones(4), 30, seed=1), np.eye(4)
+    )
+    extrapolator = Extrapolator(F, np.array([1.0, 2.0]), LBAR, NU)
+    W = np.linspace(-1.0, 2.0, basis.size)
+    full, sums = extrapolator(W), extrapolator.sums(W)
+    np.testing.assert_array_equal(sums.critic_sum, full.critic_sum)
+    np.testing.assert_array_equal(sums.gain_sum, full.gain_sum)
+    first = extrapolator.sums(W)
+    extrapolator.sums(2 * W)  # the scratch is reused; returned sums are not
+    np.testing.assert_array_equal(first.critic_sum, sums.critic_sum)

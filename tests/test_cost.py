@@ -6,7 +6,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
 
-from ofrl_drake.cost import input_cost, input_cost_from_D, log_cosh, stage_cost, state_cost
+from ofrl_drake.cost import (
+    input_cost,
+    input_cost_from_D,
+    log_cosh,
+    stage_cost,
+    stage_cost_rate,
+    state_cost,
+    tanh_log_cosh,
+)
 from ofrl_drake.errors import ModelError
 
 
@@ -66,3 +74,34 @@ def test_stage_cost_adds_both_terms():
 def test_input_cost_outside_bound_raises():
     with pytest.raises(ModelError, match=r"\|u\| = 3.5 exceeds the input bound 3.0"):
         input_cost(np.array([3.5]), np.array([1.0]), 3.0)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(-60.0, 60.0, allow_nan=False))
+def test_tanh_log_cosh_matches_closed_forms_in_every_branch(d):
+    t, lc = tanh_log_cosh(d)
+    assert t == pytest.approx(np.tanh(d), rel=4e-16, abs=1e-300)
+    # Reference in extended precision: ln cosh d of ~1e-19 relative accuracy in cosh.
+    exact = float(np.log(np.cosh(np.longdouble(d))))
+    assert lc == pytest.approx(exact, rel=1e-14, abs=1e-18)
+
+
+@pytest.mark.parametrize("d", [0.0, 1e-8, 0.3, 0.5, 0.9, 3.0, 39.9, 40.0, 41.0, 1e4])
+def test_tanh_log_cosh_at_branch_edges(d):
+    for sign in (1.0, -1.0):
+        t, lc = tanh_log_cosh(sign * d)
+        assert t == pytest.approx(np.tanh(sign * d), rel=4e-16, abs=1e-300)
+        assert lc == pytest.approx(float(log_cosh(np.array([d]))[0]), rel=0, abs=0)
+        assert lc >= 0.0
+
+
+@pytest.mark.parametrize(
+    ("x", "u"),
+    [([1.0, -1.0], [0.5]), ([0.3, 0.2], [-2.9]), ([0.0, 0.0], [0.0]), ([2.0, 1.0], [3.0])],
+)
+def test_stage_cost_rate_is_stage_cost(x, u):
+    x, u = np.array(x), np.array(u)
+    Q, r = np.array([[5.0, 1.0], [1.0, 2.0]]), np.array([1.5])
+    rate, worst = stage_cost_rate(x, u, Q, r, 3.0)
+    assert rate == pytest.approx(stage_cost(x, u, Q, r, 3.0), rel=1e-14, abs=1e-300)
+    assert worst == pytest.approx(abs(u[0]) / 3.0, rel=1e-15)

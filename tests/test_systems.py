@@ -317,3 +317,12 @@ def test_frozen_blocks_are_allowed():
     """kc = 0 (frozen critic) and kc = beta = 0 (constant Gamma) are ablations, not errors."""
     assert CriticWeights(np.zeros(3), 0.0).num_continuous_states() == 3
     assert GammaGain(np.eye(3), 0.0, 0.0).num_continuous_states() == 9
+
+
+def test_running_cost_rejects_an_input_beyond_the_bound():
+    block = RunningCost(np.eye(2), np.array([1.0]), 3.0)
+    context = block.CreateDefaultContext()
+    block.get_state_input_port().FixValue(context, np.array([0.1, 0.2]))
+    block.get_u_input_port().FixValue(context, np.array([3.5]))
+    with pytest.raises(ModelError, match=r"\|u\| = 3.5 exceeds the input bound 3.0"):
+        block.EvalTimeDerivatives(context)

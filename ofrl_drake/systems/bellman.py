@@ -6,7 +6,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import InputPort, LeafSystem, OutputPort, ValueProducer
 
-from ofrl_drake.bellman import Extrapolator, PointFeatures, learning_condition
+from ofrl_drake.bellman import BellmanSums, Extrapolator, PointFeatures, learning_condition
 
 __all__ = ["BellmanExtrapolator"]
 
@@ -14,9 +14,10 @@ __all__ = ["BellmanExtrapolator"]
 class BellmanExtrapolator(LeafSystem):
     """Bellman errors at N fixed points, computed once per evaluation.
 
-    One cache entry holds the :class:`~ofrl_drake.bellman.BellmanExtrapolation`
-    for the current weights; all three outputs read it, so the critic and Gamma
-    laws share one computation per derivative evaluation.
+    One cache entry holds the :class:`~ofrl_drake.bellman.BellmanSums` for
+    the current weights (one compiled pass over the points); all three
+    outputs read it, so the critic and Gamma laws share one computation per
+    derivative evaluation.
 
     .. pydrake_system::
 
@@ -90,12 +91,12 @@ class BellmanExtrapolator(LeafSystem):
         """``c = lambda_min(gain_sum)`` (size 1)."""
         return self._learning_condition_port
 
-    def extrapolation(self, context):
-        """The cached :class:`~ofrl_drake.bellman.BellmanExtrapolation`."""
+    def extrapolation(self, context) -> BellmanSums:
+        """The cached :class:`~ofrl_drake.bellman.BellmanSums`."""
         return self._cache.Eval(context)
 
     def _calc_extrapolation(self, context, value) -> None:
-        value.set_value(self._extrapolator(self._weights_port.Eval(context)))
+        value.set_value(self._extrapolator.sums(self._weights_port.Eval(context)))
 
     def _calc_critic_sum(self, context, output) -> None:
         output.SetFromVector(self._cache.Eval(context).critic_sum)

@@ -9,7 +9,7 @@ from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.checks import positive_number, positive_vector
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.policy import saturated_policy
+from ofrl_drake.policy import policy_kernel, policy_scale
 
 __all__ = ["SaturatedController"]
 
@@ -63,6 +63,9 @@ class SaturatedController(LeafSystem):
             )
         self._r = positive_vector("SaturatedController: r", r, system.m)
         positive_number("SaturatedController: input_bound", input_bound)
+        self._scale = policy_scale(self._r, input_bound)
+        self._lbar = float(input_bound)
+        self._tables = basis.gradient_tables
         self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
         self._weights_port = self.DeclareVectorInputPort("weights", basis.size)
         self._u_port = self.DeclareVectorOutputPort(
@@ -86,7 +89,10 @@ class SaturatedController(LeafSystem):
 
     def _calc_u(self, context, output) -> None:
         xhat = self._xhat_port.Eval(context)
-        W = self._weights_port.Eval(context)
-        grad = self.basis.gradient(xhat)
         g = np.asarray(self.system.g(xhat), dtype=float)
-        output.SetFromVector(saturated_policy(grad, g, W, self._r, self.input_bound))
+        lowered, index, factor = self._tables
+        u = policy_kernel(
+            xhat, g, self._weights_port.Eval(context), lowered, index, factor,
+            self._scale, self._lbar,
+        )  # fmt: skip
+        output.SetFromVector(u)

@@ -6,7 +6,7 @@ import numpy as np
 from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.checks import nonnegative_matrix, positive_number, positive_vector
-from ofrl_drake.cost import input_cost, state_cost
+from ofrl_drake.cost import raise_input_out_of_bound, stage_cost_rate
 
 __all__ = ["RunningCost"]
 
@@ -47,6 +47,7 @@ class RunningCost(LeafSystem):
         self._Q = nonnegative_matrix("RunningCost: Q", Q)
         self._r = positive_vector("RunningCost: r", r)
         positive_number("RunningCost: input_bound", input_bound)
+        self._lbar = float(input_bound)
         n, m = self._Q.shape[0], self._r.size
         self._state_index = self.DeclareContinuousState(BasicVector(np.zeros(1)))
         self._x_port = self.DeclareVectorInputPort("state", n)
@@ -66,7 +67,8 @@ class RunningCost(LeafSystem):
         return self._cost_port
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
-        x = self._x_port.Eval(context)
         u = self._u_port.Eval(context)
-        rate = state_cost(x, self._Q) + input_cost(u, self._r, self.input_bound)
-        derivatives.SetFromVector(np.array([rate]))
+        rate, worst = stage_cost_rate(self._x_port.Eval(context), u, self._Q, self._r, self._lbar)
+        if worst > 1.0 + 1e-12:
+            raise_input_out_of_bound(u, self.input_bound)
+        derivatives.get_mutable_vector().SetAtIndex(0, rate)

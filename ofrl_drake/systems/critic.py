@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.bellman import critic_rate
 from ofrl_drake.checks import finite_vector, positive_number
 
 __all__ = ["CriticWeights"]
@@ -48,6 +50,8 @@ class CriticWeights(LeafSystem):
         positive_number("CriticWeights: kc", kc, allow_zero=True)
         size = W0.size
         self._size = size
+        self._kc = float(kc)
+        self._rate = np.empty(size)  # scratch for the derivative, copied out at once
         self._state_index = self.DeclareContinuousState(BasicVector(W0))
         self._critic_sum_port = self.DeclareVectorInputPort("critic_sum", size)
         self._gamma_port = self.DeclareVectorInputPort("gamma", size * size)
@@ -66,6 +70,8 @@ class CriticWeights(LeafSystem):
         return self._weights_port
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
-        Gamma = self._gamma_port.Eval(context).reshape(self._size, self._size)
-        s = self._critic_sum_port.Eval(context)
-        derivatives.SetFromVector(-self.kc * (Gamma @ s))
+        rate = self._rate
+        critic_rate(
+            self._gamma_port.Eval(context), self._critic_sum_port.Eval(context), self._kc, rate
+        )
+        derivatives.SetFromVector(rate)

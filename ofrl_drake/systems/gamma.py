@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.bellman import gamma_rate
 from ofrl_drake.checks import positive_number, spd_matrix
 
 __all__ = ["GammaGain"]
@@ -50,6 +51,8 @@ class GammaGain(LeafSystem):
         positive_number("GammaGain: kc", kc, allow_zero=True)
         positive_number("GammaGain: beta", beta, allow_zero=True)
         self._size = G0.shape[0]
+        self._kc, self._beta = float(kc), float(beta)
+        self._rate = np.empty(G0.size)  # scratch for the derivative, copied out at once
         self._state_index = self.DeclareContinuousState(BasicVector(G0.ravel()))
         self._gain_sum_port = self.DeclareVectorInputPort("gain_sum", G0.size)
         self._gamma_port = self.DeclareStateOutputPort("gamma", self._state_index)
@@ -63,9 +66,12 @@ class GammaGain(LeafSystem):
         return self._gamma_port
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
-        n = self._size
-        G = context.get_continuous_state_vector().CopyToVector().reshape(n, n)
-        G = 0.5 * (G + G.T)
-        S = self._gain_sum_port.Eval(context).reshape(n, n)
-        dG = self.beta * G - self.kc * (G @ S @ G)
-        derivatives.SetFromVector((0.5 * (dG + dG.T)).ravel())
+        rate = self._rate
+        gamma_rate(
+            context.get_continuous_state_vector().CopyToVector(),
+            self._gain_sum_port.Eval(context),
+            self._kc,
+            self._beta,
+            rate,
+        )
+        derivatives.SetFromVector(rate)
