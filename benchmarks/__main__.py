@@ -23,7 +23,17 @@ DIAGRAMS = Path(__file__).resolve().parents[1] / "diagrams"
 PAPER = DIAGRAMS / "two_state_paper.yaml"
 MIMO = DIAGRAMS / "coupled_two_state.yaml"
 
-SECTIONS = ("paper", "overhead", "points", "basis", "state_dimension", "integrators", "lmi")
+SECTIONS = (
+    "paper",
+    "overhead",
+    "bellman",
+    "points",
+    "basis",
+    "state_dimension",
+    "integrators",
+    "compile",
+    "lmi",
+)
 
 QUICK = suite.Settings(
     repeats=2,
@@ -32,6 +42,8 @@ QUICK = suite.Settings(
     point_grids=((10, 10), (25, 40)),
     integrator_cases=(("runge_kutta3", 1e-3), ("radau3", 1e-3)),
     lmi_cases=(("drake", "clarabel"), ("cvxpy", "clarabel")),
+    bellman_batches=3,
+    bellman_calls=200,
 )
 
 
@@ -89,10 +101,12 @@ def run(
     jobs = {
         "paper": lambda: suite.paper_end_to_end(paper, settings),
         "overhead": lambda: suite.evaluation_overhead(paper, settings),
+        "bellman": lambda: suite.bellman_math(paper, settings),
         "points": lambda: suite.points_scaling(paper, settings),
         "basis": lambda: suite.basis_scaling(paper, settings),
         "state_dimension": lambda: suite.state_dimension([paper, mimo], settings),
         "integrators": lambda: suite.integrators(paper, settings),
+        "compile": lambda: suite.compile_cost(str(PAPER)),
         "lmi": lambda: suite.lmi_design([paper, mimo], settings),
     }
     for name in SECTIONS:

@@ -22,10 +22,10 @@ from ofrl_drake.scenario import Scenario
 
 __all__ = [
     "REFERENCE_TOLERANCE",
-    "SAMPLE_TIMES",
     "Reference",
     "fused_loop",
     "initial_state",
+    "log_times",
     "reference",
     "with_basis",
     "with_duration",
@@ -35,9 +35,6 @@ __all__ = [
 
 #: rtol = atol of the DOP853 reference solution.
 REFERENCE_TOLERANCE = 1e-12
-
-#: Times (s) at which W is compared with the reference (clipped to the horizon).
-SAMPLE_TIMES = (1.0, 5.0, 10.0, 30.0)
 
 
 def with_duration(scenario: Scenario, duration: float | None) -> Scenario:
@@ -121,42 +118,63 @@ def initial_state(scenario: Scenario, loop: FusedClosedLoop) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Reference:
-    """W of a tight DOP853 solution at the sample times.
+    """W of a tight DOP853 solution, with its dense output.
 
     Attributes
     ----------
     times : ndarray, shape (K,)
-        Sample times; the last one is the horizon.
+        The scenario's log times (``0, log_period, ...`` up to the horizon):
+        where the baseline is sampled.
     W : ndarray, shape (K, L)
+        W at ``times``.
+    solution : callable
+        ``solution(t)`` is the reference state at times ``t`` (DOP853's dense
+        output, 7th order, so its interpolation error is far below the
+        tolerances compared).
+    loop : FusedClosedLoop
+        To pick W out of a state.
     """
 
     times: np.ndarray
     W: np.ndarray
+    solution: Any
+    loop: FusedClosedLoop
 
     def errors(self, times: np.ndarray, W: np.ndarray) -> tuple[float, float]:
         """``(|W(T) - W_ref(T)|_inf, max_k |W(t_k) - W_ref(t_k)|_inf)`` of a run.
 
-        ``times``, ``W`` are the run's samples; each reference time is matched
-        with the nearest sample.
+        ``times``, ``W`` are the run's samples; the maximum is over every one
+        of them, the reference evaluated at exactly those times.
         """
-        rows = [int(np.argmin(np.abs(times - t))) for t in self.times]
-        diff = np.abs(W[rows] - self.W)
+        times = np.asarray(times, dtype=float)
+        reference = self.solution(times)
+        W_ref = reference[2 * self.loop.n : 2 * self.loop.n + self.loop.size].T
+        diff = np.abs(np.asarray(W) - W_ref)
         return float(diff[-1].max()), float(diff.max())
 
 
+def log_times(scenario: Scenario) -> np.ndarray:
+    """``0, log_period, 2 log_period, ...`` up to the horizon: the logged times."""
+    duration, period = scenario.simulation.duration, scenario.simulation.log_period
+    count = int(np.floor(duration / period + 1e-9))
+    times = np.minimum(period * np.arange(count + 1), duration)  # no round-off past the end
+    return times if times[-1] >= duration - 1e-12 else np.append(times, duration)
+
+
 def reference(scenario: Scenario, design: Any) -> Reference:
-    """W at :data:`SAMPLE_TIMES` (and the horizon) from DOP853 at rtol = atol = 1e-12."""
+    """DOP853 at rtol = atol = 1e-12 with dense output; W at the scenario's log times."""
     loop = fused_loop(scenario, design)
     duration = scenario.simulation.duration
-    times = np.array(sorted({t for t in SAMPLE_TIMES if t < duration} | {duration}))
     sol = loop.solve(
         initial_state(scenario, loop),
         duration,
         method="DOP853",
         rtol=REFERENCE_TOLERANCE,
         atol=REFERENCE_TOLERANCE,
-        t_eval=times,
+        dense_output=True,
     )
     if not sol.success:  # pragma: no cover - DOP853 does not fail on this problem
         raise RuntimeError(f"reference solve failed: {sol.message}")
-    return Reference(times=times, W=np.array([loop.weights(z) for z in sol.y.T]))
+    times = log_times(scenario)
+    W = sol.sol(times)[2 * loop.n : 2 * loop.n + loop.size].T
+    return Reference(times=times, W=W, solution=sol.sol, loop=loop)

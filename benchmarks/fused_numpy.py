@@ -229,10 +229,18 @@ class FusedClosedLoop:
         rtol: float = 1e-9,
         atol: float = 1e-11,
         t_eval: np.ndarray | None = None,
+        dense_output: bool = False,
     ):
         """``scipy.integrate.solve_ivp`` of :meth:`rhs` over ``[0, duration]``."""
         return solve_ivp(
-            self.rhs, (0.0, duration), z0, method=method, rtol=rtol, atol=atol, t_eval=t_eval
+            self.rhs,
+            (0.0, duration),
+            z0,
+            method=method,
+            rtol=rtol,
+            atol=atol,
+            t_eval=t_eval,
+            dense_output=dense_output,
         )
 
     def weights(self, z: np.ndarray) -> np.ndarray:

@@ -7,6 +7,9 @@
 * :func:`points_scaling`, :func:`basis_scaling`, :func:`state_dimension` --
   how the cost grows with N, L and n;
 * :func:`integrators` -- Drake integrators at two accuracies;
+* :func:`bellman_math` -- the compiled Bellman extrapolation alone, per call;
+* :func:`compile_cost` -- numba's import, first-call compile and cache-load
+  times (fresh processes) and its install size;
 * :func:`lmi_design` -- the observer LMI through Drake and through cvxpy.
 
 Times are wall-clock seconds, with median, min and max over ``repeats`` runs
@@ -40,6 +43,8 @@ __all__ = [
     "BASELINE_TOLERANCES",
     "Settings",
     "basis_scaling",
+    "bellman_math",
+    "compile_cost",
     "evaluation_overhead",
     "integrators",
     "lmi_design",
@@ -77,6 +82,9 @@ class Settings:
         not forced to short steps by the logging.
     lmi_cases : tuple of (str, str)
         (backend, solver) pairs.
+    bellman_batches, bellman_calls : int
+        Batches, and calls per batch, of the Bellman-math measurement (the
+        calls shrink with N so that each batch does about the same work).
     """
 
     repeats: int = 5
@@ -85,11 +93,11 @@ class Settings:
     integrator_cases: tuple[tuple[str, float], ...] = (
         ("runge_kutta3", 1e-3),
         ("runge_kutta3", 1e-5),
+        ("bogacki_shampine3", 1e-4),
         ("runge_kutta5", 1e-3),
-        ("runge_kutta5", 1e-5),
         ("radau3", 1e-3),
+        ("radau3", 1e-4),
         ("radau3", 1e-5),
-        ("implicit_euler", 1e-2),
         ("implicit_euler", 1e-3),
     )
     integrator_log_period: float = 0.1
@@ -101,6 +109,8 @@ class Settings:
         ("drake", "scs"),
         ("cvxpy", "scs"),
     )
+    bellman_batches: int = 21
+    bellman_calls: int = 2000
 
 
 # ------------------------------------------------------------------ helpers
@@ -330,6 +340,111 @@ def integrators(scenario: Scenario, settings: Settings) -> list[dict]:
         row.update(_ours_summary(timing, advance[-settings.repeats :], result, ref))
         rows.append(row)
     return rows
+
+
+def bellman_math(scenario: Scenario, settings: Settings) -> list[dict]:
+    """Microseconds per Bellman extrapolation (both sums) at each N of ``point_grids``.
+
+    This is the math a derivative evaluation of the Bellman block does:
+    :meth:`~ofrl_drake.bellman.Extrapolator.sums` at the scenario's initial
+    weights, called from Python as the block calls it.
+    """
+    from ofrl_drake.basis import PolynomialBasis
+    from ofrl_drake.bellman import Extrapolator, point_features
+    from ofrl_drake.diagram import extrapolation_points
+    from ofrl_drake.examples import make_system
+
+    system = make_system(scenario.system)
+    basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
+    Q = np.asarray(scenario.cost.Q, dtype=float)
+    r = np.asarray(scenario.cost.R, dtype=float)
+    W = np.asarray(scenario.critic.W0, dtype=float)
+    rows = []
+    for counts in settings.point_grids:
+        case = with_grid(scenario, list(counts))
+        features = point_features(system, basis, extrapolation_points(case), Q)
+        extrapolator = Extrapolator(features, r, case.input_bound, case.critic.nu)
+        N = features.num_points
+        calls = max(1, settings.bellman_calls * 100 // N)
+
+        def batch(extrapolator: Extrapolator = extrapolator, calls: int = calls) -> None:
+            for _ in range(calls):
+                extrapolator.sums(W)
+
+        timing, _ = measure(batch, settings.bellman_batches)
+        rows.append(
+            {
+                "N": int(N),
+                "calls": calls,
+                "batches": settings.bellman_batches,
+                "us_per_call": 1e6 * timing.median / calls,
+                "us_per_call_min": 1e6 * timing.min / calls,
+            }
+        )
+    return rows
+
+
+_COMPILE_SCRIPT = """
+import json, sys, time
+t0 = time.perf_counter()
+import numba
+t1 = time.perf_counter()
+import ofrl_drake
+from benchmarks.cases import with_duration
+t2 = time.perf_counter()
+scenario = with_duration(ofrl_drake.load_scenario(sys.argv[1]), 0.1)
+ofrl_drake.simulate(scenario, progress=False)
+t3 = time.perf_counter()
+ofrl_drake.simulate(scenario, progress=False)
+t4 = time.perf_counter()
+print(json.dumps({"import_numba": t1 - t0, "import_ofrl_drake": t2 - t1,
+                  "first_simulate": t3 - t2, "second_simulate": t4 - t3}))
+"""
+
+
+def compile_cost(scenario_path: str) -> dict:
+    """numba's fixed costs, each in a fresh Python process.
+
+    ``cold``: an empty kernel cache (``NUMBA_CACHE_DIR`` set to a new
+    folder), so the first ``simulate()`` (0.1 s of the scenario) compiles
+    every kernel; ``warm``: the same folder again, so the kernels are loaded
+    from the cache. ``compile_s`` is cold minus warm first-call time. The
+    install size is what the ``numba`` and ``llvmlite`` distributions put on
+    disk.
+    """
+    import importlib.metadata
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        env["PYTHONPATH"] = os.pathsep.join(
+            p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p
+        )
+        for label in ("cold", "warm"):
+            done = subprocess.run(
+                [sys.executable, "-c", _COMPILE_SCRIPT, scenario_path],
+                env=env,
+                cwd=root,
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            out[label] = json.loads(done.stdout.strip().splitlines()[-1])
+    out["compile_s"] = out["cold"]["first_simulate"] - out["warm"]["first_simulate"]
+    sizes = {}
+    for dist in ("numba", "llvmlite"):
+        files = importlib.metadata.distribution(dist).files or []
+        sizes[dist] = sum(f.locate().stat().st_size for f in files if f.locate().is_file())
+    out["install_bytes"] = sizes
+    out["versions"] = {d: importlib.metadata.version(d) for d in ("numba", "llvmlite")}
+    return out
 
 
 def lmi_design(scenarios: list[Scenario], settings: Settings) -> list[dict]:

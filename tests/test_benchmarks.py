@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.__main__ import main
+from benchmarks.__main__ import SECTIONS, main
+from benchmarks.report import format_report
 
 TIMING_KEYS = {"median", "min", "max", "runs"}
 RUN_KEYS = TIMING_KEYS | {
@@ -47,7 +48,11 @@ def _check_pair(row):
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "results.json"
-    code = main(["--quick", "--duration", "0.3", "--repeats", "1", "--out", str(out)])
+    # Every section but "compile", which times fresh processes (format checked below).
+    sections = [s for s in SECTIONS if s != "compile"]
+    code = main(
+        ["--quick", "--duration", "0.3", "--repeats", "1", "--out", str(out), "--only", *sections]
+    )
     assert code == 0
     return json.loads(out.read_text())
 
@@ -60,6 +65,7 @@ def test_all_sections_and_metadata_are_written(results):
         "speed_probe",
         "paper",
         "overhead",
+        "bellman",
         "points",
         "basis",
         "state_dimension",
@@ -96,6 +102,31 @@ def test_overhead_section_reports_microseconds(results):
     assert o["max_derivative_difference"] < 1e-9
 
 
+def test_bellman_section_reports_microseconds_per_call(results):
+    rows = results["bellman"]
+    assert [row["N"] for row in rows] == [100, 1000]
+    for row in rows:
+        assert _finite(row["us_per_call"]) and row["us_per_call"] > 0
+        assert row["us_per_call_min"] <= row["us_per_call"]
+
+
+def test_compile_summary_is_formatted():
+    run = {"import_numba": 0.4, "import_ofrl_drake": 2.0, "second_simulate": 0.05}
+    text = format_report(
+        {
+            "compile": {
+                "cold": {**run, "first_simulate": 9.0},
+                "warm": {**run, "first_simulate": 0.5},
+                "compile_s": 8.5,
+                "install_bytes": {"numba": 35 * 2**20, "llvmlite": 170 * 2**20},
+                "versions": {"numba": "0.68.1", "llvmlite": "0.50.0"},
+            }
+        }
+    )
+    assert "installed 35 MB + 170 MB" in text
+    assert "first-call compile 8.5 s" in text
+
+
 def test_scaling_sections(results):
     assert [row["N"] for row in results["points"]] == [100, 1000]
     assert [row["L"] for row in results["basis"]] == [3, 8]
@@ -128,7 +159,14 @@ def test_lmi_section(results):
 
 def test_targets_have_values_limits_and_verdicts(results):
     t = results["targets"]
-    assert {"paper_ratio", "overhead_us", "points_ratio"} <= set(t)
+    assert {
+        "paper_ratio",
+        "paper_W_max_error",
+        "overhead_us",
+        "bellman_us_N100",
+        "points_ratio",
+        "coupled_ratio",
+    } <= set(t)
     assert any(name.startswith("lmi_drake_over_cvxpy") for name in t)
     for check in t.values():
         assert _finite(check["value"]) and _finite(check["limit"])
