@@ -83,6 +83,19 @@ estimate, usually tight but without a guarantee.
 Only entries with lower != upper generate corners; more than
 :data:`MAX_CORNERS` matrices in total raise :class:`LmiError`.
 
+*Thin* entries, whose width is at most :data:`THIN_RTOL` ``* max(1, |bound|)``
+(an interval enclosure widens a constant Jacobian entry such as ``-1.1`` by an
+ulp each way), generate no corners: they are fixed at their midpoint and their
+half-widths ``D`` enter as a norm-bounded perturbation instead. With ``A_cl =
+A_mid + dA`` and ``|dA_ij| <= D_ij`` entry-wise on ``M_f`` and ``M_gu``,
+
+    lambda_max(S) <= lambda_max(S_mid) + 2 ||P||_2 ||dA||_2,
+    ||dA||_2 <= ||D_f||_F ||I - H C||_2 + ||D_gu||_F ||I - K C||_2
+
+(:func:`thin_perturbation`), which :func:`decay_certificate` adds to every
+value, so the certificate stays sound while a plant with ``k`` inexact
+constants keeps ``2**k`` times fewer corners.
+
 Along ``e = eps e_1`` on the two-state example (``C = [0 1]``, so ``ytil = 0``)
 ``dV/dt = 2 eps^2 (-P11 + P12 a21(x))`` with ``a21 = d f_2 / d x_1`` of both
 signs on the box, so no quadratic ``V`` certifies ``alpha >= 1`` there, whatever
@@ -102,6 +115,7 @@ from ofrl_drake.sector import input_sector, input_vertices, paper_input_sector
 __all__ = [
     "MAX_CORNERS",
     "SECTORS",
+    "THIN_RTOL",
     "LmiError",
     "bounds_arrays",
     "box_corners",
@@ -115,12 +129,16 @@ __all__ = [
     "lmi2_blocks",
     "lmi_matrix",
     "polytopic_lmi",
+    "thin_perturbation",
     "vertex_data",
 ]
 
 SECTORS = ("sign_correct", "paper")
 #: The most corner matrices (over all input vertices) the polytopic checks enumerate.
 MAX_CORNERS = 2**16
+#: Entries of a Jacobian box at most this wide, relative to ``max(1, |bound|)``,
+#: are fixed at their midpoint and bounded as a perturbation (module docstring).
+THIN_RTOL = 1e-12
 
 
 class LmiError(OfrlError):
@@ -387,7 +405,28 @@ def is_certified(
 
 
 # ------------------------------------------------- polytopic decay certificate
+def _thin(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Mask of the entries with ``0 < upper - lower <= THIN_RTOL * max(1, |bounds|)``."""
+    scale = np.maximum(1.0, np.maximum(np.abs(lower), np.abs(upper)))
+    return (upper != lower) & (upper - lower <= THIN_RTOL * scale)
+
+
+def _collapse(lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(lower', upper', D)``: thin entries fixed at their midpoint, D their half-widths.
+
+    ``D >= max(upper - mid, mid - lower)``; both differences are exact in
+    floating point (Sterbenz), so ``[lower, upper]`` lies within ``mid +- D``.
+    """
+    thin = _thin(lower, upper)
+    if not np.any(thin):
+        return lower, upper, np.zeros_like(lower)
+    mid = np.where(thin, lower + 0.5 * (upper - lower), lower)
+    D = np.where(thin, np.maximum(upper - mid, mid - lower), 0.0)
+    return np.where(thin, mid, lower), np.where(thin, mid, upper), D
+
+
 def _free_count(lower: np.ndarray, upper: np.ndarray) -> int:
+    lower, upper, _ = _collapse(lower, upper)
     return int(np.count_nonzero(lower != upper))
 
 
@@ -482,6 +521,9 @@ def _input(u: Any, m: int) -> np.ndarray:
 def corner_matrices(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = None) -> np.ndarray:
     """The error-dynamics matrices ``A`` (with ``A_cl = A - L C``) at every corner.
 
+    Thin entries (module docstring) are fixed at their midpoint; the rest of
+    their range is :func:`thin_perturbation`.
+
     ``A = M_f (I - H C) + M_gu (I - K C) + (M_f1 H + M_ug1(u) K) C`` for ``M_f``
     at the corners of ``[M_f1, M_f2]`` and ``M_gu`` at the corners of
     ``[M_ug1(u), M_ug2(u)]`` (see the module docstring). With ``H = K = 0`` (or
@@ -515,7 +557,8 @@ def corner_matrices(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = 
     Mug1, Mug2 = input_sector(Mg1, Mg2, u)
     inj = _injection(H, K, C, n)
     if inj is None:
-        return box_corners(Mf1 + Mug1, Mf2 + Mug2)
+        lo, hi, _ = _collapse(Mf1 + Mug1, Mf2 + Mug2)
+        return box_corners(lo, hi)
     H, K, C = inj
     count = 2 ** (_free_count(Mf1, Mf2) + _free_count(Mug1, Mug2))
     if count > MAX_CORNERS:
@@ -524,10 +567,47 @@ def corner_matrices(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = 
             f"{MAX_CORNERS}; tighten the Jacobian bounds or use a smaller box."
         )
     eye = np.eye(n)
-    Af = box_corners(Mf1, Mf2) @ (eye - H @ C)  # (Nf, n, n)
-    Ag = box_corners(Mug1, Mug2) @ (eye - K @ C)  # (Ng, n, n)
+    Af = box_corners(*_collapse(Mf1, Mf2)[:2]) @ (eye - H @ C)  # (Nf, n, n)
+    Ag = box_corners(*_collapse(Mug1, Mug2)[:2]) @ (eye - K @ C)  # (Ng, n, n)
     A = Af[:, None] + Ag[None, :] + (Mf1 @ H + Mug1 @ K) @ C
     return A.reshape(-1, n, n)
+
+
+def thin_perturbation(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = None) -> float:
+    """Bound on ``||A - A_corner||_2`` left out of :func:`corner_matrices` by thin entries.
+
+    Every ``A`` of the Jacobian box lies within this spectral-norm distance of
+    one of the returned corners (module docstring), so ``lambda_max(S)`` over
+    the box is at most the corners' value plus ``2 ||P||_2`` times this.
+
+    Parameters
+    ----------
+    bounds, u, H, K, C
+        As for :func:`corner_matrices`.
+
+    Returns
+    -------
+    float
+        ``||D_f||_F ||I - H C||_2 + ||D_gu||_F ||I - K C||_2`` (``||D||_F`` of
+        the summed box without injection); 0 when no entry is thin.
+    """
+    Mf1, Mf2, Mg1, Mg2 = bounds_arrays(bounds)
+    n = Mf1.shape[0]
+    u = _input(u, Mg1.shape[2])
+    Mug1, Mug2 = input_sector(Mg1, Mg2, u)
+    inj = _injection(H, K, C, n)
+    if inj is None:
+        return float(np.linalg.norm(_collapse(Mf1 + Mug1, Mf2 + Mug2)[2]))
+    H, K, C = inj
+    eye = np.eye(n)
+    Df = np.linalg.norm(_collapse(Mf1, Mf2)[2])
+    Dg = np.linalg.norm(_collapse(Mug1, Mug2)[2])
+    out = 0.0
+    if Df:
+        out += Df * np.linalg.norm(eye - H @ C, 2)
+    if Dg:
+        out += Dg * np.linalg.norm(eye - K @ C, 2)
+    return float(out)
 
 
 def decay_matrices(P: np.ndarray, A_cl: np.ndarray, alpha: float) -> np.ndarray:
@@ -597,7 +677,8 @@ def decay_certificate(
 
     The maximum, at each of the ``3**m`` input vertices, over every corner of
     the Jacobian bounds (:func:`corner_matrices`) of ``lambda_max(S)`` with
-    ``S = A_cl^T P + P A_cl + 2 alpha P`` and ``A_cl = A - L C``. All negative
+    ``S = A_cl^T P + P A_cl + 2 alpha P`` and ``A_cl = A - L C``, plus
+    ``2 ||P||_2`` :func:`thin_perturbation` for the thin entries. All negative
     (and ``P`` positive definite) is a sound certificate that ``V = e^T P e``
     obeys ``dV/dt <= -2 alpha V`` along the true nonlinear error dynamics for
     every ``x, xhat`` in the box of the bounds and every ``|u_k| <=
@@ -658,11 +739,13 @@ def decay_certificate(
             "Jacobian bounds or use a smaller box."
         )
     P = 0.5 * (P + P.T)
+    P_norm = float(np.linalg.norm(P, 2))
     out = []
     for u in vertices:
         A_cl = corner_matrices(bounds, u, H, K, C) - L @ C
         S = decay_matrices(P, A_cl, alpha)
-        out.append((u, float(np.linalg.eigvalsh(S)[:, -1].max())))
+        thin = 2.0 * P_norm * thin_perturbation(bounds, u, H, K, C)
+        out.append((u, float(np.linalg.eigvalsh(S)[:, -1].max()) + thin))
     return out
 
 

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from ofrl_drake import lmi
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.lmi import (
     MAX_CORNERS,
@@ -22,6 +23,7 @@ from ofrl_drake.lmi import (
     is_decay_certified,
     lmi_matrix,
     polytopic_lmi,
+    thin_perturbation,
     vertex_data,
 )
 from ofrl_drake.sector import input_sector
@@ -363,3 +365,49 @@ def test_decay_certificate_errors_name_the_problem():
     Cn = np.eye(1, n)
     with pytest.raises(LmiError, match=f"more than MAX_CORNERS = {MAX_CORNERS}"):
         decay_certificate(np.eye(n), gn, gn, gn, Cn, wide, 1.0, 1.0)
+
+
+def _widen_by_ulps(M, ulps=1):
+    lo, hi = M.copy(), M.copy()
+    for _ in range(ulps):
+        lo, hi = np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)
+    return lo, hi
+
+
+def test_entries_one_ulp_wide_add_no_corners():
+    # An enclosure widens the constant entries of the two-state Jacobian by an
+    # ulp; they must not multiply the corners (4 wide entries, 16 corners).
+    Mf1, Mf2 = MF1.copy(), MF2.copy()
+    constant = Mf1 == Mf2
+    lo, hi = _widen_by_ulps(Mf1)
+    Mf1[constant], Mf2[constant] = lo[constant], hi[constant]
+    bounds = (Mf1, Mf2, MG1, MG2)
+    H = K = np.array([[0.3], [0.1]])
+    assert corner_count(bounds, [3.0], H, K, C2) == corner_count(TWO_STATE, [3.0], H, K, C2)
+    assert 0 < thin_perturbation(bounds, [3.0], H, K, C2) < 1e-14
+    assert thin_perturbation(TWO_STATE, [3.0], H, K, C2) == 0.0
+
+
+@pytest.mark.parametrize("injection", [True, False])
+@pytest.mark.parametrize("seed", [0, 1, 5])
+def test_thin_entries_stay_sound_through_the_perturbation_bound(monkeypatch, seed, injection):
+    # Make "thin" coarse enough (5%) that the perturbation term is measurable:
+    # the certificate must still bound every corner of the full box (brute
+    # force), and must differ from a midpoint-only evaluation.
+    monkeypatch.setattr(lmi, "THIN_RTOL", 0.05)
+    bounds, P, L, H, K, C = _random_case(seed)
+    if not injection:
+        H, K = np.zeros_like(H), np.zeros_like(K)
+    Mf1, Mf2, Mg1, Mg2 = bounds
+    rng = np.random.default_rng(seed + 7)
+    thin_f = rng.random(Mf1.shape) < 0.4
+    Mf2 = np.where(thin_f, Mf1 + 0.02, Mf2)
+    bounds = (Mf1, Mf2, Mg1, Mg2)
+    got = decay_certificate(P, L, H, K, C, bounds, 1.5, 0.3)
+    want = _brute_force_decay(P, L, H, K, C, bounds, 1.5, 0.3)
+    assert any(thin_perturbation(bounds, u, H, K, C) > 0 for u, _ in got)
+    for (u, ev), (_, brute) in zip(got, want, strict=True):
+        assert ev >= brute - 1e-12 * (1 + abs(brute))
+        # ... and not by an absurd margin: within the perturbation term.
+        slack = 2 * np.linalg.norm(P, 2) * thin_perturbation(bounds, u, H, K, C)
+        assert ev <= brute + slack + 1e-9
