@@ -1,23 +1,43 @@
 """ofrl_drake: output-feedback, model-based RL control as Drake block diagrams.
 
-The paper's method (../shared/paper) in blocks: a plant, a three-gain observer
-with LMI-certified gains, a critic learned from extrapolated Bellman errors, a
-least-squares gain Gamma and a saturated controller.
+The method of Output Feedback Adaptive Optimal Control of Affine Nonlinear
+Systems with a Linear Measurement Model (see the README for the reference) in
+blocks: a plant, a three-gain observer with LMI-certified gains, a critic
+learned from extrapolated Bellman errors, a least-squares gain Gamma and a
+saturated controller.
+
+The names below are imported on first use, so ``import ofrl_drake`` (and the
+``ofrl-drake`` command's start, ``--version``, ``--help``) does not load Drake.
 
 >>> import ofrl_drake as od                                     # doctest: +SKIP
 >>> scenario = od.load_scenario("diagrams/two_state_paper.yaml")  # doctest: +SKIP
 >>> result = od.simulate(scenario)                              # doctest: +SKIP
 """
 
-from ofrl_drake.ablation import Variant, ablate
-from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.diagram import ClosedLoop, build_closed_loop
-from ofrl_drake.errors import ModelError, OfrlError, OutputError, ScenarioError, SwapError
-from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.scenario import Scenario, load_scenario
-from ofrl_drake.simulation import SimulationResult, simulate
+# Only modules the interpreter has already loaded are imported here, so that
+# the ``ofrl-drake`` command can handle a SIGINT from its first instant.
+import importlib
 
 __version__ = "0.1.0"
+
+#: Public name -> the module that defines it.
+_EXPORTS = {
+    "Variant": "ofrl_drake.ablation",
+    "ablate": "ofrl_drake.ablation",
+    "PolynomialBasis": "ofrl_drake.basis",
+    "ClosedLoop": "ofrl_drake.diagram",
+    "build_closed_loop": "ofrl_drake.diagram",
+    "ModelError": "ofrl_drake.errors",
+    "OfrlError": "ofrl_drake.errors",
+    "OutputError": "ofrl_drake.errors",
+    "ScenarioError": "ofrl_drake.errors",
+    "SwapError": "ofrl_drake.errors",
+    "ControlAffineSystem": "ofrl_drake.model",
+    "Scenario": "ofrl_drake.scenario",
+    "load_scenario": "ofrl_drake.scenario",
+    "SimulationResult": "ofrl_drake.simulation",
+    "simulate": "ofrl_drake.simulation",
+}
 
 __all__ = [
     "ClosedLoop",
@@ -36,3 +56,21 @@ __all__ = [
     "load_scenario",
     "simulate",
 ]
+
+
+def __getattr__(name: str) -> object:
+    """Import a public name, or a submodule (``ofrl_drake.systems``), on first use."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    try:
+        return importlib.import_module(f"{__name__}.{name}")
+    except ModuleNotFoundError as err:
+        if err.name != f"{__name__}.{name}":
+            raise
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])

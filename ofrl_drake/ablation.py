@@ -317,8 +317,8 @@ class RunOutcome:
     logs: dict[str, np.ndarray] = field(default_factory=dict)
 
     def warm_start(self) -> Trajectory | None:
-        """The run as a :class:`~ofrl_drake.optimal.Trajectory`, if it succeeded."""
-        if not self.logs:
+        """The run as a :class:`~ofrl_drake.optimal.Trajectory`, if it reached its horizon."""
+        if not self.logs or self.status.startswith(("diverged", "timeout")):
             return None
         return Trajectory(
             t=self.logs["t"], x=self.logs["x"], u=self.logs["u"], cost=self.logs["cost"]
@@ -348,7 +348,11 @@ def run_variant(
         box = (np.asarray(s.observer.box.lower), np.asarray(s.observer.box.upper))
         metrics = run_metrics(result, box)
         status = "ok"
-        if not (np.all(np.isfinite(result.x)) and np.all(np.isfinite(result.cost))):
+        if result.status != "ok":
+            # Stopped by the guard: the metrics of a truncated run are not comparable.
+            status = f"{result.status}: {result.stop.reason}"
+            metrics = dict.fromkeys(_METRICS, math.nan)
+        elif not (np.all(np.isfinite(result.x)) and np.all(np.isfinite(result.cost))):
             status = "diverged: non-finite state or cost"
         logs = {k: np.asarray(getattr(result, k)) for k in ("t", "x", "xhat", "u", "cost")}
     except Exception as err:
@@ -508,6 +512,7 @@ def _save_run(runs_dir: Path, outcome: RunOutcome) -> None:
             variant=outcome.variant,
             initial_state=outcome.initial_state,
             learned=outcome.learned,
+            status=outcome.status,
             **outcome.logs,
         )
 
@@ -612,22 +617,94 @@ class _Progress:
 
 
 # -------------------------------------------------------------------- API
-def _plan_file(out: Path, scenario: Scenario, duration: float | None, resume: bool) -> None:
-    plan = {
+def _plan(
+    scenario: Scenario,
+    duration: float | None,
+    labels: Sequence[str],
+    variants: Sequence[Variant],
+    seed: int | None,
+) -> dict[str, Any]:
+    """The contents of ``ablation.json``: what defines the sweep."""
+    return {
         "scenario": scenario.name,
         "scenario_key": scenario_key(scenario),
         "duration": scenario.simulation.duration if duration is None else float(duration),
+        "seed": seed,
+        "initial_states": list(labels),
+        "variants": {v.name: dict(v.choices) for v in variants},
+        "scenario_values": dataclasses.asdict(scenario),
     }
+
+
+def _first_difference(old: Any, new: Any, path: str = "") -> str | None:
+    """The key path of the first difference between two JSON-like values, or None."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            where = f"{path}.{key}" if path else str(key)
+            if key not in old or key not in new:
+                return where
+            found = _first_difference(old[key], new[key], where)
+            if found is not None:
+                return found
+        return None
+    return None if old == new else (path or "value")
+
+
+def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
+    """Why a ``--resume`` with plan ``new`` cannot continue the sweep of plan ``old``."""
+
+    def lookup(values: Any, path: str) -> Any:
+        for key in path.split("."):
+            values = values.get(key) if isinstance(values, Mapping) else None
+        return values
+
+    if "seed" in old and old["seed"] != new["seed"]:
+        return f"the folder's sweep used --seed {old['seed']}, this one --seed {new['seed']}"
+    if "initial_states" in old and old["initial_states"] != new["initial_states"]:
+        return (
+            f"the folder's sweep runs {len(old['initial_states'])} initial states "
+            f"{', '.join(old['initial_states'])}, this one {len(new['initial_states'])}: "
+            f"{', '.join(new['initial_states'])}"
+        )
+    if "variants" in old and old["variants"] != new["variants"]:
+        gone = sorted(set(old["variants"]) - set(new["variants"]))
+        added = sorted(set(new["variants"]) - set(old["variants"]))
+        changed = sorted(
+            k
+            for k in set(old["variants"]) & set(new["variants"])
+            if old["variants"][k] != new["variants"][k]
+        )
+        parts = [
+            f"{what} {names}"
+            for what, names in (("missing", gone), ("new", added), ("changed", changed))
+            if names
+        ]
+        return f"the variants differ ({'; '.join(parts)})"
+    if old.get("duration") != new["duration"]:
+        return (
+            f"the folder's sweep has a horizon of {old.get('duration')} s, "
+            f"this one {new['duration']} s"
+        )
+    if "scenario_values" in old:
+        where = _first_difference(old["scenario_values"], new["scenario_values"])
+        if where is not None:
+            return (
+                f"the scenario differs in {where} ({lookup(old['scenario_values'], where)!r} "
+                f"in the folder, {lookup(new['scenario_values'], where)!r} now)"
+            )
+    if old.get("scenario_key") != new["scenario_key"]:
+        return f"the folder holds a sweep of another scenario ({old.get('scenario')!r})"
+    return None
+
+
+def _plan_file(out: Path, plan: Mapping[str, Any], resume: bool) -> None:
     path = out / PLAN_NAME
     if resume and path.is_file():
         old = json.loads(path.read_text())
-        if (old.get("scenario_key"), old.get("duration")) != (
-            plan["scenario_key"],
-            plan["duration"],
-        ):
+        why = _resume_mismatch(old, json.loads(json.dumps(plan)))
+        if why is not None:
             raise AblationError(
-                f"--resume: {out} holds a sweep of another scenario or horizon "
-                f"({old.get('scenario')!r}, {old.get('duration')} s); choose another --out."
+                f"--resume: {why}; resume with the sweep's own arguments, or choose another --out."
             )
         return
     atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
@@ -644,6 +721,7 @@ class _Sweep:
     mesh: Mesh | None
     solver: str | None
     out_dir: Path | None
+    seed: int | None = None
     done: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict)
     optimum: dict[str, OptimalControlResult] = field(default_factory=dict)
     pending: dict[str, list[RunOutcome]] = field(default_factory=dict)
@@ -669,7 +747,10 @@ class _Sweep:
             raise AblationError(
                 f"{table} exists; pass --resume to complete it, or choose another --out."
             )
-        _plan_file(self.out_dir, self.scenario, self.duration, resume)
+        plan = _plan(
+            self.scenario, self.duration, list(self.states), list(self.variants.values()), self.seed
+        )
+        _plan_file(self.out_dir, plan, resume)
         if table.exists():
             for row in read_rows(table, repair=True):
                 self.done[(row["variant"], row["initial_state"])] = row
@@ -711,7 +792,7 @@ class _Sweep:
             if v.full_choices(self.scenario)["controller"] != "learned":
                 continue
             logs = load_run(self.out_dir / "runs", v.name, label)
-            if logs is not None:
+            if logs is not None and str(logs.get("status", "ok")) == "ok":
                 return Trajectory(t=logs["t"], x=logs["x"], u=logs["u"], cost=logs["cost"])
         return None
 
@@ -759,6 +840,7 @@ def ablate(
     mesh: Mesh | None = None,
     solver: str | None = None,
     progress: bool | None = None,
+    seed: int | None = None,
 ) -> list[dict[str, Any]]:
     """Run every variant from every initial state and compare with ``J*``.
 
@@ -787,6 +869,10 @@ def ablate(
         Solver of ``J*`` (default SNOPT).
     progress : bool, optional
         Progress bar of finished runs on stderr; default only on a terminal.
+    seed : int, optional
+        The seed the initial states were drawn with
+        (:func:`sample_initial_states`); recorded in ``ablation.json`` so a
+        ``resume`` with another seed is refused by name.
 
     Returns
     -------
@@ -799,7 +885,8 @@ def ablate(
     ------
     AblationError
         For bad variants or initial states, an existing table without
-        ``resume``, or a ``resume`` into a sweep of another scenario.
+        ``resume``, or a ``resume`` whose seed, initial states, variants,
+        scenario or horizon differ from the sweep in ``out`` (named in the message).
 
     Examples
     --------
@@ -829,6 +916,7 @@ def ablate(
         mesh=mesh,
         solver=solver,
         out_dir=None if out is None else Path(out),
+        seed=seed,
     )
     sweep.open(resume)
     todo = [k for k in keys if k not in sweep.done]

@@ -28,6 +28,7 @@ from ofrl_drake.ablation import load_run
 from ofrl_drake.ablation_metrics import settling_time
 from ofrl_drake.atomic import atomic_file, atomic_write_text
 from ofrl_drake.optimal import Trajectory
+from ofrl_drake.plotting import numerical_floor, shade_numerical_floor
 
 __all__ = [
     "REPORT_METRICS",
@@ -130,6 +131,7 @@ def plot_trajectories(
     initial_state: str,
     optimum: Trajectory | None = None,
     equilibrium: Sequence[float] | None = None,
+    accuracy: float | None = None,
 ) -> Figure:
     """Each variant's state from one initial state (saved runs).
 
@@ -137,14 +139,18 @@ def plot_trajectories(
     settled, :func:`~ofrl_drake.ablation_metrics.settling_time`), and a last
     panel with ``|x(t)|`` on a log scale over the whole horizon. The optimal
     trajectory behind ``J*``, if given, is drawn dashed in black. With an
-    ``equilibrium`` x* the runs are in ``x - x*``, and the axes say so.
+    ``equilibrium`` x* the runs are in ``x - x*``, and the axes say so. On the log
+    panel, the band below the level where the settled runs show only integration
+    error (:func:`~ofrl_drake.plotting.numerical_floor`, the integrator's
+    ``accuracy`` if given) is shaded and labelled. The legend sits outside the
+    axes.
     """
     runs = {name: run for name in variants if (run := load_run(runs_dir, name, initial_state))}
     curves = [(name, run["t"], run["x"]) for name, run in runs.items()]
     if optimum is not None:
         curves.append(("optimal (J*)", optimum.t, optimum.x))
     n = curves[0][2].shape[1] if curves else 1
-    fig = Figure(figsize=(7.0, 2.2 * (n + 1) + 0.6), layout="constrained")
+    fig = Figure(figsize=(9.0, 2.2 * (n + 1) + 0.6), layout="constrained")
     axes = fig.subplots(n + 1, 1, squeeze=False)[:, 0]
     horizon, settled = 0.0, 0.0
     for k, (name, t, x) in enumerate(curves):
@@ -162,6 +168,11 @@ def plot_trajectories(
         axes[i].set_xlim(0.0, zoom or 1.0)
     axes[n].set_ylabel(r"$\|x\|$" if equilibrium is None else r"$\|x - x^*\|$")
     axes[n].set_xlim(0.0, horizon or 1.0)
+    simulated = [(t, x) for name, t, x in curves if name != "optimal (J*)"]
+    floors = [numerical_floor(t, np.linalg.norm(x, axis=1)) for t, x in simulated]
+    floors = [f for f in floors if f is not None]
+    # The sawtooth every settled run ends in is the integrator's error, not behaviour.
+    shade_numerical_floor(axes[n], max(floors) if floors else None, accuracy)
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.set_xlabel(r"time $t$ [s]")
@@ -169,8 +180,13 @@ def plot_trajectories(
     if equilibrium is not None:
         title = f"state relative to x* = {list(equilibrium)}, from x0 - x* = {initial_state}"
     axes[0].set_title(title, fontsize=10)
-    if curves:
-        axes[0].legend(fontsize=7, ncols=2, frameon=False)
+    handles, labels = axes[0].get_legend_handles_labels()
+    for h, lab in zip(*axes[n].get_legend_handles_labels(), strict=True):
+        if lab.startswith("integrator"):
+            handles.append(h)
+            labels.append(lab)
+    if handles:
+        fig.legend(handles, labels, loc="outside right upper", fontsize=8, frameon=False)
     return fig
 
 
@@ -185,6 +201,7 @@ def write_report(
     solver: str = "SNOPT",
     optimum: Trajectory | None = None,
     equilibrium: Sequence[float] | None = None,
+    accuracy: float | None = None,
 ) -> list[Path]:
     """Write ``ablation.md`` and the figures into ``out``; return the paths written.
 
@@ -208,6 +225,8 @@ def write_report(
         The optimal trajectory from the scenario's ``x0``, drawn with the variants.
     equilibrium : sequence of float, optional
         The scenario's x*: states and initial states are then ``x - x*``.
+    accuracy : float, optional
+        The integrator accuracy of the runs, named on the shaded error floor.
     """
     out = Path(out)
     figures = out / "figures"
@@ -261,7 +280,7 @@ def write_report(
         plot_optimality_ratio(rows, variants).savefig(fh, dpi=DPI, format="png")
     traj = figures / "trajectories.png"
     with atomic_file(traj, "wb") as fh:
-        plot_trajectories(out / "runs", variants, x0_label, optimum, equilibrium).savefig(
+        plot_trajectories(out / "runs", variants, x0_label, optimum, equilibrium, accuracy).savefig(
             fh, dpi=DPI, format="png"
         )
     return [md, ratio, traj]

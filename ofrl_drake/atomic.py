@@ -21,6 +21,7 @@ __all__ = [
     "atomic_file",
     "atomic_write_text",
     "check_output_folder",
+    "check_writable",
     "ensure_parent",
     "umask_mode",
 ]
@@ -54,6 +55,37 @@ def ensure_parent(target: Path, what: str = "--out") -> Path:
     return target
 
 
+def check_writable(target: Path, what: str = "--out") -> Path:
+    """Raise :class:`OutputError` now if ``target`` could not be created later.
+
+    Probes the nearest existing folder above ``target`` by creating and removing
+    a temporary folder in it (so it also catches read-only file systems, which
+    ``os.access`` misses for root). Creates nothing that stays.
+
+    Raises
+    ------
+    OutputError
+        If a parent of ``target`` is a file, or the nearest existing one cannot
+        be written.
+    """
+    target = Path(target).expanduser().absolute()
+    ancestor = target.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OutputError(
+            f"{what}: {ancestor} is a file, so {target} cannot be created; choose another path."
+        )
+    try:
+        tempfile.TemporaryDirectory(prefix=".ofrl_drake_probe.", dir=ancestor).cleanup()
+    except OSError as err:
+        raise OutputError(
+            f"{what}: cannot write in {ancestor} ({err.strerror}), so {target} cannot be "
+            "created; choose a folder you can write to."
+        ) from None
+    return target
+
+
 def check_output_folder(
     target: Path, *, marker: str, command: str, error: type[Exception] = OutputError
 ) -> Path:
@@ -84,7 +116,13 @@ def atomic_file(target: str | Path, mode: str = "w", *, what: str = "output") ->
     target = ensure_parent(Path(target), what)
     if target.is_dir():
         raise OutputError(f"{what}: {target} is a folder; name a file inside it.")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+    except OSError as err:
+        raise OutputError(
+            f"{what}: cannot write in {target.parent} ({err.strerror}); choose a folder you "
+            "can write to."
+        ) from None
     try:
         os.chmod(tmp, umask_mode())
         with os.fdopen(fd, mode) as fh:

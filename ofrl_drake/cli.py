@@ -6,25 +6,40 @@ Subcommands::
     ofrl-drake design-observer SCENARIO --out F    certified observer gains as JSON
     ofrl-drake ablate SCENARIO --out DIR           every variant vs the optimum, on Dask
 
-Bad input prints one line (``error: ...``) and exits 2; nothing partial is
-written: outputs are built in a temporary sibling and renamed into place. The
-exception is ``ablate``, whose rows stream into ``DIR/ablation.csv`` as runs
-finish so that ``--resume`` can complete an interrupted sweep.
+Exit codes (the README has the table): 0 success; 1 internal error (a bug:
+please report it); 2 bad input, printed on one line (``error: ...``); 3 ``run``
+stopped early because the run diverged or timed out (its output folder is
+written and says so); 130 interrupted (SIGINT). Nothing partial is written:
+outputs are built in a temporary sibling and renamed into place. The exception
+is ``ablate``, whose rows stream into ``DIR/ablation.csv`` as runs finish so
+that ``--resume`` can complete an interrupted sweep.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import importlib
 import json
 import os
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
-from ofrl_drake.atomic import atomic_write_text, check_output_folder, ensure_parent, umask_mode
+from ofrl_drake import __version__
+from ofrl_drake.atomic import (
+    atomic_write_text,
+    check_output_folder,
+    check_writable,
+    ensure_parent,
+    umask_mode,
+)
 from ofrl_drake.errors import OfrlError, OutputError
 
 __all__ = ["OUTPUT_MARKER", "OutputError", "atomic_directory", "check_output_directory", "main"]
@@ -32,10 +47,15 @@ __all__ = ["OUTPUT_MARKER", "OutputError", "atomic_directory", "check_output_dir
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_BAD_INPUT = 2
+EXIT_STOPPED = 3
+EXIT_INTERRUPTED = 130
 
 
 #: Written into every output folder of ``run``; only such folders are replaced.
 OUTPUT_MARKER = ".ofrl_drake_output"
+
+#: The resolved scenario as run, in every output folder of ``run``.
+SCENARIO_FILE = "scenario.yaml"
 
 
 def check_output_directory(target: Path) -> Path:
@@ -47,7 +67,8 @@ def check_output_directory(target: Path) -> Path:
     target = Path(target).expanduser().resolve()
     if target == target.parent:
         raise OutputError(f"--out: {target} is a filesystem root; name an output folder.")
-    return check_output_folder(target, marker=OUTPUT_MARKER, command="run")
+    check_output_folder(target, marker=OUTPUT_MARKER, command="run")
+    return check_writable(target)
 
 
 @contextlib.contextmanager
@@ -59,7 +80,10 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     """
     target = check_output_directory(target)
     ensure_parent(target)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    except OSError as err:
+        raise OutputError(f"--out: cannot write in {target.parent} ({err.strerror}).") from None
     backup = target.with_name(f".{target.name}.old")
     try:
         tmp.chmod(umask_mode(0o777))
@@ -97,25 +121,71 @@ def _write_animation(scenario, result, folder: Path) -> str | None:
     return None
 
 
+def _with_max_wall(scenario: Any, seconds: float | None) -> Any:
+    """``scenario`` with ``simulation.max_wall_time`` set from ``--max-wall``."""
+    if seconds is None:
+        return scenario
+    if not seconds > 0 or seconds == float("inf"):
+        raise OfrlError(f"--max-wall: must be a finite number of seconds > 0; got {seconds}.")
+    simulation = dataclasses.replace(scenario.simulation, max_wall_time=float(seconds))
+    return dataclasses.replace(scenario, simulation=simulation)
+
+
+def _outside_box_warning(scenario: Any) -> str | None:
+    """One line if x0 or xhat0 starts outside the observer box, else None."""
+    import numpy as np
+
+    from ofrl_drake.scenario import abort_box
+
+    lower = np.asarray(scenario.observer.box.lower, float)
+    upper = np.asarray(scenario.observer.box.upper, float)
+    outside = [
+        f"{name} = {list(value)}"
+        for name, value in (("x0", scenario.x0), ("xhat0", scenario.xhat0))
+        if np.any((np.asarray(value) < lower) | (np.asarray(value) > upper))
+    ]
+    if not outside:
+        return None
+    alo, ahi = abort_box(scenario)
+    stops = any(
+        np.any((np.asarray(v) < alo) | (np.asarray(v) > ahi)) for v in (scenario.x0, scenario.xhat0)
+    )
+    tail = (
+        "; it is outside the abort box too, so the run stops at t = 0 (widen "
+        "simulation.abort_box to run it anyway)"
+        if stops
+        else ""
+    )
+    return (
+        f"warning: {' and '.join(outside)} outside the observer box "
+        f"[{lower.tolist()}, {upper.tolist()}]: the observer certificate does not apply{tail}."
+    )
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.graph import render_diagram
     from ofrl_drake.plotting import save_figures
-    from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.scenario import dump_scenario, load_scenario
     from ofrl_drake.simulation import simulate
 
-    scenario = load_scenario(args.scenario)
+    scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     check_output_directory(Path(args.out))  # fail before the work, not after
+    warning = _outside_box_warning(scenario)
+    if warning:
+        print(warning, file=sys.stderr)
     loop = build_closed_loop(scenario)
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
     out = Path(args.out)
     with atomic_directory(out) as tmp:
         result.save(tmp)
+        (tmp / SCENARIO_FILE).write_text(dump_scenario(scenario))
         save_figures(
             result,
             tmp / "figures",
             input_bound=scenario.input_bound,
             weight_labels=loop.parts.basis.labels(),
+            box=(scenario.observer.box.lower, scenario.observer.box.upper),
         )
         if loop.design is not None:
             (tmp / "observer_design.json").write_text(
@@ -125,6 +195,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         animation_note = _write_animation(scenario, result, tmp)
     if animation_note:
         print(animation_note, file=sys.stderr)
+    if result.status != "ok":
+        print(
+            f"stopped: {result.status}: {result.stop.reason}; wrote {out} with the logs up "
+            f"to t = {result.stop.time:.6g} s",
+            file=sys.stderr,
+        )
+        return EXIT_STOPPED
     if graph.suffix == ".dot":
         print(
             f"note: Graphviz 'dot' not found; wrote {out / graph.name} instead of "
@@ -156,6 +233,7 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
+    check_writable(Path(args.out))  # fail before the work, not after
     design = design_for(scenario)
     atomic_write_text(Path(args.out), json.dumps(design.to_dict(), indent=2) + "\n")
     worst = max(v for _, v in design.certificate())
@@ -181,6 +259,11 @@ def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[object]
             client = Client(scheduler, timeout="30s")
         except (OSError, TimeoutError) as err:
             raise AblationError(f"--scheduler: cannot connect to {scheduler}: {err}") from None
+        except (ValueError, TypeError) as err:
+            raise AblationError(
+                f"--scheduler: {scheduler!r} is not a scheduler address ({err}); give "
+                "tcp://HOST:PORT of a running dask scheduler."
+            ) from None
         with client:
             yield client
         return
@@ -215,23 +298,27 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 0:
         raise AblationError(f"--workers: must be >= 0; got {args.workers}.")
-    scenario = load_scenario(args.scenario)
+    scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     variants = load_variants(args.variants) if args.variants else default_variants(scenario)
     states = sample_initial_states(scenario, args.initial_states, args.seed)
     out = Path(args.out)
     try:
         if args.workers == 0 and not args.scheduler:
-            rows = ablate(scenario, variants, states, None, out=out, resume=args.resume)
+            rows = ablate(
+                scenario, variants, states, None, out=out, resume=args.resume, seed=args.seed
+            )
         else:
             with _dask_client(args.scheduler, args.workers) as client:
-                rows = ablate(scenario, variants, states, client, out=out, resume=args.resume)
+                rows = ablate(
+                    scenario, variants, states, client, out=out, resume=args.resume, seed=args.seed
+                )
     except KeyboardInterrupt:
         print(
             f"error: interrupted; finished rows are in {out / 'ablation.csv'}; rerun with "
             "--resume to complete the sweep",
             file=sys.stderr,
         )
-        return 130
+        return EXIT_INTERRUPTED
     x0_label = initial_state_label(scenario.x0)
     optimum = OptimalCostCache(out / "optimal").get(scenario, scenario.x0)
     write_report(
@@ -243,6 +330,7 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         duration=scenario.simulation.duration,
         optimum=optimum.trajectory if optimum is not None else None,
         equilibrium=scenario.equilibrium.x if scenario.equilibrium is not None else None,
+        accuracy=scenario.simulation.accuracy,
     )
     ok = sum(r["status"] == "ok" for r in rows)
     print(summary_table(rows, [v.name for v in variants]))
@@ -258,12 +346,20 @@ def _parser() -> argparse.ArgumentParser:
         prog="ofrl-drake",
         description="Output-feedback model-based RL control as Drake block diagrams.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="simulate a scenario; write logs, figures and graph")
     run.add_argument("scenario", help="scenario YAML file, e.g. diagrams/two_state_paper.yaml")
     run.add_argument("--out", required=True, help="output directory (replaced atomically)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument(
+        "--max-wall",
+        type=float,
+        metavar="SECONDS",
+        help="stop with status timeout (exit 3) after this much wall time; overrides "
+        "simulation.max_wall_time",
+    )
     run.set_defaults(func=_cmd_run)
 
     design = sub.add_parser("design-observer", help="certified observer gains as JSON")
@@ -304,22 +400,73 @@ def _parser() -> argparse.ArgumentParser:
     ab.add_argument(
         "--resume", action="store_true", help="keep the rows in DIR/ablation.csv; run the rest"
     )
+    ab.add_argument(
+        "--max-wall",
+        type=float,
+        metavar="SECONDS",
+        help="stop each run after this much wall time (status timeout in its row); "
+        "overrides simulation.max_wall_time",
+    )
     ab.set_defaults(func=_cmd_ablate)
     return parser
+
+
+#: Modules each command needs, imported with SIGINT held (:func:`_sigint_held`).
+_COMMAND_MODULES = {
+    "run": (
+        "ofrl_drake.diagram",
+        "ofrl_drake.graph",
+        "ofrl_drake.plotting",
+        "ofrl_drake.simulation",
+    ),
+    "ablate": (
+        "ofrl_drake.ablation",
+        "ofrl_drake.ablation_report",
+        "ofrl_drake.simulation",
+        "distributed",
+    ),
+}
+#: What any other command imports first: enough to initialize pydrake.
+_DEFAULT_MODULES = ("ofrl_drake.diagram",)
+
+
+@contextlib.contextmanager
+def _sigint_held() -> Iterator[None]:
+    """Hold a SIGINT until the block ends, then raise ``KeyboardInterrupt``.
+
+    pydrake's C++ initialization catches a ``KeyboardInterrupt`` raised inside
+    it, logs a critical message with a 30-line trace and raises ``ImportError``;
+    importing with SIGINT held keeps that from happening. Outside the main
+    thread (where signals cannot be handled) the block runs as is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code."""
 
-    args = _parser().parse_args(argv)
     try:
+        args = _parser().parse_args(argv)
+        with _sigint_held():
+            for module in _COMMAND_MODULES.get(args.command, _DEFAULT_MODULES):
+                importlib.import_module(module)
         return args.func(args)
     except OfrlError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("error: interrupted; no output written", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except Exception as err:
         msg = " ".join(str(err).split())
         print(f"internal error: {type(err).__name__}: {msg}", file=sys.stderr)

@@ -21,12 +21,13 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
-from pydrake.common.yaml import yaml_load, yaml_load_typed
+from pydrake.common.yaml import yaml_dump_typed, yaml_load, yaml_load_typed
 from pydrake.systems.analysis import GetIntegrationSchemes
 
 from ofrl_drake.errors import ScenarioError
 
 __all__ = [
+    "ABORT_BOX_FACTOR",
     "BoxConfig",
     "CostConfig",
     "CriticConfig",
@@ -37,12 +38,18 @@ __all__ = [
     "Scenario",
     "SimulationConfig",
     "VariantConfig",
+    "abort_box",
+    "dump_scenario",
     "load_scenario",
     "validate_scenario",
     "variant_choices",
 ]
 
 _OPTIONAL = {"optional": True}
+
+#: The default ``simulation.abort_box`` is the observer box scaled this many
+#: times about its centre.
+ABORT_BOX_FACTOR = 10.0
 
 
 @dataclass
@@ -127,6 +134,12 @@ class SimulationConfig:
     ``integrator`` is a Drake scheme name (``runge_kutta3``, ``radau3``, ...);
     ``accuracy`` its error-control target; ``max_step`` its largest step;
     ``log_period`` the sampling period of the logs (optional, default 0.01 s).
+
+    Guards of the run (optional; see :mod:`ofrl_drake.guard`): the run stops
+    with status ``diverged`` when x or xhat leaves ``abort_box`` (default: the
+    observer box scaled :data:`ABORT_BOX_FACTOR` times about its centre, see
+    :func:`abort_box`) or a state turns non-finite, and with status
+    ``timeout`` after ``max_wall_time`` seconds of wall time (default: no limit).
     """
 
     duration: float = 30.0
@@ -134,6 +147,8 @@ class SimulationConfig:
     accuracy: float = 1e-6
     max_step: float = 0.1
     log_period: float = field(default=0.01, metadata=_OPTIONAL)
+    abort_box: Optional[BoxConfig] = field(default=None, metadata=_OPTIONAL)
+    max_wall_time: Optional[float] = field(default=None, metadata=_OPTIONAL)
 
 
 @dataclass
@@ -430,6 +445,55 @@ def validate_scenario(scenario: Scenario) -> None:
             f"simulation.integrator: unknown scheme {s.integrator!r}; choose one of "
             f"{sorted(GetIntegrationSchemes())}."
         )
+    if s.abort_box is not None:
+        alo = _vector("simulation.abort_box.lower", s.abort_box.lower, n)
+        ahi = _vector("simulation.abort_box.upper", s.abort_box.upper, n)
+        if np.any(alo >= ahi):
+            raise ScenarioError(
+                "simulation.abort_box.upper: must exceed simulation.abort_box.lower "
+                f"element-wise; got lower={s.abort_box.lower}, upper={s.abort_box.upper}."
+            )
+    if s.max_wall_time is not None:
+        _positive("simulation.max_wall_time", s.max_wall_time)
+
+
+def abort_box(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """``(lower, upper)`` of the box a run must keep x and xhat in.
+
+    ``simulation.abort_box`` if the scenario gives one, otherwise the observer
+    box scaled :data:`ABORT_BOX_FACTOR` times about its centre (``[-2, 2]^2``
+    gives ``[-20, 20]^2``).
+    """
+    given = scenario.simulation.abort_box
+    if given is not None:
+        return np.asarray(given.lower, dtype=float), np.asarray(given.upper, dtype=float)
+    lower = np.asarray(scenario.observer.box.lower, dtype=float)
+    upper = np.asarray(scenario.observer.box.upper, dtype=float)
+    centre, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
+    return centre - ABORT_BOX_FACTOR * half, centre + ABORT_BOX_FACTOR * half
+
+
+def dump_scenario(scenario: Scenario) -> str:
+    """``scenario`` as YAML that :func:`load_scenario` reads back to an equal scenario.
+
+    Every optional key is written with the value in force (defaults
+    included, the abort box resolved by :func:`abort_box`), and floats are
+    written in their shortest exact form, so a run of the file reproduces the
+    run of ``scenario`` bit for bit.
+    """
+    lower, upper = abort_box(scenario)
+    resolved = dataclasses.replace(
+        scenario,
+        simulation=dataclasses.replace(
+            scenario.simulation,
+            abort_box=BoxConfig(lower=lower.tolist(), upper=upper.tolist()),
+        ),
+    )
+    header = (
+        "# The scenario as run, every default resolved (ofrl_drake.scenario.dump_scenario).\n"
+        "# `ofrl-drake run scenario.yaml --out DIR` reproduces trajectories.npz bit for bit.\n"
+    )
+    return header + yaml_dump_typed(resolved)
 
 
 def variant_choices(scenario: Scenario) -> dict[str, str]:

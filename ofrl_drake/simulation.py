@@ -20,7 +20,9 @@ from ofrl_drake.atomic import atomic_file
 from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
-from ofrl_drake.scenario import Scenario
+from ofrl_drake.guard import STATUS_OK, ProgressBar, RunGuard, StopReport
+from ofrl_drake.provenance import provenance
+from ofrl_drake.scenario import Scenario, abort_box
 from ofrl_drake.systems import LinearizedLuenbergerObserver, ThreeGainObserver
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
@@ -55,7 +57,7 @@ class SimulationResult:
     cost : ndarray, shape (T,)
         ``J(t) = int_0^t Q(x) + U(u) dt``.
     wall_time : float
-        Seconds spent in ``Simulator.AdvanceTo``.
+        Seconds spent in ``Simulator.Initialize`` and ``AdvanceTo``.
     integrator : dict
         Integrator settings and statistics.
     validity : ValidityReport
@@ -72,6 +74,13 @@ class SimulationResult:
         ``xhat`` and ``u`` are then the method's coordinates ``x - x*`` and
         ``u - u*``; :meth:`original` gives the plant's own, which the saved
         files and figures show.
+    stop : StopReport or None
+        How the run ended (:mod:`ofrl_drake.guard`): ``status`` ``ok``,
+        ``diverged`` or ``timeout``, the reason, time and state. When the
+        guard stopped the run, the logs end at that time.
+    provenance : dict
+        Start time, command line and package versions
+        (:func:`~ofrl_drake.provenance.provenance`).
     """
 
     t: np.ndarray
@@ -96,6 +105,14 @@ class SimulationResult:
         offset = self.u_equilibrium if key == "u" else self.x_equilibrium
         data = getattr(self, key)
         return data if offset is None else data + offset
+
+    stop: StopReport | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        """``ok`` (reached the horizon), ``diverged`` or ``timeout`` (see :attr:`stop`)."""
+        return self.stop.status if self.stop is not None else STATUS_OK
 
     @property
     def e(self) -> np.ndarray:
@@ -149,6 +166,7 @@ class SimulationResult:
         Gamma_T = 0.5 * (self.Gamma[-1] + self.Gamma[-1].T)
         out = {
             "scenario": self.scenario_name,
+            "status": self.status,
             "final_time": float(self.t[-1]),
             "final_state": self.original("x")[-1].tolist(),
             "final_state_norm": float(np.linalg.norm(self.x[-1])),
@@ -166,6 +184,10 @@ class SimulationResult:
                 "x": np.asarray(self.x_equilibrium, float).tolist(),
                 "u": np.asarray(self.u_equilibrium, float).tolist(),
             }
+        if self.stop is not None:
+            out["stop"] = self.stop.to_dict()
+        if self.provenance:
+            out["provenance"] = self.provenance
         if self.validity is not None:
             out["validity"] = self.validity.to_dict()
         if self.design is not None:
@@ -232,16 +254,6 @@ def simulator_config(scenario: Scenario) -> SimulatorConfig:
         target_realtime_rate=0.0,
         publish_every_time_step=False,
     )
-
-
-def _progress(fraction: float, start: float) -> None:
-    width = 30
-    done = round(width * fraction)
-    elapsed = time.perf_counter() - start
-    sys.stderr.write(
-        f"\r[{'#' * done}{'.' * (width - done)}] {100 * fraction:5.1f}%  {elapsed:6.1f} s"
-    )
-    sys.stderr.flush()
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -404,20 +416,33 @@ def simulate(
         _check_loop_arguments(scenario, loop, design, swaps)
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(simulator_config(scenario), simulator)
-    simulator.Initialize()
     duration = scenario.simulation.duration
     show = sys.stderr.isatty() if progress is None else progress
-
+    guard = RunGuard(
+        loop.diagram,
+        loop.blocks["plant"],
+        loop.blocks["observer"],
+        abort_box(scenario),
+        scenario.simulation.max_wall_time,
+        ProgressBar(duration, sys.stderr) if show else None,
+    )
+    # The guard is a monitor: it sees every step and changes none (see ofrl_drake.guard).
+    simulator.set_monitor(guard)
+    origin = provenance()
     start = time.perf_counter()
-    if show:
-        chunks = 100
-        for k in range(1, chunks + 1):
-            simulator.AdvanceTo(duration * k / chunks)
-            _progress(k / chunks, start)
-        sys.stderr.write("\n")
-    else:
-        simulator.AdvanceTo(duration)
+    guard.start()
+    simulator.Initialize()
+    if not guard.stopped:
+        try:
+            simulator.AdvanceTo(duration)
+        except RuntimeError as err:
+            if not _is_integrator_failure(err):
+                raise
+            guard.fail(f"the integrator gave up: {' '.join(str(err).split())}")
     wall = time.perf_counter() - start
+    stop = guard.report(simulator.get_context())
+    if not stop.ok:
+        _flush_logs(loop, simulator.get_context())
 
     context = simulator.get_context()
     logs = {}
@@ -455,6 +480,8 @@ def simulate(
         design=design_dict,
         scenario_name=scenario.name,
         extra={k: v for k, v in logs.items() if k not in LOGGED},
+        stop=stop,
+        provenance=origin,
     )
     system = loop.parts.system
     if getattr(system, "x_eq", None) is not None:  # a ShiftedSystem
@@ -465,6 +492,21 @@ def simulate(
         result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note
     )
     return result
+
+
+def _is_integrator_failure(err: RuntimeError) -> bool:
+    """True for Drake's own integrator errors (a step size it cannot take)."""
+    text = str(err).lower()
+    return "step" in text and ("integrator" in text or "error control" in text)
+
+
+def _flush_logs(loop: ClosedLoop, root_context: Any) -> None:
+    """Log the state at which the guard stopped the run, unless already logged."""
+    for logger in loop.loggers.values():
+        context = logger.GetMyContextFromRoot(root_context)
+        times = logger.FindLog(root_context).sample_times()
+        if times.size == 0 or times[-1] < root_context.get_time():
+            logger.ForcedPublish(context)
 
 
 def _finite(value: float) -> float | None:

@@ -253,8 +253,24 @@ def test_resume_completes_a_table_with_a_torn_last_line(paper_scenario, tmp_path
 def test_resume_refuses_another_scenario(paper_scenario, tmp_path):
     ablate(paper_scenario, [Variant("baseline")], out=tmp_path, duration=1.0)
     other = dataclasses.replace(paper_scenario, input_bound=2.0)
-    with pytest.raises(AblationError, match=r"--resume: .* holds a sweep of another scenario"):
+    with pytest.raises(
+        AblationError,
+        match=r"--resume: the scenario differs in input_bound \(3.0 in the folder, 2.0 now\)",
+    ):
         ablate(other, [Variant("baseline")], out=tmp_path, resume=True, duration=1.0)
+    with pytest.raises(AblationError, match=r"--resume: the folder's sweep used --seed None"):
+        ablate(paper_scenario, [Variant("baseline")], out=tmp_path, resume=True, seed=3)
+    with pytest.raises(AblationError, match=r"--resume: the folder's sweep runs 1 initial states"):
+        ablate(paper_scenario, [Variant("baseline")], [[0.5, 0.5]], out=tmp_path, resume=True)
+    with pytest.raises(AblationError, match=r"--resume: the variants differ \(new \['lqr'\]\)"):
+        ablate(
+            paper_scenario,
+            [Variant("baseline"), Variant("lqr", {"controller": "lqr"})],
+            out=tmp_path,
+            resume=True,
+        )
+    with pytest.raises(AblationError, match=r"has a horizon of 1.0 s, this one 2.0 s"):
+        ablate(paper_scenario, [Variant("baseline")], out=tmp_path, resume=True, duration=2.0)
 
 
 # -------------------------------------------------------- Dask and CLI

@@ -3,8 +3,11 @@
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import time
 
 import numpy as np
 import pytest
@@ -215,3 +218,128 @@ def test_run_without_dot_writes_the_source_and_says_so(tmp_path):
     assert not (out / "diagram.svg").exists()
     assert (out / "diagram.dot").read_text().lstrip().startswith("digraph")
     assert [line for line in proc.stdout.splitlines() if "diagram.dot" in line], proc.stdout
+
+
+# ------------------------------------------------ exit codes, provenance
+def test_version_prints_the_package_version_without_loading_drake():
+    from ofrl_drake import __version__
+
+    proc = _cli("--version")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"ofrl-drake {__version__}"
+    # The command starts without Drake, so a SIGINT during its imports is handled.
+    probe = subprocess.run(
+        [sys.executable, "-c", "import sys, ofrl_drake.cli; print('pydrake' in sys.modules)"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert probe.stdout.strip() == "False", probe.stderr
+
+
+def _cannot_write_in(folder):
+    """True if ``folder`` exists and refuses a new entry (sysfs does, even to root)."""
+    if not os.path.isdir(folder):
+        return False
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=folder))
+    except OSError:
+        return True
+    return False
+
+
+@pytest.mark.skipif(not _cannot_write_in("/sys"), reason="needs a folder nobody can write into")
+def test_unwritable_out_parents_exit_2_with_one_line(tmp_path):
+    target = "/sys/ofrl_drake_test_out/sub"  # sysfs refuses new entries, even to root
+    for command in ("run", "design-observer"):
+        proc = _cli(command, PAPER_SCENARIO, "--out", target)
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.count("\n") == 1, proc.stderr
+        assert proc.stderr.startswith("error: --out: cannot write in /sys"), proc.stderr
+        assert "choose a folder you can write to" in proc.stderr
+
+
+def test_malformed_scheduler_address_exits_2_with_one_line(tmp_path):
+    proc = _cli("ablate", PAPER_SCENARIO, "--out", tmp_path / "o", "--scheduler", "notanaddress")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert proc.stderr.startswith("error: --scheduler: 'notanaddress' is not a scheduler address")
+    assert not (tmp_path / "o").exists()
+
+
+def test_resume_with_another_seed_exits_2_naming_it(tmp_path):
+    from ofrl_drake.ablation import CSV_COLUMNS
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "ablation.json").write_text(json.dumps({"seed": 0}) + "\n")
+    (out / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
+    args = ["ablate", PAPER_SCENARIO, "--out", out, "--workers", "0", "--resume"]
+    proc = _cli(*args, "--seed", "1")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert "--resume: the folder's sweep used --seed 0, this one --seed 1" in proc.stderr
+
+
+def _maps_drake(pid):
+    """True once process ``pid`` has mapped Drake's library (it is importing pydrake)."""
+    try:
+        with open(f"/proc/{pid}/maps") as fh:
+            return "libdrake" in fh.read()
+    except OSError:
+        return False
+
+
+def _interrupt(args, *, when):
+    """Start ``python -m ofrl_drake ARGS``, send SIGINT once ``when(pid)`` holds."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    while proc.poll() is None and not when(proc.pid):
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    return proc.returncode, out, err
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs /proc to see the imports")
+@pytest.mark.parametrize("moment", ["importing Drake", "simulating"])
+def test_sigint_at_any_moment_exits_130_with_one_line(tmp_path, moment):
+    """SIGINT as soon as the process maps Drake (mid-import), or 6 s in (a 300 s run).
+
+    A SIGINT before Python itself has started (its ``site`` imports, before any
+    of ofrl_drake runs) gets Python's own traceback; nothing here can catch it.
+    """
+    out = tmp_path / "o"
+    scenario = _short_scenario(tmp_path, duration=300.0)
+    start = time.monotonic()
+    when = _maps_drake if moment == "importing Drake" else lambda _: time.monotonic() > start + 6
+    code, _, err = _interrupt(["run", scenario, "--out", out, "--quiet"], when=when)
+    assert code == 130, err
+    assert err.count("\n") == 1, err
+    assert err.startswith("error: interrupted"), err
+    assert not out.exists()
+
+
+def test_run_scenario_yaml_reproduces_the_run_bit_for_bit(tmp_path):
+    first = tmp_path / "first"
+    proc = _cli("run", _short_scenario(tmp_path), "--out", first, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((first / "summary.json").read_text())
+    assert summary["status"] == "ok"
+    origin = summary["provenance"]
+    assert set(origin["versions"]) == {"ofrl_drake", "drake", "numpy", "scipy", "python"}
+    assert origin["versions"]["numpy"] == np.__version__
+    assert " -m ofrl_drake run " in origin["command_line"]
+    assert origin["started"].endswith("+00:00")
+    again = tmp_path / "again"
+    proc = _cli("run", first / "scenario.yaml", "--out", again, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    with np.load(first / "trajectories.npz") as a, np.load(again / "trajectories.npz") as b:
+        assert a.files == b.files
+        for key in a.files:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert (again / "scenario.yaml").read_text() == (first / "scenario.yaml").read_text()

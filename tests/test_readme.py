@@ -1,7 +1,10 @@
-"""The README's scenario-key table stays in sync with the scenario dataclasses."""
+"""The README: its scenario-key table stays in sync with the scenario dataclasses, and its
+Python example runs."""
 
 import dataclasses
 import re
+import subprocess
+import sys
 import types
 import typing
 
@@ -98,3 +101,24 @@ def test_the_your_own_plant_example_builds_a_vectorized_system(tmp_path):
     system = system_from_entry(f"{tmp_path / 'my_plant.py'}:make_plant")
     assert (system.n, system.m, system.q) == (2, 1, 1)
     assert system.vectorized  # the 0 * x[0] convention makes f and g accept batches
+
+
+def _python_blocks(text):
+    return re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
+
+
+def test_the_readme_python_example_runs():
+    """The first ```python block (section "Python") runs as printed, from the repository root."""
+    blocks = _python_blocks((ROOT / "README.md").read_text())
+    assert blocks, "the README has no ```python block"
+    proc = subprocess.run(
+        [sys.executable, "-c", blocks[0]],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "2"  # the observer's estimated_state port has n = 2 entries
+    assert lines[-1] == "ok ok"

@@ -1,10 +1,13 @@
 """Scenario files: the paper's parameters, and every bad input named by its key."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
 from ofrl_drake import ScenarioError, load_scenario
+from ofrl_drake.scenario import BoxConfig, abort_box, dump_scenario
 
 from .conftest import MIMO_SCENARIO, PAPER_SCENARIO
 
@@ -136,3 +139,22 @@ def test_pinned_gains_are_accepted(tmp_path):
 
 def test_mimo_file_exists():
     assert MIMO_SCENARIO.is_file()
+
+
+def test_dump_scenario_reads_back_to_the_resolved_scenario(paper_scenario, tmp_path):
+    path = tmp_path / "scenario.yaml"
+    path.write_text(dump_scenario(paper_scenario))
+    again = load_scenario(path)
+    lower, upper = abort_box(paper_scenario)
+    resolved = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(
+            paper_scenario.simulation,
+            abort_box=BoxConfig(lower=lower.tolist(), upper=upper.tolist()),
+        ),
+    )
+    assert again == resolved
+    # Floats that need all 17 digits survive the round trip exactly.
+    odd = dataclasses.replace(paper_scenario, x0=[0.1 + 0.2, -1.0 / 3.0])
+    path.write_text(dump_scenario(odd))
+    assert load_scenario(path).x0 == [0.1 + 0.2, -1.0 / 3.0]

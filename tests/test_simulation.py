@@ -366,10 +366,9 @@ def test_save_replaces_files_atomically(tmp_path):
 def test_progress_bar_gives_the_same_schedule(scheduled, paper_design, capsys):
     s, r = scheduled
     shown = simulate(s, design=paper_design, progress=True)
-    assert "100.0%" in capsys.readouterr().err
+    assert "100%" in capsys.readouterr().err
     np.testing.assert_array_equal(shown.extra["solve_counts"], r.extra["solve_counts"])
-    # More stops change the integrator's steps, within its accuracy only.
-    np.testing.assert_allclose(
-        shown.extra["certified_box"], r.extra["certified_box"], rtol=0, atol=1e-4
-    )
+    # The bar is drawn by the simulator's monitor, which takes no steps: bit for bit.
+    np.testing.assert_array_equal(shown.extra["certified_box"], r.extra["certified_box"])
+    np.testing.assert_array_equal(shown.x, r.x)
     assert shown.validity.box_check == "scheduled"

@@ -1,0 +1,242 @@
+"""Stop a run that diverges or overruns its time, and show progress, without changing its steps.
+
+:class:`RunGuard` is installed as the ``Simulator``'s monitor
+(``Simulator.set_monitor``). Drake calls a monitor at the end of
+``Initialize()`` and after every integrator step, and "the presence of a
+monitor has no effect on the step sizes taken" (Drake's documentation), unlike
+a periodic event or a sequence of ``AdvanceTo`` calls, both of which cut the
+steps at their times. The guard returns ``EventStatus.ReachedTermination`` to
+end ``AdvanceTo`` early when
+
+* a continuous state is non-finite, or x or xhat leaves the abort box
+  (status ``diverged``);
+* the wall time since :meth:`RunGuard.start` exceeds ``max_wall_time``
+  (status ``timeout``).
+
+The same monitor draws the optional :class:`ProgressBar`, so a run with the
+bar on and a run with it off take the same steps and give the same numbers, bit
+for bit. A condition is seen only after the step that produced it (the monitor
+does not localize it), which is all a guard needs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import IO, Any
+
+import numpy as np
+from pydrake.systems.framework import Context, Diagram, EventStatus, System
+
+__all__ = [
+    "STATUS_DIVERGED",
+    "STATUS_OK",
+    "STATUS_TIMEOUT",
+    "ProgressBar",
+    "RunGuard",
+    "StopReport",
+]
+
+#: The run reached its horizon.
+STATUS_OK = "ok"
+#: A state turned non-finite or x or xhat left the abort box.
+STATUS_DIVERGED = "diverged"
+#: The run used up its wall-time budget.
+STATUS_TIMEOUT = "timeout"
+
+
+@dataclass(frozen=True)
+class StopReport:
+    """How a run ended.
+
+    Attributes
+    ----------
+    status : str
+        :data:`STATUS_OK`, :data:`STATUS_DIVERGED` or :data:`STATUS_TIMEOUT`.
+    reason : str
+        One line: what stopped the run ("" when it reached its horizon).
+    time : float
+        Simulated time at the end of the run.
+    x, xhat : list of float
+        True and estimated state at that time.
+    wall_time : float
+        Wall-clock seconds from :meth:`RunGuard.start` to the end.
+    """
+
+    status: str
+    reason: str
+    time: float
+    x: list[float]
+    xhat: list[float]
+    wall_time: float
+
+    @property
+    def ok(self) -> bool:
+        """True if the run reached its horizon."""
+        return self.status == STATUS_OK
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form (non-finite numbers become None)."""
+        return {
+            "status": self.status,
+            "reason": self.reason,
+            "time": self.time,
+            "x": [_json_number(v) for v in self.x],
+            "xhat": [_json_number(v) for v in self.xhat],
+            "wall_time": self.wall_time,
+        }
+
+
+def _json_number(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+class ProgressBar:
+    """A one-line progress bar of simulated time, redrawn at each new percent.
+
+    Parameters
+    ----------
+    duration : float
+        The horizon (100 %).
+    stream : file object
+        Where to draw (``sys.stderr`` in ``simulate``).
+    """
+
+    def __init__(self, duration: float, stream: IO[str]) -> None:
+        self.duration = duration
+        self.stream = stream
+        self._start = time.perf_counter()
+        self._shown = -1
+
+    def update(self, t: float) -> None:
+        """Redraw if ``t`` reached a new whole percent of the horizon."""
+        percent = int(100 * min(max(t / self.duration, 0.0), 1.0))
+        if percent == self._shown:
+            return
+        self._shown = percent
+        width = 30
+        done = round(width * percent / 100)
+        elapsed = time.perf_counter() - self._start
+        self.stream.write(f"\r[{'#' * done}{'.' * (width - done)}] {percent:3d}%  {elapsed:6.1f} s")
+        self.stream.flush()
+
+    def close(self) -> None:
+        """End the line."""
+        self.stream.write("\n")
+        self.stream.flush()
+
+
+class RunGuard:
+    """The monitor of one simulation: divergence and wall-time checks, progress.
+
+    Parameters
+    ----------
+    diagram : Diagram
+        The simulated diagram (named in the termination status).
+    plant, observer : System
+        Blocks of ``diagram`` with output ports ``state`` and ``estimated_state``.
+    box : tuple of ndarray
+        ``(lower, upper)``: the abort box for x and xhat.
+    max_wall_time : float or None
+        Seconds of wall time before the run stops; None for no limit.
+    progress : ProgressBar, optional
+        Updated after every step.
+
+    Examples
+    --------
+    >>> guard = RunGuard(diagram, plant, observer, box, 60.0)        # doctest: +SKIP
+    >>> simulator.set_monitor(guard)                                 # doctest: +SKIP
+    >>> guard.start(); simulator.Initialize()                        # doctest: +SKIP
+    >>> if not guard.stopped: simulator.AdvanceTo(30.0)              # doctest: +SKIP
+    >>> guard.report(simulator.get_context()).status                 # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        diagram: Diagram,
+        plant: System,
+        observer: System,
+        box: tuple[np.ndarray, np.ndarray],
+        max_wall_time: float | None = None,
+        progress: ProgressBar | None = None,
+    ) -> None:
+        self.diagram = diagram
+        self.plant = plant
+        self.observer = observer
+        self.box = box
+        self.max_wall_time = max_wall_time
+        self.progress = progress
+        self._state_port = plant.GetOutputPort("state")
+        self._estimate_port = observer.GetOutputPort("estimated_state")
+        self._lower = np.asarray(box[0], dtype=float)
+        self._upper = np.asarray(box[1], dtype=float)
+        self._start = time.perf_counter()
+        self.status = STATUS_OK
+        self.reason = ""
+
+    @property
+    def stopped(self) -> bool:
+        """True once the guard has ended the run."""
+        return self.status != STATUS_OK
+
+    def start(self) -> None:
+        """Start the wall clock (call right before ``Simulator.Initialize``)."""
+        self._start = time.perf_counter()
+
+    def states(self, root_context: Context) -> tuple[np.ndarray, np.ndarray]:
+        """x and xhat in ``root_context``."""
+        x = self._state_port.Eval(self.plant.GetMyContextFromRoot(root_context))
+        xhat = self._estimate_port.Eval(self.observer.GetMyContextFromRoot(root_context))
+        return np.asarray(x, dtype=float), np.asarray(xhat, dtype=float)
+
+    def check(self, root_context: Context) -> tuple[str, str]:
+        """``(status, reason)`` of the run at ``root_context``; ``("ok", "")`` if it may go on."""
+        t = root_context.get_time()
+        state = root_context.get_continuous_state_vector().CopyToVector()
+        if not np.all(np.isfinite(state)):
+            bad = int(np.flatnonzero(~np.isfinite(state))[0])
+            return STATUS_DIVERGED, f"continuous state {bad} is {state[bad]} at t = {t:.6g} s"
+        x, xhat = self.states(root_context)
+        for name, v in (("x", x), ("xhat", xhat)):
+            outside = (v < self._lower) | (v > self._upper) | ~np.isfinite(v)
+            if np.any(outside):
+                i = int(np.flatnonzero(outside)[0])
+                return STATUS_DIVERGED, (
+                    f"{name}_{i + 1} = {v[i]:.6g} left the abort box "
+                    f"[{self._lower[i]:g}, {self._upper[i]:g}] at t = {t:.6g} s"
+                )
+        wall = time.perf_counter() - self._start
+        if self.max_wall_time is not None and wall > self.max_wall_time:
+            return STATUS_TIMEOUT, (
+                f"wall time {wall:.3g} s exceeded max_wall_time = {self.max_wall_time:g} s "
+                f"at t = {t:.6g} s"
+            )
+        return STATUS_OK, ""
+
+    def __call__(self, root_context: Context) -> EventStatus:
+        """The monitor: check the run, draw progress, stop the run if needed."""
+        if self.progress is not None:
+            self.progress.update(root_context.get_time())
+        status, reason = self.check(root_context)
+        if status == STATUS_OK:
+            return EventStatus.Succeeded()
+        self.status, self.reason = status, reason
+        return EventStatus.ReachedTermination(self.diagram, f"{status}: {reason}")
+
+    def fail(self, reason: str) -> None:
+        """Record that the integrator gave up (status ``diverged``)."""
+        self.status, self.reason = STATUS_DIVERGED, reason
+
+    def report(self, root_context: Context) -> StopReport:
+        """How the run ended, read from the simulator's final context."""
+        if self.progress is not None:
+            self.progress.close()
+        x, xhat = self.states(root_context)
+        return StopReport(
+            status=self.status,
+            reason=self.reason,
+            time=float(root_context.get_time()),
+            x=x.tolist(),
+            xhat=xhat.tolist(),
+            wall_time=time.perf_counter() - self._start,
+        )

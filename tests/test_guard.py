@@ -1,0 +1,178 @@
+"""The run guard: divergence and time-outs end a run with a status; progress changes nothing."""
+
+import dataclasses
+import io
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_dump, yaml_load
+
+from ofrl_drake import simulate
+from ofrl_drake.errors import ScenarioError
+from ofrl_drake.guard import STATUS_DIVERGED, STATUS_OK, STATUS_TIMEOUT, ProgressBar, RunGuard
+from ofrl_drake.scenario import ABORT_BOX_FACTOR, BoxConfig, abort_box, validate_scenario
+from ofrl_drake.simulation import TRAJECTORY_KEYS
+
+from .conftest import PAPER_SCENARIO, ROOT
+
+
+def _with_simulation(scenario, **changes):
+    return dataclasses.replace(
+        scenario, simulation=dataclasses.replace(scenario.simulation, **changes)
+    )
+
+
+def test_default_abort_box_is_the_stated_multiple_of_the_observer_box(paper_scenario):
+    lower, upper = abort_box(paper_scenario)
+    assert ABORT_BOX_FACTOR == 10.0
+    np.testing.assert_array_equal(lower, [-20.0, -20.0])
+    np.testing.assert_array_equal(upper, [20.0, 20.0])
+    shifted = dataclasses.replace(
+        paper_scenario,
+        observer=dataclasses.replace(
+            paper_scenario.observer, box=BoxConfig([0.0, 1.0], [2.0, 2.0])
+        ),
+    )
+    lower, upper = abort_box(shifted)
+    np.testing.assert_allclose(lower, [1.0 - 10.0, 1.5 - 5.0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(upper, [1.0 + 10.0, 1.5 + 5.0], rtol=0, atol=1e-15)
+    given = _with_simulation(paper_scenario, abort_box=BoxConfig([-3.0, -4.0], [5.0, 6.0]))
+    np.testing.assert_array_equal(abort_box(given)[0], [-3.0, -4.0])
+
+
+def test_bad_guard_keys_are_named(paper_scenario):
+    bad = _with_simulation(paper_scenario, abort_box=BoxConfig([-1.0], [1.0]))
+    with pytest.raises(ScenarioError, match=r"simulation.abort_box.lower: expected 2 entries"):
+        validate_scenario(bad)
+    bad = _with_simulation(paper_scenario, abort_box=BoxConfig([1.0, -1.0], [0.0, 1.0]))
+    with pytest.raises(ScenarioError, match=r"simulation.abort_box.upper: must exceed"):
+        validate_scenario(bad)
+    bad = _with_simulation(paper_scenario, max_wall_time=0.0)
+    with pytest.raises(ScenarioError, match=r"simulation.max_wall_time: must be > 0; got 0.0"):
+        validate_scenario(bad)
+
+
+def test_progress_on_and_off_give_identical_arrays(paper_scenario, paper_design, monkeypatch):
+    scenario = _with_simulation(paper_scenario, duration=5.0)
+    quiet = simulate(scenario, design=paper_design, progress=False)
+    stream = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", stream)
+    shown = simulate(scenario, design=paper_design, progress=True)
+    assert "100%" in stream.getvalue()  # the bar was drawn
+    for key in TRAJECTORY_KEYS:
+        np.testing.assert_array_equal(getattr(shown, key), getattr(quiet, key), err_msg=key)
+    assert shown.integrator["num_steps"] == quiet.integrator["num_steps"]
+    assert shown.status == quiet.status == STATUS_OK
+
+
+def test_progress_bar_draws_each_percent_once():
+    stream = io.StringIO()
+    bar = ProgressBar(2.0, stream)
+    for t in np.linspace(0.0, 2.0, 1001):
+        bar.update(t)
+    bar.close()
+    frames = stream.getvalue().split("\r")[1:]
+    assert len(frames) == 101
+    assert frames[-1].startswith("[" + "#" * 30 + "] 100%")
+
+
+def test_leaving_the_abort_box_stops_the_run_with_its_logs(paper_scenario, paper_design):
+    box = BoxConfig([-2.5, -2.5], [2.5, 2.5])
+    scenario = dataclasses.replace(
+        _with_simulation(paper_scenario, abort_box=box, duration=5.0), xhat0=[2.4, 1.5]
+    )
+    result = simulate(scenario, design=paper_design, progress=False)
+    assert result.status == STATUS_DIVERGED
+    stop = result.stop
+    assert 0.0 < stop.time < 1.0
+    assert "left the abort box [-2.5, 2.5]" in stop.reason
+    # The logs end at the stop, with the state that tripped the guard.
+    assert result.t[-1] == stop.time
+    np.testing.assert_array_equal(result.x[-1], stop.x)
+    np.testing.assert_array_equal(result.xhat[-1], stop.xhat)
+    last = np.concatenate([result.x[-1], result.xhat[-1]])
+    assert np.any(np.abs(last) > 2.5)
+    before = np.concatenate([result.x[:-1], result.xhat[:-1]], axis=1)
+    assert np.all(np.abs(before) <= 2.5)
+    summary = json.loads(json.dumps(result.summary()))
+    assert summary["status"] == "diverged"
+    assert summary["stop"]["time"] == stop.time
+    assert summary["final_time"] == stop.time
+
+
+def test_a_tiny_wall_time_budget_gives_timeout(paper_scenario, paper_design):
+    scenario = _with_simulation(paper_scenario, max_wall_time=1e-3)
+    result = simulate(scenario, design=paper_design, progress=False)
+    assert result.status == STATUS_TIMEOUT
+    assert "exceeded max_wall_time = 0.001 s" in result.stop.reason
+    assert result.stop.time < scenario.simulation.duration
+    assert result.t[-1] == result.stop.time and result.t.size >= 1
+    assert result.summary()["status"] == "timeout"
+
+
+def test_the_guard_reports_a_non_finite_state(paper_scenario, paper_design):
+    from pydrake.systems.analysis import Simulator
+
+    from ofrl_drake import build_closed_loop
+
+    loop = build_closed_loop(paper_scenario, design=paper_design)
+    guard = RunGuard(loop.diagram, loop.plant, loop.observer, abort_box(paper_scenario), None)
+    simulator = Simulator(loop.diagram)
+    context = simulator.get_mutable_context()
+    assert guard.check(context) == (STATUS_OK, "")
+    state = context.get_mutable_continuous_state_vector()
+    values = state.CopyToVector()
+    values[1] = np.nan
+    state.SetFromVector(values)
+    status, reason = guard.check(context)
+    assert status == STATUS_DIVERGED
+    assert reason == "continuous state 1 is nan at t = 0 s"
+    assert guard(context).severity() == guard(context).Severity.kReachedTermination
+    assert guard.stopped
+
+
+def _cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
+
+
+def test_a_far_initial_state_ends_diverged_with_exit_3_and_a_complete_folder(tmp_path):
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["x0"] = [100.0, 100.0]
+    path = tmp_path / "far.yaml"
+    path.write_text(yaml_dump(data))
+    out = tmp_path / "out"
+    proc = _cli("run", path, "--out", out, "--quiet")
+    assert proc.returncode == 3, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 2, proc.stderr
+    assert lines[0].startswith("warning: x0 = [100.0, 100.0] outside the observer box")
+    assert "outside the abort box too" in lines[0]
+    assert lines[1].startswith("stopped: diverged: x_1 = 100 left the abort box [-20, 20]")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "diverged"
+    assert summary["stop"]["x"] == [100.0, 100.0]
+    for name in ("trajectories.npz", "scenario.yaml", "observer_design.json"):
+        assert (out / name).is_file(), name
+    assert (out / "figures" / "state_1.png").is_file()
+    assert (out / "figures" / "estimation_error_log.png").is_file()
+
+
+def test_max_wall_on_the_command_line_gives_timeout_and_exit_3(tmp_path):
+    out = tmp_path / "out"
+    proc = _cli("run", PAPER_SCENARIO, "--out", out, "--quiet", "--max-wall", "0.001")
+    assert proc.returncode == 3, proc.stderr
+    assert proc.stderr.startswith("stopped: timeout: wall time")
+    assert proc.stderr.count("\n") == 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "timeout"
+    scenario = yaml_load(data=(out / "scenario.yaml").read_text())
+    assert scenario["simulation"]["max_wall_time"] == 0.001
