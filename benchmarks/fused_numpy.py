@@ -8,7 +8,7 @@ check of the diagram. The state is ``z = [x, xhat, W, vec(Gamma), J]``:
 
 * plant (eq:dynamics_x): ``x' = f(x) + g(x) u``;
 * observer (eq:observerdynamics_x) with the sign-correct input sector
-  ``M_ug1(u) = sum_k min(M_g1 u_k, M_g2 u_k)`` (NOTES.md). Substituting
+  ``M_ug1(u) = sum_k min(M_g1 u_k, M_g2 u_k)`` (docs/paper_notes.md). Substituting
   ``fbar(z) = f(z) - M_f1 z`` and ``gbar_u(z) = g(z) u - M_ug1 z``, the linear
   terms cancel and, with ``ytil = C x - C xhat``::
 

@@ -7,7 +7,8 @@
 At ``u = -lbar tanh(D)`` this is ``sum_k r_k lbar^2 (2 D_k tanh D_k - 2 ln cosh D_k)``,
 which is finite for every ``D``; the ``u`` form overflows once ``tanh(D)``
 rounds to one. So where ``D`` is known (the policy, the Bellman errors) ``U``
-is evaluated from ``D`` with a stable log-cosh (:func:`tanh_log_cosh`);
+is evaluated from ``D`` with a stable log-cosh (:func:`tanh_log_cosh`;
+docs/paper_notes.md, "stage cost");
 :func:`input_cost` takes ``u`` itself, for the cost of an applied input.
 
 The scalar laws are compiled with numba (``@njit``): :func:`tanh_log_cosh`

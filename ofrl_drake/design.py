@@ -18,7 +18,7 @@ Two formulations (``formulation=``):
     every ``|u_k| <= input_bound``. Feasible only for rates the plant allows: on
     the two-state example no quadratic ``V`` certifies ``alpha >= 1``.
 ``"paper"``: the paper's (lmi2), exactly as stated, with the sign-correct input
-    sector, at the ``3**m`` input vertices (NOTES.md, "one set of gains"), linear
+    sector, at the ``3**m`` input vertices (docs/paper_notes.md, "one set of gains"), linear
     in ``(P, R, H, K)``. It is the paper's method, kept for reproduction and
     comparison, but it is not a decay certificate for nonlinear plants (a design
     that satisfies it at alpha = 2 on the two-state example has ``dV/dt = +39 V``
@@ -41,7 +41,7 @@ here, cvxpy in :mod:`ofrl_drake.design_cvxpy`):
   ``[[t I, R], [R^T, t I]] >= 0`` and ``||[H K]||_F <= s`` as
   ``[[s, v^T], [v, s I]] >= 0`` (``v = vec[H K]``).
   A bare feasibility solve can return a nearly singular ``P`` and a huge ``L``
-  (NOTES.md, "conditioning"); a large ``L`` makes the observer stiff and costs
+  (docs/paper_notes.md, "conditioning"); a large ``L`` makes the observer stiff and costs
   simulation time, and since ``P >= I`` gives ``||L|| = ||P^{-1} R|| <= ||R||``,
   minimizing ``||R||_2`` minimizes a bound on the gain while also keeping ``P``
   from growing (``R = P L``). The ``||[H K]||_F`` term, weighted equally with

@@ -5,7 +5,7 @@ Two checks live here.
 The paper's (lmi2), at one input vertex
 -----------------------------------------
 With Jacobian bounds ``M_f1, M_f2`` (n x n) and ``M_g1, M_g2`` (n x n x m), an
-input ``u`` and the sign-correct input sector (NOTES.md, "input sector")
+input ``u`` and the sign-correct input sector (docs/paper_notes.md, "input sector")
 ``M_ug1(u), M_ug2(u)`` of :func:`ofrl_drake.sector.input_sector`, the paper's
 (lmi2) reads
 

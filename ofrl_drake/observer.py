@@ -1,6 +1,6 @@
 """The three-gain extended-Luenberger observer (eq:observerdynamics_x).
 
-With ``ytil = y - C xhat`` the observer simplifies exactly to (NOTES.md)::
+With ``ytil = y - C xhat`` the observer simplifies exactly to (docs/paper_notes.md)::
 
     xhat' = f(xhat + H ytil) + g(xhat + K ytil) u + (L - M_f1 H - M_ug1(u) K) ytil
 

@@ -120,8 +120,8 @@ def numerical_floor(
 
     A signal has reached its numerical floor when, over the last ``tail`` of the
     horizon, it is below ``drop`` times its peak and no longer decays (its
-    largest value over the last half of that window is at least a tenth of the
-    one over the first half): what is left is the sawtooth of an
+    largest value over the last half of that window is at least half the one
+    over the first half): what is left is the sawtooth of an
     error-controlled integrator. The floor is then the largest value over the
     window. A signal that still decays, or never settles, has none.
 
@@ -141,7 +141,7 @@ def numerical_floor(
     if first.size == 0 or last.size == 0:
         return None
     level, peak = float(max(first.max(), last.max())), float(mags.max())
-    if peak == 0.0 or level == 0.0 or level > drop * peak or last.max() < 0.1 * first.max():
+    if peak == 0.0 or level == 0.0 or level > drop * peak or last.max() < 0.5 * first.max():
         return None
     return level
 

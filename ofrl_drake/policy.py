@@ -1,7 +1,7 @@
 """The saturated policy ``u = -lbar tanh(D)`` of (u_app).
 
-``D = (1 / (2 lbar)) R^{-1} g(x)^T grad sigma(x)^T W`` (NOTES.md: ``1/2 lambda``
-means ``1/(2 lbar)``). With ``grad V = grad sigma^T W`` and the per-input
+``D = (1 / (2 lbar)) R^{-1} g(x)^T grad sigma(x)^T W`` (docs/paper_notes.md:
+``1/2 lambda`` means ``1/(2 lbar)``). With ``grad V = grad sigma^T W`` and the per-input
 scale ``s_k = 1 / (2 lbar r_k)`` this is ``D_k = s_k (g^T grad V)_k``;
 :func:`saturate` is that law, compiled with numba, and
 :func:`policy_kernel` adds the basis gradient, so the controller block makes

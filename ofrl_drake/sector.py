@@ -1,4 +1,4 @@
-"""The sign-correct input sector of ``d(g(x) u)/dx`` (NOTES.md, "input sector").
+"""The sign-correct input sector of ``d(g(x) u)/dx`` (docs/paper_notes.md, "input sector").
 
 For Jacobian bounds ``M_g1 <= d g[i, k] / d x_j <= M_g2`` (arrays of shape
 ``(n, n, m)``, indexed ``[i, j, k]``) and an input ``u``, the element-wise sector

@@ -59,7 +59,7 @@ def test_vectorized_matches_per_point_reference(name, W):
 
 
 def test_delta_gradient_in_W_is_omega():
-    """dU/du cancels the policy term, so d(delta_i)/dW = omega_i exactly (NOTES.md)."""
+    """dU/du cancels the policy term, so d(delta_i)/dW = omega_i exactly (docs/paper_notes.md)."""
     system = make_system("two_state")
     basis = PolynomialBasis(2)
     F = point_features(system, basis, grid_points([-1, -1], [1, 1], [5, 5]), 5 * np.eye(2))

@@ -13,7 +13,7 @@ def _critic_gamma_reference(scenario, t_eval):
     """W and Gamma from (W_c) and (gamma), integrated by scipy, written from the paper.
 
     The learning laws sum over the extrapolation points only, so W and Gamma do
-    not depend on the plant or the observer (NOTES.md).
+    not depend on the plant or the observer (docs/paper_notes.md).
     """
     lbar, kc, nu, beta = (
         scenario.input_bound,

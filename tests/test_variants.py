@@ -185,7 +185,7 @@ def test_lqr_block_gain_and_saturation():
 
 
 def test_lqr_variant_keeps_learning_w_and_gamma(paper_scenario, baseline_short):
-    """W and Gamma depend only on the points (NOTES.md), so swapping the controller
+    """W and Gamma depend only on the points (docs/paper_notes.md), so swapping the controller
     leaves them as in the baseline, up to the integrator's error control."""
     r = simulate(_short(paper_scenario, controller="lqr"), progress=False)
     for time in (0.5, 1.5, 3.0):
