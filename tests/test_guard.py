@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
+from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ofrl_drake import simulate
 from ofrl_drake.errors import ScenarioError
@@ -176,3 +177,35 @@ def test_max_wall_on_the_command_line_gives_timeout_and_exit_3(tmp_path):
     assert summary["status"] == "timeout"
     scenario = yaml_load(data=(out / "scenario.yaml").read_text())
     assert scenario["simulation"]["max_wall_time"] == 0.001
+
+
+class _FiniteTimeBlowUp(LeafSystem):
+    """A plant slot block with ``x' = x^3``: from x = 1 it reaches infinity at t = 0.5."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareVectorInputPort("u", 1)
+        state = self.DeclareContinuousState(BasicVector([1.0, 1.0]))
+        self.DeclareStateOutputPort("state", state)
+        self.DeclareVectorOutputPort("y", 1, self._y, {self.xc_ticket()})
+
+    def _y(self, context, output):
+        output.SetAtIndex(0, context.get_continuous_state_vector().GetAtIndex(1))
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        x = context.get_continuous_state_vector().CopyToVector()
+        derivatives.get_mutable_vector().SetFromVector(x**3)
+
+
+def test_an_integrator_that_gives_up_ends_the_run_as_diverged(paper_scenario, paper_design):
+    scenario = _with_simulation(
+        paper_scenario, abort_box=BoxConfig([-1e300, -1e300], [1e300, 1e300]), duration=1.0
+    )
+    plant = _FiniteTimeBlowUp()
+    result = simulate(scenario, design=paper_design, plant=plant, progress=False)
+    assert result.status == STATUS_DIVERGED
+    assert result.stop.reason.startswith(
+        "the integrator gave up: Error control wants to select step smaller than minimum"
+    )
+    assert 0.4 < result.stop.time < 0.5 + 1e-3
+    assert result.t[-1] == result.stop.time
