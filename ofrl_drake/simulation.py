@@ -380,6 +380,14 @@ def simulate(
 ) -> SimulationResult:
     """Build and simulate ``scenario``'s closed loop over its horizon.
 
+    Every run is watched by a :class:`~ofrl_drake.guard.RunGuard`, the
+    ``Simulator``'s monitor, which takes no steps of its own: the run stops early
+    with status ``diverged`` (a non-finite state, x or xhat outside
+    ``simulation.abort_box``, or an integrator that gives up) or ``timeout``
+    (``simulation.max_wall_time`` exceeded). A stopped run is returned, not
+    raised: its logs end at the stop and ``result.status`` / ``result.stop`` say
+    why.
+
     Parameters
     ----------
     scenario : Scenario
@@ -388,6 +396,8 @@ def simulate(
         with ``loop``.
     progress : bool, optional
         Draw a progress bar on stderr; by default only when stderr is a terminal.
+        The bar is drawn by the guard, so the trajectories are the same, bit for
+        bit, with and without it.
     loop : ClosedLoop, optional
         An already-built loop to simulate; it must have been built from
         ``scenario`` (or an equal one), and ``design`` and ``swaps`` must then
