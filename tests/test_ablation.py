@@ -20,6 +20,7 @@ from ofrl_drake.ablation import (
     default_variants,
     initial_state_label,
     read_rows,
+    run_variant,
     sample_initial_states,
 )
 from ofrl_drake.ablation_metrics import (
@@ -227,6 +228,18 @@ def test_a_failing_variant_is_recorded_and_the_others_finish(paper_scenario, tmp
     assert broken_row["optimal_cost"] > 0  # J* is computed all the same
     on_disk = read_rows(tmp_path / "ablation.csv")
     assert sorted(map(_key, on_disk)) == sorted(map(_key, rows))
+
+
+def test_a_run_the_guard_stops_is_recorded_with_its_status(paper_scenario):
+    simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3)
+    scenario = dataclasses.replace(paper_scenario, simulation=simulation)
+    outcome = run_variant(scenario, Variant("baseline"), [-1.0, 1.0])
+    assert outcome.status.startswith("timeout: wall time ")
+    assert "exceeded max_wall_time = 0.001 s" in outcome.status
+    # A truncated run is not comparable with J*: no metrics, no warm start.
+    assert all(math.isnan(v) for v in outcome.metrics.values())
+    assert outcome.logs["t"].size >= 1
+    assert outcome.warm_start() is None
 
 
 def test_resume_completes_a_table_with_a_torn_last_line(paper_scenario, tmp_path):
