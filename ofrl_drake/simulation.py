@@ -186,6 +186,10 @@ class SimulationResult:
             }
         if self.stop is not None:
             out["stop"] = self.stop.to_dict()
+            if self.x_equilibrium is not None:  # in the plant's own coordinates, as above
+                for key in ("x", "xhat"):
+                    shifted = np.asarray(self.stop.x if key == "x" else self.stop.xhat, float)
+                    out["stop"][key] = _json_list(shifted + self.x_equilibrium)
         if self.provenance:
             out["provenance"] = self.provenance
         if self.validity is not None:
@@ -517,6 +521,11 @@ def _flush_logs(loop: ClosedLoop, root_context: Any) -> None:
         times = logger.FindLog(root_context).sample_times()
         if times.size == 0 or times[-1] < root_context.get_time():
             logger.ForcedPublish(context)
+
+
+def _json_list(values: np.ndarray) -> list[float | None]:
+    """Numbers for JSON, non-finite ones as None."""
+    return [float(v) if math.isfinite(v) else None for v in values]
 
 
 def _finite(value: float) -> float | None:
