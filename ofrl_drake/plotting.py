@@ -329,6 +329,12 @@ def _input_levels(result, input_bound: float | None) -> list[float]:
     return [float(c + s * input_bound) for c in centers for s in (-1, 1)]
 
 
+def _input_label(result) -> str:
+    if _equilibrium(result, "u") is None:
+        return r"control input $u$"
+    return r"input $u$ ($|u - u^*| \leq \bar\lambda$)"
+
+
 def _input_lines(result, ax: Axes, input_bound: float | None) -> None:
     u = _shown(result, "u")
     for k in range(u.shape[1]):
@@ -355,7 +361,7 @@ def plot_input(result, input_bound: float | None = None) -> Figure:
     _mark_stop(result, axes)
     for ax in axes:
         _autoscale_visible(ax, result.t, _shown(result, "u"), _input_levels(result, input_bound))
-    axes[0].set_ylabel(r"control input $u$")
+    axes[0].set_ylabel(_input_label(result))
     _legend(fig, axes)
     return fig
 
@@ -484,7 +490,7 @@ def plot_overview(result, input_bound: float | None = None, box: Box | None = No
 
     ax = axes[1, 1]
     _input_lines(result, ax, input_bound)
-    ax.set_ylabel("control input $u$")
+    ax.set_ylabel(_input_label(result))
     ax.set_title(f"first {zoom:.3g} s", fontsize=9)
     if zoom > 0:
         ax.set_xlim(0.0, zoom)
