@@ -4,12 +4,14 @@ Subcommands::
 
     ofrl-drake run SCENARIO --out DIR              simulate, write logs, figures, graph
     ofrl-drake design-observer SCENARIO --out F    certified observer gains as JSON
+    ofrl-drake verify-observer SCENARIO            falsify the design against the dynamics
     ofrl-drake ablate SCENARIO --out DIR           every variant vs the optimum, on Dask
 
 Exit codes (the README has the table): 0 success; 1 internal error (a bug:
 please report it); 2 bad input, printed on one line (``error: ...``); 3 ``run``
 stopped early because the run diverged or timed out (its output folder is
-written and says so); 130 interrupted (SIGINT). Nothing partial is written:
+written and says so); 4 ``verify-observer`` found a counterexample to the
+design's decay claim (printed in one line); 130 interrupted (SIGINT). Nothing partial is written:
 outputs are built in a temporary sibling and renamed into place. The exception
 is ``ablate``, whose rows stream into ``DIR/ablation.csv`` as runs finish so
 that ``--resume`` can complete an interrupted sweep.
@@ -48,6 +50,7 @@ EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_BAD_INPUT = 2
 EXIT_STOPPED = 3
+EXIT_FALSIFIED = 4
 EXIT_INTERRUPTED = 130
 
 
@@ -176,6 +179,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(warning, file=sys.stderr)
     loop = build_closed_loop(scenario)
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
+    verification = _verify(loop.design, loop.parts.system)
+    if verification is not None and result.design is not None:
+        result.design = {**result.design, "verification": verification.to_dict()}
     out = Path(args.out)
     with atomic_directory(out) as tmp:
         result.save(tmp)
@@ -188,9 +194,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             box=(scenario.observer.box.lower, scenario.observer.box.upper),
         )
         if loop.design is not None:
-            (tmp / "observer_design.json").write_text(
-                json.dumps(loop.design.to_dict(), indent=2) + "\n"
-            )
+            design = loop.design.to_dict()
+            if verification is not None:
+                design["verification"] = verification.to_dict()
+            (tmp / "observer_design.json").write_text(json.dumps(design, indent=2) + "\n")
         graph = render_diagram(loop.diagram, tmp)
         animation_note = _write_animation(scenario, result, tmp)
     if animation_note:
@@ -218,6 +225,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             "formulation: polytopic for a guarantee. See the README.",
             file=sys.stderr,
         )
+    if verification is not None:
+        print(f"observer: {verification.verdict(loop.design.is_decay_certified)}")
     s = result.summary()
     distance = "|x(T)|" if result.x_equilibrium is None else "|x(T) - x*|"
     print(
@@ -230,19 +239,55 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_design_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.diagram import design_for
+    from ofrl_drake.examples import make_system
     from ofrl_drake.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
     check_writable(Path(args.out))  # fail before the work, not after
-    design = design_for(scenario)
-    atomic_write_text(Path(args.out), json.dumps(design.to_dict(), indent=2) + "\n")
+    system = make_system(scenario.system)
+    design = design_for(scenario, system)
+    verification = _verify(design, system)
+    data = design.to_dict()
+    data["verification"] = verification.to_dict()
+    atomic_write_text(Path(args.out), json.dumps(data, indent=2) + "\n")
     worst = max(v for _, v in design.certificate())
     print(
         f"wrote {args.out}: alpha = {design.alpha}, ||L|| = "
         f"{float(__import__('numpy').linalg.norm(design.L, 2)):.4g}, "
         f"max certificate eigenvalue = {worst:.3g}"
     )
+    print(f"observer: {verification.verdict(design.is_decay_certified)}")
     return EXIT_OK
+
+
+def _verify(design: object, system: object) -> object:
+    """The fast falsification attempt shown next to every design (None without one)."""
+    if design is None:
+        return None
+    from ofrl_drake.verification import verify_observer
+
+    return verify_observer(design, system)
+
+
+def _cmd_verify_observer(args: argparse.Namespace) -> int:
+    from ofrl_drake.diagram import design_for
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.verification import verify_observer
+
+    scenario = load_scenario(args.scenario)
+    system = make_system(scenario.system)
+    design = design_for(scenario, system)
+    report = verify_observer(design, system, samples=args.samples, seed=args.seed)
+    if args.out:
+        data = {
+            "scenario": scenario.name,
+            "verification": report.to_dict(),
+            "observer_design": design.to_dict(),
+        }
+        atomic_write_text(Path(args.out), json.dumps(data, indent=2) + "\n")
+    print(f"{scenario.name}: {report.verdict(design.is_decay_certified)}")
+    return EXIT_FALSIFIED if report.falsified else EXIT_OK
 
 
 @contextlib.contextmanager
@@ -366,6 +411,19 @@ def _parser() -> argparse.ArgumentParser:
     design.add_argument("scenario", help="scenario YAML file")
     design.add_argument("--out", required=True, help="output JSON file")
     design.set_defaults(func=_cmd_design_observer)
+
+    verify = sub.add_parser(
+        "verify-observer",
+        help="falsify the observer design against the true error dynamics "
+        "(exit 4 on a counterexample)",
+    )
+    verify.add_argument("scenario", help="scenario YAML file")
+    verify.add_argument(
+        "--samples", type=int, default=10_000, metavar="N", help="sampled points (default 10000)"
+    )
+    verify.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the samples")
+    verify.add_argument("--out", metavar="FILE.json", help="also write the report as JSON")
+    verify.set_defaults(func=_cmd_verify_observer)
 
     ab = sub.add_parser(
         "ablate", help="every variant from several initial states, against the optimal cost"

@@ -83,6 +83,7 @@ OPTIONAL_LOGGED = {
     "certificate": ("observer", "certificate"),
     "solve_failed": ("observer", "solve_failed"),
     "solve_counts": ("observer", "solve_counts"),
+    "verification": ("observer", "verification"),
 }
 
 #: Log key -> signal name. Every variant logs these.

@@ -196,6 +196,21 @@ class VerificationReport:
             f"r = {self.worst_rate:+.4g} at {where}"
         )
 
+    def verdict(self, decay_certified: bool) -> str:
+        """One line for a design with or without a sound decay certificate.
+
+        ``"decay-certified and not falsified (...)"`` when both hold; otherwise
+        :meth:`summary_line`, prefixed with ``"not decay-certified; "`` when
+        the design has no sound certificate but no counterexample was found.
+        """
+        if decay_certified and not self.falsified:
+            return (
+                f"decay-certified and not falsified (alpha = {self.alpha:g}: worst r = "
+                f"{self.worst_rate:+.4g} <= {self.claimed_rate:g} over {self.samples} samples)"
+            )
+        prefix = "" if self.falsified or decay_certified else "not decay-certified; "
+        return prefix + self.summary_line()
+
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every attribute plus ``claimed_rate`` and ``falsified``."""
         return {

@@ -65,6 +65,10 @@ def test_run_writes_every_output(tmp_path):
         assert "diagram.dot" in proc.stdout
     design = json.loads((out / "observer_design.json").read_text())
     assert {"P", "L", "H", "K", "certificate"} <= set(design)
+    # The paper design is shown falsified, in both files and on stdout.
+    assert design["verification"]["falsified"] is True
+    assert summary["observer_design"]["verification"] == design["verification"]
+    assert "observer: claims alpha = 2 (r <= -4); falsified: r = +" in proc.stdout
     assert not list(tmp_path.glob(".out.*"))  # no temporary folder left behind
 
 

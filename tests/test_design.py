@@ -145,13 +145,33 @@ def test_polytopic_is_the_default_and_certifies_decay(two_state, poly2):
     assert d.condition_number < 1e3
 
 
-def test_polytopic_max_decay_rate_is_just_below_one(two_state, bounds2):
+def test_polytopic_max_decay_rate_brackets_one_and_does_not_attain_it(two_state, bounds2):
     # Along e = eps e1 no quadratic V certifies alpha >= 1 (a21 takes both signs).
-    best = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2)
-    assert 0.8 <= best.alpha < 1.0
+    found = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2)
+    assert found.tol == 1e-3
+    assert 1.0 - 1e-3 <= found.certified < 1.0 <= found.infeasible <= found.certified + 1e-3
+    assert found.infeasible_status.startswith("kInfeasible")
+    best = found.design
+    assert best.alpha == found.certified == found.alpha
     assert best.formulation == "polytopic" and best.is_decay_certified
+    assert found.condition_number == best.condition_number
+    assert found.gain_norm == best.gain_norm
+    data = found.to_dict()
+    assert data["certified"] == found.certified and data["infeasible"] == found.infeasible
     with pytest.raises(ObserverDesignInfeasible, match=r"formulation=polytopic, alpha=1,"):
         design_observer(two_state, BOX2, 3.0, 1.0, bounds=bounds2)
+    # Not attained: cond(P) and ||L|| grow as alpha -> 1 (about 1 / sqrt(1 - alpha)).
+    sizes = [design_observer(two_state, BOX2, 3.0, a, bounds=bounds2) for a in (0.9, 0.99, 0.999)]
+    conds = [d.condition_number for d in sizes]
+    gains = [d.gain_norm for d in sizes]
+    assert conds[0] * 2 < conds[1] and conds[1] * 2 < conds[2] < found.condition_number
+    assert gains[0] * 2 < gains[1] and gains[1] * 2 < gains[2] < found.gain_norm
+
+
+def test_max_decay_rate_returns_alpha_max_when_it_certifies(two_state, bounds2):
+    found = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2, alpha_max=0.5)
+    assert found.certified == 0.5 and found.infeasible is None and found.attempts == 1
+    assert "alpha_max = 0.5 certified" in str(found)
 
 
 def _error_pairs(rng, count):
@@ -437,19 +457,19 @@ def test_from_gains_polytopic_finds_p_for_pinned_gains(two_state, certified2, po
 # ------------------------------------------------------------ max decay rate
 def test_max_decay_rate_brackets_the_boundary_paper(two_state, bounds2):
     kw = {"bounds": bounds2, "formulation": "paper"}
-    best = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, max_gain=200.0, **kw)
+    best = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, max_gain=200.0, **kw).design
     assert best.is_certified and best.gain_norm <= 200.0 * (1 + 1e-6)
     assert best.formulation == "paper"
     assert 0.0 < best.alpha < 8.0
     with pytest.raises(ObserverDesignInfeasible):
         design_observer(two_state, BOX2, 3.0, best.alpha + 0.1, max_gain=200.0, **kw)
     # Without a cap the rate is higher.
-    free = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, **kw)
+    free = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, **kw).design
     assert free.alpha > best.alpha
 
 
 def test_max_decay_rate_with_a_gain_cap_polytopic(two_state, bounds2):
-    best = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2, max_gain=30.0)
+    best = max_decay_rate(two_state, BOX2, 3.0, bounds=bounds2, max_gain=30.0).design
     assert best.is_decay_certified and best.gain_norm <= 30.0 * (1 + 1e-6)
     assert 0.5 < best.alpha < 0.9
     with pytest.raises(ObserverDesignInfeasible, match="a larger max_gain"):

@@ -213,3 +213,45 @@ def test_a_design_without_positive_definite_P_has_nothing_to_verify(two_state, s
 def test_something_that_is_not_a_design_raises(two_state):
     with pytest.raises(VerificationError, match=r"design must be an ObserverDesign"):
         verify_observer(object(), two_state)
+
+
+# ------------------------------------------------------- scheduled observer
+def test_scheduled_observer_verifies_every_design_it_puts_in_force(paper_scenario, paper_design):
+    import dataclasses
+
+    from ofrl_drake import simulate
+    from ofrl_drake.systems.scheduled_observer import VERIFY_SAMPLES
+
+    s = dataclasses.replace(
+        paper_scenario,
+        observer=dataclasses.replace(
+            paper_scenario.observer, schedule_period=1.0, schedule_half_width=[1.0, 1.0]
+        ),
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=2.5),
+    )
+    r = simulate(s, design=paper_design, progress=False)
+    system = make_system("two_state")
+    logged, P, box = r.extra["verification"], r.extra["lyapunov_matrix"], r.extra["certified_box"]
+    gains = r.extra["observer_gains"]
+    assert logged.shape == (r.t.size, 3)
+    # Before the first re-solve: the initial (paper) design, falsified.
+    first = verify_observer(paper_design, system, samples=VERIFY_SAMPLES, seed=0, refine=False)
+    np.testing.assert_allclose(logged[0], [first.worst_rate, -4.0, 1.0], rtol=1e-12)
+    # After each re-solve: the design in force, rebuilt from the logs, verified again.
+    for count, t in ((1, 1.5), (2, 2.4)):
+        k = int(np.argmin(np.abs(r.t - t)))
+        design = ObserverDesign.from_gains(
+            system,
+            (box[k, :2], box[k, 2:]),
+            s.input_bound,
+            s.observer.alpha,
+            L=gains[k, 0:2].reshape(2, 1),
+            H=gains[k, 2:4].reshape(2, 1),
+            K=gains[k, 4:6].reshape(2, 1),
+            P=P[k].reshape(2, 2),
+            formulation=s.observer.formulation,
+        )
+        again = verify_observer(design, system, samples=VERIFY_SAMPLES, seed=count, refine=False)
+        np.testing.assert_allclose(
+            logged[k], [again.worst_rate, -4.0, float(again.falsified)], rtol=1e-9
+        )

@@ -20,7 +20,10 @@ from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 
-__all__ = ["ScheduledThreeGainObserver"]
+__all__ = ["VERIFY_SAMPLES", "ScheduledThreeGainObserver"]
+
+#: Samples of the cheap falsification attempt on every design put in force.
+VERIFY_SAMPLES = 1000
 
 
 class ScheduledThreeGainObserver(LeafSystem):
@@ -40,6 +43,7 @@ class ScheduledThreeGainObserver(LeafSystem):
         - certificate
         - solve_failed
         - solve_counts
+        - verification
 
     Parameters
     ----------
@@ -72,8 +76,13 @@ class ScheduledThreeGainObserver(LeafSystem):
     ``solve_failed`` is 1 after a
     re-solve that found no certified design (the previous gains and box stay
     in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
-    failed]`` since the start. All four are discrete state, so a logger
-    sampling at a re-solve time reads the values from before it.
+    failed]`` since the start; ``verification`` is ``[worst rate found, claimed
+    rate -2 alpha, 1 if falsified else 0]`` of a falsification attempt
+    (:func:`ofrl_drake.verification.verify_observer` with
+    :data:`VERIFY_SAMPLES` samples, no refinement, seeded by the re-solve
+    count) on each design put in force, the initial one included. All are
+    discrete state, so a logger sampling at a re-solve time reads the values
+    from before it.
     """
 
     def __init__(
@@ -120,6 +129,7 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._certificate_index = self.DeclareDiscreteState(
             np.array([float(initial_design.max_eigenvalue)])
         )
+        self._verification_index = self.DeclareDiscreteState(self._verify(initial_design, 0))
         self._failed_index = self.DeclareDiscreteState(1)
         self._counts_index = self.DeclareDiscreteState(2)
         self._y_port = self.DeclareVectorInputPort("y", q)
@@ -131,6 +141,9 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._certificate_port = self.DeclareStateOutputPort("certificate", self._certificate_index)
         self._failed_port = self.DeclareStateOutputPort("solve_failed", self._failed_index)
         self._counts_port = self.DeclareStateOutputPort("solve_counts", self._counts_index)
+        self._verification_port = self.DeclareStateOutputPort(
+            "verification", self._verification_index
+        )
         self.DeclarePeriodicDiscreteUpdateEvent(period, period, self._resolve)
 
     # ------------------------------------------------------------- accessors
@@ -169,6 +182,18 @@ class ScheduledThreeGainObserver(LeafSystem):
     def get_solve_counts_output_port(self) -> OutputPort:
         """``[re-solves run, re-solves failed]`` since the start (size 2)."""
         return self._counts_port
+
+    def get_verification_output_port(self) -> OutputPort:
+        """``[worst rate found, -2 alpha, falsified]`` of the design in force (size 3)."""
+        return self._verification_port
+
+    def _verify(self, design: Any, seed: int) -> np.ndarray:
+        from ofrl_drake.verification import verify_observer
+
+        report = verify_observer(
+            design, self.system, samples=VERIFY_SAMPLES, seed=seed, refine=False
+        )
+        return np.array([report.worst_rate, report.claimed_rate, float(report.falsified)])
 
     # --------------------------------------------------------------- packing
     @staticmethod
@@ -230,6 +255,9 @@ class ScheduledThreeGainObserver(LeafSystem):
         )
         discrete_state.get_mutable_vector(self._certificate_index).SetFromVector(
             [float(design.max_eigenvalue)]
+        )
+        discrete_state.get_mutable_vector(self._verification_index).SetFromVector(
+            self._verify(design, int(counts[0]) + 1)
         )
         discrete_state.get_mutable_vector(self._failed_index).SetFromVector([0.0])
         discrete_state.get_mutable_vector(self._counts_index).SetFromVector(
