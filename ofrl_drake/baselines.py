@@ -14,8 +14,6 @@ blocks lives here:
   *linearized* error ``e' = (A - L C) e`` decays at rate alpha, re-checkable
   in numpy. It is local: it says nothing about the nonlinear error away from
   the origin, which the three-gain LMI certificate covers on its box.
-* :func:`linear_observer_design`: the scenario's observer LMI with the
-  injection gains pinned to ``H = K = 0``, a linear-correction observer.
 * :func:`point_offsets`: the extrapolation points of a scenario as offsets from
   the centre of their box, for points that move with the estimate.
 """
@@ -23,7 +21,7 @@ blocks lives here:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from pydrake.symbolic import MakeVectorVariable
@@ -33,14 +31,9 @@ from scipy.signal import place_poles
 
 from ofrl_drake.errors import ModelError, ScenarioError
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.scenario import Scenario
-
-if TYPE_CHECKING:
-    from ofrl_drake.design import ObserverDesign
 
 __all__ = [
     "LinearizedObserverCertificate",
-    "linear_observer_design",
     "linearize_at_origin",
     "linearized_observer_certificate",
     "luenberger_gain",
@@ -223,39 +216,6 @@ def linearized_observer_certificate(
     shifted = A - L @ C + alpha * np.eye(A.shape[0])
     P = solve_continuous_lyapunov(shifted.T, -np.eye(A.shape[0]))
     return LinearizedObserverCertificate(A=A, C=C, L=L, alpha=float(alpha), P=0.5 * (P + P.T))
-
-
-def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> ObserverDesign:
-    """The scenario's observer design with ``H = K = 0`` and ``L`` from the same LMI.
-
-    Same box, input bound, decay rate, Jacobian method, solver and
-    formulation as :func:`ofrl_drake.diagram.design_for`, with
-    ``injection_gains=False``. The ``polytopic`` formulation has ``H = K = 0``
-    already, so there it returns the three-gain design itself; under ``paper``
-    it is a linear Luenberger gain certified by (lmi2).
-
-    Returns
-    -------
-    ObserverDesign
-
-    Raises
-    ------
-    ObserverDesignInfeasible
-        If the LMI has no solution with ``H = K = 0``.
-    """
-    from ofrl_drake.design import design_observer
-
-    o = scenario.observer
-    return design_observer(
-        system,
-        (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)),
-        scenario.input_bound,
-        o.alpha,
-        jacobian_method=o.jacobian_method,
-        solver=o.solver,
-        formulation=o.formulation,
-        injection_gains=False,
-    )
 
 
 def point_offsets(points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:

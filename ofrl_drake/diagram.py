@@ -201,7 +201,7 @@ def _default_block(slot: str, parts: ClosedLoopParts) -> System:
                 initial_state=s.xhat0,
             )
         gains = ObserverGains.from_design(parts.system, parts.design)
-        return ThreeGainObserver(parts.system, gains, initial_state=s.xhat0)
+        return ThreeGainObserver(parts.system, gains, initial_state=s.xhat0, design=parts.design)
     if slot == "controller":
         return SaturatedController(parts.system, parts.basis, parts.r, s.input_bound)
     if slot == "critic":
@@ -283,7 +283,7 @@ def build_closed_loop(
         if choices["observer"] == "three_gain":
             design = design_for(scenario, system)
         elif choices["observer"] == "linear_luenberger":
-            from ofrl_drake.baselines import linear_observer_design
+            from ofrl_drake.variants import linear_observer_design
 
             # Designed here, not inside the variant, so its certificate is reported.
             design = linear_observer_design(scenario, system)

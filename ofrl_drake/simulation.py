@@ -17,13 +17,12 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorC
 from pydrake.systems.framework import System
 
 from ofrl_drake.atomic import atomic_file
-from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, ProgressBar, RunGuard, StopReport
+from ofrl_drake.observer_certificate import certificate_of
 from ofrl_drake.provenance import provenance
 from ofrl_drake.scenario import Scenario, abort_box
-from ofrl_drake.systems import LinearizedLuenbergerObserver, ThreeGainObserver
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
 __all__ = [
@@ -318,60 +317,39 @@ def _certified_region(
 ) -> tuple[tuple[np.ndarray, np.ndarray] | BoxSchedule | None, str | None]:
     """The box x and xhat are checked against, and a note for the report.
 
-    An observer that logs ``certified_box`` (one that re-designs its gains
-    along the run) is checked, sample by sample, against the box its gains in
-    force are certified on. Otherwise a fixed box applies only if the observer
-    block runs the gains of ``loop.design``; any other observer (none
-    designed, or a block that ignores the design) has no certified box.
+    Asked of the observer block through its
+    :meth:`observer_certificate` (:func:`~ofrl_drake.observer_certificate.certificate_of`),
+    whatever its class: a ``"design"`` holds on its fixed box; a
+    ``"scheduled"`` observer is checked, sample by sample, against the box of
+    the design in force, which it logs on ``certified_box``; any other has no
+    certified box, and the note says why.
     """
     observer: System = loop.blocks["observer"]
-    kind = type(observer).__name__
-    if "certified_box" in logs:
+    cert = certificate_of(observer)
+    if cert.kind == "scheduled" and "certified_box" in logs:
         schedule = BoxSchedule.from_samples(t, logs["certified_box"])
-        note = (
-            f"observer {kind} re-designs its gains along the run: x and xhat checked "
-            f"against the box of the design in force ({schedule.times.size - 1} box "
-            "changes), not against one fixed box"
-        )
+        note = f"{cert.note} ({schedule.times.size - 1} box changes), not against one fixed box"
         return schedule, note
-    design = loop.design
-    if design is None and isinstance(observer, LinearizedLuenbergerObserver):
+    if cert.box is not None:
+        return (np.asarray(cert.box.lower, float), np.asarray(cert.box.upper, float)), None
+    if cert.kind == "none" and loop.design is not None:
         return None, (
-            f"observer {kind} runs the linearization: its gain has a local certificate "
-            "(observer_design) for the linear error dynamics only, and no box; "
-            "only |u_k| <= lambda_bar was checked"
+            f"the observer block ({type(observer).__name__}) does not run the observer "
+            "design's gains: box checks not applicable; only |u_k| <= lambda_bar was checked"
         )
-    if design is None:
-        return None, (
-            f"no observer design (observer block {kind}): box checks not applicable; "
-            "only |u_k| <= lambda_bar was checked"
-        )
-    runs_design = isinstance(observer, ThreeGainObserver) and all(
-        np.array_equal(
-            np.asarray(getattr(observer.gains, name), float),
-            np.asarray(getattr(design, name), float),
-        )
-        for name in ("L", "H", "K")
-    )
-    if not runs_design:
-        return None, (
-            f"the observer block ({kind}) does not run the observer design's gains: "
-            "box checks not applicable; only |u_k| <= lambda_bar was checked"
-        )
-    return (np.asarray(design.box.lower, float), np.asarray(design.box.upper, float)), None
+    return None, cert.note
 
 
-def _design_dict(loop: ClosedLoop, scenario: Scenario) -> dict[str, Any] | None:
-    """The observer's design with its certificate, as reported in ``summary.json``."""
-    if loop.design is not None:
-        return loop.design.to_dict()
-    observer = loop.blocks["observer"]
-    if isinstance(observer, LinearizedLuenbergerObserver):
-        lin = observer.linearization
-        return linearized_observer_certificate(
-            lin.A(), lin.C(), observer.gain, scenario.observer.alpha
-        ).to_dict()
-    return None
+def _design_dict(loop: ClosedLoop) -> dict[str, Any] | None:
+    """The observer's design or local certificate, as reported in ``summary.json``.
+
+    What the observer block certifies; the loop's design when the block
+    certifies nothing (it is still reported, though the block does not run it).
+    """
+    cert = certificate_of(loop.blocks["observer"])
+    if cert.design is not None:
+        return cert.design
+    return loop.design.to_dict() if loop.design is not None else None
 
 
 def simulate(
@@ -479,7 +457,7 @@ def simulate(
         "smallest_step": _finite(integ.get_smallest_adapted_step_size_taken()),
         "largest_step": _finite(integ.get_largest_step_size_taken()),
     }
-    design_dict = _design_dict(loop, scenario)
+    design_dict = _design_dict(loop)
     result = SimulationResult(
         t=np.asarray(t),
         x=logs["x"],

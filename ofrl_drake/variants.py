@@ -17,7 +17,7 @@ What each choice builds:
 ``observer``
     ``three_gain``: the certified three-gain observer (default).
     ``linear_luenberger``: the same observer with ``H = K = 0``, its ``L``
-    certified by the same LMI (:func:`ofrl_drake.baselines.linear_observer_design`);
+    certified by the same LMI (:func:`linear_observer_design`);
     under the ``polytopic`` formulation, whose designs have ``H = K = 0``
     anyway, it coincides with ``three_gain``.
     ``drake_luenberger``: Drake's ``LuenbergerObserver`` on the linearization
@@ -47,7 +47,6 @@ import numpy as np
 from pydrake.systems.framework import System
 
 from ofrl_drake.baselines import (
-    linear_observer_design,
     linearize_at_origin,
     luenberger_gain,
     luenberger_poles,
@@ -65,10 +64,19 @@ from ofrl_drake.systems.baselines import (
     SaturatedLqrController,
 )
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # annotations only: the wiring imports run diagram -> variants
+    from ofrl_drake.design import ObserverDesign
     from ofrl_drake.diagram import ClosedLoopParts
+    from ofrl_drake.model import ControlAffineSystem
+    from ofrl_drake.scenario import Scenario
 
-__all__ = ["BASELINE", "VARIANT_FACTORIES", "register_variant", "variant_blocks"]
+__all__ = [
+    "BASELINE",
+    "VARIANT_FACTORIES",
+    "linear_observer_design",
+    "register_variant",
+    "variant_blocks",
+]
 
 Factory = Callable[["ClosedLoopParts"], dict[str, System]]
 
@@ -86,10 +94,47 @@ def _default(_parts: ClosedLoopParts) -> dict[str, System]:
 
 
 # ---------------------------------------------------------------- observer
+def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> ObserverDesign:
+    """The scenario's observer design with ``H = K = 0`` and ``L`` from the same LMI.
+
+    Same box, input bound, decay rate, Jacobian method, solver and
+    formulation as :func:`ofrl_drake.diagram.design_for`, with
+    ``injection_gains=False``. The ``polytopic`` formulation has ``H = K = 0``
+    already, so there it returns the three-gain design itself; under ``paper``
+    it is a linear Luenberger gain certified by (lmi2).
+
+    Returns
+    -------
+    ObserverDesign
+
+    Raises
+    ------
+    ObserverDesignInfeasible
+        If the LMI has no solution with ``H = K = 0``.
+    """
+    from ofrl_drake.design import design_observer
+
+    o = scenario.observer
+    return design_observer(
+        system,
+        (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)),
+        scenario.input_bound,
+        o.alpha,
+        jacobian_method=o.jacobian_method,
+        solver=o.solver,
+        formulation=o.formulation,
+        injection_gains=False,
+    )
+
+
 def _linear_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
     design = parts.design or linear_observer_design(parts.scenario, parts.system)
     gains = ObserverGains.from_design(parts.system, design)
-    return {"observer": ThreeGainObserver(parts.system, gains, initial_state=parts.scenario.xhat0)}
+    return {
+        "observer": ThreeGainObserver(
+            parts.system, gains, initial_state=parts.scenario.xhat0, design=design
+        )
+    }
 
 
 def _drake_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
@@ -98,7 +143,10 @@ def _drake_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
     gain = luenberger_gain(linearization.A(), linearization.C(), poles)
     return {
         "observer": LinearizedLuenbergerObserver(
-            linearization, gain, initial_state=parts.scenario.xhat0
+            linearization,
+            gain,
+            initial_state=parts.scenario.xhat0,
+            alpha=parts.scenario.observer.alpha,
         )
     }
 

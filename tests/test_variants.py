@@ -212,7 +212,7 @@ def test_linear_luenberger_has_no_injection_gains_and_a_certificate(paper_scenar
     np.testing.assert_array_equal(observer.gains.H, np.zeros((2, 1)))
     np.testing.assert_array_equal(observer.gains.K, np.zeros((2, 1)))
     assert np.linalg.norm(observer.gains.L) > 0
-    from ofrl_drake.baselines import linear_observer_design
+    from ofrl_drake.variants import linear_observer_design
 
     design = linear_observer_design(paper_scenario, make_system("two_state"))
     assert design.is_certified

@@ -30,10 +30,12 @@ from pydrake.systems.framework import (
 )
 from pydrake.systems.primitives import AffineSystem, LinearSystem, Saturation
 
+from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import extrapolate, learning_condition, point_features
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer_certificate import ObserverCertificate
 
 __all__ = [
     "FullStateObserver",
@@ -78,6 +80,10 @@ class FullStateObserver(LeafSystem):
         """The true state x (size n)."""
         return self._state_port
 
+    def observer_certificate(self) -> ObserverCertificate:
+        """Nothing to certify: the estimate is the state."""
+        return ObserverCertificate.none(type(self).__name__)
+
     def get_estimated_state_output_port(self) -> OutputPort:
         """The "estimate", equal to x (size n)."""
         return self._xhat_port
@@ -114,6 +120,10 @@ class LinearizedLuenbergerObserver(Diagram):
         Observer gain L (e.g. :func:`ofrl_drake.baselines.luenberger_gain`).
     initial_state : array_like, shape (n,), optional
         Default xhat(0) (zeros if omitted).
+    alpha : float, optional
+        The decay rate the gain is meant to achieve; :meth:`observer_certificate`
+        then reports the Lyapunov certificate of the linearized error at that
+        rate (:func:`ofrl_drake.baselines.linearized_observer_certificate`).
     """
 
     def __init__(
@@ -121,11 +131,13 @@ class LinearizedLuenbergerObserver(Diagram):
         linearization: LinearSystem,
         gain: np.ndarray,
         initial_state: Sequence[float] | None = None,
+        alpha: float | None = None,
     ) -> None:
         super().__init__()
         self.linearization = linearization
         self.gain = gain
         self.initial_state = initial_state
+        self.alpha = alpha
         A, B = linearization.A(), linearization.B()
         C, D = linearization.C(), linearization.D()
         n = A.shape[0]
@@ -159,6 +171,24 @@ class LinearizedLuenbergerObserver(Diagram):
     def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
         return self.GetOutputPort("estimated_state")
+
+    def observer_certificate(self) -> ObserverCertificate:
+        """Kind ``"local"``: the linearized error's certificate at ``alpha``, no box."""
+        lin = self.linearization
+        design = (
+            None
+            if self.alpha is None
+            else linearized_observer_certificate(lin.A(), lin.C(), self.gain, self.alpha).to_dict()
+        )
+        return ObserverCertificate(
+            "local",
+            design=design,
+            note=(
+                f"observer {type(self).__name__} runs the linearization: its gain has a local "
+                "certificate (observer_design) for the linear error dynamics only, and no box; "
+                "only |u_k| <= lambda_bar was checked"
+            ),
+        )
 
 
 class SaturatedLqrController(Diagram):

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
+from ofrl_drake.observer_certificate import ObserverCertificate
 
 __all__ = ["ThreeGainObserver"]
 
@@ -35,6 +38,14 @@ class ThreeGainObserver(LeafSystem):
         certified ``ObserverDesign`` or :meth:`ObserverGains.from_arrays`.
     initial_state : array_like, shape (n,), optional
         Default xhat(0) (zeros if omitted).
+    design : ObserverDesign, optional
+        The design ``gains`` come from; then :meth:`observer_certificate`
+        reports it and its box. Without it the block certifies nothing.
+
+    Raises
+    ------
+    ModelError
+        If ``design`` is given and its L, H, K differ from ``gains``.
 
     See Also
     --------
@@ -46,11 +57,20 @@ class ThreeGainObserver(LeafSystem):
         system: ControlAffineSystem,
         gains: ObserverGains,
         initial_state: Sequence[float] | None = None,
+        design: Any = None,
     ) -> None:
         super().__init__()
         self.system = system
         self.gains = gains
         self.initial_state = initial_state
+        self.design = design
+        if design is not None:
+            for name in ("L", "H", "K"):
+                if not np.array_equal(getattr(gains, name), np.asarray(getattr(design, name))):
+                    raise ModelError(
+                        f"gains.{name} differs from design.{name}; build the gains with "
+                        "ObserverGains.from_design(system, design) or omit design=."
+                    )
         x0 = np.zeros(system.n) if initial_state is None else np.asarray(initial_state, float)
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._y_port = self.DeclareVectorInputPort("y", system.q)
@@ -68,6 +88,12 @@ class ThreeGainObserver(LeafSystem):
     def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
         return self._xhat_port
+
+    def observer_certificate(self) -> ObserverCertificate:
+        """The design and its box, or nothing when built without a design."""
+        if self.design is None:
+            return ObserverCertificate.none(type(self).__name__)
+        return ObserverCertificate("design", design=self.design.to_dict(), box=self.design.box)
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         xhat = context.get_continuous_state_vector().CopyToVector()

@@ -19,6 +19,7 @@ from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, Output
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
+from ofrl_drake.observer_certificate import ObserverCertificate
 
 __all__ = ["VERIFY_SAMPLES", "ScheduledThreeGainObserver"]
 
@@ -186,6 +187,17 @@ class ScheduledThreeGainObserver(LeafSystem):
     def get_verification_output_port(self) -> OutputPort:
         """``[worst rate found, -2 alpha, falsified]`` of the design in force (size 3)."""
         return self._verification_port
+
+    def observer_certificate(self) -> ObserverCertificate:
+        """Kind ``"scheduled"``: the initial design; the boxes in force are logged."""
+        return ObserverCertificate(
+            "scheduled",
+            design=self.initial_design.to_dict(),
+            note=(
+                f"observer {type(self).__name__} re-designs its gains along the run: x and "
+                "xhat checked against the box of the design in force"
+            ),
+        )
 
     def _verify(self, design: Any, seed: int) -> np.ndarray:
         from ofrl_drake.verification import verify_observer
