@@ -169,15 +169,17 @@ def default_variants(scenario: Scenario) -> list[Variant]:
     For the paper's scenario: ``baseline`` plus ``observer=linear_luenberger``,
     ``observer=drake_luenberger``, ``observer=true_state``, ``controller=lqr``,
     ``controller=frozen_critic``, ``points=uniform``, ``points=around_estimate``
-    and ``gamma=constant``.
+    and ``gamma=constant``. Choices that need scenario values
+    (:data:`~ofrl_drake.variants.NEEDS_PARAMETERS`, e.g. ``controller=constant``)
+    are left out.
     """
-    from ofrl_drake.variants import VARIANT_FACTORIES
+    from ofrl_drake.variants import NEEDS_PARAMETERS, VARIANT_FACTORIES
 
     base = variant_choices(scenario)
     out = [Variant("baseline", {})]
     for slot, options in VARIANT_FACTORIES.items():
         for choice in options:
-            if choice != base[slot]:
+            if choice != base[slot] and (slot, choice) not in NEEDS_PARAMETERS:
                 out.append(Variant(f"{slot}={choice}", {slot: choice}))
     return out
 

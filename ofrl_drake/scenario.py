@@ -155,13 +155,16 @@ class SimulationConfig:
 class VariantConfig:
     """One choice per ablation slot (see :mod:`ofrl_drake.variants`); all optional.
 
-    ``points`` defaults to the scenario's ``points.kind``.
+    ``points`` defaults to the scenario's ``points.kind``. ``constant_input``
+    is the input the ``constant`` controller holds (m entries, each within
+    ``input_bound``).
     """
 
     observer: str = field(default="three_gain", metadata=_OPTIONAL)
     controller: str = field(default="learned", metadata=_OPTIONAL)
     points: str = field(default="", metadata=_OPTIONAL)
     gamma: str = field(default="least_squares", metadata=_OPTIONAL)
+    constant_input: list[float] = field(default_factory=list, metadata=_OPTIONAL)
 
 
 @dataclass
@@ -433,6 +436,14 @@ def validate_scenario(scenario: Scenario) -> None:
             raise ScenarioError(
                 f"variant.{slot}: unknown choice {choice!r}; choose one of "
                 f"{sorted(VARIANT_FACTORIES[slot])}."
+            )
+
+    if scenario.variant.controller == "constant":
+        held = _vector("variant.constant_input", scenario.variant.constant_input, m)
+        if np.any(np.abs(held) > scenario.input_bound):
+            raise ScenarioError(
+                f"variant.constant_input: entries must satisfy |u_k| <= input_bound = "
+                f"{scenario.input_bound}; got {scenario.variant.constant_input}."
             )
 
     s = scenario.simulation

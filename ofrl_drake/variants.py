@@ -3,7 +3,7 @@
 A :class:`~ofrl_drake.scenario.VariantConfig` names one choice per slot::
 
     observer:   three_gain | linear_luenberger | drake_luenberger | true_state
-    controller: learned | lqr | frozen_critic
+    controller: learned | lqr | frozen_critic | constant
     points:     grid | uniform | around_estimate
     gamma:      least_squares | constant
 
@@ -29,6 +29,8 @@ What each choice builds:
     ``lqr``: Drake's LQR on the linearization with the scenario's ``Q`` and
     ``R``, clipped at ``lambda_bar``; the critic and Gamma still learn and log.
     ``frozen_critic``: ``W`` fixed at ``W(0)``.
+    ``constant``: the input held at ``variant.constant_input``, ignoring the
+    estimate; the critic and Gamma still learn and log.
 ``points``
     ``grid`` (``points.counts``) and ``uniform`` (``points.number`` and
     ``points.seed``) in the box ``points.lower .. points.upper``, whatever
@@ -58,6 +60,7 @@ from ofrl_drake.observer import ObserverGains
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.systems import BellmanExtrapolator, CriticWeights, GammaGain, ThreeGainObserver
 from ofrl_drake.systems.baselines import (
+    ConstantController,
     FullStateObserver,
     LinearizedLuenbergerObserver,
     MovingBellmanExtrapolator,
@@ -72,6 +75,7 @@ if TYPE_CHECKING:  # annotations only: the wiring imports run diagram -> variant
 
 __all__ = [
     "BASELINE",
+    "NEEDS_PARAMETERS",
     "VARIANT_FACTORIES",
     "linear_observer_design",
     "register_variant",
@@ -165,6 +169,10 @@ def _lqr(parts: ClosedLoopParts) -> dict[str, System]:
     }
 
 
+def _constant(parts: ClosedLoopParts) -> dict[str, System]:
+    return {"controller": ConstantController(parts.scenario.variant.constant_input)}
+
+
 def _frozen_critic(parts: ClosedLoopParts) -> dict[str, System]:
     return {"critic": CriticWeights(parts.scenario.critic.W0, kc=0.0)}
 
@@ -217,10 +225,20 @@ VARIANT_FACTORIES: dict[str, dict[str, Factory]] = {
         "drake_luenberger": _drake_luenberger,
         "true_state": _true_state,
     },
-    "controller": {"learned": _default, "lqr": _lqr, "frozen_critic": _frozen_critic},
+    "controller": {
+        "learned": _default,
+        "lqr": _lqr,
+        "frozen_critic": _frozen_critic,
+        "constant": _constant,
+    },
     "points": {"grid": _grid, "uniform": _uniform, "around_estimate": _around_estimate},
     "gamma": {"least_squares": _default, "constant": _constant_gamma},
 }
+
+
+#: (slot, choice) pairs that need values from the scenario (``variant.constant_input``);
+#: :func:`~ofrl_drake.ablation.default_variants` leaves them out.
+NEEDS_PARAMETERS = {("controller", "constant")}
 
 
 def register_variant(slot: str, choice: str, factory: Factory) -> None:

@@ -60,6 +60,7 @@ __all__ = [
     "VerificationReport",
     "error_jacobians",
     "error_rates",
+    "plant_jacobians",
     "small_error_rates",
     "verify_observer",
 ]
@@ -290,6 +291,20 @@ def _jacobian_function(
         result = (central, "finite_difference")
     _JACOBIANS[system] = result
     return result
+
+
+def plant_jacobians(system: ControlAffineSystem, X: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``Df`` and ``Dg`` at the columns of ``X`` (shape ``(n, N)``).
+
+    Returns
+    -------
+    Jf : ndarray, shape (n, n, N)
+        ``Jf[i, j, p] = d f_i / d x_j`` at point p.
+    Jg : ndarray, shape (n, n, m, N)
+        ``Jg[i, j, k, p] = d g[i, k] / d x_j`` at point p.
+    """
+    jac, _ = _jacobian_function(system)
+    return jac(np.asarray(X, dtype=float).reshape(system.n, -1))
 
 
 # --------------------------------------------------------------------- rates

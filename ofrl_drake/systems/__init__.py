@@ -1,6 +1,7 @@
 """Drake blocks of the closed loop; each is a thin wrapper over a math module."""
 
 from ofrl_drake.systems.baselines import (
+    ConstantController,
     FullStateObserver,
     LinearizedLuenbergerObserver,
     MovingBellmanExtrapolator,
@@ -18,6 +19,7 @@ from ofrl_drake.systems.scheduled_observer import ScheduledThreeGainObserver
 
 __all__ = [
     "BellmanExtrapolator",
+    "ConstantController",
     "ControlAffinePlant",
     "CriticWeights",
     "DrakePlant",

@@ -8,6 +8,7 @@ They use the port names of the blocks they replace, so
   ``LuenbergerObserver`` on the linearization at the origin.
 * :class:`SaturatedLqrController` (``controller``): Drake's
   ``LinearQuadraticRegulator`` on the linearization, clipped at ``lambda_bar``.
+* :class:`ConstantController` (``controller``): the input held at a given value.
 * :class:`MovingBellmanExtrapolator` (``bellman``): the Bellman extrapolation at
   points ``xhat + offsets`` that move with the estimate.
 """
@@ -28,7 +29,12 @@ from pydrake.systems.framework import (
     OutputPort,
     ValueProducer,
 )
-from pydrake.systems.primitives import AffineSystem, LinearSystem, Saturation
+from pydrake.systems.primitives import (
+    AffineSystem,
+    ConstantVectorSource,
+    LinearSystem,
+    Saturation,
+)
 
 from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.basis import PolynomialBasis
@@ -38,6 +44,7 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer_certificate import ObserverCertificate
 
 __all__ = [
+    "ConstantController",
     "FullStateObserver",
     "LinearizedLuenbergerObserver",
     "MovingBellmanExtrapolator",
@@ -253,6 +260,45 @@ class SaturatedLqrController(Diagram):
 
     def get_u_output_port(self) -> OutputPort:
         """The clipped input u (size m)."""
+        return self.GetOutputPort("u")
+
+
+class ConstantController(Diagram):
+    """The input held at ``value``: Drake's ``ConstantVectorSource``, exported as ``u``.
+
+    No inputs, so it ignores the estimate; useful to hold the plant at an
+    equilibrium while the observer runs, and as an open-loop ablation.
+
+    .. pydrake_system::
+
+        name: ConstantController
+        output_ports:
+        - u
+
+    Parameters
+    ----------
+    value : array_like, shape (m,)
+        The input, finite.
+
+    Raises
+    ------
+    ModelError
+        If ``value`` is empty or not finite.
+    """
+
+    def __init__(self, value: Sequence[float]) -> None:
+        super().__init__()
+        self.value = value
+        u = np.atleast_1d(np.asarray(value, dtype=float))
+        if u.ndim != 1 or u.size == 0 or not np.all(np.isfinite(u)):
+            raise ModelError(f"value must be a non-empty finite vector; got {value!r}.")
+        builder = DiagramBuilder()
+        source = builder.AddNamedSystem("constant", ConstantVectorSource(u))
+        builder.ExportOutput(source.get_output_port(), "u")
+        builder.BuildInto(self)
+
+    def get_u_output_port(self) -> OutputPort:
+        """The held input u (size m)."""
         return self.GetOutputPort("u")
 
 
