@@ -19,6 +19,8 @@ LAYERS = {
         "checks",
         "atomic",
         "model",
+        "drake_models",
+        "expression_function",
         "examples",
         "basis",
         "cost",
