@@ -30,11 +30,18 @@ from ofrl_drake.systems.baselines import (
     MovingBellmanExtrapolator,
     SaturatedLqrController,
 )
-from ofrl_drake.variants import VARIANT_FACTORIES
+from ofrl_drake.variants import NEEDS_PARAMETERS, VARIANT_FACTORIES
 
 from .conftest import PAPER_SCENARIO
 
-CHOICES = [(slot, choice) for slot, options in VARIANT_FACTORIES.items() for choice in options]
+#: Choices that build from the scenario alone (``controller=constant`` needs its input
+#: value and is tested in tests/test_counterexample.py).
+CHOICES = [
+    (slot, choice)
+    for slot, options in VARIANT_FACTORIES.items()
+    for choice in options
+    if (slot, choice) not in NEEDS_PARAMETERS
+]
 SHORT = 3.0
 
 
@@ -59,7 +66,7 @@ def baseline_short(paper_scenario):
 def test_every_documented_choice_is_registered():
     assert {slot: sorted(options) for slot, options in VARIANT_FACTORIES.items()} == {
         "observer": ["drake_luenberger", "linear_luenberger", "three_gain", "true_state"],
-        "controller": ["frozen_critic", "learned", "lqr"],
+        "controller": ["constant", "frozen_critic", "learned", "lqr"],
         "points": ["around_estimate", "grid", "uniform"],
         "gamma": ["constant", "least_squares"],
     }
@@ -86,6 +93,18 @@ def test_every_choice_builds_and_simulates_with_the_same_logs(paper_scenario, sl
 def test_true_state_feeds_the_state_through(paper_scenario):
     r = simulate(_short(paper_scenario, observer="true_state"), progress=False)
     np.testing.assert_array_equal(r.xhat, r.x)
+
+
+def test_constant_controller_block():
+    from ofrl_drake.systems import ConstantController
+
+    block = ConstantController([1.5, -0.25])
+    assert block.num_input_ports() == 0 and block.num_continuous_states() == 0
+    assert block.get_u_output_port().get_name() == "u"
+    context = block.CreateDefaultContext()
+    np.testing.assert_array_equal(block.get_u_output_port().Eval(context), [1.5, -0.25])
+    with pytest.raises(ModelError, match=r"value must be a non-empty finite vector; got \[nan\]"):
+        ConstantController([float("nan")])
 
 
 def test_full_state_observer_block():
