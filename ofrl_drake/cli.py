@@ -239,12 +239,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_design_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.diagram import design_for
-    from ofrl_drake.examples import make_system
+    from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
     check_writable(Path(args.out))  # fail before the work, not after
-    system = make_system(scenario.system)
+    system = resolve_system(scenario)
     design = design_for(scenario, system)
     verification = _verify(design, system)
     data = design.to_dict()
@@ -271,12 +271,12 @@ def _verify(design: object, system: object) -> object:
 
 def _cmd_verify_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.diagram import design_for
-    from ofrl_drake.examples import make_system
+    from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
     from ofrl_drake.verification import verify_observer
 
     scenario = load_scenario(args.scenario)
-    system = make_system(scenario.system)
+    system = resolve_system(scenario)
     design = design_for(scenario, system)
     report = verify_observer(design, system, samples=args.samples, seed=args.seed)
     if args.out:

@@ -19,6 +19,7 @@ LAYERS = {
         "checks",
         "atomic",
         "model",
+        "plants",
         "drake_models",
         "expression_function",
         "examples",
@@ -50,6 +51,7 @@ LAYERS = {
         "optimal",
         "plotting",
         "graph",
+        "animation",
     },
     4: {"cli", "__main__", ""},  # the command line and the package's public face
 }

@@ -11,6 +11,7 @@ from ofrl_drake.design import ObserverDesign
 from ofrl_drake.diagram import design_for
 from ofrl_drake.examples import make_system
 from ofrl_drake.observer import ObserverGains, observer_rhs, observer_rhs_batch
+from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import load_scenario
 from ofrl_drake.verification import (
     VerificationError,
@@ -248,7 +249,7 @@ SCENARIOS = sorted((ROOT / "diagrams").glob("*.yaml"))
 def test_every_shipped_design_is_falsified_exactly_when_it_is_not_sound(path):
     """Polytopic designs (a proof on their box) survive; the paper's (lmi2) does not."""
     scenario = load_scenario(path)
-    system = make_system(scenario.system)
+    system = resolve_system(scenario)
     design = design_for(scenario, system)
     report = verify_observer(design, system, seed=0)  # the default budget
     assert report.input_vertices == 3**system.m
