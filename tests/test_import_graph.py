@@ -40,6 +40,8 @@ LAYERS = {
         "verification",
         "unobservable",
         "validity",
+        "guard",
+        "provenance",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
     2: {"variants", "scenario", "diagram"},  # wiring
