@@ -416,8 +416,9 @@ def from_multibody(
     with all the force elements' forces (which covers body forces such as
     springs between bodies). ``M^-1`` is applied by a symbolic ``LDL^T`` solve.
 
-    Not modelled: contact forces, joint-limit penalty forces and effort
-    limits; a plant with finite position or effort limits is refused.
+    Not modelled: contact forces, effort limits (a plant with finite effort
+    limits is refused: Drake clamps the actuation to them) and any force
+    Drake applies outside position limits: the model holds inside them.
     The equations are compared with the plant's own double-precision
     ``EvalTimeDerivatives`` at ``check_points`` random ``(x, u)``.
 
@@ -444,7 +445,7 @@ def from_multibody(
     ------
     ModelError
         If the model cannot be loaded, the plant is discrete or not finalized,
-        has quaternion (floating) joints, limits, no actuators, or the
+        has quaternion (floating) joints, effort limits, no actuators, or the
         equations disagree with ``EvalTimeDerivatives``.
     """
     plant, path, stem = _load_plant(model)
@@ -463,17 +464,15 @@ def from_multibody(
         )
     if nu == 0:
         raise ModelError(f"{label}: the plant has no actuators, so no input u.")
-    for what, lo, hi in (
-        ("position", plant.GetPositionLowerLimits(), plant.GetPositionUpperLimits()),
-        ("effort", plant.GetEffortLowerLimits(), plant.GetEffortUpperLimits()),
-    ):
-        finite = np.flatnonzero(np.isfinite(lo) | np.isfinite(hi))
-        if finite.size:
-            raise ModelError(
-                f"{label}: the plant has finite {what} limits (entry {int(finite[0])}); "
-                "their penalty forces or saturation are not control-affine. Remove the "
-                f"{what} limits from the model."
-            )
+    finite = np.flatnonzero(
+        np.isfinite(plant.GetEffortLowerLimits()) | np.isfinite(plant.GetEffortUpperLimits())
+    )
+    if finite.size:
+        raise ModelError(
+            f"{label}: the plant has finite effort limits (actuator {int(finite[0])}); the "
+            "saturation they imply is not control-affine. Remove them from the model and "
+            "bound the input with the scenario's input_bound instead."
+        )
     # numpy's object loops flag "invalid value" on Drake expressions; harmless.
     with np.errstate(invalid="ignore"):
         f, g = _multibody_equations(plant, nq, nv, nu)
@@ -540,6 +539,12 @@ def _check_multibody(
     rng = np.random.default_rng(seed)
     X = rng.standard_normal((n, points))
     U = rng.standard_normal((m, points))
+    # Inside the position limits, where the limits' penalty forces vanish.
+    lo, hi = plant.GetPositionLowerLimits(), plant.GetPositionUpperLimits()
+    both = np.isfinite(lo) & np.isfinite(hi)
+    nq = lo.size
+    X[:nq][both] = lo[both, None] + rng.random((int(both.sum()), points)) * (hi - lo)[both, None]
+    X[:nq] = np.clip(X[:nq], lo[:, None], hi[:, None])
     fX, gX = f(X), g(X)
     for k in range(points):
         plant.SetPositionsAndVelocities(context, X[:, k])

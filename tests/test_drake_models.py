@@ -269,3 +269,40 @@ def test_from_multibody_errors(tmp_path):
     floating.Finalize()
     with pytest.raises(ModelError, match=r"7 positions but 6 velocities \(a quaternion"):
         ControlAffineSystem.from_multibody(floating)
+
+
+_LIMITED_URDF = """<?xml version="1.0"?>
+<robot name="limited">
+  <link name="base"/>
+  <link name="arm">
+    <inertial><origin xyz="0 0 -0.5"/><mass value="1"/>
+      <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>
+  </link>
+  <joint name="base_weld" type="fixed"><parent link="world"/><child link="base"/></joint>
+  <joint name="pin" type="revolute">
+    <parent link="base"/><child link="arm"/><axis xyz="0 1 0"/>
+    <limit lower="-1" upper="1" EFFORT/>
+    <dynamics damping="0.2"/>
+  </joint>
+  <transmission type="SimpleTransmission" name="t">
+    <actuator name="motor"/><joint name="pin"/><mechanicalReduction>1</mechanicalReduction>
+  </transmission>
+</robot>
+"""
+
+
+def test_from_multibody_position_limits_are_fine_effort_limits_are_refused(tmp_path):
+    free = tmp_path / "limited.urdf"
+    free.write_text(_LIMITED_URDF.replace(" EFFORT", ""))
+    system = ControlAffineSystem.from_multibody(free)
+    assert (system.n, system.m, system.q) == (2, 1, 1) and system.name == "limited"
+    # Closed form: I = m l^2 + I_yy = 0.26, damping 0.2, m g l = 4.905.
+    x = np.array([0.7, -1.2])
+    np.testing.assert_allclose(
+        system.f(x), [x[1], (-0.2 * x[1] - 4.905 * np.sin(x[0])) / 0.26], rtol=1e-12
+    )
+    np.testing.assert_allclose(system.g(x), [[0.0], [1 / 0.26]], rtol=1e-12)
+    clamped = tmp_path / "clamped.urdf"
+    clamped.write_text(_LIMITED_URDF.replace("EFFORT", 'effort="5"'))
+    with pytest.raises(ModelError, match=r"clamped: the plant has finite effort limits"):
+        ControlAffineSystem.from_multibody(clamped)
