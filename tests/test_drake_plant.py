@@ -64,3 +64,31 @@ def test_drake_plant_errors():
         DrakePlant(system, initial_state=[0.0, 0.1, 0.0, 0.5])
     with pytest.raises(ModelError, match=r"initial_state must have length n = 4"):
         DrakePlant(system, initial_state=[0.0, 0.1])
+
+
+def test_drake_plant_in_the_closed_loop_of_the_cart_pole_scenario():
+    import dataclasses
+    from pathlib import Path
+
+    from ofrl_drake import build_closed_loop, load_scenario, simulate
+    from ofrl_drake.diagram import design_for, drake_plant
+    from ofrl_drake.plants import resolve_system
+
+    path = Path(__file__).resolve().parents[1] / "diagrams" / "cart_pole.yaml"
+    base = load_scenario(path)
+    scenario = dataclasses.replace(
+        base,
+        x0=[0.1, 0.15, 0.0, 0.0],  # at rest: a MultibodyPlant has no default velocities
+        simulation=dataclasses.replace(base.simulation, duration=1.0, accuracy=1e-8),
+    )
+    design = design_for(scenario, resolve_system(scenario))
+    drake_loop = build_closed_loop(scenario, design=design, plant=drake_plant)
+    model_loop = build_closed_loop(scenario, design=design)
+    assert isinstance(drake_loop.plant, DrakePlant)
+    assert isinstance(model_loop.plant, ControlAffinePlant)
+    a = simulate(scenario, loop=drake_loop, progress=False)
+    b = simulate(scenario, loop=model_loop, progress=False)
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.u, b.u, rtol=0, atol=1e-4)
+    # Logged in z = x - x*: the pole moved back from its 0.15 rad tilt towards the upright.
+    assert a.x[0, 1] == pytest.approx(0.15) and abs(a.x[-1, 1]) < 0.1
