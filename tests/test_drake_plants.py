@@ -172,3 +172,23 @@ def test_ablate_on_the_cart_pole_scores_against_j_star(tmp_path):
     for row in rows:
         assert np.isfinite(row["optimal_cost"]) and row["optimal_cost"] > 0
         assert row["optimality_ratio"] >= 1.0 - 1e-3
+
+
+def test_a_model_file_beside_the_scenario_is_found_from_any_folder(tmp_path, monkeypatch):
+    import shutil
+
+    from pydrake.common import FindResourceOrThrow
+
+    folder = tmp_path / "experiment"
+    folder.mkdir()
+    shutil.copy(FindResourceOrThrow("drake/examples/multibody/cart_pole/cart_pole.sdf"), folder)
+    text = CART_POLE.read_text().replace(
+        "multibody: package://drake/examples/multibody/cart_pole/cart_pole.sdf",
+        "multibody: cart_pole.sdf",
+    )
+    assert "multibody: cart_pole.sdf" in text
+    (folder / "scenario.yaml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    scenario = load_scenario(folder / "scenario.yaml")
+    assert scenario.plant.multibody == str((folder / "cart_pole.sdf").resolve())
+    assert resolve_system(scenario).n == 4
