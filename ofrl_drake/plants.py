@@ -187,25 +187,38 @@ def load_callable(entry: str, *, key: str = "system") -> Any:
         ) from None
 
 
-def _call_factory(entry: str, key: str) -> ControlAffineSystem:
+def _call_entry(entry: str, key: str, kind: type, not_callable: str, wrong_type: str) -> Any:
+    """Load ``entry``, call it with no arguments and check the result is a ``kind``.
+
+    ``not_callable`` and ``wrong_type`` finish the one-line errors (after the
+    type name) that name the entry and the fix.
+    """
     factory = load_callable(entry, key=key)
     if not callable(factory):
         raise ScenarioError(
-            f"{key}: {entry!r} is an object of type {type(factory).__name__}, not a "
-            "callable; name a function of no arguments that returns a ControlAffineSystem."
+            f"{key}: {entry!r} is an object of type {type(factory).__name__}{not_callable}"
         )
     try:
-        system = factory()
+        result = factory()
     except KeyboardInterrupt:
         raise
     except BaseException as err:
         raise ScenarioError(f"{key}: {entry!r} raised {_one_line(err)}") from None
-    if not isinstance(system, ControlAffineSystem):
+    if not isinstance(result, kind):
         raise ScenarioError(
-            f"{key}: {entry!r} returned an object of type {type(system).__name__}; it "
-            "must return an ofrl_drake.ControlAffineSystem."
+            f"{key}: {entry!r} returned an object of type {type(result).__name__}{wrong_type}"
         )
-    return system
+    return result
+
+
+def _call_factory(entry: str, key: str) -> ControlAffineSystem:
+    return _call_entry(
+        entry,
+        key,
+        ControlAffineSystem,
+        ", not a callable; name a function of no arguments that returns a ControlAffineSystem.",
+        "; it must return an ofrl_drake.ControlAffineSystem.",
+    )
 
 
 def system_from_entry(entry: str, *, key: str = "system") -> ControlAffineSystem:
@@ -228,23 +241,13 @@ def _drake_system(plant: Any) -> ControlAffineSystem:
     from pydrake.systems.framework import System
 
     entry, key = plant.drake_system, "plant.drake_system"
-    factory = load_callable(entry, key=key)
-    if not callable(factory):
-        raise ScenarioError(
-            f"{key}: {entry!r} is an object of type {type(factory).__name__}; name a Drake "
-            "System class or a function of no arguments returning a System."
-        )
-    try:
-        system = factory()
-    except KeyboardInterrupt:
-        raise
-    except BaseException as err:
-        raise ScenarioError(f"{key}: {entry!r} raised {_one_line(err)}") from None
-    if not isinstance(system, System):
-        raise ScenarioError(
-            f"{key}: {entry!r} returned an object of type {type(system).__name__}; it must "
-            "return a Drake System (pydrake.systems.framework.System)."
-        )
+    system = _call_entry(
+        entry,
+        key,
+        System,
+        "; name a Drake System class or a function of no arguments returning a System.",
+        "; it must return a Drake System (pydrake.systems.framework.System).",
+    )
     if plant.C is None:
         raise ScenarioError(
             f"plant.C: required with plant.drake_system; give the output matrix y = C x "
