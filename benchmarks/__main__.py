@@ -22,6 +22,7 @@ from benchmarks.timing import machine_info, speed_probe
 DIAGRAMS = Path(__file__).resolve().parents[1] / "diagrams"
 PAPER = DIAGRAMS / "two_state_paper.yaml"
 MIMO = DIAGRAMS / "coupled_two_state.yaml"
+MULTIBODY = (DIAGRAMS / "pendulum_upright.yaml", DIAGRAMS / "cart_pole.yaml")
 
 SECTIONS = (
     "paper",
@@ -30,6 +31,7 @@ SECTIONS = (
     "points",
     "basis",
     "state_dimension",
+    "blocks",
     "integrators",
     "compile",
     "lmi",
@@ -78,6 +80,7 @@ def run(
 
     paper = with_duration(load_scenario(PAPER), duration)
     mimo = with_duration(load_scenario(MIMO), duration)
+    multibody = [with_duration(load_scenario(path), duration) for path in MULTIBODY]
     results: dict[str, Any] = {
         "machine": machine_info(),
         "settings": {
@@ -105,6 +108,7 @@ def run(
         "points": lambda: suite.points_scaling(paper, settings),
         "basis": lambda: suite.basis_scaling(paper, settings),
         "state_dimension": lambda: suite.state_dimension([paper, mimo], settings),
+        "blocks": lambda: suite.block_kinds([paper, mimo, *multibody], settings),
         "integrators": lambda: suite.integrators(paper, settings),
         "compile": lambda: suite.compile_cost(str(PAPER)),
         "lmi": lambda: suite.lmi_design([paper, mimo], settings),

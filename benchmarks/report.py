@@ -128,6 +128,31 @@ def format_report(results: dict[str, Any]) -> str:
             f"(max |difference| {o['max_derivative_difference']:.1e})."
         )
 
+    blocks = results.get("blocks", [])
+    if blocks:
+        table = [
+            "| scenario | n | blocks | median s | min s | max s | simulation s | evals | steps "
+            "| us/eval | python / symbolic |",
+            "|---|--:|---|--:|--:|--:|--:|--:|--:|--:|--:|",
+        ]
+        for r in blocks:
+            for kind in ("symbolic", "python"):
+                k = r[kind]
+                speedup = f"{r['python_over_symbolic']:.2f}x" if kind == "python" else ""
+                table.append(
+                    f"| {r['scenario']} | {r['n']} | {kind} | {_seconds(k['median'])} "
+                    f"| {_seconds(k['min'])} | {_seconds(k['max'])} "
+                    f"| {_seconds(k['advance']['median'])} | {k['num_derivative_evaluations']} "
+                    f"| {k['num_steps']} | {k['us_per_evaluation']:.0f} | {speedup} |"
+                )
+        designs = ", ".join(f"{r['scenario']} {_seconds(r['design_seconds'])} s" for r in blocks)
+        out.append(
+            "\n".join(table)
+            + "\n\nWhole `simulate()` with the observer design given (designed once: "
+            + designs
+            + ")."
+        )
+
     bellman = results.get("bellman", [])
     if bellman:
         parts = ", ".join(

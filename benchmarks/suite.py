@@ -18,6 +18,7 @@ after one warm-up run; competing variants run interleaved.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from collections.abc import Callable
@@ -44,6 +45,7 @@ __all__ = [
     "Settings",
     "basis_scaling",
     "bellman_math",
+    "block_kinds",
     "compile_cost",
     "evaluation_overhead",
     "integrators",
@@ -224,6 +226,33 @@ def paper_end_to_end(scenario: Scenario, settings: Settings) -> dict:
     return out
 
 
+_STATE_SLOTS = ("plant", "observer", "critic", "gamma", "running_cost")
+
+
+def _diagram_state(loop: Any, context: Any, z: np.ndarray) -> np.ndarray:
+    """The diagram's continuous state for the fused state ``z = [x, xhat, W, Gamma, J]``.
+
+    The plant and observer blocks write their own state (the symbolic ones
+    store an offset from the initial state); ``context`` is left at it.
+    """
+    n, L = loop.parts.system.n, loop.parts.basis.size
+    parts = np.split(z, np.cumsum([n, n, L, L * L]))
+    sub = {slot: loop.blocks[slot].GetMyMutableContextFromRoot(context) for slot in _STATE_SLOTS}
+    loop.plant.set_state(sub["plant"], parts[0])
+    loop.observer.set_estimated_state(sub["observer"], parts[1])
+    for slot, value in zip(_STATE_SLOTS[2:], parts[2:], strict=True):
+        sub[slot].SetContinuousState(value)
+    return context.get_continuous_state_vector().CopyToVector()
+
+
+def _fused_layout(loop: Any, context: Any) -> np.ndarray:
+    """The time derivatives of the diagram at ``context``, in the fused layout."""
+    blocks = [loop.blocks[slot] for slot in _STATE_SLOTS]
+    return np.concatenate(
+        [b.EvalTimeDerivatives(b.GetMyContextFromRoot(context)).CopyToVector() for b in blocks]
+    )
+
+
 def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
     """Microseconds per derivative evaluation: diagram versus fused right-hand side.
 
@@ -242,11 +271,12 @@ def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
     diagram = loop.diagram
     context = diagram.CreateDefaultContext()
     derivatives = diagram.AllocateTimeDerivatives()
-    z0 = context.get_continuous_state_vector().CopyToVector()
-    z1 = z0.copy()
-    z1[: 2 * len(scenario.x0)] *= 0.5  # another plant and observer state
-    states = (z0, z1)
     fused = fused_loop(scenario, design)
+    f0 = initial_state(scenario, fused)
+    f1 = f0.copy()
+    f1[: 2 * len(scenario.x0)] *= 0.5  # another plant and observer state
+    fused_states = (f0, f1)
+    states = tuple(_diagram_state(loop, context, z) for z in fused_states)
 
     def diagram_calls() -> None:
         for k in range(calls):
@@ -255,16 +285,16 @@ def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
 
     def fused_calls() -> None:
         for k in range(calls):
-            fused.rhs(0.0, states[k & 1])
+            fused.rhs(0.0, fused_states[k & 1])
 
     timings, _ = interleaved(
         {"diagram": diagram_calls, "fused": fused_calls}, settings.overhead_batches
     )
     difference = 0.0
-    for z in states:
+    for z, zf in zip(states, fused_states, strict=True):
         context.SetContinuousState(z)
-        ours = diagram.EvalTimeDerivatives(context).CopyToVector()
-        difference = max(difference, float(np.abs(ours - fused.rhs(0.0, z)).max()))
+        ours = _fused_layout(loop, context)
+        difference = max(difference, float(np.abs(ours - fused.rhs(0.0, zf)).max()))
     diagram_us = 1e6 * timings["diagram"].median / calls
     fused_us = 1e6 * timings["fused"].median / calls
     return {
@@ -276,7 +306,7 @@ def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
         "overhead_min_us": 1e6 * (timings["diagram"].min - timings["fused"].min) / calls,
         "calls": calls,
         "batches": settings.overhead_batches,
-        "num_states": int(z0.size),
+        "num_states": int(states[0].size),
         "max_derivative_difference": difference,
     }
 
@@ -316,6 +346,57 @@ def state_dimension(scenarios: list[Scenario], settings: Settings) -> list[dict]
     return rows
 
 
+def block_kinds(scenarios: list[Scenario], settings: Settings) -> list[dict]:
+    """Each scenario with the C++ symbolic blocks and with the Python blocks, interleaved.
+
+    ``simulate()`` with the observer design given (computed once, its time
+    reported apart): the plant, observer and controller are
+    ``SymbolicVectorSystem`` blocks or Python ``LeafSystem`` blocks
+    (``simulation.blocks``); the other four blocks are the same. No baseline:
+    the multibody scenarios have no hand-written fused loop.
+    """
+    from ofrl_drake.simulation import simulate
+
+    rows = []
+    for scenario in scenarios:
+        design_timing, design = measure(lambda s=scenario: _design(s), 1, warmup=0)
+        advance: dict[str, list[float]] = {"symbolic": [], "python": []}
+        fns = {}
+        for kind in advance:
+            case = dataclasses.replace(
+                scenario, simulation=dataclasses.replace(scenario.simulation, blocks=kind)
+            )
+
+            def run(
+                case: Scenario = case, into: list[float] = advance[kind], design: Any = design
+            ) -> Any:
+                result = simulate(case, design=design, progress=False)
+                into.append(result.wall_time)
+                return result
+
+            fns[kind] = run
+        timings, results = interleaved(fns, settings.repeats)
+        row: dict[str, Any] = {
+            "scenario": scenario.name,
+            "n": len(scenario.x0),
+            "design_seconds": design_timing.median,
+        }
+        for kind, timing in timings.items():
+            stats = results[kind].integrator
+            evals = stats["num_derivative_evaluations"]
+            advance_timing = Timing(tuple(advance[kind][-settings.repeats :]))
+            row[kind] = {
+                **timing.to_dict(),
+                "advance": advance_timing.to_dict(),
+                "num_derivative_evaluations": evals,
+                "num_steps": stats["num_steps"],
+                "us_per_evaluation": 1e6 * advance_timing.median / evals,
+            }
+        row["python_over_symbolic"] = timings["python"].median / timings["symbolic"].median
+        rows.append(row)
+    return rows
+
+
 def integrators(scenario: Scenario, settings: Settings) -> list[dict]:
     """Drake integrators on the paper scenario (no baseline run; W against the reference)."""
     design = _design(scenario)
@@ -346,8 +427,9 @@ def bellman_math(scenario: Scenario, settings: Settings) -> list[dict]:
     """Microseconds per Bellman extrapolation (both sums) at each N of ``point_grids``.
 
     This is the math a derivative evaluation of the Bellman block does:
-    :meth:`~ofrl_drake.bellman.Extrapolator.sums` at the scenario's initial
-    weights, called from Python as the block calls it.
+    :meth:`~ofrl_drake.bellman.Extrapolator.sums_into` at the scenario's
+    initial weights, into a preallocated result, called from Python as the
+    block's cache entry calls it.
     """
     from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.bellman import Extrapolator, point_features
@@ -367,9 +449,13 @@ def bellman_math(scenario: Scenario, settings: Settings) -> list[dict]:
         N = features.num_points
         calls = max(1, settings.bellman_calls * 100 // N)
 
-        def batch(extrapolator: Extrapolator = extrapolator, calls: int = calls) -> None:
+        out = extrapolator.empty_sums()
+
+        def batch(
+            extrapolator: Extrapolator = extrapolator, calls: int = calls, out: Any = out
+        ) -> None:
             for _ in range(calls):
-                extrapolator.sums(W)
+                extrapolator.sums_into(W, out)
 
         timing, _ = measure(batch, settings.bellman_batches)
         rows.append(

@@ -263,9 +263,9 @@ class Extrapolator:
 
     Notes
     -----
-    :meth:`sums` reuses one per-point scratch array held here (its values
-    are consumed inside the one kernel call), so a derivative evaluation
-    allocates only the two sums it returns.
+    :meth:`sums_into` reuses one per-point scratch array held here (its
+    values are consumed inside the one kernel call) and writes the two sums
+    into arrays the caller owns, so a derivative evaluation allocates nothing.
     """
 
     def __init__(
@@ -293,9 +293,10 @@ class Extrapolator:
         self._weight = self.input_bound**2 * self.r
         self._scratch = np.empty((2 * m + L + 2, N))
 
-    def _run(self, W: np.ndarray, per_point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        m, L, _ = self._shape
-        critic_sum, gain_sum = np.empty(L), np.empty((L, L))
+    def _run(
+        self, W: np.ndarray, per_point: np.ndarray, critic_sum: np.ndarray, gain_sum: np.ndarray
+    ) -> None:
+        m, _, _ = self._shape
         bellman_kernel(
             np.asarray(W, dtype=float),
             self._data,
@@ -307,20 +308,35 @@ class Extrapolator:
             critic_sum,
             gain_sum,
         )
-        return critic_sum, gain_sum
+
+    def empty_sums(self) -> BellmanSums:
+        """A :class:`BellmanSums` with uninitialized arrays, for :meth:`sums_into`."""
+        L = self._shape[1]
+        return BellmanSums(np.empty(L), np.empty((L, L)))
+
+    def sums_into(self, W: np.ndarray, out: BellmanSums) -> None:
+        """Both sums for weights ``W`` written into ``out``'s arrays, allocating nothing.
+
+        This is what the Bellman block's cache entry computes per derivative
+        evaluation.
+        """
+        self._run(W, self._scratch, out.critic_sum, out.gain_sum)
 
     def sums(self, W: np.ndarray) -> BellmanSums:
         """Only the two sums for critic weights ``W`` (shape ``(L,)``): what the loop needs."""
-        return BellmanSums(*self._run(W, self._scratch))
+        out = self.empty_sums()
+        self.sums_into(W, out)
+        return out
 
     def __call__(self, W: np.ndarray) -> BellmanExtrapolation:
         """The extrapolation for critic weights ``W`` (shape ``(L,)``), per-point values too."""
         m, L, N = self._shape
         per_point = np.empty((2 * m + L + 2, N))
-        critic_sum, gain_sum = self._run(W, per_point)
+        out = self.empty_sums()
+        self._run(W, per_point, out.critic_sum, out.gain_sum)
         return BellmanExtrapolation(
-            critic_sum=critic_sum,
-            gain_sum=gain_sum,
+            critic_sum=out.critic_sum,
+            gain_sum=out.gain_sum,
             D=per_point[:m],
             u=per_point[m : 2 * m],
             omega=per_point[2 * m : 2 * m + L],

@@ -28,7 +28,7 @@ from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import PointFeatures, point_features
-from ofrl_drake.errors import SwapError
+from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.plants import resolve_system
@@ -42,6 +42,9 @@ from ofrl_drake.systems import (
     RunningCost,
     SaturatedController,
     ScheduledThreeGainObserver,
+    SymbolicController,
+    SymbolicObserver,
+    SymbolicPlant,
     ThreeGainObserver,
 )
 
@@ -56,6 +59,7 @@ __all__ = [
     "design_for",
     "drake_plant",
     "extrapolation_points",
+    "symbolic_blocks",
 ]
 
 #: The block slots of the closed loop, in build order.
@@ -177,9 +181,37 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
     )
 
 
-def _default_block(slot: str, parts: ClosedLoopParts) -> System:
+def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
+    """Whether the plant, observer and controller are built as C++ symbolic blocks.
+
+    As ``scenario.simulation.blocks`` says; ``"auto"`` means whenever
+    ``system.symbolic()`` succeeds.
+
+    Raises
+    ------
+    ScenarioError
+        If ``blocks`` is ``"symbolic"`` and ``f`` or ``g`` cannot be traced.
+    """
+    choice = scenario.simulation.blocks
+    if choice == "python":
+        return False
+    try:
+        system.symbolic()
+    except ModelError as err:
+        if choice == "symbolic":
+            raise ScenarioError(
+                f"simulation.blocks: symbolic needs f and g that Drake can trace: {err} "
+                "Or set simulation.blocks to python."
+            ) from err
+        return False
+    return True
+
+
+def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
     s, c = parts.scenario, parts.scenario.critic
     if slot == "plant":
+        if symbolic:
+            return SymbolicPlant(parts.system, initial_state=s.x0)
         return ControlAffinePlant(parts.system, initial_state=s.x0)
     if slot == "observer":
         o = s.observer
@@ -201,9 +233,11 @@ def _default_block(slot: str, parts: ClosedLoopParts) -> System:
                 initial_state=s.xhat0,
             )
         gains = ObserverGains.from_design(parts.system, parts.design)
-        return ThreeGainObserver(parts.system, gains, initial_state=s.xhat0, design=parts.design)
+        block = SymbolicObserver if symbolic else ThreeGainObserver
+        return block(parts.system, gains, initial_state=s.xhat0, design=parts.design)
     if slot == "controller":
-        return SaturatedController(parts.system, parts.basis, parts.r, s.input_bound)
+        block = SymbolicController if symbolic else SaturatedController
+        return block(parts.system, parts.basis, parts.r, s.input_bound)
     if slot == "critic":
         return CriticWeights(c.W0, c.kc)
     if slot == "gamma":
@@ -294,10 +328,11 @@ def build_closed_loop(
 
     builder = DiagramBuilder()
     blocks: dict[str, System] = {}
+    symbolic = symbolic_blocks(scenario, system)
     for slot in SLOTS:
         swap = swaps.get(slot)
         if swap is None:
-            block = _default_block(slot, parts)
+            block = _default_block(slot, parts, symbolic)
         elif isinstance(swap, System):
             block = swap
         elif callable(swap):

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import IO, Any
 
 import numpy as np
+from numba import njit
 from pydrake.systems.framework import Context, Diagram, EventStatus, System
 
 __all__ = [
@@ -126,6 +127,20 @@ class ProgressBar:
         self.stream.flush()
 
 
+@njit(cache=True)
+def _all_inside(
+    state: np.ndarray, x: np.ndarray, xhat: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> bool:
+    """Every state finite, and x and xhat inside ``[lower, upper]`` (NaN is outside)."""
+    for v in state:
+        if not np.isfinite(v):
+            return False
+    for i in range(x.shape[0]):
+        if not (lower[i] <= x[i] <= upper[i] and lower[i] <= xhat[i] <= upper[i]):
+            return False
+    return True
+
+
 class RunGuard:
     """The monitor of one simulation: divergence and wall-time checks, progress.
 
@@ -191,12 +206,14 @@ class RunGuard:
 
     def check(self, root_context: Context) -> tuple[str, str]:
         """``(status, reason)`` of the run at ``root_context``; ``("ok", "")`` if it may go on."""
-        t = root_context.get_time()
         state = root_context.get_continuous_state_vector().CopyToVector()
+        x, xhat = self.states(root_context)
+        if _all_inside(state, x, xhat, self._lower, self._upper):  # one compiled call per step
+            return self._check_wall_time(root_context)
+        t = root_context.get_time()
         if not np.all(np.isfinite(state)):
             bad = int(np.flatnonzero(~np.isfinite(state))[0])
             return STATUS_DIVERGED, f"continuous state {bad} is {state[bad]} at t = {t:.6g} s"
-        x, xhat = self.states(root_context)
         for name, v in (("x", x), ("xhat", xhat)):
             outside = (v < self._lower) | (v > self._upper) | ~np.isfinite(v)
             if np.any(outside):
@@ -205,11 +222,16 @@ class RunGuard:
                     f"{name}_{i + 1} = {v[i]:.6g} left the abort box "
                     f"[{self._lower[i]:g}, {self._upper[i]:g}] at t = {t:.6g} s"
                 )
+        return self._check_wall_time(root_context)
+
+    def _check_wall_time(self, root_context: Context) -> tuple[str, str]:
+        if self.max_wall_time is None:
+            return STATUS_OK, ""
         wall = time.perf_counter() - self._start
-        if self.max_wall_time is not None and wall > self.max_wall_time:
+        if wall > self.max_wall_time:
             return STATUS_TIMEOUT, (
                 f"wall time {wall:.3g} s exceeded max_wall_time = {self.max_wall_time:g} s "
-                f"at t = {t:.6g} s"
+                f"at t = {root_context.get_time():.6g} s"
             )
         return STATUS_OK, ""
 

@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pydrake.symbolic import Expression, Jacobian, MakeVectorVariable, Variable
+from pydrake.symbolic import Expression, Jacobian
 
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import ModelError, OfrlError
 from ofrl_drake.interval import (
     ExpressionEvaluator,
     Interval,
@@ -351,21 +351,6 @@ class JacobianBounds:
 
 
 # ------------------------------------------------------------------ Jacobians
-def _to_expressions(values: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=object)
-    if arr.shape != shape:
-        raise BoundsError(f"{what} returned shape {arr.shape} on symbolic input; expected {shape}.")
-    out = np.empty(shape, dtype=object)
-    for idx, v in np.ndenumerate(arr):
-        if isinstance(v, Expression):
-            out[idx] = v
-        elif isinstance(v, Variable):
-            out[idx] = Expression(v)
-        else:
-            out[idx] = Expression(float(v))
-    return out
-
-
 def symbolic_jacobians(
     system: ControlAffineSystem,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -392,21 +377,11 @@ def symbolic_jacobians(
         states (for example because they call scipy or use ``if`` on the state).
     """
     n, m = system.n, system.m
-    x = MakeVectorVariable(n, "x")
-    xe = np.array([Expression(v) for v in x], dtype=object)
     try:
-        # numpy's object loops flag "invalid value" on Drake expressions; harmless.
-        with np.errstate(invalid="ignore"):
-            fx = _to_expressions(system.f(xe), (n,), "f")
-            gx = _to_expressions(system.g(xe), (n, m), "g")
-    except BoundsError:
-        raise
-    except Exception as err:
-        raise BoundsError(
-            f"{system.name}: f and g must accept pydrake.symbolic.Expression "
-            f"states to be differentiated ({type(err).__name__}: {err}); write "
-            "them with numpy functions (np.cos, np.exp, **) and no branches."
-        ) from err
+        model = system.symbolic()
+    except ModelError as err:
+        raise BoundsError(f"{err} They must be, to be differentiated.") from err
+    x, fx, gx = model.x, model.f, model.g
     Jf = Jacobian(fx, x)
     Jg = np.empty((n, n, m), dtype=object)
     for k in range(m):

@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydrake.symbolic import Expression, MakeVectorVariable, Variable
 
 from ofrl_drake.errors import ModelError
 
-__all__ = ["ControlAffineSystem", "ShiftedSystem"]
+__all__ = ["ControlAffineSystem", "ShiftedSystem", "SymbolicDynamics"]
 
 #: Largest ``max |f(x*) + g(x*) u*|`` accepted by :meth:`ControlAffineSystem.shifted`.
 EQUILIBRIUM_TOL = 1e-8
@@ -33,6 +35,48 @@ ArrayFunction = Callable[[np.ndarray], np.ndarray]
 def _probe_point(n: int) -> np.ndarray:
     """A deterministic, generic point: nonzero, distinct entries."""
     return 0.1 + 0.05 * np.arange(n, dtype=float)
+
+
+def _to_expressions(values: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """``values`` as an object array of Drake ``Expression`` of shape ``shape``."""
+    arr = np.asarray(values, dtype=object)
+    if arr.shape != shape:
+        raise ModelError(f"{what} returned shape {arr.shape} on symbolic input; expected {shape}.")
+    out = np.empty(shape, dtype=object)
+    for idx, v in np.ndenumerate(arr):
+        if isinstance(v, Expression):
+            out[idx] = v
+        elif isinstance(v, Variable):
+            out[idx] = Expression(v)
+        else:
+            out[idx] = Expression(float(v))
+    return out
+
+
+@dataclass(frozen=True)
+class SymbolicDynamics:
+    """``f`` and ``g`` of a model as ``pydrake.symbolic`` expressions.
+
+    Attributes
+    ----------
+    x : ndarray of Variable, shape (n,)
+        The state variables.
+    f : ndarray of Expression, shape (n,)
+        The drift at ``x``.
+    g : ndarray of Expression, shape (n, m)
+        The input matrix at ``x``.
+    """
+
+    x: np.ndarray
+    f: np.ndarray
+    g: np.ndarray
+
+    def substitute(self, point: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(f, g)`` at ``point``, an array of expressions of shape ``(n,)``."""
+        subst = {v: e for v, e in zip(self.x, point, strict=True)}
+        f = np.array([e.Substitute(subst) for e in self.f], dtype=object)
+        g = np.array([[e.Substitute(subst) for e in row] for row in self.g], dtype=object)
+        return f, g
 
 
 class ControlAffineSystem:
@@ -183,6 +227,37 @@ class ControlAffineSystem:
     def output(self, x: np.ndarray) -> np.ndarray:
         """``C x``."""
         return self._C @ x
+
+    def symbolic(self) -> SymbolicDynamics:
+        """``f`` and ``g`` traced once on ``pydrake.symbolic`` states.
+
+        Drake can then differentiate them (the Jacobian bounds) and evaluate
+        them in C++ (the ``SymbolicVectorSystem`` blocks of
+        :mod:`ofrl_drake.systems.symbolic`).
+
+        Raises
+        ------
+        ModelError
+            If ``f`` or ``g`` cannot be called on ``pydrake.symbolic.Expression``
+            states, for example because they call scipy or branch on the state.
+        """
+        n, m = self.n, self.m
+        x = MakeVectorVariable(n, "x")
+        xe = np.array([Expression(v) for v in x], dtype=object)
+        try:
+            # numpy's object loops flag "invalid value" on Drake expressions; harmless.
+            with np.errstate(invalid="ignore"):
+                f = _to_expressions(self.f(xe), (n,), "f")
+                g = _to_expressions(self.g(xe), (n, m), "g")
+        except ModelError:
+            raise
+        except Exception as err:
+            raise ModelError(
+                f"{self.name}: f and g must accept pydrake.symbolic.Expression states "
+                f"({type(err).__name__}: {err}); write them with numpy functions "
+                "(np.cos, np.exp, **) and no branches."
+            ) from err
+        return SymbolicDynamics(x, f, g)
 
     # ------------------------------------------------------------ from Drake
     @classmethod

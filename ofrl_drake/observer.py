@@ -9,7 +9,9 @@ where ``M_ug1(u)`` is the sign-correct lower input sector
 products with K (see :class:`ObserverGains`). The linear algebra around the
 two calls of the model's ``f`` and ``g`` is compiled with numba
 (:func:`injection_kernel`, :func:`correction_kernel`); ``f`` and ``g`` stay the
-model's own Python functions.
+model's own Python functions. :func:`observer_rhs_expression` is the same
+right-hand side as ``pydrake.symbolic`` expressions, which Drake evaluates in
+C++ (:class:`~ofrl_drake.systems.SymbolicObserver`).
 """
 
 from __future__ import annotations
@@ -19,9 +21,10 @@ from typing import Any
 
 import numpy as np
 from numba import njit
+from pydrake.symbolic import if_then_else
 
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
 
 __all__ = [
     "ObserverGains",
@@ -29,6 +32,7 @@ __all__ = [
     "injection_kernel",
     "observer_rhs",
     "observer_rhs_batch",
+    "observer_rhs_expression",
 ]
 
 
@@ -114,6 +118,19 @@ class ObserverGains:
         b = design.bounds
         return cls.from_arrays(system, design.L, design.H, design.K, b.Mf1, b.Mg1, b.Mg2)
 
+    def check_design(self, design: Any) -> None:
+        """Raise :class:`ModelError` unless ``design`` has these L, H and K.
+
+        An observer block that reports ``design`` as its certificate must run
+        exactly its gains.
+        """
+        for name in ("L", "H", "K"):
+            if not np.array_equal(getattr(self, name), np.asarray(getattr(design, name))):
+                raise ModelError(
+                    f"gains.{name} differs from design.{name}; build the gains with "
+                    "ObserverGains.from_design(system, design) or omit design=."
+                )
+
 
 @njit(cache=True)
 def injection_kernel(
@@ -183,6 +200,57 @@ def observer_rhs(
         v,
         rhs,
     )
+    return rhs
+
+
+def observer_rhs_expression(
+    model: SymbolicDynamics,
+    C: np.ndarray,
+    gains: ObserverGains,
+    xhat: np.ndarray,
+    y: np.ndarray,
+    u: np.ndarray,
+) -> np.ndarray:
+    """:func:`observer_rhs` as ``pydrake.symbolic`` expressions.
+
+    Parameters
+    ----------
+    model : SymbolicDynamics
+        The model's ``f`` and ``g`` (:meth:`ControlAffineSystem.symbolic`).
+    C : ndarray, shape (q, n)
+    gains : ObserverGains
+    xhat, y, u : ndarray of Expression or Variable, shapes (n,), (q,), (m,)
+
+    Returns
+    -------
+    ndarray of Expression, shape (n,)
+        ``xhat'``; the input sector's choice between the lower and the upper
+        product with K is an ``if_then_else`` on the sign of each ``u_k``, as in
+        :func:`correction_kernel`.
+    """
+    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+        return _observer_rhs_expression(model, C, gains, xhat, y, u)
+
+
+def _observer_rhs_expression(
+    model: SymbolicDynamics,
+    C: np.ndarray,
+    gains: ObserverGains,
+    xhat: np.ndarray,
+    y: np.ndarray,
+    u: np.ndarray,
+) -> np.ndarray:
+    n, m = len(xhat), len(u)
+    # The row blocks of ObserverGains.stacked: H, K, L - M_f1 H, lower (m), upper (m).
+    v = gains.stacked @ (np.asarray(y) - np.asarray(C) @ np.asarray(xhat))
+    f, _ = model.substitute(xhat + v[:n])
+    _, g = model.substitute(xhat + v[n : 2 * n])
+    rhs = f + g @ np.asarray(u) + v[2 * n : 3 * n]
+    for k in range(m):
+        lower = v[(3 + k) * n : (4 + k) * n]
+        upper = v[(3 + m + k) * n : (4 + m + k) * n]
+        sector = [if_then_else(u[k] >= 0.0, lower[j], upper[j]) for j in range(n)]
+        rhs = rhs - u[k] * np.array(sector, dtype=object)
     return rhs
 
 

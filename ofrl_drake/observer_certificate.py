@@ -74,6 +74,17 @@ class ObserverCertificate:
             ),
         )
 
+    @classmethod
+    def of_design(cls, design: Any, block_name: str) -> ObserverCertificate:
+        """The certificate of an observer block running ``design``'s gains.
+
+        ``design`` is an ``ObserverDesign`` (kind ``"design"``, with its box) or
+        None (nothing certified by the block ``block_name``).
+        """
+        if design is None:
+            return cls.none(block_name)
+        return cls("design", design=design.to_dict(), box=design.box)
+
 
 def certificate_of(block: Any) -> ObserverCertificate:
     """``block.observer_certificate()``, or "none" for a block without one.

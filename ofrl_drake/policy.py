@@ -5,7 +5,9 @@
 scale ``s_k = 1 / (2 lbar r_k)`` this is ``D_k = s_k (g^T grad V)_k``;
 :func:`saturate` is that law, compiled with numba, and
 :func:`policy_kernel` adds the basis gradient, so the controller block makes
-one compiled call per evaluation.
+one compiled call per evaluation. :func:`policy_expression` is the same law as
+``pydrake.symbolic`` expressions, which Drake evaluates in C++
+(:class:`~ofrl_drake.systems.SymbolicController`).
 """
 
 from __future__ import annotations
@@ -14,10 +16,11 @@ import math
 
 import numpy as np
 from numba import njit
+from pydrake.symbolic import Expression, Jacobian, tanh
 
-from ofrl_drake.basis import value_gradient_kernel
+from ofrl_drake.basis import PolynomialBasis, value_gradient_kernel
 
-__all__ = ["policy_kernel", "policy_scale", "saturate", "saturated_policy"]
+__all__ = ["policy_expression", "policy_kernel", "policy_scale", "saturate", "saturated_policy"]
 
 
 def policy_scale(r: np.ndarray, input_bound: float) -> np.ndarray:
@@ -92,3 +95,44 @@ def saturated_policy(
     u = np.empty(g.shape[1])
     saturate(grad_V, g, policy_scale(r, input_bound), float(input_bound), u)
     return u
+
+
+def policy_expression(
+    basis: PolynomialBasis,
+    x: np.ndarray,
+    g: np.ndarray,
+    W: np.ndarray,
+    r: np.ndarray,
+    input_bound: float,
+) -> np.ndarray:
+    """``u = -lbar tanh(D)`` as ``pydrake.symbolic`` expressions.
+
+    Parameters
+    ----------
+    basis : PolynomialBasis
+    x : ndarray of Variable, shape (n,)
+        The (estimated) state.
+    g : ndarray of Expression, shape (n, m)
+        The input matrix at ``x``.
+    W : ndarray of Variable, shape (L,)
+        Critic weights.
+    r : ndarray, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar > 0.
+
+    Returns
+    -------
+    ndarray of Expression, shape (m,)
+        ``grad sigma`` is Drake's exact symbolic Jacobian of the monomials.
+    """
+    monomials = [Expression(1.0) for _ in basis.exponents]
+    for l, e in enumerate(basis.exponents):
+        for j in range(basis.n):
+            if e[j]:
+                monomials[l] = monomials[l] * x[j] ** int(e[j])
+    grad_sigma = Jacobian(np.array(monomials), x)  # (L, n)
+    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+        grad_V = np.asarray(W) @ grad_sigma
+        D = policy_scale(r, input_bound) * (np.asarray(g).T @ grad_V)
+    return np.array([-input_bound * tanh(d) for d in D], dtype=object)

@@ -8,6 +8,7 @@ reproduce itself.
 from __future__ import annotations
 
 import datetime
+import functools
 import importlib.metadata
 import platform
 import shlex
@@ -27,6 +28,12 @@ def utc_now() -> str:
 
 def versions() -> dict[str, str]:
     """Versions of ofrl_drake, Drake, numpy, scipy and Python (``"not installed"`` if absent)."""
+    return dict(_installed_versions())
+
+
+@functools.cache
+def _installed_versions() -> dict[str, str]:
+    # Read once per process (about 4 ms a package): the modules in use cannot change.
     out = {}
     for dist, key in _PACKAGES.items():
         try:

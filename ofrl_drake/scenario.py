@@ -28,6 +28,7 @@ from ofrl_drake.errors import ScenarioError
 
 __all__ = [
     "ABORT_BOX_FACTOR",
+    "BLOCK_KINDS",
     "BoxConfig",
     "CostConfig",
     "CriticConfig",
@@ -127,6 +128,10 @@ class ObserverConfig:
     schedule_half_width: list[float] = field(default_factory=list, metadata=_OPTIONAL)
 
 
+#: How the plant, observer and controller blocks are built (``simulation.blocks``).
+BLOCK_KINDS = ("auto", "symbolic", "python")
+
+
 @dataclass
 class SimulationConfig:
     """Horizon and Drake integrator settings.
@@ -134,6 +139,13 @@ class SimulationConfig:
     ``integrator`` is a Drake scheme name (``runge_kutta3``, ``radau3``, ...);
     ``accuracy`` its error-control target; ``max_step`` its largest step;
     ``log_period`` the sampling period of the logs (optional, default 0.01 s).
+
+    ``blocks`` (optional) picks how the plant, observer and controller blocks
+    are built: ``"symbolic"``, as Drake C++ ``SymbolicVectorSystem`` blocks
+    evaluating ``f`` and ``g`` traced symbolically (fastest; see
+    :mod:`ofrl_drake.systems.symbolic`); ``"python"``, as Python
+    ``LeafSystem`` blocks calling ``f`` and ``g``; ``"auto"`` (default),
+    symbolic whenever ``f`` and ``g`` can be traced, else python.
 
     Guards of the run (optional; see :mod:`ofrl_drake.guard`): the run stops
     with status ``diverged`` when x or xhat leaves ``abort_box`` (default: the
@@ -147,6 +159,7 @@ class SimulationConfig:
     accuracy: float = 1e-6
     max_step: float = 0.1
     log_period: float = field(default=0.01, metadata=_OPTIONAL)
+    blocks: str = field(default="auto", metadata=_OPTIONAL)
     abort_box: Optional[BoxConfig] = field(default=None, metadata=_OPTIONAL)
     max_wall_time: Optional[float] = field(default=None, metadata=_OPTIONAL)
 
@@ -455,6 +468,10 @@ def validate_scenario(scenario: Scenario) -> None:
         raise ScenarioError(
             f"simulation.integrator: unknown scheme {s.integrator!r}; choose one of "
             f"{sorted(GetIntegrationSchemes())}."
+        )
+    if s.blocks not in BLOCK_KINDS:
+        raise ScenarioError(
+            f"simulation.blocks: unknown kind {s.blocks!r}; choose one of {list(BLOCK_KINDS)}."
         )
     if s.abort_box is not None:
         alo = _vector("simulation.abort_box.lower", s.abort_box.lower, n)

@@ -69,6 +69,7 @@ def test_all_sections_and_metadata_are_written(results):
         "points",
         "basis",
         "state_dimension",
+        "blocks",
         "integrators",
         "lmi_design",
         "targets",
@@ -134,6 +135,21 @@ def test_scaling_sections(results):
     for section in ("points", "basis", "state_dimension"):
         for row in results[section]:
             _check_pair(row)
+
+
+def test_blocks_section_times_both_block_kinds_on_every_scenario(results):
+    rows = {row["scenario"]: row for row in results["blocks"]}
+    assert set(rows) == {"two_state_paper", "coupled_two_state", "pendulum_upright", "cart_pole"}
+    for row in rows.values():
+        assert _finite(row["design_seconds"]) and row["design_seconds"] > 0
+        for kind in ("symbolic", "python"):
+            run = row[kind]
+            assert run["min"] <= run["median"] <= run["max"]
+            assert set(run["advance"]) == TIMING_KEYS
+            assert run["num_derivative_evaluations"] > 0 and run["num_steps"] > 0
+            assert _finite(run["us_per_evaluation"]) and run["us_per_evaluation"] > 0
+        assert _finite(row["python_over_symbolic"]) and row["python_over_symbolic"] > 0
+    assert "| cart_pole | 4 | python |" in format_report(results)
 
 
 def test_integrator_section(results):

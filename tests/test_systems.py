@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ofrl_drake import PolynomialBasis
-from ofrl_drake.bellman import point_features
+from ofrl_drake.bellman import Extrapolator, extrapolate, point_features
 from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
 from ofrl_drake.observer import ObserverGains
@@ -192,25 +192,35 @@ def test_running_cost_derivative_closed_form(x):
     np.testing.assert_allclose(rate, [5 * x @ x + U], rtol=1e-12)
 
 
-def test_bellman_outputs_share_one_cache_entry():
+def test_bellman_outputs_share_one_cache_entry(monkeypatch):
     system = make_system("two_state")
     basis = PolynomialBasis(2)
     features = point_features(system, basis, grid_points([-1, -1], [1, 1], [4, 4]), np.eye(2))
     block = BellmanExtrapolator(features, np.ones(1), 3.0, 0.7)
+    calls = []
+    original = Extrapolator.sums_into
+
+    def counted(self, W, out):
+        calls.append(1)
+        original(self, W, out)
+
+    monkeypatch.setattr(Extrapolator, "sums_into", counted)
     context = block.CreateDefaultContext()
-    block.get_weights_input_port().FixValue(context, np.array([0.4, 0.2, 0.8]))
+    W = np.array([0.4, 0.2, 0.8])
+    block.get_weights_input_port().FixValue(context, W)
     first = block.extrapolation(context)
-    block.get_critic_sum_output_port().Eval(context)
-    block.get_gain_sum_output_port().Eval(context)
-    assert block.extrapolation(context) is first  # not recomputed
-    np.testing.assert_allclose(
-        block.get_gain_sum_output_port().Eval(context), first.gain_sum.ravel()
-    )
-    assert block.get_learning_condition_output_port().Eval(context)[0] == pytest.approx(
-        np.linalg.eigvalsh(first.gain_sum)[0]
-    )
+    critic_sum = block.get_critic_sum_output_port().Eval(context)
+    gain_sum = block.get_gain_sum_output_port().Eval(context)
+    condition = block.get_learning_condition_output_port().Eval(context)[0]
+    assert len(calls) == 1  # three outputs, one extrapolation
+    expected = extrapolate(features, W, np.ones(1), 3.0, 0.7)
+    np.testing.assert_allclose(critic_sum, expected.critic_sum, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(gain_sum, expected.gain_sum.ravel(), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(first.gain_sum, expected.gain_sum, rtol=1e-14, atol=1e-15)
+    assert condition == pytest.approx(np.linalg.eigvalsh(expected.gain_sum)[0], rel=1e-12)
     block.get_weights_input_port().FixValue(context, np.array([1.0, 0.0, 1.0]))
-    assert block.extrapolation(context) is not first  # input change invalidates
+    block.get_critic_sum_output_port().Eval(context)
+    assert len(calls) == 2  # an input change invalidates
 
 
 def test_gain_shape_errors_name_the_gain():

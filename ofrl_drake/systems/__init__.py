@@ -16,6 +16,7 @@ from ofrl_drake.systems.gamma import GammaGain
 from ofrl_drake.systems.observer import ThreeGainObserver
 from ofrl_drake.systems.plant import ControlAffinePlant
 from ofrl_drake.systems.scheduled_observer import ScheduledThreeGainObserver
+from ofrl_drake.systems.symbolic import SymbolicController, SymbolicObserver, SymbolicPlant
 
 __all__ = [
     "BellmanExtrapolator",
@@ -31,5 +32,8 @@ __all__ = [
     "SaturatedController",
     "SaturatedLqrController",
     "ScheduledThreeGainObserver",
+    "SymbolicController",
+    "SymbolicObserver",
+    "SymbolicPlant",
     "ThreeGainObserver",
 ]

@@ -59,7 +59,7 @@ class BellmanExtrapolator(LeafSystem):
         self._cache = self.DeclareCacheEntry(
             "bellman_extrapolation",
             ValueProducer(
-                allocate=AbstractValue.Make(object()).Clone,
+                allocate=AbstractValue.Make(self._extrapolator.empty_sums()).Clone,
                 calc=self._calc_extrapolation,
             ),
             prerequisites_of_calc={self._weights_port.ticket()},
@@ -96,7 +96,8 @@ class BellmanExtrapolator(LeafSystem):
         return self._cache.Eval(context)
 
     def _calc_extrapolation(self, context, value) -> None:
-        value.set_value(self._extrapolator.sums(self._weights_port.Eval(context)))
+        # Each context's cache value owns its arrays (Drake deep-copies the model value).
+        self._extrapolator.sums_into(self._weights_port.Eval(context), value.get_mutable_value())
 
     def _calc_critic_sum(self, context, output) -> None:
         output.SetFromVector(self._cache.Eval(context).critic_sum)

@@ -6,9 +6,8 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
+from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -65,12 +64,7 @@ class ThreeGainObserver(LeafSystem):
         self.initial_state = initial_state
         self.design = design
         if design is not None:
-            for name in ("L", "H", "K"):
-                if not np.array_equal(getattr(gains, name), np.asarray(getattr(design, name))):
-                    raise ModelError(
-                        f"gains.{name} differs from design.{name}; build the gains with "
-                        "ObserverGains.from_design(system, design) or omit design=."
-                    )
+            gains.check_design(design)
         x0 = np.zeros(system.n) if initial_state is None else np.asarray(initial_state, float)
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._y_port = self.DeclareVectorInputPort("y", system.q)
@@ -89,11 +83,13 @@ class ThreeGainObserver(LeafSystem):
         """The estimate ``xhat`` (size n)."""
         return self._xhat_port
 
+    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+        """Set the estimate to ``xhat`` in ``context``, this block's own context."""
+        context.SetContinuousState(np.asarray(xhat, dtype=float))
+
     def observer_certificate(self) -> ObserverCertificate:
         """The design and its box, or nothing when built without a design."""
-        if self.design is None:
-            return ObserverCertificate.none(type(self).__name__)
-        return ObserverCertificate("design", design=self.design.to_dict(), box=self.design.box)
+        return ObserverCertificate.of_design(self.design, type(self).__name__)
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         xhat = context.get_continuous_state_vector().CopyToVector()

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
+from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.model import ControlAffineSystem
 
@@ -63,6 +63,10 @@ class ControlAffinePlant(LeafSystem):
     def get_state_output_port(self) -> OutputPort:
         """The true state ``x`` (size n)."""
         return self._state_port
+
+    def set_state(self, context: Context, x: Sequence[float]) -> None:
+        """Set the plant's state to ``x`` in ``context``, this block's own context."""
+        context.SetContinuousState(np.asarray(x, dtype=float))
 
     def _calc_y(self, context, output) -> None:
         x = context.get_continuous_state_vector().CopyToVector()

@@ -1,0 +1,304 @@
+"""The plant, observer and controller as Drake C++ systems, from symbolic f and g.
+
+When the model's ``f`` and ``g`` can be traced on ``pydrake.symbolic`` states
+(:meth:`~ofrl_drake.model.ControlAffineSystem.symbolic`), the three blocks
+that evaluate them are built from Drake's ``SymbolicVectorSystem``: their
+right-hand sides are expressions that Drake evaluates in C++, with no Python
+callback per derivative evaluation, and they convert to ``AutoDiffXd`` (for
+``Linearize``, for example). Each is a small ``Diagram`` with the ports of its
+slot, like :class:`~ofrl_drake.systems.DrakePlant`:
+
+* a ``Multiplexer`` stacks a block's input ports into the one input of its
+  ``SymbolicVectorSystem``;
+* a ``SymbolicVectorSystem`` has no way to set a default state, so the plant
+  and the observer integrate the offset ``z = x - x(0)`` from a zero default
+  and output ``z + x(0)``; their ports carry x itself, and ``set_state`` /
+  ``set_estimated_state`` write x into a context;
+* Drake 1.51's ``SymbolicVectorSystem`` aborts when a continuous ``Diagram``
+  asks a stateless one for its derivatives (``symbolic_vector_system.cc``:
+  ``DRAKE_DEMAND(dynamics_.size() > 0)``), so the controller carries one
+  state that stays at zero. The integrator's error estimate of it is zero.
+
+The math is the one of the Python blocks (:func:`~ofrl_drake.observer.observer_rhs_expression`,
+:func:`~ofrl_drake.policy.policy_expression`), tested against them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from pydrake.symbolic import MakeVectorVariable
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
+from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSystem
+
+from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.checks import positive_number, positive_vector
+from ofrl_drake.errors import ModelError
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer import ObserverGains, observer_rhs_expression
+from ofrl_drake.observer_certificate import ObserverCertificate
+from ofrl_drake.policy import policy_expression
+
+__all__ = ["SymbolicController", "SymbolicObserver", "SymbolicPlant"]
+
+
+def _initial(value: Sequence[float] | None, n: int, what: str) -> np.ndarray:
+    x0 = np.zeros(n) if value is None else np.asarray(value, dtype=float)
+    if x0.shape != (n,):
+        raise ModelError(f"{what} must have length n = {n}; got shape {x0.shape}.")
+    return x0
+
+
+def _export_stacked_input(
+    builder: DiagramBuilder, system: SymbolicVectorSystem, inputs: Sequence[tuple[str, int]]
+) -> None:
+    """Export ``inputs`` (name, size) as ports stacked, in order, into ``system``'s input."""
+    mux = builder.AddNamedSystem("stack_inputs", Multiplexer([size for _, size in inputs]))
+    builder.Connect(mux.get_output_port(), system.get_input_port())
+    for i, (name, _) in enumerate(inputs):
+        builder.ExportInput(mux.get_input_port(i), name)
+
+
+class SymbolicPlant(Diagram):
+    """``x' = f(x) + g(x) u``, ``y = C x`` evaluated by Drake in C++.
+
+    .. pydrake_system::
+
+        name: SymbolicPlant
+        input_ports:
+        - u
+        output_ports:
+        - y
+        - state
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The model; ``system.symbolic()`` must succeed.
+    initial_state : array_like, shape (n,), optional
+        Default value of x (zeros if omitted).
+
+    Raises
+    ------
+    ModelError
+        If ``f`` or ``g`` cannot be traced symbolically, or ``initial_state``
+        has the wrong length.
+
+    See Also
+    --------
+    ofrl_drake.systems.ControlAffinePlant : the same block in Python.
+    """
+
+    def __init__(
+        self, system: ControlAffineSystem, initial_state: Sequence[float] | None = None
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.initial_state = initial_state
+        model = system.symbolic()
+        x0 = _initial(initial_state, system.n, f"{system.name}: initial_state")
+        self._offset = x0
+        z = MakeVectorVariable(system.n, "z")
+        u = MakeVectorVariable(system.m, "u")
+        with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+            x = z + x0
+            f, g = model.substitute(x)
+            xdot = f + g @ u
+        builder = DiagramBuilder()
+        dynamics = builder.AddNamedSystem(
+            "dynamics", SymbolicVectorSystem(state=z, input=u, dynamics=xdot, output=x)
+        )
+        output = builder.AddNamedSystem("output_map", MatrixGain(system.output_matrix))
+        builder.Connect(dynamics.get_output_port(), output.get_input_port())
+        builder.ExportInput(dynamics.get_input_port(), "u")
+        builder.ExportOutput(output.get_output_port(), "y")
+        builder.ExportOutput(dynamics.get_output_port(), "state")
+        builder.BuildInto(self)
+
+    def get_u_input_port(self) -> InputPort:
+        """The input ``u`` (size m)."""
+        return self.GetInputPort("u")
+
+    def get_y_output_port(self) -> OutputPort:
+        """The measured output ``y = C x`` (size q)."""
+        return self.GetOutputPort("y")
+
+    def get_state_output_port(self) -> OutputPort:
+        """The true state ``x`` (size n)."""
+        return self.GetOutputPort("state")
+
+    def set_state(self, context: Context, x: Sequence[float]) -> None:
+        """Set the plant's state to ``x`` in ``context``, this block's own context."""
+        context.SetContinuousState(np.asarray(x, dtype=float) - self._offset)
+
+
+class SymbolicObserver(Diagram):
+    """The three-gain observer evaluated by Drake in C++.
+
+    .. pydrake_system::
+
+        name: SymbolicObserver
+        input_ports:
+        - y
+        - u
+        output_ports:
+        - estimated_state
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The model the observer runs; ``system.symbolic()`` must succeed.
+    gains : ObserverGains
+    initial_state : array_like, shape (n,), optional
+        Default xhat(0) (zeros if omitted).
+    design : ObserverDesign, optional
+        The design ``gains`` come from, reported by :meth:`observer_certificate`.
+
+    Raises
+    ------
+    ModelError
+        If ``f`` or ``g`` cannot be traced symbolically, ``initial_state`` has
+        the wrong length, or ``design`` has other gains.
+
+    See Also
+    --------
+    ofrl_drake.systems.ThreeGainObserver : the same block in Python.
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        gains: ObserverGains,
+        initial_state: Sequence[float] | None = None,
+        design: Any = None,
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.gains = gains
+        self.initial_state = initial_state
+        self.design = design
+        if design is not None:
+            gains.check_design(design)
+        model = system.symbolic()
+        xhat0 = _initial(initial_state, system.n, f"{system.name}: observer initial_state")
+        self._offset = xhat0
+        z = MakeVectorVariable(system.n, "z")
+        y = MakeVectorVariable(system.q, "y")
+        u = MakeVectorVariable(system.m, "u")
+        with np.errstate(invalid="ignore"):
+            xhat = z + xhat0
+        rhs = observer_rhs_expression(model, system.output_matrix, gains, xhat, y, u)
+        builder = DiagramBuilder()
+        dynamics = builder.AddNamedSystem(
+            "dynamics",
+            SymbolicVectorSystem(state=z, input=np.concatenate([y, u]), dynamics=rhs, output=xhat),
+        )
+        _export_stacked_input(builder, dynamics, [("y", system.q), ("u", system.m)])
+        builder.ExportOutput(dynamics.get_output_port(), "estimated_state")
+        builder.BuildInto(self)
+
+    def get_y_input_port(self) -> InputPort:
+        """The measurement ``y`` (size q)."""
+        return self.GetInputPort("y")
+
+    def get_u_input_port(self) -> InputPort:
+        """The applied input ``u`` (size m)."""
+        return self.GetInputPort("u")
+
+    def get_estimated_state_output_port(self) -> OutputPort:
+        """The estimate ``xhat`` (size n)."""
+        return self.GetOutputPort("estimated_state")
+
+    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+        """Set the estimate to ``xhat`` in ``context``, this block's own context."""
+        context.SetContinuousState(np.asarray(xhat, dtype=float) - self._offset)
+
+    def observer_certificate(self) -> ObserverCertificate:
+        """The design and its box, or nothing when built without a design."""
+        return ObserverCertificate.of_design(self.design, type(self).__name__)
+
+
+class SymbolicController(Diagram):
+    """The saturated policy ``u = -lbar tanh(D)`` evaluated by Drake in C++.
+
+    .. pydrake_system::
+
+        name: SymbolicController
+        input_ports:
+        - estimated_state
+        - weights
+        output_ports:
+        - u
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        ``system.symbolic()`` must succeed.
+    basis : PolynomialBasis
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar > 0.
+
+    Raises
+    ------
+    ModelError
+        As :class:`~ofrl_drake.systems.SaturatedController`, or if ``f`` or
+        ``g`` cannot be traced symbolically.
+
+    Notes
+    -----
+    Its one continuous state stays at zero (see the module docstring).
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        basis: PolynomialBasis,
+        r: np.ndarray,
+        input_bound: float,
+    ) -> None:
+        super().__init__()
+        self.system = system
+        self.basis = basis
+        self.r = r
+        self.input_bound = input_bound
+        if basis.n != system.n:
+            raise ModelError(
+                f"SymbolicController: the basis is for n = {basis.n} states but the "
+                f"system has n = {system.n}; build PolynomialBasis({system.n}, ...)."
+            )
+        r_arr = positive_vector("SymbolicController: r", r, system.m)
+        positive_number("SymbolicController: input_bound", input_bound)
+        model = system.symbolic()
+        W = MakeVectorVariable(basis.size, "W")
+        u = policy_expression(basis, model.x, model.g, W, r_arr, float(input_bound))
+        unused = MakeVectorVariable(1, "unused")
+        builder = DiagramBuilder()
+        policy = builder.AddNamedSystem(
+            "policy",
+            SymbolicVectorSystem(
+                state=unused,
+                input=np.concatenate([model.x, W]),
+                dynamics=[0.0 * unused[0]],
+                output=u,
+            ),
+        )
+        inputs = [("estimated_state", system.n), ("weights", basis.size)]
+        _export_stacked_input(builder, policy, inputs)
+        builder.ExportOutput(policy.get_output_port(), "u")
+        builder.BuildInto(self)
+
+    def get_estimated_state_input_port(self) -> InputPort:
+        """The state estimate xhat (size n)."""
+        return self.GetInputPort("estimated_state")
+
+    def get_weights_input_port(self) -> InputPort:
+        """Critic weights W (size L)."""
+        return self.GetInputPort("weights")
+
+    def get_u_output_port(self) -> OutputPort:
+        """The saturated input u (size m)."""
+        return self.GetOutputPort("u")
