@@ -232,15 +232,16 @@ _STATE_SLOTS = ("plant", "observer", "critic", "gamma", "running_cost")
 def _diagram_state(loop: Any, context: Any, z: np.ndarray) -> np.ndarray:
     """The diagram's continuous state for the fused state ``z = [x, xhat, W, Gamma, J]``.
 
-    The plant and observer blocks write their own state (the symbolic ones
-    store an offset from the initial state); ``context`` is left at it.
+    The plant, observer and critic blocks write their own state (the symbolic
+    ones store an offset from the initial state); ``context`` is left at it.
     """
     n, L = loop.parts.system.n, loop.parts.basis.size
     parts = np.split(z, np.cumsum([n, n, L, L * L]))
     sub = {slot: loop.blocks[slot].GetMyMutableContextFromRoot(context) for slot in _STATE_SLOTS}
     loop.plant.set_state(sub["plant"], parts[0])
     loop.observer.set_estimated_state(sub["observer"], parts[1])
-    for slot, value in zip(_STATE_SLOTS[2:], parts[2:], strict=True):
+    loop.critic.set_weights(sub["critic"], parts[2])
+    for slot, value in zip(_STATE_SLOTS[3:], parts[3:], strict=True):
         sub[slot].SetContinuousState(value)
     return context.get_continuous_state_vector().CopyToVector()
 
@@ -428,8 +429,8 @@ def bellman_math(scenario: Scenario, settings: Settings) -> list[dict]:
 
     This is the math a derivative evaluation of the Bellman block does:
     :meth:`~ofrl_drake.bellman.Extrapolator.sums_into` at the scenario's
-    initial weights, into a preallocated result, called from Python as the
-    block's cache entry calls it.
+    initial weights, into preallocated arrays, called from Python as the
+    block calls it.
     """
     from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.bellman import Extrapolator, point_features
@@ -455,7 +456,7 @@ def bellman_math(scenario: Scenario, settings: Settings) -> list[dict]:
             extrapolator: Extrapolator = extrapolator, calls: int = calls, out: Any = out
         ) -> None:
             for _ in range(calls):
-                extrapolator.sums_into(W, out)
+                extrapolator.sums_into(W, out.critic_sum, out.gain_sum)
 
         timing, _ = measure(batch, settings.bellman_batches)
         rows.append(

@@ -310,22 +310,22 @@ class Extrapolator:
         )
 
     def empty_sums(self) -> BellmanSums:
-        """A :class:`BellmanSums` with uninitialized arrays, for :meth:`sums_into`."""
+        """A :class:`BellmanSums` with uninitialized arrays."""
         L = self._shape[1]
         return BellmanSums(np.empty(L), np.empty((L, L)))
 
-    def sums_into(self, W: np.ndarray, out: BellmanSums) -> None:
-        """Both sums for weights ``W`` written into ``out``'s arrays, allocating nothing.
+    def sums_into(self, W: np.ndarray, critic_sum: np.ndarray, gain_sum: np.ndarray) -> None:
+        """Both sums for weights ``W`` written into ``critic_sum`` (L,) and ``gain_sum`` (L, L).
 
-        This is what the Bellman block's cache entry computes per derivative
-        evaluation.
+        Allocates nothing; this is what the Bellman block computes per
+        derivative evaluation, straight into its output vector.
         """
-        self._run(W, self._scratch, out.critic_sum, out.gain_sum)
+        self._run(W, self._scratch, critic_sum, gain_sum)
 
     def sums(self, W: np.ndarray) -> BellmanSums:
         """Only the two sums for critic weights ``W`` (shape ``(L,)``): what the loop needs."""
         out = self.empty_sums()
-        self.sums_into(W, out)
+        self.sums_into(W, out.critic_sum, out.gain_sum)
         return out
 
     def __call__(self, W: np.ndarray) -> BellmanExtrapolation:

@@ -43,6 +43,7 @@ from ofrl_drake.systems import (
     SaturatedController,
     ScheduledThreeGainObserver,
     SymbolicController,
+    SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
     ThreeGainObserver,
@@ -182,7 +183,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
 
 
 def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
-    """Whether the plant, observer and controller are built as C++ symbolic blocks.
+    """Whether the plant, observer, controller and critic are C++ symbolic blocks.
 
     As ``scenario.simulation.blocks`` says; ``"auto"`` means whenever
     ``system.symbolic()`` succeeds.
@@ -239,7 +240,8 @@ def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
         block = SymbolicController if symbolic else SaturatedController
         return block(parts.system, parts.basis, parts.r, s.input_bound)
     if slot == "critic":
-        return CriticWeights(c.W0, c.kc)
+        block = SymbolicCriticWeights if symbolic else CriticWeights
+        return block(c.W0, c.kc)
     if slot == "gamma":
         return GammaGain(np.asarray(c.Gamma0, float), c.kc, c.beta)
     if slot == "bellman":

@@ -188,6 +188,8 @@ class RunGuard:
         self._start = time.perf_counter()
         self.status = STATUS_OK
         self.reason = ""
+        self._root: Context | None = None  # the simulator's context, as last seen
+        self._subcontexts: tuple[Context, Context] | None = None
 
     @property
     def stopped(self) -> bool:
@@ -200,8 +202,15 @@ class RunGuard:
 
     def states(self, root_context: Context) -> tuple[np.ndarray, np.ndarray]:
         """x and xhat in ``root_context``."""
-        x = self._state_port.Eval(self.plant.GetMyContextFromRoot(root_context))
-        xhat = self._estimate_port.Eval(self.observer.GetMyContextFromRoot(root_context))
+        if root_context is not self._root:  # the monitor sees one context at every step
+            self._root = root_context
+            self._subcontexts = (
+                self.plant.GetMyContextFromRoot(root_context),
+                self.observer.GetMyContextFromRoot(root_context),
+            )
+        plant_context, observer_context = self._subcontexts
+        x = self._state_port.Eval(plant_context)
+        xhat = self._estimate_port.Eval(observer_context)
         return np.asarray(x, dtype=float), np.asarray(xhat, dtype=float)
 
     def check(self, root_context: Context) -> tuple[str, str]:

@@ -14,8 +14,10 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.systems import (
     ControlAffinePlant,
+    CriticWeights,
     SaturatedController,
     SymbolicController,
+    SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
     ThreeGainObserver,
@@ -76,6 +78,7 @@ def test_ports_match_the_python_blocks(name):
         (SymbolicPlant(system), ControlAffinePlant(system)),
         (SymbolicObserver(system, gains), ThreeGainObserver(system, gains)),
         (SymbolicController(system, basis, r, lbar), SaturatedController(system, basis, r, lbar)),
+        (SymbolicCriticWeights(np.ones(basis.size), 2.0), CriticWeights(np.ones(basis.size), 2.0)),
     ]
     for symbolic, python in pairs:
         assert _ports(symbolic) == _ports(python)
@@ -140,6 +143,29 @@ def test_observer_derivative_matches_the_compiled_kernel(name):
         np.testing.assert_allclose(xdot, expected, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("kc", [0.0, 2.5])
+def test_critic_derivative_matches_the_compiled_law(kc):
+    W0 = np.array([0.4, -0.2, 0.8, 1.5])
+    blocks = [SymbolicCriticWeights(W0, kc), CriticWeights(W0, kc)]
+    rng = np.random.default_rng(5)
+    inputs = {"critic_sum": rng.normal(size=4), "gamma": rng.normal(size=16)}
+    W = rng.normal(size=4)
+    rates = []
+    for block in blocks:
+        context = block.CreateDefaultContext()
+        np.testing.assert_array_equal(block.get_weights_output_port().Eval(context), W0)
+        for port, value in inputs.items():
+            block.GetInputPort(port).FixValue(context, value)
+        block.set_weights(context, W)
+        np.testing.assert_allclose(block.get_weights_output_port().Eval(context), W, rtol=RTOL)
+        rates.append(block.EvalTimeDerivatives(context).CopyToVector())
+    expected = -kc * inputs["gamma"].reshape(4, 4) @ inputs["critic_sum"]
+    for rate in rates:
+        np.testing.assert_allclose(rate, expected, rtol=1e-14, atol=1e-15)
+    with pytest.raises(ModelError, match=r"SymbolicCriticWeights: kc"):
+        SymbolicCriticWeights(W0, -1.0)
+
+
 @pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
 def test_controller_output_matches_the_compiled_policy(name):
     system = make_system(name)
@@ -175,6 +201,7 @@ def test_closed_loop_matches_the_python_blocks(paper_scenario, paper_design):
     assert isinstance(loop.plant, SymbolicPlant)
     assert isinstance(loop.observer, SymbolicObserver)
     assert isinstance(loop.controller, SymbolicController)
+    assert isinstance(loop.critic, SymbolicCriticWeights)
     for key in ("x", "xhat", "W", "u", "cost"):
         np.testing.assert_allclose(
             getattr(runs["symbolic"], key), getattr(runs["python"], key), rtol=1e-9, atol=1e-10

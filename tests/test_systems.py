@@ -192,7 +192,7 @@ def test_running_cost_derivative_closed_form(x):
     np.testing.assert_allclose(rate, [5 * x @ x + U], rtol=1e-12)
 
 
-def test_bellman_outputs_share_one_cache_entry(monkeypatch):
+def test_bellman_outputs_share_one_extrapolation(monkeypatch):
     system = make_system("two_state")
     basis = PolynomialBasis(2)
     features = point_features(system, basis, grid_points([-1, -1], [1, 1], [4, 4]), np.eye(2))
@@ -200,9 +200,9 @@ def test_bellman_outputs_share_one_cache_entry(monkeypatch):
     calls = []
     original = Extrapolator.sums_into
 
-    def counted(self, W, out):
+    def counted(self, W, critic_sum, gain_sum):
         calls.append(1)
-        original(self, W, out)
+        original(self, W, critic_sum, gain_sum)
 
     monkeypatch.setattr(Extrapolator, "sums_into", counted)
     context = block.CreateDefaultContext()

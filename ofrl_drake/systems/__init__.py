@@ -16,7 +16,12 @@ from ofrl_drake.systems.gamma import GammaGain
 from ofrl_drake.systems.observer import ThreeGainObserver
 from ofrl_drake.systems.plant import ControlAffinePlant
 from ofrl_drake.systems.scheduled_observer import ScheduledThreeGainObserver
-from ofrl_drake.systems.symbolic import SymbolicController, SymbolicObserver, SymbolicPlant
+from ofrl_drake.systems.symbolic import (
+    SymbolicController,
+    SymbolicCriticWeights,
+    SymbolicObserver,
+    SymbolicPlant,
+)
 
 __all__ = [
     "BellmanExtrapolator",
@@ -33,6 +38,7 @@ __all__ = [
     "SaturatedLqrController",
     "ScheduledThreeGainObserver",
     "SymbolicController",
+    "SymbolicCriticWeights",
     "SymbolicObserver",
     "SymbolicPlant",
     "ThreeGainObserver",

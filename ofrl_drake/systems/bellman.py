@@ -3,21 +3,65 @@
 from __future__ import annotations
 
 import numpy as np
-from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import InputPort, LeafSystem, OutputPort, ValueProducer
+from pydrake.systems.framework import (
+    Context,
+    Diagram,
+    DiagramBuilder,
+    InputPort,
+    LeafSystem,
+    OutputPort,
+)
+from pydrake.systems.primitives import Demultiplexer
 
 from ofrl_drake.bellman import BellmanSums, Extrapolator, PointFeatures, learning_condition
 
 __all__ = ["BellmanExtrapolator"]
 
 
-class BellmanExtrapolator(LeafSystem):
+class _StackedSums(LeafSystem):
+    """Both sums in one vector ``[critic_sum; vec(gain_sum)]``, one compiled call each.
+
+    The kernel writes straight into the output, so a derivative evaluation
+    makes one Python call here and allocates nothing.
+    """
+
+    def __init__(self, extrapolator: Extrapolator, size: int) -> None:
+        super().__init__()
+        self._extrapolator = extrapolator
+        self._size = size
+        self._weights_port = self.DeclareVectorInputPort("weights", size)
+        self._sums_port = self.DeclareVectorOutputPort(
+            "sums",
+            size + size * size,
+            self._calc_sums,
+            prerequisites_of_calc={self._weights_port.ticket()},
+        )
+        self._learning_condition_port = self.DeclareVectorOutputPort(
+            "learning_condition",
+            1,
+            self._calc_learning_condition,
+            prerequisites_of_calc={self._weights_port.ticket()},
+        )
+
+    def _calc_sums(self, context, output) -> None:
+        L = self._size
+        value = output.get_mutable_value()
+        self._extrapolator.sums_into(
+            self._weights_port.Eval(context), value[:L], value[L:].reshape(L, L)
+        )
+
+    def _calc_learning_condition(self, context, output) -> None:
+        L = self._size
+        output.SetAtIndex(0, learning_condition(self._sums_port.Eval(context)[L:].reshape(L, L)))
+
+
+class BellmanExtrapolator(Diagram):
     """Bellman errors at N fixed points, computed once per evaluation.
 
-    One cache entry holds the :class:`~ofrl_drake.bellman.BellmanSums` for
-    the current weights (one compiled pass over the points); all three
-    outputs read it, so the critic and Gamma laws share one computation per
-    derivative evaluation.
+    One Python block computes both sums for the current weights in one
+    compiled pass over the points, as one vector; Drake's ``Demultiplexer``
+    splits it into the two outputs in C++. The critic and Gamma laws thus
+    share one computation, and one Python call, per derivative evaluation.
 
     .. pydrake_system::
 
@@ -53,57 +97,41 @@ class BellmanExtrapolator(LeafSystem):
         self.r = r
         self.input_bound = input_bound
         self.nu = nu
-        self._extrapolator = Extrapolator(features, r, input_bound, nu)
         size = features.drift.shape[0]
-        self._weights_port = self.DeclareVectorInputPort("weights", size)
-        self._cache = self.DeclareCacheEntry(
-            "bellman_extrapolation",
-            ValueProducer(
-                allocate=AbstractValue.Make(self._extrapolator.empty_sums()).Clone,
-                calc=self._calc_extrapolation,
-            ),
-            prerequisites_of_calc={self._weights_port.ticket()},
+        builder = DiagramBuilder()
+        sums = builder.AddNamedSystem(
+            "sums", _StackedSums(Extrapolator(features, r, input_bound, nu), size)
         )
-        deps = {self._cache.ticket()}
-        self._critic_sum_port = self.DeclareVectorOutputPort(
-            "critic_sum", size, self._calc_critic_sum, prerequisites_of_calc=deps
-        )
-        self._gain_sum_port = self.DeclareVectorOutputPort(
-            "gain_sum", size * size, self._calc_gain_sum, prerequisites_of_calc=deps
-        )
-        self._learning_condition_port = self.DeclareVectorOutputPort(
-            "learning_condition", 1, self._calc_learning_condition, prerequisites_of_calc=deps
-        )
+        split = builder.AddNamedSystem("split_sums", Demultiplexer([size, size * size]))
+        builder.Connect(sums.GetOutputPort("sums"), split.get_input_port())
+        builder.ExportInput(sums.GetInputPort("weights"), "weights")
+        builder.ExportOutput(split.get_output_port(0), "critic_sum")
+        builder.ExportOutput(split.get_output_port(1), "gain_sum")
+        builder.ExportOutput(sums.GetOutputPort("learning_condition"), "learning_condition")
+        builder.BuildInto(self)
+        self._sums = sums
+        self._size = size
 
     def get_weights_input_port(self) -> InputPort:
         """Critic weights W (size L)."""
-        return self._weights_port
+        return self.GetInputPort("weights")
 
     def get_critic_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i delta_i / rho_i`` (size L)."""
-        return self._critic_sum_port
+        return self.GetOutputPort("critic_sum")
 
     def get_gain_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i omega_i^T / rho_i^2``, flattened (size L*L)."""
-        return self._gain_sum_port
+        return self.GetOutputPort("gain_sum")
 
     def get_learning_condition_output_port(self) -> OutputPort:
         """``c = lambda_min(gain_sum)`` (size 1)."""
-        return self._learning_condition_port
+        return self.GetOutputPort("learning_condition")
 
-    def extrapolation(self, context) -> BellmanSums:
-        """The cached :class:`~ofrl_drake.bellman.BellmanSums`."""
-        return self._cache.Eval(context)
-
-    def _calc_extrapolation(self, context, value) -> None:
-        # Each context's cache value owns its arrays (Drake deep-copies the model value).
-        self._extrapolator.sums_into(self._weights_port.Eval(context), value.get_mutable_value())
-
-    def _calc_critic_sum(self, context, output) -> None:
-        output.SetFromVector(self._cache.Eval(context).critic_sum)
-
-    def _calc_gain_sum(self, context, output) -> None:
-        output.SetFromVector(self._cache.Eval(context).gain_sum.ravel())
-
-    def _calc_learning_condition(self, context, output) -> None:
-        output.SetAtIndex(0, learning_condition(self._cache.Eval(context).gain_sum))
+    def extrapolation(self, context: Context) -> BellmanSums:
+        """The two sums in ``context`` (this block's own), as :class:`BellmanSums`."""
+        L = self._size
+        stacked = self._sums.GetOutputPort("sums").Eval(
+            self.GetSubsystemContext(self._sums, context)
+        )
+        return BellmanSums(stacked[:L].copy(), stacked[L:].reshape(L, L).copy())

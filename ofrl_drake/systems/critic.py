@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
+from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.bellman import critic_rate
 from ofrl_drake.checks import finite_vector, positive_number
@@ -68,6 +68,10 @@ class CriticWeights(LeafSystem):
     def get_weights_output_port(self) -> OutputPort:
         """The weights W (size L)."""
         return self._weights_port
+
+    def set_weights(self, context: Context, W: Sequence[float]) -> None:
+        """Set the weights to ``W`` in ``context``, this block's own context."""
+        context.SetContinuousState(np.asarray(W, dtype=float))
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         rate = self._rate

@@ -1,8 +1,9 @@
-"""The plant, observer and controller as Drake C++ systems, from symbolic f and g.
+"""The plant, observer, controller and critic as Drake C++ systems.
 
 When the model's ``f`` and ``g`` can be traced on ``pydrake.symbolic`` states
 (:meth:`~ofrl_drake.model.ControlAffineSystem.symbolic`), the three blocks
-that evaluate them are built from Drake's ``SymbolicVectorSystem``: their
+that evaluate them, and the critic's update law, are built from Drake's
+``SymbolicVectorSystem``: their
 right-hand sides are expressions that Drake evaluates in C++, with no Python
 callback per derivative evaluation, and they convert to ``AutoDiffXd`` (for
 ``Linearize``, for example). Each is a small ``Diagram`` with the ports of its
@@ -10,8 +11,8 @@ slot, like :class:`~ofrl_drake.systems.DrakePlant`:
 
 * a ``Multiplexer`` stacks a block's input ports into the one input of its
   ``SymbolicVectorSystem``;
-* a ``SymbolicVectorSystem`` has no way to set a default state, so the plant
-  and the observer integrate the offset ``z = x - x(0)`` from a zero default
+* a ``SymbolicVectorSystem`` has no way to set a default state, so the plant,
+  the observer and the critic integrate the offset ``z = x - x(0)`` from a zero default
   and output ``z + x(0)``; their ports carry x itself, and ``set_state`` /
   ``set_estimated_state`` write x into a context;
 * Drake 1.51's ``SymbolicVectorSystem`` aborts when a continuous ``Diagram``
@@ -34,14 +35,14 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPor
 from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSystem
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.checks import positive_number, positive_vector
+from ofrl_drake.checks import finite_vector, positive_number, positive_vector
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_expression
 from ofrl_drake.observer_certificate import ObserverCertificate
 from ofrl_drake.policy import policy_expression
 
-__all__ = ["SymbolicController", "SymbolicObserver", "SymbolicPlant"]
+__all__ = ["SymbolicController", "SymbolicCriticWeights", "SymbolicObserver", "SymbolicPlant"]
 
 
 def _initial(value: Sequence[float] | None, n: int, what: str) -> np.ndarray:
@@ -302,3 +303,77 @@ class SymbolicController(Diagram):
     def get_u_output_port(self) -> OutputPort:
         """The saturated input u (size m)."""
         return self.GetOutputPort("u")
+
+
+class SymbolicCriticWeights(Diagram):
+    """Critic weights W with ``W' = -k_c Gamma critic_sum``, evaluated by Drake in C++.
+
+    .. pydrake_system::
+
+        name: SymbolicCriticWeights
+        input_ports:
+        - critic_sum
+        - gamma
+        output_ports:
+        - weights
+
+    Parameters
+    ----------
+    initial_weights : array_like, shape (L,)
+        W(0); also fixes L.
+    kc : float
+        Adaptation gain k_c >= 0.
+
+    Raises
+    ------
+    ModelError
+        As :class:`~ofrl_drake.systems.CriticWeights`.
+
+    See Also
+    --------
+    ofrl_drake.systems.CriticWeights : the same block in Python.
+    """
+
+    def __init__(self, initial_weights: Sequence[float], kc: float) -> None:
+        super().__init__()
+        self.initial_weights = initial_weights
+        self.kc = kc
+        W0 = finite_vector("SymbolicCriticWeights: initial_weights", initial_weights)
+        positive_number("SymbolicCriticWeights: kc", kc, allow_zero=True)
+        self._offset = W0
+        size = W0.size
+        z = MakeVectorVariable(size, "z")
+        critic_sum = MakeVectorVariable(size, "critic_sum")
+        gamma = MakeVectorVariable(size * size, "gamma")
+        with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+            rate = -float(kc) * (gamma.reshape(size, size) @ critic_sum)
+            weights = z + W0
+        builder = DiagramBuilder()
+        law = builder.AddNamedSystem(
+            "update_law",
+            SymbolicVectorSystem(
+                state=z,
+                input=np.concatenate([critic_sum, gamma]),
+                dynamics=rate,
+                output=weights,
+            ),
+        )
+        _export_stacked_input(builder, law, [("critic_sum", size), ("gamma", size * size)])
+        builder.ExportOutput(law.get_output_port(), "weights")
+        builder.BuildInto(self)
+
+    def get_critic_sum_input_port(self) -> InputPort:
+        """``(1/N) sum omega delta / rho`` (size L)."""
+        return self.GetInputPort("critic_sum")
+
+    def get_gamma_input_port(self) -> InputPort:
+        """Gamma, flattened row-major (size L*L)."""
+        return self.GetInputPort("gamma")
+
+    def get_weights_output_port(self) -> OutputPort:
+        """The weights W (size L)."""
+        return self.GetOutputPort("weights")
+
+    def set_weights(self, context: Context, W: Sequence[float]) -> None:
+        """Set the weights to ``W`` in ``context``, this block's own context."""
+        context.SetContinuousState(np.asarray(W, dtype=float) - self._offset)
