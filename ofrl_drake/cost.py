@@ -23,6 +23,9 @@ import math
 
 import numpy as np
 from numba import njit, vectorize
+from pydrake.symbolic import log
+from pydrake.symbolic import max as symbolic_max
+from pydrake.symbolic import min as symbolic_min
 
 from ofrl_drake.errors import ModelError
 
@@ -32,6 +35,7 @@ __all__ = [
     "log_cosh",
     "saturation_cost",
     "stage_cost",
+    "stage_cost_expression",
     "stage_cost_rate",
     "state_cost",
     "tanh_log_cosh",
@@ -196,3 +200,26 @@ def stage_cost(
 ) -> np.ndarray:
     """``Q(x) + U(u)``."""
     return state_cost(x, Q) + input_cost(u, r, input_bound)
+
+
+def stage_cost_expression(
+    x: np.ndarray, u: np.ndarray, Q: np.ndarray, r: np.ndarray, input_bound: float
+) -> object:
+    """``Q(x) + U(u)`` as one ``pydrake.symbolic`` expression in ``x`` and ``u``.
+
+    ``U`` is written ``sum_k r_k lbar^2 ((1 + v) ln(1 + v) + (1 - v) ln(1 - v))``
+    with ``v = u_k / lbar`` clipped to ``1 - 1e-16`` in magnitude, the same
+    function as :func:`input_cost` (Drake's expressions have no ``log1p`` or
+    ``atanh``). Its error is absolute, about ``r_k lbar^2 1e-16``, rather
+    than relative for tiny ``v``; an input beyond the bound is clipped, not
+    refused (the validity report flags ``|u_k| > lambda_bar``).
+    """
+    Q = np.asarray(Q, dtype=float)
+    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+        total = np.asarray(x) @ Q @ np.asarray(x)
+    edge = 1.0 - 1e-16
+    for k, uk in enumerate(u):
+        v = symbolic_min(symbolic_max(uk / input_bound, -edge), edge)
+        per_input = (1.0 + v) * log(1.0 + v) + (1.0 - v) * log(1.0 - v)
+        total = total + float(input_bound**2 * r[k]) * per_input
+    return total

@@ -46,6 +46,7 @@ from ofrl_drake.systems import (
     SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
+    SymbolicRunningCost,
     ThreeGainObserver,
 )
 
@@ -183,7 +184,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
 
 
 def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
-    """Whether the plant, observer, controller and critic are C++ symbolic blocks.
+    """Whether the plant, observer, controller, critic and cost are C++ symbolic blocks.
 
     As ``scenario.simulation.blocks`` says; ``"auto"`` means whenever
     ``system.symbolic()`` succeeds.
@@ -247,7 +248,8 @@ def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
     if slot == "bellman":
         return BellmanExtrapolator(parts.features, parts.r, s.input_bound, c.nu)
     if slot == "running_cost":
-        return RunningCost(parts.Q, parts.r, s.input_bound)
+        block = SymbolicRunningCost if symbolic else RunningCost
+        return block(parts.Q, parts.r, s.input_bound)
     raise AssertionError(slot)  # pragma: no cover
 
 

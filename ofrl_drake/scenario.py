@@ -140,8 +140,8 @@ class SimulationConfig:
     ``accuracy`` its error-control target; ``max_step`` its largest step;
     ``log_period`` the sampling period of the logs (optional, default 0.01 s).
 
-    ``blocks`` (optional) picks how the plant, observer, controller and critic
-    blocks are built: ``"symbolic"``, as Drake C++ ``SymbolicVectorSystem``
+    ``blocks`` (optional) picks how the plant, observer, controller, critic
+    and running-cost blocks are built: ``"symbolic"``, as Drake C++ ``SymbolicVectorSystem``
     blocks evaluating ``f`` and ``g`` traced symbolically (fastest; see
     :mod:`ofrl_drake.systems.symbolic`); ``"python"``, as Python
     ``LeafSystem`` blocks calling ``f`` and ``g``; ``"auto"`` (default),

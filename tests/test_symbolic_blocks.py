@@ -15,11 +15,13 @@ from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.systems import (
     ControlAffinePlant,
     CriticWeights,
+    RunningCost,
     SaturatedController,
     SymbolicController,
     SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
+    SymbolicRunningCost,
     ThreeGainObserver,
 )
 
@@ -79,6 +81,10 @@ def test_ports_match_the_python_blocks(name):
         (SymbolicObserver(system, gains), ThreeGainObserver(system, gains)),
         (SymbolicController(system, basis, r, lbar), SaturatedController(system, basis, r, lbar)),
         (SymbolicCriticWeights(np.ones(basis.size), 2.0), CriticWeights(np.ones(basis.size), 2.0)),
+        (
+            SymbolicRunningCost(np.eye(system.n), r, lbar),
+            RunningCost(np.eye(system.n), r, lbar),
+        ),
     ]
     for symbolic, python in pairs:
         assert _ports(symbolic) == _ports(python)
@@ -166,6 +172,24 @@ def test_critic_derivative_matches_the_compiled_law(kc):
         SymbolicCriticWeights(W0, -1.0)
 
 
+def test_running_cost_rate_matches_the_compiled_stage_cost():
+    Q, r, lbar = np.array([[2.0, 0.5], [0.5, 1.0]]), np.array([0.5, 2.0]), 3.0
+    blocks = (SymbolicRunningCost(Q, r, lbar), RunningCost(Q, r, lbar))
+    x = np.array([0.7, -1.3])
+    # Zero, tiny, moderate, near and at the bound, both signs.
+    for u in ([0.0, 1e-9], [1e-4, -0.5], [2.9, -2.999999], [3.0, -3.0]):
+        rates = [_derivatives(block, [0.0], {"state": x, "u": u})[0] for block in blocks]
+        # Absolute error of the symbolic form: about r lbar^2 1e-16 per input.
+        np.testing.assert_allclose(rates[0], rates[1], rtol=1e-14, atol=1e-14)
+    # Beyond the bound: the symbolic block clips, the Python one refuses.
+    beyond = {"state": x, "u": [3.5, 0.0]}
+    clipped = _derivatives(blocks[0], [0.0], beyond)[0]
+    at_bound = _derivatives(blocks[0], [0.0], {"state": x, "u": [3.0, 0.0]})[0]
+    np.testing.assert_allclose(clipped, at_bound, rtol=1e-14)
+    with pytest.raises(ModelError, match=r"exceeds the input bound 3\.0"):
+        _derivatives(blocks[1], [0.0], beyond)
+
+
 @pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
 def test_controller_output_matches_the_compiled_policy(name):
     system = make_system(name)
@@ -202,6 +226,7 @@ def test_closed_loop_matches_the_python_blocks(paper_scenario, paper_design):
     assert isinstance(loop.observer, SymbolicObserver)
     assert isinstance(loop.controller, SymbolicController)
     assert isinstance(loop.critic, SymbolicCriticWeights)
+    assert isinstance(loop.running_cost, SymbolicRunningCost)
     for key in ("x", "xhat", "W", "u", "cost"):
         np.testing.assert_allclose(
             getattr(runs["symbolic"], key), getattr(runs["python"], key), rtol=1e-9, atol=1e-10

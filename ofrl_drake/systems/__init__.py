@@ -21,6 +21,7 @@ from ofrl_drake.systems.symbolic import (
     SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
+    SymbolicRunningCost,
 )
 
 __all__ = [
@@ -41,5 +42,6 @@ __all__ = [
     "SymbolicCriticWeights",
     "SymbolicObserver",
     "SymbolicPlant",
+    "SymbolicRunningCost",
     "ThreeGainObserver",
 ]

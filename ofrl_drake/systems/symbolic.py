@@ -1,9 +1,9 @@
-"""The plant, observer, controller and critic as Drake C++ systems.
+"""The plant, observer, controller, critic and running cost as Drake C++ systems.
 
 When the model's ``f`` and ``g`` can be traced on ``pydrake.symbolic`` states
 (:meth:`~ofrl_drake.model.ControlAffineSystem.symbolic`), the three blocks
-that evaluate them, and the critic's update law, are built from Drake's
-``SymbolicVectorSystem``: their
+that evaluate them, the critic's update law and the running cost are built
+from Drake's ``SymbolicVectorSystem``: their
 right-hand sides are expressions that Drake evaluates in C++, with no Python
 callback per derivative evaluation, and they convert to ``AutoDiffXd`` (for
 ``Linearize``, for example). Each is a small ``Diagram`` with the ports of its
@@ -35,14 +35,26 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPor
 from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSystem
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.checks import finite_vector, positive_number, positive_vector
+from ofrl_drake.checks import (
+    finite_vector,
+    nonnegative_matrix,
+    positive_number,
+    positive_vector,
+)
+from ofrl_drake.cost import stage_cost_expression
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_expression
 from ofrl_drake.observer_certificate import ObserverCertificate
 from ofrl_drake.policy import policy_expression
 
-__all__ = ["SymbolicController", "SymbolicCriticWeights", "SymbolicObserver", "SymbolicPlant"]
+__all__ = [
+    "SymbolicController",
+    "SymbolicCriticWeights",
+    "SymbolicObserver",
+    "SymbolicPlant",
+    "SymbolicRunningCost",
+]
 
 
 def _initial(value: Sequence[float] | None, n: int, what: str) -> np.ndarray:
@@ -377,3 +389,71 @@ class SymbolicCriticWeights(Diagram):
     def set_weights(self, context: Context, W: Sequence[float]) -> None:
         """Set the weights to ``W`` in ``context``, this block's own context."""
         context.SetContinuousState(np.asarray(W, dtype=float) - self._offset)
+
+
+class SymbolicRunningCost(Diagram):
+    """``J' = Q(x) + U(u)``, ``J(0) = 0``, evaluated by Drake in C++.
+
+    .. pydrake_system::
+
+        name: SymbolicRunningCost
+        input_ports:
+        - state
+        - u
+        output_ports:
+        - cost
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, n)
+        State weight.
+    r : array_like, shape (m,)
+        Diagonal of R.
+    input_bound : float
+        lbar > 0.
+
+    Raises
+    ------
+    ModelError
+        As :class:`~ofrl_drake.systems.RunningCost`.
+
+    Notes
+    -----
+    ``U`` is :func:`~ofrl_drake.cost.stage_cost_expression`'s: an input beyond
+    the bound is clipped to it, where :class:`~ofrl_drake.systems.RunningCost`
+    raises; either way the validity report flags ``|u_k| > lambda_bar``.
+    """
+
+    def __init__(self, Q: np.ndarray, r: np.ndarray, input_bound: float) -> None:
+        super().__init__()
+        self.Q = Q
+        self.r = r
+        self.input_bound = input_bound
+        Q_arr = nonnegative_matrix("SymbolicRunningCost: Q", Q)
+        r_arr = positive_vector("SymbolicRunningCost: r", r)
+        positive_number("SymbolicRunningCost: input_bound", input_bound)
+        n, m = Q_arr.shape[0], r_arr.size
+        J = MakeVectorVariable(1, "J")
+        x = MakeVectorVariable(n, "x")
+        u = MakeVectorVariable(m, "u")
+        rate = stage_cost_expression(x, u, Q_arr, r_arr, float(input_bound))
+        builder = DiagramBuilder()
+        integrand = builder.AddNamedSystem(
+            "stage_cost",
+            SymbolicVectorSystem(state=J, input=np.concatenate([x, u]), dynamics=[rate], output=J),
+        )
+        _export_stacked_input(builder, integrand, [("state", n), ("u", m)])
+        builder.ExportOutput(integrand.get_output_port(), "cost")
+        builder.BuildInto(self)
+
+    def get_state_input_port(self) -> InputPort:
+        """The true state x (size n)."""
+        return self.GetInputPort("state")
+
+    def get_u_input_port(self) -> InputPort:
+        """The applied input u (size m)."""
+        return self.GetInputPort("u")
+
+    def get_cost_output_port(self) -> OutputPort:
+        """The accumulated cost J (size 1)."""
+        return self.GetOutputPort("cost")
