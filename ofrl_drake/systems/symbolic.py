@@ -3,25 +3,30 @@
 When the model's ``f`` and ``g`` can be traced on ``pydrake.symbolic`` states
 (:meth:`~ofrl_drake.model.ControlAffineSystem.symbolic`), the three blocks
 that evaluate them, the critic's update law and the running cost are built
-from Drake's ``SymbolicVectorSystem``: their
-right-hand sides are expressions that Drake evaluates in C++, with no Python
-callback per derivative evaluation, and they convert to ``AutoDiffXd`` (for
-``Linearize``, for example). Each is a small ``Diagram`` with the ports of its
-slot, like :class:`~ofrl_drake.systems.DrakePlant`:
+from Drake's ``SymbolicVectorSystem``: their right-hand sides are
+expressions that Drake evaluates in C++, with no Python callback per
+derivative evaluation, and they convert to ``AutoDiffXd`` (for
+``Linearize``, for example). Each is a small ``Diagram`` with the ports of
+the Python block of its slot, like :class:`~ofrl_drake.systems.DrakePlant`:
 
 * a ``Multiplexer`` stacks a block's input ports into the one input of its
   ``SymbolicVectorSystem``;
 * a ``SymbolicVectorSystem`` has no way to set a default state, so the plant,
-  the observer and the critic integrate the offset ``z = x - x(0)`` from a zero default
-  and output ``z + x(0)``; their ports carry x itself, and ``set_state`` /
-  ``set_estimated_state`` write x into a context;
+  the observer and the critic integrate the offset ``z = x - x(0)`` from a
+  zero default and output ``z + x(0)``; their ports carry x itself, and
+  ``set_state``, ``set_estimated_state`` and ``set_weights`` write one into
+  a context;
 * Drake 1.51's ``SymbolicVectorSystem`` aborts when a continuous ``Diagram``
   asks a stateless one for its derivatives (``symbolic_vector_system.cc``:
   ``DRAKE_DEMAND(dynamics_.size() > 0)``), so the controller carries one
   state that stays at zero. The integrator's error estimate of it is zero.
 
-The math is the one of the Python blocks (:func:`~ofrl_drake.observer.observer_rhs_expression`,
-:func:`~ofrl_drake.policy.policy_expression`), tested against them.
+The math is the one of the Python blocks
+(:func:`~ofrl_drake.observer.observer_rhs_expression`,
+:func:`~ofrl_drake.policy.policy_expression`,
+:func:`~ofrl_drake.cost.stage_cost_expression`), tested against their
+compiled kernels. One difference: the running cost clips an input beyond the
+bound where :class:`~ofrl_drake.systems.RunningCost` raises.
 """
 
 from __future__ import annotations
