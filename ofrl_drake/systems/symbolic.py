@@ -69,14 +69,49 @@ def _initial(value: Sequence[float] | None, n: int, what: str) -> np.ndarray:
     return x0
 
 
-def _export_stacked_input(
-    builder: DiagramBuilder, system: SymbolicVectorSystem, inputs: Sequence[tuple[str, int]]
-) -> None:
-    """Export ``inputs`` (name, size) as ports stacked, in order, into ``system``'s input."""
-    mux = builder.AddNamedSystem("stack_inputs", Multiplexer([size for _, size in inputs]))
+def _offset_state(x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """State variables ``z`` of the offset from ``x0``, and ``x = z + x0`` in them."""
+    z = MakeVectorVariable(x0.size, "z")
+    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+        return z, z + x0
+
+
+def _set_offset_state(context: Context, value: Sequence[float], offset: np.ndarray) -> None:
+    """Write the state ``value`` as the offset ``value - offset`` the block integrates."""
+    context.SetContinuousState(np.asarray(value, dtype=float) - offset)
+
+
+def _add_symbolic_system(
+    builder: DiagramBuilder,
+    name: str,
+    inputs: Sequence[tuple[str, np.ndarray]],
+    *,
+    state: np.ndarray,
+    dynamics: Any,
+    output: Any,
+) -> SymbolicVectorSystem:
+    """Add a ``SymbolicVectorSystem`` and export its inputs as the named ports.
+
+    ``inputs`` is ``(port name, variables)`` in order; several ports are
+    stacked into the system's one input by a ``Multiplexer``.
+    """
+    system = builder.AddNamedSystem(
+        name,
+        SymbolicVectorSystem(
+            state=state,
+            input=np.concatenate([variables for _, variables in inputs]),
+            dynamics=dynamics,
+            output=output,
+        ),
+    )
+    if len(inputs) == 1:
+        builder.ExportInput(system.get_input_port(), inputs[0][0])
+        return system
+    mux = builder.AddNamedSystem("stack_inputs", Multiplexer([v.size for _, v in inputs]))
     builder.Connect(mux.get_output_port(), system.get_input_port())
-    for i, (name, _) in enumerate(inputs):
-        builder.ExportInput(mux.get_input_port(i), name)
+    for i, (port, _) in enumerate(inputs):
+        builder.ExportInput(mux.get_input_port(i), port)
+    return system
 
 
 class SymbolicPlant(Diagram):
@@ -116,21 +151,18 @@ class SymbolicPlant(Diagram):
         self.system = system
         self.initial_state = initial_state
         model = system.symbolic()
-        x0 = _initial(initial_state, system.n, f"{system.name}: initial_state")
-        self._offset = x0
-        z = MakeVectorVariable(system.n, "z")
+        self._offset = _initial(initial_state, system.n, f"{system.name}: initial_state")
+        z, x = _offset_state(self._offset)
         u = MakeVectorVariable(system.m, "u")
         with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
-            x = z + x0
             f, g = model.substitute(x)
             xdot = f + g @ u
         builder = DiagramBuilder()
-        dynamics = builder.AddNamedSystem(
-            "dynamics", SymbolicVectorSystem(state=z, input=u, dynamics=xdot, output=x)
+        dynamics = _add_symbolic_system(
+            builder, "dynamics", [("u", u)], state=z, dynamics=xdot, output=x
         )
         output = builder.AddNamedSystem("output_map", MatrixGain(system.output_matrix))
         builder.Connect(dynamics.get_output_port(), output.get_input_port())
-        builder.ExportInput(dynamics.get_input_port(), "u")
         builder.ExportOutput(output.get_output_port(), "y")
         builder.ExportOutput(dynamics.get_output_port(), "state")
         builder.BuildInto(self)
@@ -149,7 +181,7 @@ class SymbolicPlant(Diagram):
 
     def set_state(self, context: Context, x: Sequence[float]) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
-        context.SetContinuousState(np.asarray(x, dtype=float) - self._offset)
+        _set_offset_state(context, x, self._offset)
 
 
 class SymbolicObserver(Diagram):
@@ -200,20 +232,16 @@ class SymbolicObserver(Diagram):
         if design is not None:
             gains.check_design(design)
         model = system.symbolic()
-        xhat0 = _initial(initial_state, system.n, f"{system.name}: observer initial_state")
-        self._offset = xhat0
-        z = MakeVectorVariable(system.n, "z")
+        what = f"{system.name}: observer initial_state"
+        self._offset = _initial(initial_state, system.n, what)
+        z, xhat = _offset_state(self._offset)
         y = MakeVectorVariable(system.q, "y")
         u = MakeVectorVariable(system.m, "u")
-        with np.errstate(invalid="ignore"):
-            xhat = z + xhat0
         rhs = observer_rhs_expression(model, system.output_matrix, gains, xhat, y, u)
         builder = DiagramBuilder()
-        dynamics = builder.AddNamedSystem(
-            "dynamics",
-            SymbolicVectorSystem(state=z, input=np.concatenate([y, u]), dynamics=rhs, output=xhat),
+        dynamics = _add_symbolic_system(
+            builder, "dynamics", [("y", y), ("u", u)], state=z, dynamics=rhs, output=xhat
         )
-        _export_stacked_input(builder, dynamics, [("y", system.q), ("u", system.m)])
         builder.ExportOutput(dynamics.get_output_port(), "estimated_state")
         builder.BuildInto(self)
 
@@ -231,7 +259,7 @@ class SymbolicObserver(Diagram):
 
     def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        context.SetContinuousState(np.asarray(xhat, dtype=float) - self._offset)
+        _set_offset_state(context, xhat, self._offset)
 
     def observer_certificate(self) -> ObserverCertificate:
         """The design and its box, or nothing when built without a design."""
@@ -295,17 +323,14 @@ class SymbolicController(Diagram):
         u = policy_expression(basis, model.x, model.g, W, r_arr, float(input_bound))
         unused = MakeVectorVariable(1, "unused")
         builder = DiagramBuilder()
-        policy = builder.AddNamedSystem(
+        policy = _add_symbolic_system(
+            builder,
             "policy",
-            SymbolicVectorSystem(
-                state=unused,
-                input=np.concatenate([model.x, W]),
-                dynamics=[0.0 * unused[0]],
-                output=u,
-            ),
+            [("estimated_state", model.x), ("weights", W)],
+            state=unused,
+            dynamics=[0.0 * unused[0]],
+            output=u,
         )
-        inputs = [("estimated_state", system.n), ("weights", basis.size)]
-        _export_stacked_input(builder, policy, inputs)
         builder.ExportOutput(policy.get_output_port(), "u")
         builder.BuildInto(self)
 
@@ -359,23 +384,20 @@ class SymbolicCriticWeights(Diagram):
         positive_number("SymbolicCriticWeights: kc", kc, allow_zero=True)
         self._offset = W0
         size = W0.size
-        z = MakeVectorVariable(size, "z")
+        z, weights = _offset_state(W0)
         critic_sum = MakeVectorVariable(size, "critic_sum")
         gamma = MakeVectorVariable(size * size, "gamma")
         with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
             rate = -float(kc) * (gamma.reshape(size, size) @ critic_sum)
-            weights = z + W0
         builder = DiagramBuilder()
-        law = builder.AddNamedSystem(
+        law = _add_symbolic_system(
+            builder,
             "update_law",
-            SymbolicVectorSystem(
-                state=z,
-                input=np.concatenate([critic_sum, gamma]),
-                dynamics=rate,
-                output=weights,
-            ),
+            [("critic_sum", critic_sum), ("gamma", gamma)],
+            state=z,
+            dynamics=rate,
+            output=weights,
         )
-        _export_stacked_input(builder, law, [("critic_sum", size), ("gamma", size * size)])
         builder.ExportOutput(law.get_output_port(), "weights")
         builder.BuildInto(self)
 
@@ -393,7 +415,7 @@ class SymbolicCriticWeights(Diagram):
 
     def set_weights(self, context: Context, W: Sequence[float]) -> None:
         """Set the weights to ``W`` in ``context``, this block's own context."""
-        context.SetContinuousState(np.asarray(W, dtype=float) - self._offset)
+        _set_offset_state(context, W, self._offset)
 
 
 class SymbolicRunningCost(Diagram):
@@ -443,11 +465,9 @@ class SymbolicRunningCost(Diagram):
         u = MakeVectorVariable(m, "u")
         rate = stage_cost_expression(x, u, Q_arr, r_arr, float(input_bound))
         builder = DiagramBuilder()
-        integrand = builder.AddNamedSystem(
-            "stage_cost",
-            SymbolicVectorSystem(state=J, input=np.concatenate([x, u]), dynamics=[rate], output=J),
+        integrand = _add_symbolic_system(
+            builder, "stage_cost", [("state", x), ("u", u)], state=J, dynamics=[rate], output=J
         )
-        _export_stacked_input(builder, integrand, [("state", n), ("u", m)])
         builder.ExportOutput(integrand.get_output_port(), "cost")
         builder.BuildInto(self)
 
