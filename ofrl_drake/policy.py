@@ -13,14 +13,45 @@ one compiled call per evaluation. :func:`policy_expression` is the same law as
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
 from pydrake.symbolic import Expression, Jacobian, tanh
 
 from ofrl_drake.basis import PolynomialBasis, value_gradient_kernel
+from ofrl_drake.checks import positive_number, positive_vector
+from ofrl_drake.errors import ModelError
 
-__all__ = ["policy_expression", "policy_kernel", "policy_scale", "saturate", "saturated_policy"]
+__all__ = [
+    "check_policy_arguments",
+    "policy_expression",
+    "policy_kernel",
+    "policy_scale",
+    "saturate",
+    "saturated_policy",
+]
+
+
+def check_policy_arguments(
+    block: str, n: int, m: int, basis: PolynomialBasis, r: Any, input_bound: float
+) -> np.ndarray:
+    """Check a controller block's arguments; return ``r`` as a float array.
+
+    Raises
+    ------
+    ModelError
+        If ``basis`` is not for ``n`` states, ``r`` is not ``m`` positive
+        numbers, or ``input_bound <= 0``; the message starts with ``block``.
+    """
+    if basis.n != n:
+        raise ModelError(
+            f"{block}: the basis is for n = {basis.n} states but the "
+            f"system has n = {n}; build PolynomialBasis({n}, ...)."
+        )
+    r_arr = positive_vector(f"{block}: r", r, m)
+    positive_number(f"{block}: input_bound", input_bound)
+    return r_arr
 
 
 def policy_scale(r: np.ndarray, input_bound: float) -> np.ndarray:

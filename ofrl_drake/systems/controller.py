@@ -6,10 +6,8 @@ import numpy as np
 from pydrake.systems.framework import InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.checks import positive_number, positive_vector
-from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.policy import policy_kernel, policy_scale
+from ofrl_drake.policy import check_policy_arguments, policy_kernel, policy_scale
 
 __all__ = ["SaturatedController"]
 
@@ -56,13 +54,9 @@ class SaturatedController(LeafSystem):
         self.basis = basis
         self.r = r
         self.input_bound = input_bound
-        if basis.n != system.n:
-            raise ModelError(
-                f"SaturatedController: the basis is for n = {basis.n} states but the "
-                f"system has n = {system.n}; build PolynomialBasis({system.n}, ...)."
-            )
-        self._r = positive_vector("SaturatedController: r", r, system.m)
-        positive_number("SaturatedController: input_bound", input_bound)
+        self._r = check_policy_arguments(
+            "SaturatedController", system.n, system.m, basis, r, input_bound
+        )
         self._scale = policy_scale(self._r, input_bound)
         self._lbar = float(input_bound)
         self._tables = basis.gradient_tables

@@ -51,7 +51,7 @@ from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_expression
 from ofrl_drake.observer_certificate import ObserverCertificate
-from ofrl_drake.policy import policy_expression
+from ofrl_drake.policy import check_policy_arguments, policy_expression
 
 __all__ = [
     "SymbolicController",
@@ -311,13 +311,9 @@ class SymbolicController(Diagram):
         self.basis = basis
         self.r = r
         self.input_bound = input_bound
-        if basis.n != system.n:
-            raise ModelError(
-                f"SymbolicController: the basis is for n = {basis.n} states but the "
-                f"system has n = {system.n}; build PolynomialBasis({system.n}, ...)."
-            )
-        r_arr = positive_vector("SymbolicController: r", r, system.m)
-        positive_number("SymbolicController: input_bound", input_bound)
+        r_arr = check_policy_arguments(
+            "SymbolicController", system.n, system.m, basis, r, input_bound
+        )
         model = system.symbolic()
         W = MakeVectorVariable(basis.size, "W")
         u = policy_expression(basis, model.x, model.g, W, r_arr, float(input_bound))
