@@ -24,35 +24,9 @@ from ofrl_drake.systems import (
     SymbolicRunningCost,
     ThreeGainObserver,
 )
+from tests.block_helpers import ports, random_gains
 
 RTOL, ATOL = 1e-13, 1e-13
-
-
-def _ports(system):
-    ins = {
-        system.get_input_port(i).get_name(): system.get_input_port(i).size()
-        for i in range(system.num_input_ports())
-    }
-    outs = {
-        system.get_output_port(i).get_name(): system.get_output_port(i).size()
-        for i in range(system.num_output_ports())
-    }
-    return ins, outs
-
-
-def _gains(system, seed=0):
-    rng = np.random.default_rng(seed)
-    n, m, q = system.n, system.m, system.q
-    Mg1 = -rng.uniform(0, 2, (n, n, m))
-    return ObserverGains.from_arrays(
-        system,
-        L=rng.normal(size=(n, q)),
-        H=rng.normal(size=(n, q)),
-        K=rng.normal(size=(n, q)),
-        Mf1=rng.normal(size=(n, n)),
-        Mg1=Mg1,
-        Mg2=Mg1 + rng.uniform(0, 3, (n, n, m)),
-    )
 
 
 def _with_blocks(scenario, kind):
@@ -75,7 +49,7 @@ def test_ports_match_the_python_blocks(name):
     system = make_system(name)
     basis = PolynomialBasis(system.n)
     r, lbar = np.ones(system.m), 2.0
-    gains = _gains(system)
+    gains = random_gains(system)
     pairs = [
         (SymbolicPlant(system), ControlAffinePlant(system)),
         (SymbolicObserver(system, gains), ThreeGainObserver(system, gains)),
@@ -87,7 +61,7 @@ def test_ports_match_the_python_blocks(name):
         ),
     ]
     for symbolic, python in pairs:
-        assert _ports(symbolic) == _ports(python)
+        assert ports(symbolic) == ports(python)
 
 
 def test_default_state_is_the_initial_state():
@@ -99,7 +73,7 @@ def test_default_state_is_the_initial_state():
     np.testing.assert_allclose(
         plant.get_y_output_port().Eval(context), system.output_matrix @ x0, rtol=RTOL
     )
-    observer = SymbolicObserver(system, _gains(system), initial_state=-x0)
+    observer = SymbolicObserver(system, random_gains(system), initial_state=-x0)
     context = observer.CreateDefaultContext()
     np.testing.assert_array_equal(observer.get_estimated_state_output_port().Eval(context), -x0)
 
@@ -111,7 +85,7 @@ def test_set_state_writes_the_state_the_ports_read():
         context = plant.CreateDefaultContext()
         plant.set_state(context, x)
         np.testing.assert_allclose(plant.get_state_output_port().Eval(context), x, rtol=RTOL)
-    gains = _gains(system)
+    gains = random_gains(system)
     for observer in (
         SymbolicObserver(system, gains, initial_state=x0),
         ThreeGainObserver(system, gains, initial_state=x0),
@@ -138,7 +112,7 @@ def test_plant_derivative_matches_f_plus_g_u(name):
 @pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
 def test_observer_derivative_matches_the_compiled_kernel(name):
     system = make_system(name)
-    gains = _gains(system, seed=2)
+    gains = random_gains(system, seed=2)
     observer = SymbolicObserver(system, gains)
     rng = np.random.default_rng(3)
     for sign in (1.0, -1.0, 0.0):  # both sides of the input sector, and u = 0

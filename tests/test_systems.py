@@ -18,35 +18,9 @@ from ofrl_drake.systems import (
     SaturatedController,
     ThreeGainObserver,
 )
+from tests.block_helpers import ports, random_gains
 
 GRID = [np.array([a, b]) for a in (-1.5, -0.2, 0.0, 0.7, 1.9) for b in (-1.0, 0.3, 1.6)]
-
-
-def _ports(system):
-    ins = {
-        system.get_input_port(i).get_name(): system.get_input_port(i).size()
-        for i in range(system.num_input_ports())
-    }
-    outs = {
-        system.get_output_port(i).get_name(): system.get_output_port(i).size()
-        for i in range(system.num_output_ports())
-    }
-    return ins, outs
-
-
-def _gains(system, seed=0):
-    rng = np.random.default_rng(seed)
-    n, m, q = system.n, system.m, system.q
-    Mg1 = -rng.uniform(0, 2, (n, n, m))
-    return ObserverGains.from_arrays(
-        system,
-        L=rng.normal(size=(n, q)),
-        H=rng.normal(size=(n, q)),
-        K=rng.normal(size=(n, q)),
-        Mf1=rng.normal(size=(n, n)),
-        Mg1=Mg1,
-        Mg2=Mg1 + rng.uniform(0, 3, (n, n, m)),
-    )
 
 
 @pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
@@ -61,7 +35,11 @@ def test_block_structure(name):
     r = np.ones(m)
     cases = [
         (ControlAffinePlant(system), ({"u": m}, {"state": n, "y": q}), n),
-        (ThreeGainObserver(system, _gains(system)), ({"y": q, "u": m}, {"estimated_state": n}), n),
+        (
+            ThreeGainObserver(system, random_gains(system)),
+            ({"y": q, "u": m}, {"estimated_state": n}),
+            n,
+        ),
         (CriticWeights(np.zeros(L), 0.01), ({"critic_sum": L, "gamma": L * L}, {"weights": L}), L),
         (GammaGain(np.eye(L), 0.01, 0.2), ({"gain_sum": L * L}, {"gamma": L * L}), L * L),
         (
@@ -77,7 +55,7 @@ def test_block_structure(name):
         (RunningCost(np.eye(n), r, 3.0), ({"state": n, "u": m}, {"cost": 1}), 1),
     ]
     for block, (ins, outs), num_states in cases:
-        assert _ports(block) == (ins, outs), type(block).__name__
+        assert ports(block) == (ins, outs), type(block).__name__
         assert block.num_continuous_states() == num_states, type(block).__name__
 
 
@@ -87,14 +65,14 @@ def test_accessors_return_the_named_ports():
     assert plant.get_y_output_port().get_name() == "y"
     assert plant.get_state_output_port().get_name() == "state"
     assert plant.get_u_input_port().get_name() == "u"
-    obs = ThreeGainObserver(system, _gains(system))
+    obs = ThreeGainObserver(system, random_gains(system))
     assert obs.get_estimated_state_output_port().get_name() == "estimated_state"
     assert obs.get_y_input_port().get_name() == "y" and obs.get_u_input_port().get_name() == "u"
 
 
 def test_state_outputs_have_no_direct_feedthrough():
     system = make_system("two_state")
-    for block in (ControlAffinePlant(system), ThreeGainObserver(system, _gains(system))):
+    for block in (ControlAffinePlant(system), ThreeGainObserver(system, random_gains(system))):
         assert not any(
             block.HasDirectFeedthrough(i, j)
             for i in range(block.num_input_ports())
@@ -126,7 +104,7 @@ def test_plant_derivative_closed_form(x):
 def test_observer_derivative_closed_form(xhat, u):
     """The paper's form (eq:observerdynamics_x) with the sign-correct sector."""
     system = make_system("two_state")
-    gains = _gains(system, seed=4)
+    gains = random_gains(system, seed=4)
     y, uu = np.array([0.4]), np.array([u])
     C = system.output_matrix
     ytil = y - C @ xhat
@@ -251,7 +229,7 @@ MIMO_GRID = [
 def test_mimo_observer_derivative_closed_form(xhat, u):
     """m = 2 with mixed-sign inputs: the sector sums min/max per input."""
     system = make_system("coupled_two_state")
-    gains = _gains(system, seed=7)
+    gains = random_gains(system, seed=7)
     y = np.array([0.4, -0.2])
     ytil = y - system.output_matrix @ xhat
     Mug1 = sum(np.minimum(gains.Mg1[..., k] * u[k], gains.Mg2[..., k] * u[k]) for k in range(2))
