@@ -148,9 +148,20 @@ def _baseline(scenario: Scenario, design: Any, times: np.ndarray) -> Callable[[]
     return lambda: _solve_fused(scenario, design, times)
 
 
-def _ours_summary(timing: Timing, advance: list[float], result: Any, ref: Reference) -> dict:
+def _recording(run: Callable[[], Any], into: list[float]) -> Callable[[], Any]:
+    """``run`` (a ``simulate()`` call) that also appends each result's ``wall_time`` to ``into``."""
+
+    def recorded() -> Any:
+        result = run()
+        into.append(result.wall_time)
+        return result
+
+    return recorded
+
+
+def _run_summary(timing: Timing, advance: list[float], result: Any) -> dict:
+    """Times, evaluations and steps of repeated ``simulate()`` runs."""
     stats = result.integrator
-    final, worst = ref.errors(result.t, result.W)
     evals = stats["num_derivative_evaluations"]
     advance_timing = Timing(tuple(advance))
     return {
@@ -162,9 +173,12 @@ def _ours_summary(timing: Timing, advance: list[float], result: Any, ref: Refere
         "num_log_samples": int(result.t.size),
         "integrator": stats["scheme"],
         "accuracy": stats["accuracy"],
-        "W_final_error": final,
-        "W_max_error": worst,
     }
+
+
+def _ours_summary(timing: Timing, advance: list[float], result: Any, ref: Reference) -> dict:
+    final, worst = ref.errors(result.t, result.W)
+    return {**_run_summary(timing, advance, result), "W_final_error": final, "W_max_error": worst}
 
 
 def _baseline_summary(timing: Timing, run: Any, ref: Reference, steps: int) -> dict:
@@ -195,14 +209,7 @@ def _compare(scenario: Scenario, repeats: int, *, baseline: bool = True) -> dict
     design = _design(scenario)
     ref = reference(scenario, design)
     advance: list[float] = []
-    ours = _ours(scenario)
-
-    def ours_recorded() -> Any:
-        result = ours()
-        advance.append(result.wall_time)
-        return result
-
-    fns: dict[str, Callable[[], Any]] = {"ours": ours_recorded}
+    fns: dict[str, Callable[[], Any]] = {"ours": _recording(_ours(scenario), advance)}
     if baseline:
         fns["baseline"] = _baseline(scenario, design, ref.times)
     timings, results = interleaved(fns, repeats)
@@ -367,15 +374,8 @@ def block_kinds(scenarios: list[Scenario], settings: Settings) -> list[dict]:
             case = dataclasses.replace(
                 scenario, simulation=dataclasses.replace(scenario.simulation, blocks=kind)
             )
-
-            def run(
-                case: Scenario = case, into: list[float] = advance[kind], design: Any = design
-            ) -> Any:
-                result = simulate(case, design=design, progress=False)
-                into.append(result.wall_time)
-                return result
-
-            fns[kind] = run
+            run = functools.partial(simulate, case, design=design, progress=False)
+            fns[kind] = _recording(run, advance[kind])
         timings, results = interleaved(fns, settings.repeats)
         row: dict[str, Any] = {
             "scenario": scenario.name,
@@ -383,16 +383,7 @@ def block_kinds(scenarios: list[Scenario], settings: Settings) -> list[dict]:
             "design_seconds": design_timing.median,
         }
         for kind, timing in timings.items():
-            stats = results[kind].integrator
-            evals = stats["num_derivative_evaluations"]
-            advance_timing = Timing(tuple(advance[kind][-settings.repeats :]))
-            row[kind] = {
-                **timing.to_dict(),
-                "advance": advance_timing.to_dict(),
-                "num_derivative_evaluations": evals,
-                "num_steps": stats["num_steps"],
-                "us_per_evaluation": 1e6 * advance_timing.median / evals,
-            }
+            row[kind] = _run_summary(timing, advance[kind][-settings.repeats :], results[kind])
         row["python_over_symbolic"] = timings["python"].median / timings["symbolic"].median
         rows.append(row)
     return rows
@@ -406,14 +397,7 @@ def integrators(scenario: Scenario, settings: Settings) -> list[dict]:
     for scheme, accuracy in settings.integrator_cases:
         case = with_integrator(scenario, scheme, accuracy, settings.integrator_log_period)
         advance: list[float] = []
-        ours = _ours(case)
-
-        def run(ours: Callable[[], Any] = ours, advance: list[float] = advance) -> Any:
-            result = ours()
-            advance.append(result.wall_time)
-            return result
-
-        timing, result = measure(run, settings.repeats)
+        timing, result = measure(_recording(_ours(case), advance), settings.repeats)
         row = {
             "integrator": scheme,
             "accuracy": accuracy,
