@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from numba import njit
+from pydrake.symbolic import Expression
 
 from ofrl_drake.errors import ModelError
 
@@ -163,6 +164,17 @@ class PolynomialBasis:
             return (x**self._powers).prod(axis=1)
         # (L, n, N) powers, product over the state axis.
         return (x[None, :, :] ** self._powers[:, :, None]).prod(axis=1)
+
+    def expressions(self, x: np.ndarray) -> np.ndarray:
+        """``sigma(x)`` as ``pydrake.symbolic`` expressions of the variables ``x`` (n,)."""
+        monomials = []
+        for e in self.exponents:
+            monomial = Expression(1.0)
+            for j in range(self.n):
+                if e[j]:
+                    monomial = monomial * x[j] ** int(e[j])
+            monomials.append(monomial)
+        return np.array(monomials, dtype=object)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """``d sigma / d x``: shape ``(L, n)`` for one point, ``(L, n, N)`` for a batch.

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 from numba import njit
-from pydrake.symbolic import Expression, Jacobian, tanh
+from pydrake.symbolic import Jacobian, tanh
 
 from ofrl_drake.basis import PolynomialBasis, value_gradient_kernel
 from ofrl_drake.checks import positive_number, positive_vector
@@ -157,12 +157,7 @@ def policy_expression(
     ndarray of Expression, shape (m,)
         ``grad sigma`` is Drake's exact symbolic Jacobian of the monomials.
     """
-    monomials = [Expression(1.0) for _ in basis.exponents]
-    for l, e in enumerate(basis.exponents):
-        for j in range(basis.n):
-            if e[j]:
-                monomials[l] = monomials[l] * x[j] ** int(e[j])
-    grad_sigma = Jacobian(np.array(monomials), x)  # (L, n)
+    grad_sigma = Jacobian(basis.expressions(x), x)  # (L, n)
     with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
         grad_V = np.asarray(W) @ grad_sigma
         D = policy_scale(r, input_bound) * (np.asarray(g).T @ grad_V)

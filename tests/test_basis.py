@@ -80,3 +80,13 @@ def test_value_gradient_is_gradient_transposed_times_weights(n, degrees):
     np.testing.assert_allclose(basis.value_gradient(x, W), basis.gradient(x).T @ W, rtol=1e-13)
     out = np.empty(n)
     assert basis.value_gradient(x, W, out=out) is out
+
+
+def test_symbolic_monomials_equal_the_numeric_basis():
+    from pydrake.symbolic import Evaluate, MakeVectorVariable
+
+    basis = PolynomialBasis(3, (2, 4))
+    x = MakeVectorVariable(3, "x")
+    point = np.array([0.7, -1.3, 0.4])
+    values = Evaluate(basis.expressions(x).reshape(-1, 1), dict(zip(x, point))).ravel()
+    np.testing.assert_allclose(values, basis(point), rtol=1e-15, atol=0)
