@@ -88,5 +88,5 @@ def test_symbolic_monomials_equal_the_numeric_basis():
     basis = PolynomialBasis(3, (2, 4))
     x = MakeVectorVariable(3, "x")
     point = np.array([0.7, -1.3, 0.4])
-    values = Evaluate(basis.expressions(x).reshape(-1, 1), dict(zip(x, point))).ravel()
+    values = Evaluate(basis.expressions(x).reshape(-1, 1), dict(zip(x, point, strict=True))).ravel()
     np.testing.assert_allclose(values, basis(point), rtol=1e-15, atol=0)
