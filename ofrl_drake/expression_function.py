@@ -31,17 +31,9 @@ from pydrake.autodiffutils import AutoDiffXd
 from pydrake.symbolic import Expression, Jacobian, Variable
 
 from ofrl_drake.errors import ModelError
-from ofrl_drake.interval import ExpressionEvaluator
+from ofrl_drake.interval import ExpressionEvaluator, as_expression
 
 __all__ = ["ExpressionFunction"]
-
-
-def _as_expression(e: Any) -> Expression:
-    if isinstance(e, Expression):
-        return e
-    if isinstance(e, Variable):
-        return Expression(e)
-    return Expression(float(e))
 
 
 class ExpressionFunction:
@@ -69,7 +61,7 @@ class ExpressionFunction:
 
     def __init__(self, expressions: Any, variables: Sequence[Variable]) -> None:
         exprs = np.asarray(expressions, dtype=object)
-        self.expressions = np.vectorize(_as_expression, otypes=[object])(exprs).reshape(exprs.shape)
+        self.expressions = np.vectorize(as_expression, otypes=[object])(exprs).reshape(exprs.shape)
         self.variables = tuple(variables)
         self._evaluator = ExpressionEvaluator(self.expressions, self.variables)
         self._jacobian: ExpressionEvaluator | None = None
@@ -91,7 +83,7 @@ class ExpressionFunction:
             return self._evaluator(arr.astype(float))
         first = arr.flat[0]
         if arr.ndim == 1 and isinstance(first, Expression | Variable):
-            subst = {v: _as_expression(e) for v, e in zip(self.variables, arr, strict=True)}
+            subst = {v: as_expression(e) for v, e in zip(self.variables, arr, strict=True)}
             flat = self.expressions.ravel()
             out = np.array([e.Substitute(subst) for e in flat], dtype=object)
             return out.reshape(self.shape)

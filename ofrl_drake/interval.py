@@ -97,6 +97,7 @@ __all__ = [
     "Interval",
     "IntervalDomainError",
     "UnsupportedExpressionError",
+    "as_expression",
     "evaluate",
     "evaluate_interval",
 ]
@@ -514,6 +515,15 @@ class _Node:
     hi: float = 0.0
 
 
+def as_expression(e: Any) -> Expression:
+    """``e`` as a Drake ``Expression``: an expression as it is, a variable or a number wrapped."""
+    if isinstance(e, Expression):
+        return e
+    if isinstance(e, Variable):
+        return Expression(e)
+    return Expression(float(e))
+
+
 class ExpressionEvaluator:
     """Evaluate an array of symbolic expressions at many points or boxes at once.
 
@@ -554,7 +564,7 @@ class ExpressionEvaluator:
         self._var_index = {v.get_id(): i for i, v in enumerate(self.variables)}
         self._nodes: list[_Node] = []
         self._memo: dict[str, list[tuple[Expression, int]]] = {}
-        self._outputs = [self._add(self._as_expression(e)) for e in exprs.ravel()]
+        self._outputs = [self._add(as_expression(e)) for e in exprs.ravel()]
         self._kinds = {node.kind for node in self._nodes}
         self._uses: list[frozenset[int]] = []
         for node in self._nodes:
@@ -567,14 +577,6 @@ class ExpressionEvaluator:
                 self._uses.append(used)
 
     # ---------------------------------------------------------------- building
-    @staticmethod
-    def _as_expression(e: Any) -> Expression:
-        if isinstance(e, Expression):
-            return e
-        if isinstance(e, Variable):
-            return Expression(e)
-        return Expression(float(e))
-
     def _add(self, e: Expression) -> int:
         key = e.to_string()
         for other, index in self._memo.get(key, []):
@@ -601,9 +603,9 @@ class ExpressionEvaluator:
             value = float(self._var_index[var.get_id()])
         elif kind in ("Add", "Mul"):
             value = float(raw_args[0])
-            args = [self._add(self._as_expression(a)) for a in raw_args[1:]]
+            args = [self._add(as_expression(a)) for a in raw_args[1:]]
         else:
-            args = [self._add(self._as_expression(a)) for a in raw_args]
+            args = [self._add(as_expression(a)) for a in raw_args]
         index = len(self._nodes)
         c_lo, c_hi = (value, value) if kind == "Var" else _constant_interval(value)
         self._nodes.append(_Node(kind, tuple(args), value, key, c_lo, c_hi))

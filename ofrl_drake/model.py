@@ -20,9 +20,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from pydrake.symbolic import Expression, MakeVectorVariable, Variable
+from pydrake.symbolic import Expression, MakeVectorVariable
 
 from ofrl_drake.errors import ModelError
+from ofrl_drake.interval import as_expression
 
 __all__ = ["ControlAffineSystem", "ShiftedSystem", "SymbolicDynamics"]
 
@@ -44,12 +45,7 @@ def _to_expressions(values: Any, shape: tuple[int, ...], what: str) -> np.ndarra
         raise ModelError(f"{what} returned shape {arr.shape} on symbolic input; expected {shape}.")
     out = np.empty(shape, dtype=object)
     for idx, v in np.ndenumerate(arr):
-        if isinstance(v, Expression):
-            out[idx] = v
-        elif isinstance(v, Variable):
-            out[idx] = Expression(v)
-        else:
-            out[idx] = Expression(float(v))
+        out[idx] = as_expression(v)
     return out
 
 
