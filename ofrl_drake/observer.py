@@ -228,29 +228,18 @@ def observer_rhs_expression(
         product with K is an ``if_then_else`` on the sign of each ``u_k``, as in
         :func:`correction_kernel`.
     """
-    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
-        return _observer_rhs_expression(model, C, gains, xhat, y, u)
-
-
-def _observer_rhs_expression(
-    model: SymbolicDynamics,
-    C: np.ndarray,
-    gains: ObserverGains,
-    xhat: np.ndarray,
-    y: np.ndarray,
-    u: np.ndarray,
-) -> np.ndarray:
     n, m = len(xhat), len(u)
-    # The row blocks of ObserverGains.stacked: H, K, L - M_f1 H, lower (m), upper (m).
-    v = gains.stacked @ (np.asarray(y) - np.asarray(C) @ np.asarray(xhat))
-    f, _ = model.substitute(xhat + v[:n])
-    _, g = model.substitute(xhat + v[n : 2 * n])
-    rhs = f + g @ np.asarray(u) + v[2 * n : 3 * n]
-    for k in range(m):
-        lower = v[(3 + k) * n : (4 + k) * n]
-        upper = v[(3 + m + k) * n : (4 + m + k) * n]
-        sector = [if_then_else(u[k] >= 0.0, lower[j], upper[j]) for j in range(n)]
-        rhs = rhs - u[k] * np.array(sector, dtype=object)
+    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
+        # The row blocks of ObserverGains.stacked: H, K, L - M_f1 H, lower (m), upper (m).
+        v = gains.stacked @ (np.asarray(y) - np.asarray(C) @ np.asarray(xhat))
+        f, _ = model.substitute(xhat + v[:n])
+        _, g = model.substitute(xhat + v[n : 2 * n])
+        rhs = f + g @ np.asarray(u) + v[2 * n : 3 * n]
+        for k in range(m):
+            lower = v[(3 + k) * n : (4 + k) * n]
+            upper = v[(3 + m + k) * n : (4 + m + k) * n]
+            sector = [if_then_else(u[k] >= 0.0, lower[j], upper[j]) for j in range(n)]
+            rhs = rhs - u[k] * np.array(sector, dtype=object)
     return rhs
 
 
