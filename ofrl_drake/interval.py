@@ -178,11 +178,13 @@ class Interval:
 
     def __add__(self, other: Interval | float) -> Interval:
         """Outward-rounded sum."""
-        return _i_add(self, _as_interval(other))
+        with np.errstate(all="ignore"):  # see "Floating-point flags" below
+            return _i_add(self, _as_interval(other))
 
     def __mul__(self, other: Interval | float) -> Interval:
         """Outward-rounded product."""
-        return _i_mul(self, _as_interval(other))
+        with np.errstate(all="ignore"):
+            return _i_mul(self, _as_interval(other))
 
     __radd__ = __add__
     __rmul__ = __mul__
@@ -196,6 +198,12 @@ def _as_interval(v: Interval | float) -> Interval:
 
 
 # --------------------------------------------------------------------- rounding
+# Floating-point flags: overflow to inf, inf - inf and 0 * inf are expected in
+# the kernels below and handled where they arise, so numpy's warnings (or a
+# user's ``np.seterr(all="raise")``) must not fire. The two entry points,
+# ``ExpressionEvaluator.interval`` and the ``Interval`` operators, set
+# ``np.errstate(all="ignore")`` once around the whole computation; the kernels
+# assume it (one context per call, not one per array operation).
 def _ulp(x: np.ndarray) -> np.ndarray:
     """The gap from finite ``x`` to the next double away from zero (``2**971`` at the top)."""
     return np.minimum(np.abs(np.spacing(x)), _MAX_ULP)
@@ -209,21 +217,19 @@ def _down(x: np.ndarray, ulps: int) -> np.ndarray:
     wrong); -inf stays; a NaN, which the kernels never produce, would become -inf.
     """
     x = np.asarray(x, dtype=float)
-    with np.errstate(invalid="ignore", over="ignore"):
-        if np.isfinite(x).all():  # the common case, without the special values
-            return x - ulps * _ulp(x)
-        x = np.where(x == np.inf, _MAX, np.where(np.isnan(x), -np.inf, x))
-        return np.where(np.isfinite(x), x - ulps * _ulp(x), x)
+    if np.isfinite(x).all():  # the common case, without the special values
+        return x - ulps * _ulp(x)
+    x = np.where(x == np.inf, _MAX, np.where(np.isnan(x), -np.inf, x))
+    return np.where(np.isfinite(x), x - ulps * _ulp(x), x)
 
 
 def _up(x: np.ndarray, ulps: int) -> np.ndarray:
     """Round a computed upper end up (the mirror image of :func:`_down`)."""
     x = np.asarray(x, dtype=float)
-    with np.errstate(invalid="ignore", over="ignore"):
-        if np.isfinite(x).all():
-            return x + ulps * _ulp(x)
-        x = np.where(x == -np.inf, -_MAX, np.where(np.isnan(x), np.inf, x))
-        return np.where(np.isfinite(x), x + ulps * _ulp(x), x)
+    if np.isfinite(x).all():
+        return x + ulps * _ulp(x)
+    x = np.where(x == -np.inf, -_MAX, np.where(np.isnan(x), np.inf, x))
+    return np.where(np.isfinite(x), x + ulps * _ulp(x), x)
 
 
 def _is_exact_constant(c: float) -> bool:
@@ -245,9 +251,8 @@ def _constant_interval(c: float) -> tuple[float, float]:
 # ------------------------------------------------------------ interval kernels
 def _i_add(a: Interval, b: Interval) -> Interval:
     # Ends are never +inf (lower) or -inf (upper), so inf - inf cannot occur.
-    with np.errstate(over="ignore"):
-        lo = a.lo + b.lo
-        hi = a.hi + b.hi
+    lo = a.lo + b.lo
+    hi = a.hi + b.hi
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
 
@@ -259,15 +264,13 @@ def _i_scale(c_lo: float, c_hi: float, a: Interval) -> Interval:
     if c_lo != c_hi or not np.isfinite(c_lo):
         return _i_mul(Interval(np.asarray(c_lo), np.asarray(c_hi)), a)
     c = c_lo
-    with np.errstate(over="ignore"):
-        lo, hi = (c * a.lo, c * a.hi) if c > 0 else (c * a.hi, c * a.lo)
+    lo, hi = (c * a.lo, c * a.hi) if c > 0 else (c * a.hi, c * a.lo)
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
 
 def _i_mul(a: Interval, b: Interval) -> Interval:
-    with np.errstate(invalid="ignore", over="ignore"):
-        # 0 * inf is 0 for sets (IEEE 1788), not NaN.
-        p = [_nan_to(x * y, 0.0) for x in (a.lo, a.hi) for y in (b.lo, b.hi)]
+    # 0 * inf is 0 for sets (IEEE 1788), not NaN.
+    p = [_nan_to(x * y, 0.0) for x in (a.lo, a.hi) for y in (b.lo, b.hi)]
     lo = np.minimum(np.minimum(p[0], p[1]), np.minimum(p[2], p[3]))
     hi = np.maximum(np.maximum(p[0], p[1]), np.maximum(p[2], p[3]))
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
@@ -289,18 +292,17 @@ def _i_div(a: Interval, b: Interval) -> Interval:
         *(np.asarray(v, dtype=float) for v in (a.lo, a.hi, b.lo, b.hi))
     )
     a_ge0, a_le0 = alo >= 0, ahi <= 0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
-        # b > 0
-        pos_lo = np.where(a_ge0, alo / bhi, alo / blo)
-        pos_hi = np.where(ahi >= 0, ahi / blo, ahi / bhi)
-        # b < 0
-        neg_lo = np.where(ahi >= 0, ahi / bhi, ahi / blo)
-        neg_hi = np.where(a_ge0, alo / blo, alo / bhi)
-        # b = [0, bhi] with bhi > 0, and b = [blo, 0] with blo < 0
-        zp_lo = np.where(a_ge0, alo / bhi, -np.inf)
-        zp_hi = np.where(a_le0, ahi / bhi, np.inf)
-        zn_lo = np.where(a_le0, ahi / blo, -np.inf)
-        zn_hi = np.where(a_ge0, alo / blo, np.inf)
+    # b > 0
+    pos_lo = np.where(a_ge0, alo / bhi, alo / blo)
+    pos_hi = np.where(ahi >= 0, ahi / blo, ahi / bhi)
+    # b < 0
+    neg_lo = np.where(ahi >= 0, ahi / bhi, ahi / blo)
+    neg_hi = np.where(a_ge0, alo / blo, alo / bhi)
+    # b = [0, bhi] with bhi > 0, and b = [blo, 0] with blo < 0
+    zp_lo = np.where(a_ge0, alo / bhi, -np.inf)
+    zp_hi = np.where(a_le0, ahi / bhi, np.inf)
+    zn_lo = np.where(a_le0, ahi / blo, -np.inf)
+    zn_hi = np.where(a_ge0, alo / blo, np.inf)
     b_pos, b_neg = blo > 0, bhi < 0
     b_zp = (blo == 0) & (bhi > 0)
     b_zn = (bhi == 0) & (blo < 0)
@@ -311,8 +313,7 @@ def _i_div(a: Interval, b: Interval) -> Interval:
 
 
 def _i_monotone(fn: Any, a: Interval, increasing: bool = True) -> Interval:
-    with np.errstate(over="ignore", invalid="ignore"):
-        f_lo, f_hi = fn(a.lo), fn(a.hi)
+    f_lo, f_hi = fn(a.lo), fn(a.hi)
     if not increasing:
         f_lo, f_hi = f_hi, f_lo
     return Interval(_down(f_lo, _ULP_LIBM), _up(f_hi, _ULP_LIBM))
@@ -320,8 +321,7 @@ def _i_monotone(fn: Any, a: Interval, increasing: bool = True) -> Interval:
 
 def _i_cosh(a: Interval) -> Interval:
     """``cosh``: even, increasing on ``[0, inf)``, at least 1."""
-    with np.errstate(over="ignore"):
-        f_lo, f_hi = np.cosh(a.lo), np.cosh(a.hi)
+    f_lo, f_hi = np.cosh(a.lo), np.cosh(a.hi)
     straddles = (a.lo < 0) & (a.hi > 0)
     lo = np.where(straddles, 1.0, _down(np.minimum(f_lo, f_hi), _ULP_LIBM))
     hi = _up(np.maximum(f_lo, f_hi), _ULP_LIBM)
@@ -420,9 +420,8 @@ def _i_pow_int(a: Interval, k: Any) -> Interval:
     lo, hi, kk = np.broadcast_arrays(
         np.asarray(a.lo, dtype=float), np.asarray(a.hi, dtype=float), np.asarray(k, dtype=float)
     )
-    with np.errstate(all="ignore"):
-        p_lo = np.power(lo, kk)
-        p_hi = np.power(hi, kk)
+    p_lo = np.power(lo, kk)
+    p_hi = np.power(hi, kk)
     odd = np.fmod(kk, 2.0) != 0
     k_pos, k_neg = kk > 0, kk < 0
     straddles = (lo < 0) & (hi > 0)
@@ -449,8 +448,7 @@ def _corner_powers(x1, x2, y1, y2) -> tuple[np.ndarray, np.ndarray]:
     in ``y`` for fixed ``x`` (in directions that may depend on the other), so
     its extremes over the rectangle are at corners.
     """
-    with np.errstate(all="ignore"):
-        c = [np.power(x, y) for x in (x1, x2) for y in (y1, y2)]
+    c = [np.power(x, y) for x in (x1, x2) for y in (y1, y2)]
     lo = np.minimum(np.minimum(c[0], c[1]), np.minimum(c[2], c[3]))
     hi = np.maximum(np.maximum(c[0], c[1]), np.maximum(c[2], c[3]))
     return lo, hi
@@ -500,8 +498,7 @@ def _i_pow(base: Interval, exponent: Interval, expr: str) -> Interval:
 
 def _i_log(a: Interval, expr: str) -> Interval:
     d = _restrict(a, 0.0, np.inf, "log", expr)
-    with np.errstate(divide="ignore"):
-        return _i_monotone(np.log, d)
+    return _i_monotone(np.log, d)
 
 
 # ------------------------------------------------------------------- the nodes
@@ -617,6 +614,11 @@ class ExpressionEvaluator:
         """For each expression (flattened), the indices of the variables it uses."""
         return [tuple(sorted(self._uses[i])) for i in self._outputs]
 
+    @property
+    def supports_intervals(self) -> bool:
+        """Whether :meth:`interval` can enclose every expression (no ``Atan2``)."""
+        return not self._kinds - _INTERVAL_KINDS
+
     def is_constant(self) -> np.ndarray:
         """Boolean array of shape ``S``: which expressions use no variable."""
         flags = [not self._uses[i] for i in self._outputs]
@@ -725,9 +727,8 @@ class ExpressionEvaluator:
             If the boxes have the wrong shape, ``lower > upper``, a NaN corner,
             or contain no real point (``lower = +inf`` or ``upper = -inf``).
         """
-        unsupported = self._kinds - _INTERVAL_KINDS
-        if unsupported:
-            node = next(n for n in self._nodes if n.kind in unsupported)
+        if not self.supports_intervals:
+            node = next(n for n in self._nodes if n.kind not in _INTERVAL_KINDS)
             raise UnsupportedExpressionError(
                 f"interval arithmetic does not support {node.kind} (in expression "
                 f"{node.text}); supported: {', '.join(sorted(_INTERVAL_KINDS))}. "
@@ -755,8 +756,9 @@ class ExpressionEvaluator:
             )
         B = lo2.shape[1]
         vals: list[Interval] = []
-        for node in self._nodes:
-            vals.append(self._interval(node, vals, lo2, hi2))
+        with np.errstate(all="ignore"):  # see "Floating-point flags" above the kernels
+            for node in self._nodes:
+                vals.append(self._interval(node, vals, lo2, hi2))
         out_lo = np.stack([np.broadcast_to(vals[i].lo, (B,)) for i in self._outputs])
         out_hi = np.stack([np.broadcast_to(vals[i].hi, (B,)) for i in self._outputs])
         out_lo = out_lo.reshape((*self.shape, B))

@@ -478,37 +478,45 @@ def _sampled_range(
 
 # ---------------------------------------------------------- branch and bound
 class _EntryEncloser:
-    """Interval enclosure of one Jacobian entry over many boxes at once."""
+    """Interval enclosure of one Jacobian entry over many boxes at once.
+
+    The entry and its gradient are one evaluator, and the box centres are
+    enclosed as degenerate boxes beside the boxes, so one enclosure is one walk
+    of the expression tree (shared subexpressions evaluated once).
+    """
 
     def __init__(self, expr: Expression, x: np.ndarray) -> None:
         self.value = ExpressionEvaluator([expr], x)
         self.used = list(self.value.variables_used()[0])
-        self.gradient: ExpressionEvaluator | None = None
+        self.with_gradient: ExpressionEvaluator | None = None
         if self.used:
             try:
                 grad = Jacobian(np.array([expr]), x[self.used])[0]
-                gradient = ExpressionEvaluator(grad, x)
-                gradient.interval(np.zeros(len(x)), np.ones(len(x)))
-            except (UnsupportedExpressionError, IntervalDomainError, RuntimeError):
-                gradient = None  # fall back to the natural extension only
-            self.gradient = gradient
+                both = ExpressionEvaluator([expr, *grad], x)
+            except (UnsupportedExpressionError, RuntimeError):
+                both = None  # the natural extension only
+            if both is not None and both.supports_intervals:
+                self.with_gradient = both
+
+    def _natural(self, lo: np.ndarray, hi: np.ndarray) -> Interval:
+        natural = self.value.interval(lo, hi)
+        return Interval(natural.lo[0], natural.hi[0])
 
     def enclose(self, lo: np.ndarray, hi: np.ndarray) -> Interval:
-        natural = self.value.interval(lo, hi)
-        out_lo, out_hi = natural.lo[0], natural.hi[0]
-        if self.gradient is None:
-            return Interval(out_lo, out_hi)
+        """The natural extension intersected with the mean-value form ``h(c) + grad h(X) (X - c)``."""
+        if self.with_gradient is None:
+            return self._natural(lo, hi)
+        B = lo.shape[1]
         c = 0.5 * (lo + hi)
         try:
-            grad = self.gradient.interval(lo, hi)
-        except IntervalDomainError:
-            return Interval(out_lo, out_hi)
-        at_c = self.value.interval(c, c)
-        total = Interval(at_c.lo[0], at_c.hi[0])
+            both = self.with_gradient.interval(np.hstack([lo, c]), np.hstack([hi, c]))
+        except IntervalDomainError:  # the gradient (or h at a centre) is undefined somewhere
+            return self._natural(lo, hi)
+        total = Interval(both.lo[0, B:], both.hi[0, B:])  # h(c), enclosed
         for r, j in enumerate(self.used):
             step = Interval(np.nextafter(lo[j] - c[j], -np.inf), np.nextafter(hi[j] - c[j], np.inf))
-            total = total + Interval(grad.lo[r], grad.hi[r]) * step
-        return Interval(np.maximum(out_lo, total.lo), np.minimum(out_hi, total.hi))
+            total = total + Interval(both.lo[1 + r, :B], both.hi[1 + r, :B]) * step
+        return Interval(np.maximum(both.lo[0, :B], total.lo), np.minimum(both.hi[0, :B], total.hi))
 
 
 def _certify_entry(
