@@ -598,7 +598,7 @@ def _certify_entry(
         n_active = int(active.sum())
         if not n_active:
             return settled_lo, settled_hi, True
-        children = 2 ** used.size if n_active * 2 ** used.size <= _BATCH else 2
+        children = 2**used.size if n_active * 2**used.size <= _BATCH else 2
         if evaluated + children * n_active > max_boxes:
             settled_lo = min(settled_lo, float(enc.lo[active].min()))
             settled_hi = max(settled_hi, float(enc.hi[active].max()))
