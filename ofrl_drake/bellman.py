@@ -322,6 +322,25 @@ class Extrapolator:
         """
         self._run(W, self._scratch, critic_sum, gain_sum)
 
+    def learning_conditions(self, weights: np.ndarray) -> np.ndarray:
+        """:func:`learning_condition` for each row of ``weights`` (T, L), in one compiled call."""
+        Ws = np.ascontiguousarray(weights, dtype=float)
+        L = self._shape[1]
+        if Ws.ndim != 2 or Ws.shape[1] != L:
+            raise ModelError(f"weights must have shape (T, {L}); got {Ws.shape}.")
+        out = np.empty(Ws.shape[0])
+        _learning_conditions(
+            Ws,
+            self._data,
+            self._shape[0],
+            self._weight,
+            self.input_bound,
+            self.nu,
+            np.empty_like(self._scratch),
+            out,
+        )
+        return out
+
     def sums(self, W: np.ndarray) -> BellmanSums:
         """Only the two sums for critic weights ``W`` (shape ``(L,)``): what the loop needs."""
         out = self.empty_sums()
@@ -377,6 +396,28 @@ def extrapolate(
 @njit(cache=True)
 def _min_eigenvalue(S: np.ndarray) -> float:
     return np.linalg.eigvalsh(S)[0]
+
+
+@njit(cache=True)
+def _learning_conditions(
+    Ws: np.ndarray,
+    data: np.ndarray,
+    num_inputs: int,
+    weight: np.ndarray,
+    input_bound: float,
+    nu: float,
+    per_point: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """``out[t] = lambda_min(gain_sum(Ws[t]))``, arguments as for :func:`bellman_kernel`."""
+    L = Ws.shape[1]
+    critic_sum = np.empty(L)
+    gain_sum = np.empty((L, L))
+    for t in range(Ws.shape[0]):
+        bellman_kernel(
+            Ws[t], data, num_inputs, weight, input_bound, nu, per_point, critic_sum, gain_sum
+        )
+        out[t] = _min_eigenvalue(gain_sum)
 
 
 def learning_condition(gain_sum: np.ndarray) -> float:

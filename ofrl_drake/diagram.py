@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pydrake.systems.framework import Diagram, DiagramBuilder, System
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 
 from ofrl_drake.basis import PolynomialBasis
@@ -136,6 +136,23 @@ class ClosedLoop:
     def design(self) -> Any:
         """The ``ObserverDesign`` used by the observer (None if not designed)."""
         return self.parts.design
+
+    def logs(self, root_context: Context) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The sample times ``(T,)`` and every log ``(T, size)`` in ``root_context``.
+
+        One key per logger, plus the keys of :data:`LOGGED` that a block
+        computes from the other logs after the run (see :func:`_after_run`).
+        """
+        logs = {}
+        t = np.empty(0)
+        for key, logger in self.loggers.items():
+            log = logger.FindLog(root_context)
+            t = np.asarray(log.sample_times())
+            logs[key] = log.data().T.copy()
+        if "learning_condition" not in logs:
+            condition = self.blocks["bellman"].learning_condition_of(logs["W"])
+            logs["learning_condition"] = condition[:, None]
+        return t, logs
 
 
 Swap = System | Callable[[ClosedLoopParts], System]
@@ -253,6 +270,17 @@ def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
     raise AssertionError(slot)  # pragma: no cover
 
 
+def _after_run(blocks: dict[str, System]) -> set[str]:
+    """Keys of :data:`LOGGED` computed from the other logs after the run, not logged.
+
+    The learning condition, when the Bellman block can compute it from the
+    logged weights alone (``learning_condition_of``): every sample in one
+    call, instead of one evaluation per publish (where the Bellman sums'
+    cache is always stale, so each sample would redo the extrapolation).
+    """
+    return {"learning_condition"} if hasattr(blocks["bellman"], "learning_condition_of") else set()
+
+
 def drake_plant(parts: ClosedLoopParts) -> System:
     """Plant-slot factory: the model's own multibody plant, running in C++.
 
@@ -354,6 +382,8 @@ def build_closed_loop(
     period = scenario.simulation.log_period if log_period is None else log_period
     loggers = {}
     for key, signal in LOGGED.items():
+        if key in _after_run(blocks):
+            continue
         source = blocks[SIGNALS[signal]]
         logger = LogVectorOutput(source.GetOutputPort(signal), builder, period)
         logger.set_name(f"log_{key}")

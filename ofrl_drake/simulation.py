@@ -436,13 +436,7 @@ def simulate(
     if not stop.ok:
         _flush_logs(loop, simulator.get_context())
 
-    context = simulator.get_context()
-    logs = {}
-    t = None
-    for key, logger in loop.loggers.items():
-        log = logger.FindLog(context)
-        t = log.sample_times()
-        logs[key] = log.data().T.copy()
+    t, logs = loop.logs(simulator.get_context())
     L = logs["W"].shape[1]
     integ = simulator.get_integrator()
     stats = {

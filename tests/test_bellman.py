@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from ofrl_drake import PolynomialBasis
 from ofrl_drake.bellman import Extrapolator, extrapolate, learning_condition, point_features
 from ofrl_drake.cost import input_cost_from_D
+from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.policy import saturated_policy
@@ -112,6 +113,19 @@ def test_U_delta_and_sums_are_finite_for_D_up_to_1e4():
 def test_learning_condition_is_min_eigenvalue():
     S = np.array([[2.0, 0.5], [0.5, 1.0]])
     assert learning_condition(S) == pytest.approx(np.min(np.linalg.eigvalsh(S)), rel=1e-15)
+
+
+def test_learning_conditions_over_many_weights_equal_one_at_a_time():
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    F = point_features(system, basis, grid_points([-1, -1], [1, 1], [10, 10]), 5 * np.eye(2))
+    ex = Extrapolator(F, np.array([1.0]), LBAR, NU)
+    Ws = np.random.default_rng(3).normal(size=(7, 3))
+    expected = [learning_condition(ex.sums(W).gain_sum) for W in Ws]
+    np.testing.assert_array_equal(ex.learning_conditions(Ws), expected)  # the same kernels
+    assert ex.learning_conditions(np.empty((0, 3))).shape == (0,)
+    with pytest.raises(ModelError, match=r"weights must have shape \(T, 3\); got \(3,\)"):
+        ex.learning_conditions(Ws[0])
 
 
 def test_paper_grid_is_10_by_10_on_unit_square():

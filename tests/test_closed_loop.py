@@ -78,6 +78,18 @@ def test_paper_learning_condition_and_cost(paper_result):
     assert np.all(np.linalg.eigvalsh(G) > 0)
 
 
+def test_learning_condition_computed_after_the_run_equals_the_port(
+    paper_scenario, paper_design, paper_result
+):
+    loop = build_closed_loop(paper_scenario, design=paper_design)
+    bellman = loop.blocks["bellman"]
+    context = bellman.CreateDefaultContext()
+    for k in (0, 1, len(paper_result.t) // 2, len(paper_result.t) - 1):
+        bellman.get_weights_input_port().FixValue(context, paper_result.W[k])
+        port = bellman.get_learning_condition_output_port().Eval(context)[0]
+        assert paper_result.learning_condition[k] == port  # the same kernels, bit for bit
+
+
 def test_result_shapes_and_summary(paper_result, tmp_path):
     r = paper_result
     T = r.t.size
@@ -129,7 +141,8 @@ def test_build_returns_named_handles(paper_scenario, paper_design):
     loop = build_closed_loop(paper_scenario, design=paper_design)
     for slot in ("plant", "observer", "controller", "critic", "gamma", "bellman", "running_cost"):
         assert getattr(loop, slot).get_name() == slot
-    assert set(loop.loggers) == set(LOGGED)
+    # The learning condition is computed from the logged W after the run.
+    assert set(loop.loggers) == set(LOGGED) - {"learning_condition"}
     assert "observer" in loop.diagram.GetGraphvizString()
 
 

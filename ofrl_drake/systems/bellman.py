@@ -27,7 +27,7 @@ class _StackedSums(LeafSystem):
 
     def __init__(self, extrapolator: Extrapolator, size: int) -> None:
         super().__init__()
-        self._extrapolator = extrapolator
+        self.extrapolator = extrapolator
         self._size = size
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._sums_port = self.DeclareVectorOutputPort(
@@ -46,7 +46,7 @@ class _StackedSums(LeafSystem):
     def _calc_sums(self, context, output) -> None:
         L = self._size
         value = output.get_mutable_value()
-        self._extrapolator.sums_into(
+        self.extrapolator.sums_into(
             self._weights_port.Eval(context), value[:L], value[L:].reshape(L, L)
         )
 
@@ -127,6 +127,16 @@ class BellmanExtrapolator(Diagram):
     def get_learning_condition_output_port(self) -> OutputPort:
         """``c = lambda_min(gain_sum)`` (size 1)."""
         return self.GetOutputPort("learning_condition")
+
+    def learning_condition_of(self, weights: np.ndarray) -> np.ndarray:
+        """The ``learning_condition`` output for many weights, ``(T, L)`` -> ``(T,)``.
+
+        The same values as the port, in one compiled call: what the simulation
+        uses for its logs after the run, instead of evaluating the port at every
+        publish (where the sums' cache is always stale: an integrator marks the
+        state changed at the start of each step).
+        """
+        return self._sums.extrapolator.learning_conditions(weights)
 
     def extrapolation(self, context: Context) -> BellmanSums:
         """The two sums in ``context`` (this block's own), as :class:`BellmanSums`."""
