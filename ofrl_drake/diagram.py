@@ -43,7 +43,6 @@ from ofrl_drake.systems import (
     SaturatedController,
     ScheduledThreeGainObserver,
     SymbolicController,
-    SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
     SymbolicRunningCost,
@@ -201,7 +200,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
 
 
 def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
-    """Whether the plant, observer, controller, critic and cost are C++ symbolic blocks.
+    """Whether the plant, observer, controller and running cost are C++ symbolic blocks.
 
     As ``scenario.simulation.blocks`` says; ``"auto"`` means whenever
     ``system.symbolic()`` succeeds.
@@ -257,9 +256,8 @@ def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
     if slot == "controller":
         block = SymbolicController if symbolic else SaturatedController
         return block(parts.system, parts.basis, parts.r, s.input_bound)
-    if slot == "critic":
-        block = SymbolicCriticWeights if symbolic else CriticWeights
-        return block(c.W0, c.kc)
+    if slot == "critic":  # Python whatever ``symbolic`` (see ofrl_drake.systems.symbolic)
+        return CriticWeights(c.W0, c.kc)
     if slot == "gamma":
         return GammaGain(np.asarray(c.Gamma0, float), c.kc, c.beta)
     if slot == "bellman":

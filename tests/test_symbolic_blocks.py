@@ -18,7 +18,6 @@ from ofrl_drake.systems import (
     RunningCost,
     SaturatedController,
     SymbolicController,
-    SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
     SymbolicRunningCost,
@@ -54,7 +53,6 @@ def test_ports_match_the_python_blocks(name):
         (SymbolicPlant(system), ControlAffinePlant(system)),
         (SymbolicObserver(system, gains), ThreeGainObserver(system, gains)),
         (SymbolicController(system, basis, r, lbar), SaturatedController(system, basis, r, lbar)),
-        (SymbolicCriticWeights(np.ones(basis.size), 2.0), CriticWeights(np.ones(basis.size), 2.0)),
         (
             SymbolicRunningCost(np.eye(system.n), r, lbar),
             RunningCost(np.eye(system.n), r, lbar),
@@ -123,29 +121,6 @@ def test_observer_derivative_matches_the_compiled_kernel(name):
         np.testing.assert_allclose(xdot, expected, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("kc", [0.0, 2.5])
-def test_critic_derivative_matches_the_compiled_law(kc):
-    W0 = np.array([0.4, -0.2, 0.8, 1.5])
-    blocks = [SymbolicCriticWeights(W0, kc), CriticWeights(W0, kc)]
-    rng = np.random.default_rng(5)
-    inputs = {"critic_sum": rng.normal(size=4), "gamma": rng.normal(size=16)}
-    W = rng.normal(size=4)
-    rates = []
-    for block in blocks:
-        context = block.CreateDefaultContext()
-        np.testing.assert_array_equal(block.get_weights_output_port().Eval(context), W0)
-        for port, value in inputs.items():
-            block.GetInputPort(port).FixValue(context, value)
-        block.set_weights(context, W)
-        np.testing.assert_allclose(block.get_weights_output_port().Eval(context), W, rtol=RTOL)
-        rates.append(block.EvalTimeDerivatives(context).CopyToVector())
-    expected = -kc * inputs["gamma"].reshape(4, 4) @ inputs["critic_sum"]
-    for rate in rates:
-        np.testing.assert_allclose(rate, expected, rtol=1e-14, atol=1e-15)
-    with pytest.raises(ModelError, match=r"SymbolicCriticWeights: kc"):
-        SymbolicCriticWeights(W0, -1.0)
-
-
 def test_running_cost_rate_matches_the_compiled_stage_cost():
     Q, r, lbar = np.array([[2.0, 0.5], [0.5, 1.0]]), np.array([0.5, 2.0]), 3.0
     blocks = (SymbolicRunningCost(Q, r, lbar), RunningCost(Q, r, lbar))
@@ -199,7 +174,7 @@ def test_closed_loop_matches_the_python_blocks(paper_scenario, paper_design):
     assert isinstance(loop.plant, SymbolicPlant)
     assert isinstance(loop.observer, SymbolicObserver)
     assert isinstance(loop.controller, SymbolicController)
-    assert isinstance(loop.critic, SymbolicCriticWeights)
+    assert isinstance(loop.critic, CriticWeights)  # Python in every mode (see the module)
     assert isinstance(loop.running_cost, SymbolicRunningCost)
     for key in ("x", "xhat", "W", "u", "cost"):
         np.testing.assert_allclose(

@@ -314,3 +314,21 @@ def test_running_cost_rejects_an_input_beyond_the_bound():
     block.get_u_input_port().FixValue(context, np.array([3.5]))
     with pytest.raises(ModelError, match=r"\|u\| = 3.5 exceeds the input bound 3.0"):
         block.EvalTimeDerivatives(context)
+
+
+@pytest.mark.parametrize("kc", [0.0, 2.5])
+def test_critic_set_weights_and_derivative(kc):
+    W0 = np.array([0.4, -0.2, 0.8, 1.5])
+    block = CriticWeights(W0, kc)
+    rng = np.random.default_rng(5)
+    inputs = {"critic_sum": rng.normal(size=4), "gamma": rng.normal(size=16)}
+    W = rng.normal(size=4)
+    context = block.CreateDefaultContext()
+    np.testing.assert_array_equal(block.get_weights_output_port().Eval(context), W0)
+    for port, value in inputs.items():
+        block.GetInputPort(port).FixValue(context, value)
+    block.set_weights(context, W)
+    np.testing.assert_array_equal(block.get_weights_output_port().Eval(context), W)
+    rate = block.EvalTimeDerivatives(context).CopyToVector()
+    expected = -kc * inputs["gamma"].reshape(4, 4) @ inputs["critic_sum"]
+    np.testing.assert_allclose(rate, expected, rtol=1e-14, atol=1e-15)

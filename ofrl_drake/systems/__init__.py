@@ -18,7 +18,6 @@ from ofrl_drake.systems.plant import ControlAffinePlant
 from ofrl_drake.systems.scheduled_observer import ScheduledThreeGainObserver
 from ofrl_drake.systems.symbolic import (
     SymbolicController,
-    SymbolicCriticWeights,
     SymbolicObserver,
     SymbolicPlant,
     SymbolicRunningCost,
@@ -39,7 +38,6 @@ __all__ = [
     "SaturatedLqrController",
     "ScheduledThreeGainObserver",
     "SymbolicController",
-    "SymbolicCriticWeights",
     "SymbolicObserver",
     "SymbolicPlant",
     "SymbolicRunningCost",

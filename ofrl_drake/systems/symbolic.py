@@ -1,9 +1,9 @@
-"""The plant, observer, controller, critic and running cost as Drake C++ systems.
+"""The plant, observer, controller and running cost as Drake C++ systems.
 
 When the model's ``f`` and ``g`` can be traced on ``pydrake.symbolic`` states
 (:meth:`~ofrl_drake.model.ControlAffineSystem.symbolic`), the three blocks
-that evaluate them, the critic's update law and the running cost are built
-from Drake's ``SymbolicVectorSystem``: their right-hand sides are
+that evaluate them and the running cost are built from Drake's
+``SymbolicVectorSystem``: their right-hand sides are
 expressions that Drake evaluates in C++, with no Python callback per
 derivative evaluation, and they convert to ``AutoDiffXd`` (for
 ``Linearize``, for example). Each is a small ``Diagram`` with the ports of
@@ -11,15 +11,21 @@ the Python block of its slot, like :class:`~ofrl_drake.systems.DrakePlant`:
 
 * a ``Multiplexer`` stacks a block's input ports into the one input of its
   ``SymbolicVectorSystem``;
-* a ``SymbolicVectorSystem`` has no way to set a default state, so the plant,
-  the observer and the critic integrate the offset ``z = x - x(0)`` from a
-  zero default and output ``z + x(0)``; their ports carry x itself, and
-  ``set_state``, ``set_estimated_state`` and ``set_weights`` write one into
-  a context;
+* a ``SymbolicVectorSystem`` has no way to set a default state, so the plant
+  and the observer integrate the offset ``z = x - x(0)`` from a zero default
+  and output ``z + x(0)``; their ports carry x itself, and ``set_state`` and
+  ``set_estimated_state`` write one into a context;
 * Drake 1.51's ``SymbolicVectorSystem`` aborts when a continuous ``Diagram``
   asks a stateless one for its derivatives (``symbolic_vector_system.cc``:
   ``DRAKE_DEMAND(dynamics_.size() > 0)``), so the controller carries one
   state that stays at zero. The integrator's error estimate of it is zero.
+
+The critic stays the Python :class:`~ofrl_drake.systems.CriticWeights`: its
+law ``W' = -k_c Gamma critic_sum`` is linear algebra over ``L**2 + 2 L``
+variables, where a ``SymbolicVectorSystem`` (which copies its variable
+environment and walks each expression per call) measured as fast at L = 3
+and slower from L = 4 on: at L = 10, 13.6 us per derivative against 2.6 us
+(``benchmarks/RESULTS.md``).
 
 The math is the one of the Python blocks
 (:func:`~ofrl_drake.observer.observer_rhs_expression`,
@@ -41,7 +47,6 @@ from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSy
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.checks import (
-    finite_vector,
     nonnegative_matrix,
     positive_number,
     positive_vector,
@@ -55,7 +60,6 @@ from ofrl_drake.policy import check_policy_arguments, policy_expression
 
 __all__ = [
     "SymbolicController",
-    "SymbolicCriticWeights",
     "SymbolicObserver",
     "SymbolicPlant",
     "SymbolicRunningCost",
@@ -341,77 +345,6 @@ class SymbolicController(Diagram):
     def get_u_output_port(self) -> OutputPort:
         """The saturated input u (size m)."""
         return self.GetOutputPort("u")
-
-
-class SymbolicCriticWeights(Diagram):
-    """Critic weights W with ``W' = -k_c Gamma critic_sum``, evaluated by Drake in C++.
-
-    .. pydrake_system::
-
-        name: SymbolicCriticWeights
-        input_ports:
-        - critic_sum
-        - gamma
-        output_ports:
-        - weights
-
-    Parameters
-    ----------
-    initial_weights : array_like, shape (L,)
-        W(0); also fixes L.
-    kc : float
-        Adaptation gain k_c >= 0.
-
-    Raises
-    ------
-    ModelError
-        As :class:`~ofrl_drake.systems.CriticWeights`.
-
-    See Also
-    --------
-    ofrl_drake.systems.CriticWeights : the same block in Python.
-    """
-
-    def __init__(self, initial_weights: Sequence[float], kc: float) -> None:
-        super().__init__()
-        self.initial_weights = initial_weights
-        self.kc = kc
-        W0 = finite_vector("SymbolicCriticWeights: initial_weights", initial_weights)
-        positive_number("SymbolicCriticWeights: kc", kc, allow_zero=True)
-        self._offset = W0
-        size = W0.size
-        z, weights = _offset_state(W0)
-        critic_sum = MakeVectorVariable(size, "critic_sum")
-        gamma = MakeVectorVariable(size * size, "gamma")
-        with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
-            rate = -float(kc) * (gamma.reshape(size, size) @ critic_sum)
-        builder = DiagramBuilder()
-        law = _add_symbolic_system(
-            builder,
-            "update_law",
-            [("critic_sum", critic_sum), ("gamma", gamma)],
-            state=z,
-            dynamics=rate,
-            output=weights,
-        )
-        builder.ExportOutput(law.get_output_port(), "weights")
-        builder.BuildInto(self)
-
-    def get_critic_sum_input_port(self) -> InputPort:
-        """``(1/N) sum omega delta / rho`` (size L)."""
-        return self.GetInputPort("critic_sum")
-
-    def get_gamma_input_port(self) -> InputPort:
-        """Gamma, flattened row-major (size L*L)."""
-        return self.GetInputPort("gamma")
-
-    def get_weights_output_port(self) -> OutputPort:
-        """The weights W (size L)."""
-        return self.GetOutputPort("weights")
-
-    def set_weights(self, context: Context, W: Sequence[float]) -> None:
-        """Set the weights to ``W`` in ``context``, this block's own context."""
-        _set_offset_state(context, W, self._offset)
 
 
 class SymbolicRunningCost(Diagram):
