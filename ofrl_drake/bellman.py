@@ -416,6 +416,10 @@ def extrapolate(
 
 @njit(cache=True)
 def _min_eigenvalue(S: np.ndarray) -> float:
+    """The smallest eigenvalue of symmetric ``S``; NaN if ``S`` has a non-finite entry."""
+    for v in S.ravel():
+        if not np.isfinite(v):
+            return np.nan  # a diverged run's logs: no eigenvalue, and no exception
     return np.linalg.eigvalsh(S)[0]
 
 
@@ -442,7 +446,7 @@ def _learning_conditions(
 
 
 def learning_condition(gain_sum: np.ndarray) -> float:
-    """``lambda_min`` of the symmetric matrix ``gain_sum`` (Assumption 2)."""
+    """``lambda_min`` of the symmetric matrix ``gain_sum`` (Assumption 2); NaN if not finite."""
     return float(_min_eigenvalue(np.ascontiguousarray(gain_sum, dtype=float)))
 
 

@@ -321,7 +321,8 @@ def build_closed_loop(
     -------
     ClosedLoop
         The diagram, its blocks by slot name (``loop.observer`` ...) and its
-        loggers by key (:data:`LOGGED`).
+        loggers by key (:data:`LOGGED`, but for the keys computed after the
+        run; :meth:`ClosedLoop.logs` returns them all).
 
     Raises
     ------

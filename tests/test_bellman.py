@@ -113,6 +113,7 @@ def test_U_delta_and_sums_are_finite_for_D_up_to_1e4():
 def test_learning_condition_is_min_eigenvalue():
     S = np.array([[2.0, 0.5], [0.5, 1.0]])
     assert learning_condition(S) == pytest.approx(np.min(np.linalg.eigvalsh(S)), rel=1e-15)
+    assert np.isnan(learning_condition(np.array([[1.0, np.inf], [np.inf, 1.0]])))
 
 
 def test_learning_conditions_over_many_weights_equal_one_at_a_time():
@@ -124,6 +125,7 @@ def test_learning_conditions_over_many_weights_equal_one_at_a_time():
     expected = [learning_condition(ex.sums(W).gain_sum) for W in Ws]
     np.testing.assert_array_equal(ex.learning_conditions(Ws), expected)  # the same kernels
     assert ex.learning_conditions(np.empty((0, 3))).shape == (0,)
+    assert np.isnan(ex.learning_conditions(np.full((1, 3), np.nan))).all()  # no LinAlgError
     with pytest.raises(ModelError, match=r"weights must have shape \(T, 3\); got \(3,\)"):
         ex.learning_conditions(Ws[0])
 
