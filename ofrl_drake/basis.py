@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit
 from pydrake.symbolic import Expression
 
+from ofrl_drake._jit import JIT
 from ofrl_drake.errors import ModelError
 
 __all__ = ["PolynomialBasis", "gradient_kernel", "monomials", "value_gradient_kernel"]
@@ -39,7 +40,7 @@ def _gradient_table(exponents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     return lowered, index, factor
 
 
-@njit(cache=True)
+@njit(**JIT)
 def monomials(x: np.ndarray, exponents: np.ndarray, out: np.ndarray) -> None:
     """``out[k] = prod_j x_j ** exponents[k, j]`` at one point ``x`` (integer powers)."""
     for k in range(exponents.shape[0]):
@@ -53,7 +54,7 @@ def monomials(x: np.ndarray, exponents: np.ndarray, out: np.ndarray) -> None:
         out[k] = p
 
 
-@njit(cache=True)
+@njit(**JIT)
 def gradient_kernel(
     X: np.ndarray, lowered: np.ndarray, index: np.ndarray, factor: np.ndarray
 ) -> np.ndarray:
@@ -73,7 +74,7 @@ def gradient_kernel(
     return out
 
 
-@njit(cache=True)
+@njit(**JIT)
 def value_gradient_kernel(
     x: np.ndarray,
     W: np.ndarray,

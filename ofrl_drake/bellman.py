@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ofrl_drake._jit import JIT
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.cost import saturation_cost, state_cost, tanh_log_cosh
+from ofrl_drake.cost import log_cosh_abs, saturation_cost, state_cost, tanh_abs
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 
@@ -142,7 +143,7 @@ def point_features(
     )
 
 
-@njit(cache=True)
+@njit(**JIT)
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
     """``a @ b``, accumulated in four interleaved partial sums.
 
@@ -163,7 +164,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return (s0 + s1) + (s2 + s3)
 
 
-@njit(cache=True)
+@njit(**JIT)
 def bellman_kernel(
     W: np.ndarray,
     data: np.ndarray,
@@ -174,6 +175,7 @@ def bellman_kernel(
     per_point: np.ndarray,
     critic_sum: np.ndarray,
     gain_sum: np.ndarray,
+    with_critic_sum: bool = True,
 ) -> None:
     """The Bellman extrapolation at ``N`` points: per-point values and both sums.
 
@@ -195,11 +197,17 @@ def bellman_kernel(
     weight : (m,)
         ``lbar^2 r_k``, the factor of :func:`~ofrl_drake.cost.saturation_cost`.
     input_bound, nu : float
-    per_point : (2 m + 2 L + 2, N)
+    per_point : (2 m + 2 L + 4, N)
         Output: rows ``D`` (m), ``u`` (m), ``omega`` (L), ``delta``, ``rho``,
-        then ``omega / rho`` (L, scratch).
+        then scratch: ``omega / rho`` (L), ``tanh |D_k|`` and
+        ``expm1(-2 |D_k|)`` (one input at a time).
     critic_sum : (L,); gain_sum : (L, L)
         Outputs: the normalized sums.
+    with_critic_sum : bool
+        If False, only ``gain_sum`` (and ``D``, ``u``, ``omega``, ``rho``):
+        no stage cost, no log-cosh, ``delta`` and ``critic_sum`` untouched.
+        ``gain_sum`` is the same to the bit, at about half the cost; the
+        learning condition needs nothing else.
     """
     m = num_inputs
     L = W.shape[0]
@@ -211,13 +219,16 @@ def bellman_kernel(
     delta_row, rho_row, scaled0 = 2 * m + L, 2 * m + L + 1, 2 * m + L + 2
     delta = per_point[delta_row]
     rho = per_point[rho_row]
-    for i in range(N):
-        delta[i] = data[cost_row, i]
+    tanh_D = per_point[scaled0 + L]
+    expm1_D = per_point[scaled0 + L + 1]
     for a in range(L):
         omega = per_point[omega0 + a]
         drift = data[drift0 + a]
         for i in range(N):
             omega[i] = drift[i]
+    if with_critic_sum:
+        for i in range(N):
+            delta[i] = data[cost_row, i]
     for k in range(m):
         D = per_point[k]
         u = per_point[u0 + k]
@@ -228,11 +239,18 @@ def bellman_kernel(
             row = data[k * L + a]
             for i in range(N):
                 D[i] += w * row[i]
-        wk = weight[k]
+        # Two passes, each of independent calls (see tanh_log_cosh).
         for i in range(N):
-            t, lc = tanh_log_cosh(D[i])
-            u[i] = -input_bound * t
-            delta[i] += wk * saturation_cost(D[i], t, lc)
+            t, e = tanh_abs(abs(D[i]))
+            tanh_D[i] = t
+            expm1_D[i] = e
+            u[i] = -input_bound * t if D[i] >= 0.0 else input_bound * t
+        if with_critic_sum:
+            wk = weight[k]
+            for i in range(N):
+                a = abs(D[i])
+                t = tanh_D[i]
+                delta[i] += wk * saturation_cost(a, t, log_cosh_abs(a, t, expm1_D[i]))
         for a in range(L):
             omega = per_point[omega0 + a]
             row = data[inp0 + k * L + a]
@@ -241,11 +259,15 @@ def bellman_kernel(
     for i in range(N):
         rho[i] = 0.0
     for a in range(L):
-        w = W[a]
         omega = per_point[omega0 + a]
         for i in range(N):
-            delta[i] += w * omega[i]
             rho[i] += omega[i] * omega[i]
+    if with_critic_sum:
+        for a in range(L):
+            w = W[a]
+            omega = per_point[omega0 + a]
+            for i in range(N):
+                delta[i] += w * omega[i]
     for i in range(N):
         rho[i] = 1.0 + nu * rho[i]
     # With q_a = omega_a / rho: critic_sum = q delta / N, gain_sum = q q^T / N.
@@ -257,7 +279,8 @@ def bellman_kernel(
     scale = 1.0 / N
     for a in range(L):
         q_a = per_point[scaled0 + a]
-        critic_sum[a] = _dot(q_a, delta) * scale
+        if with_critic_sum:
+            critic_sum[a] = _dot(q_a, delta) * scale
         for b in range(a + 1):
             gain_sum[a, b] = _dot(q_a, per_point[scaled0 + b]) * scale
             gain_sum[b, a] = gain_sum[a, b]
@@ -312,7 +335,7 @@ class Extrapolator:
         )
         self._shape = (m, L, N)
         self._weight = self.input_bound**2 * self.r
-        self._scratch = np.empty((2 * m + 2 * L + 2, N))
+        self._scratch = np.empty((2 * m + 2 * L + 4, N))
 
     def _run(
         self, W: np.ndarray, per_point: np.ndarray, critic_sum: np.ndarray, gain_sum: np.ndarray
@@ -371,7 +394,7 @@ class Extrapolator:
     def __call__(self, W: np.ndarray) -> BellmanExtrapolation:
         """The extrapolation for critic weights ``W`` (shape ``(L,)``), per-point values too."""
         m, L, N = self._shape
-        per_point = np.empty((2 * m + 2 * L + 2, N))
+        per_point = np.empty((2 * m + 2 * L + 4, N))
         out = self.empty_sums()
         self._run(W, per_point, out.critic_sum, out.gain_sum)
         return BellmanExtrapolation(
@@ -414,7 +437,7 @@ def extrapolate(
     return Extrapolator(features, r, input_bound, nu)(W)
 
 
-@njit(cache=True)
+@njit(**JIT)
 def _min_eigenvalue(S: np.ndarray) -> float:
     """The smallest eigenvalue of symmetric ``S``; NaN if ``S`` has a non-finite entry."""
     for v in S.ravel():
@@ -423,7 +446,7 @@ def _min_eigenvalue(S: np.ndarray) -> float:
     return np.linalg.eigvalsh(S)[0]
 
 
-@njit(cache=True)
+@njit(**JIT)
 def _learning_conditions(
     Ws: np.ndarray,
     data: np.ndarray,
@@ -440,7 +463,7 @@ def _learning_conditions(
     gain_sum = np.empty((L, L))
     for t in range(Ws.shape[0]):
         bellman_kernel(
-            Ws[t], data, num_inputs, weight, input_bound, nu, per_point, critic_sum, gain_sum
+            Ws[t], data, num_inputs, weight, input_bound, nu, per_point, critic_sum, gain_sum, False
         )
         out[t] = _min_eigenvalue(gain_sum)
 
@@ -450,7 +473,7 @@ def learning_condition(gain_sum: np.ndarray) -> float:
     return float(_min_eigenvalue(np.ascontiguousarray(gain_sum, dtype=float)))
 
 
-@njit(cache=True)
+@njit(**JIT)
 def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.ndarray) -> None:
     """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,)."""
     L = critic_sum.shape[0]
@@ -461,7 +484,7 @@ def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.nd
         out[a] = -kc * acc
 
 
-@njit(cache=True)
+@njit(**JIT)
 def gamma_rate(
     gamma: np.ndarray, gain_sum: np.ndarray, kc: float, beta: float, out: np.ndarray
 ) -> None:

@@ -29,6 +29,8 @@ import numpy as np
 from numba import njit
 from pydrake.systems.framework import Context, Diagram, EventStatus, System
 
+from ofrl_drake._jit import JIT
+
 __all__ = [
     "STATUS_DIVERGED",
     "STATUS_OK",
@@ -127,7 +129,7 @@ class ProgressBar:
         self.stream.flush()
 
 
-@njit(cache=True)
+@njit(**JIT)
 def _all_inside(
     state: np.ndarray, x: np.ndarray, xhat: np.ndarray, lower: np.ndarray, upper: np.ndarray
 ) -> bool:

@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit
 from pydrake.symbolic import if_then_else
 
+from ofrl_drake._jit import JIT
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
 
@@ -132,7 +133,7 @@ class ObserverGains:
                 )
 
 
-@njit(cache=True)
+@njit(**JIT)
 def injection_kernel(
     C: np.ndarray, stacked: np.ndarray, xhat: np.ndarray, y: np.ndarray, v: np.ndarray
 ) -> None:
@@ -159,7 +160,7 @@ def injection_kernel(
         v[n + j] += xhat[j]
 
 
-@njit(cache=True)
+@njit(**JIT)
 def correction_kernel(
     f_value: np.ndarray, g_value: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray
 ) -> None:

@@ -6,7 +6,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ofrl_drake import PolynomialBasis
-from ofrl_drake.bellman import Extrapolator, extrapolate, learning_condition, point_features
+from ofrl_drake.bellman import (
+    Extrapolator,
+    bellman_kernel,
+    extrapolate,
+    learning_condition,
+    point_features,
+)
 from ofrl_drake.cost import input_cost_from_D
 from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
@@ -108,6 +114,26 @@ def test_U_delta_and_sums_are_finite_for_D_up_to_1e4():
     for value in (U, out.delta, out.rho, out.critic_sum, out.gain_sum):
         assert np.all(np.isfinite(value))
     assert np.all(U >= 0)
+
+
+def test_kernel_without_critic_sum_gives_the_same_gain_sum_bits():
+    """The learning-condition pass skips the cost and log-cosh, and changes no bit of gain_sum."""
+    system = make_system("coupled_two_state")  # m = 2: both inputs share the scratch rows
+    basis = PolynomialBasis(system.n)
+    X = uniform_points(-np.ones(4), np.ones(4), 37, seed=5)
+    ex = Extrapolator(point_features(system, basis, X, np.eye(4)), np.array([1.0, 2.0]), LBAR, NU)
+    W = np.random.default_rng(2).normal(size=basis.size) * 4.0  # |D| on both sides of 0.5
+    full = ex(W)
+    assert np.min(np.abs(full.D)) < 0.5 < np.max(np.abs(full.D))
+    per_point = np.full_like(ex._scratch, np.nan)
+    critic_sum, gain_sum = np.full(basis.size, -7.0), np.empty((basis.size, basis.size))
+    m = system.m
+    args = (W, ex._data, m, ex._weight, LBAR, NU, per_point, critic_sum, gain_sum)
+    bellman_kernel(*args, False)
+    np.testing.assert_array_equal(gain_sum, full.gain_sum)
+    np.testing.assert_array_equal(per_point[2 * m : 2 * m + basis.size], full.omega)
+    assert np.all(critic_sum == -7.0)  # untouched
+    assert np.all(np.isnan(per_point[2 * m + basis.size]))  # delta untouched
 
 
 def test_learning_condition_is_min_eigenvalue():

@@ -10,9 +10,11 @@ from ofrl_drake.cost import (
     input_cost,
     input_cost_from_D,
     log_cosh,
+    log_cosh_abs,
     stage_cost,
     stage_cost_rate,
     state_cost,
+    tanh_abs,
     tanh_log_cosh,
 )
 from ofrl_drake.errors import ModelError
@@ -84,6 +86,16 @@ def test_tanh_log_cosh_matches_closed_forms_in_every_branch(d):
     # Reference in extended precision: ln cosh d of ~1e-19 relative accuracy in cosh.
     exact = float(np.log(np.cosh(np.longdouble(d))))
     assert lc == pytest.approx(exact, rel=1e-14, abs=1e-18)
+
+
+@pytest.mark.parametrize("a", [0.0, 1e-300, 1e-8, 0.3, 0.49, 0.5, 0.51, 3.0, 19.0, 40.0, 1e4])
+def test_tanh_abs_and_log_cosh_abs_against_closed_forms(a):
+    t, e = tanh_abs(a)
+    assert t == pytest.approx(np.tanh(a), rel=4e-16, abs=0)
+    assert e == pytest.approx(np.expm1(-2 * a), rel=2e-16, abs=0)
+    # ln cosh a without cancellation; beyond 40 it is a - ln 2 in double precision.
+    exact = float(np.log1p(2 * np.sinh(np.longdouble(a) / 2) ** 2)) if a < 40 else a - np.log(2)
+    assert log_cosh_abs(a, t, e) == pytest.approx(exact, rel=1e-15, abs=0)
 
 
 @pytest.mark.parametrize("d", [0.0, 1e-8, 0.3, 0.5, 0.9, 3.0, 39.9, 40.0, 41.0, 1e4])

@@ -16,6 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "ofrl_drake"
 LAYERS = {
     0: {  # model and math: plain numpy (and Drake's math), no blocks
         "errors",
+        "_jit",
         "checks",
         "atomic",
         "model",
