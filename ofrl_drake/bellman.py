@@ -393,8 +393,8 @@ class Extrapolator:
 
     def __call__(self, W: np.ndarray) -> BellmanExtrapolation:
         """The extrapolation for critic weights ``W`` (shape ``(L,)``), per-point values too."""
-        m, L, N = self._shape
-        per_point = np.empty((2 * m + 2 * L + 4, N))
+        m, L, _ = self._shape
+        per_point = np.empty_like(self._scratch)  # its own, since the result keeps views of it
         out = self.empty_sums()
         self._run(W, per_point, out.critic_sum, out.gain_sum)
         return BellmanExtrapolation(
