@@ -167,11 +167,13 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
 @njit(**JIT)
 def bellman_kernel(
     W: np.ndarray,
+    W_policy: np.ndarray,
     data: np.ndarray,
     num_inputs: int,
     weight: np.ndarray,
     input_bound: float,
     nu: float,
+    metric: np.ndarray,
     per_point: np.ndarray,
     critic_sum: np.ndarray,
     gain_sum: np.ndarray,
@@ -186,6 +188,10 @@ def bellman_kernel(
     Parameters
     ----------
     W : (L,)
+        The critic weights of the value in ``delta_i = W^T omega_i + Q + U``.
+    W_policy : (L,)
+        The weights of the policy ``u_i`` (hence ``omega_i`` and ``U``): ``W``
+        itself for the paper's law, the policy in force for policy iteration.
     data : (2 m L + L + 1, N)
         The ``W``-independent point data, rows stacked: ``policy_input``
         (``m L`` rows, ``(grad sigma_i g_i)^T / (2 lbar r_k)``, input-major,
@@ -197,6 +203,8 @@ def bellman_kernel(
     weight : (m,)
         ``lbar^2 r_k``, the factor of :func:`~ofrl_drake.cost.saturation_cost`.
     input_bound, nu : float
+    metric : (L,)
+        ``rho_i = 1 + nu sum_a metric_a omega_ai^2``; ones for the paper's ``rho``.
     per_point : (2 m + 2 L + 4, N)
         Output: rows ``D`` (m), ``u`` (m), ``omega`` (L), ``delta``, ``rho``,
         then scratch: ``omega / rho`` (L), ``tanh |D_k|`` and
@@ -235,7 +243,7 @@ def bellman_kernel(
         for i in range(N):
             D[i] = 0.0
         for a in range(L):
-            w = W[a]
+            w = W_policy[a]
             row = data[k * L + a]
             for i in range(N):
                 D[i] += w * row[i]
@@ -260,8 +268,9 @@ def bellman_kernel(
         rho[i] = 0.0
     for a in range(L):
         omega = per_point[omega0 + a]
+        ma = metric[a]
         for i in range(N):
-            rho[i] += omega[i] * omega[i]
+            rho[i] += ma * (omega[i] * omega[i])
     if with_critic_sum:
         for a in range(L):
             w = W[a]
@@ -303,7 +312,12 @@ class Extrapolator:
     input_bound : float
         lbar.
     nu : float
-        Normalization gain of ``rho_i = 1 + nu omega_i^T omega_i``.
+        Normalization gain of ``rho_i = 1 + nu omega_i^T M omega_i``.
+    metric : array_like, shape (L,), optional
+        The diagonal of ``M``; ones (the paper's ``rho``) by default. The
+        normalized law passes the squared inverse scales of the basis
+        functions (:func:`ofrl_drake.learning.basis_scales`), so that ``rho`` does
+        not depend on the units of the state.
 
     Notes
     -----
@@ -313,12 +327,18 @@ class Extrapolator:
     """
 
     def __init__(
-        self, features: PointFeatures, r: np.ndarray, input_bound: float, nu: float
+        self,
+        features: PointFeatures,
+        r: np.ndarray,
+        input_bound: float,
+        nu: float,
+        metric: np.ndarray | None = None,
     ) -> None:
         self.features = features
         self.r = np.asarray(r, dtype=float)
         self.input_bound = float(input_bound)
         self.nu = float(nu)
+        self.metric = metric
         inp = np.asarray(features.input, dtype=float)  # (m, L, N)
         m, L, N = inp.shape
         # D_k = W @ policy_input[k], policy_input = input / (2 lbar r_k).
@@ -334,20 +354,31 @@ class Extrapolator:
             )
         )
         self._shape = (m, L, N)
+        self._metric = np.ones(L) if metric is None else np.asarray(metric, dtype=float)
+        if self._metric.shape != (L,) or not np.all(np.isfinite(self._metric) & (self._metric > 0)):
+            raise ModelError(f"metric must hold {L} positive finite numbers; got {metric!r}.")
         self._weight = self.input_bound**2 * self.r
         self._scratch = np.empty((2 * m + 2 * L + 4, N))
 
     def _run(
-        self, W: np.ndarray, per_point: np.ndarray, critic_sum: np.ndarray, gain_sum: np.ndarray
+        self,
+        W: np.ndarray,
+        W_policy: np.ndarray | None,
+        per_point: np.ndarray,
+        critic_sum: np.ndarray,
+        gain_sum: np.ndarray,
     ) -> None:
         m, _, _ = self._shape
+        W = np.asarray(W, dtype=float)
         bellman_kernel(
-            np.asarray(W, dtype=float),
+            W,
+            W if W_policy is None else np.asarray(W_policy, dtype=float),
             self._data,
             m,
             self._weight,
             self.input_bound,
             self.nu,
+            self._metric,
             per_point,
             critic_sum,
             gain_sum,
@@ -358,16 +389,28 @@ class Extrapolator:
         L = self._shape[1]
         return BellmanSums(np.empty(L), np.empty((L, L)))
 
-    def sums_into(self, W: np.ndarray, critic_sum: np.ndarray, gain_sum: np.ndarray) -> None:
+    def sums_into(
+        self,
+        W: np.ndarray,
+        critic_sum: np.ndarray,
+        gain_sum: np.ndarray,
+        W_policy: np.ndarray | None = None,
+    ) -> None:
         """Both sums for weights ``W`` written into ``critic_sum`` (L,) and ``gain_sum`` (L, L).
 
-        Allocates nothing; this is what the Bellman block computes per
-        derivative evaluation, straight into its output vector.
+        ``W_policy`` are the weights of the policy the Bellman errors follow
+        (default: ``W`` itself, the paper's law). Allocates nothing; this is
+        what the Bellman block computes per derivative evaluation, straight
+        into its output vector.
         """
-        self._run(W, self._scratch, critic_sum, gain_sum)
+        self._run(W, W_policy, self._scratch, critic_sum, gain_sum)
 
     def learning_conditions(self, weights: np.ndarray) -> np.ndarray:
-        """:func:`learning_condition` for each row of ``weights`` (T, L), in one compiled call."""
+        """:func:`learning_condition` for each row of ``weights`` (T, L), in one compiled call.
+
+        ``gain_sum`` depends only on the policy's weights, so pass the policy
+        weights in force (the critic's own under the paper's law).
+        """
         Ws = np.ascontiguousarray(weights, dtype=float)
         L = self._shape[1]
         if Ws.ndim != 2 or Ws.shape[1] != L:
@@ -380,23 +423,27 @@ class Extrapolator:
             self._weight,
             self.input_bound,
             self.nu,
+            self._metric,
             np.empty_like(self._scratch),
             out,
         )
         return out
 
-    def sums(self, W: np.ndarray) -> BellmanSums:
+    def sums(self, W: np.ndarray, W_policy: np.ndarray | None = None) -> BellmanSums:
         """Only the two sums for critic weights ``W`` (shape ``(L,)``): what the loop needs."""
         out = self.empty_sums()
-        self.sums_into(W, out.critic_sum, out.gain_sum)
+        self.sums_into(W, out.critic_sum, out.gain_sum, W_policy)
         return out
 
-    def __call__(self, W: np.ndarray) -> BellmanExtrapolation:
-        """The extrapolation for critic weights ``W`` (shape ``(L,)``), per-point values too."""
+    def __call__(self, W: np.ndarray, W_policy: np.ndarray | None = None) -> BellmanExtrapolation:
+        """The extrapolation for critic weights ``W`` (shape ``(L,)``), per-point values too.
+
+        ``W_policy``: the weights of the policy followed (default ``W``).
+        """
         m, L, _ = self._shape
         per_point = np.empty_like(self._scratch)  # its own, since the result keeps views of it
         out = self.empty_sums()
-        self._run(W, per_point, out.critic_sum, out.gain_sum)
+        self._run(W, W_policy, per_point, out.critic_sum, out.gain_sum)
         return BellmanExtrapolation(
             critic_sum=out.critic_sum,
             gain_sum=out.gain_sum,
@@ -414,6 +461,9 @@ def extrapolate(
     r: np.ndarray,
     input_bound: float,
     nu: float,
+    *,
+    W_policy: np.ndarray | None = None,
+    metric: np.ndarray | None = None,
 ) -> BellmanExtrapolation:
     """Bellman errors at every point for weights ``W`` and their normalized sums.
 
@@ -428,13 +478,17 @@ def extrapolate(
     input_bound : float
         lbar.
     nu : float
-        Normalization gain of ``rho_i = 1 + nu omega_i^T omega_i``.
+        Normalization gain of ``rho_i = 1 + nu omega_i^T M omega_i``.
+    W_policy : ndarray, shape (L,), optional
+        Weights of the policy the errors follow (default ``W``).
+    metric : ndarray, shape (L,), optional
+        Diagonal of ``M`` (default ones).
 
     See Also
     --------
     Extrapolator : the same for many ``W`` with fixed ``r``, ``lbar``, ``nu``.
     """
-    return Extrapolator(features, r, input_bound, nu)(W)
+    return Extrapolator(features, r, input_bound, nu, metric)(W, W_policy)
 
 
 @njit(**JIT)
@@ -454,6 +508,7 @@ def _learning_conditions(
     weight: np.ndarray,
     input_bound: float,
     nu: float,
+    metric: np.ndarray,
     per_point: np.ndarray,
     out: np.ndarray,
 ) -> None:
@@ -463,7 +518,18 @@ def _learning_conditions(
     gain_sum = np.empty((L, L))
     for t in range(Ws.shape[0]):
         bellman_kernel(
-            Ws[t], data, num_inputs, weight, input_bound, nu, per_point, critic_sum, gain_sum, False
+            Ws[t],
+            Ws[t],
+            data,
+            num_inputs,
+            weight,
+            input_bound,
+            nu,
+            metric,
+            per_point,
+            critic_sum,
+            gain_sum,
+            False,
         )
         out[t] = _min_eigenvalue(gain_sum)
 

@@ -60,6 +60,9 @@ OUTPUT_MARKER = ".ofrl_drake_output"
 #: The resolved scenario as run, in every output folder of ``run``.
 SCENARIO_FILE = "scenario.yaml"
 
+#: The learning-health series of a run (:class:`ofrl_drake.learning_curve.LearningHealth`).
+LEARNING_HEALTH_FILE = "learning_health.npz"
+
 
 def check_output_directory(target: Path) -> Path:
     """Resolve ``target`` and refuse to replace anything ``run`` did not write.
@@ -165,13 +168,40 @@ def _outside_box_warning(scenario: Any) -> str | None:
     )
 
 
+def _learning_report(args: argparse.Namespace, loop: Any, result: Any) -> Any:
+    """The learning curve and health of ``run`` (``--checkpoints``, ``--optimal``)."""
+    from ofrl_drake.learning_curve import learning_report
+
+    optimal_cost = None
+    if args.optimal:
+        from ofrl_drake.optimal import optimal_control
+
+        solved = optimal_control(loop.parts.scenario)
+        if solved.converged:
+            optimal_cost = solved.cost
+        else:
+            print(
+                f"note: J* did not converge ({solved.status}); the learning curve has no "
+                "optimality ratios.",
+                file=sys.stderr,
+            )
+    return learning_report(loop, result, checkpoints=args.checkpoints, optimal_cost=optimal_cost)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.graph import render_diagram
     from ofrl_drake.plotting import save_figures
     from ofrl_drake.scenario import dump_scenario, load_scenario
     from ofrl_drake.simulation import simulate
 
+    if args.checkpoints < 0:
+        raise OfrlError(
+            f"--checkpoints: must be an integer >= 0 (0 switches the learning curve off); "
+            f"got {args.checkpoints}."
+        )
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     check_output_directory(Path(args.out))  # fail before the work, not after
     warning = _outside_box_warning(scenario)
@@ -182,16 +212,24 @@ def _cmd_run(args: argparse.Namespace) -> int:
     verification = _verify(loop.design, loop.parts.system)
     if verification is not None and result.design is not None:
         result.design = {**result.design, "verification": verification.to_dict()}
+    learning = _learning_report(args, loop, result)
+    result.reports.update(learning.to_dict())
     out = Path(args.out)
     with atomic_directory(out) as tmp:
         result.save(tmp)
-        (tmp / SCENARIO_FILE).write_text(dump_scenario(scenario))
+        with open(tmp / LEARNING_HEALTH_FILE, "wb") as fh:
+            np.savez(fh, **learning.health.arrays())
+        (tmp / SCENARIO_FILE).write_text(dump_scenario(loop.resolved_scenario()))
         save_figures(
             result,
             tmp / "figures",
             input_bound=scenario.input_bound,
             weight_labels=loop.parts.basis.labels(),
             box=(scenario.observer.box.lower, scenario.observer.box.upper),
+            learning_curve=learning.curve,
+            optimal_cost=learning.optimal_cost,
+            lqr_cost=learning.lqr_policy_cost,
+            health=learning.health,
         )
         if loop.design is not None:
             design = loop.design.to_dict()
@@ -404,6 +442,19 @@ def _parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="stop with status timeout (exit 3) after this much wall time; overrides "
         "simulation.max_wall_time",
+    )
+    run.add_argument(
+        "--checkpoints",
+        type=int,
+        default=10,
+        metavar="K",
+        help="evaluate the policy in force at K + 1 times 0, T/K, ..., T, true state fed "
+        "back, for the learning curve (default 10; 0 switches it off)",
+    )
+    run.add_argument(
+        "--optimal",
+        action="store_true",
+        help="also solve for J* (direct collocation) and report the learning curve as J/J*",
     )
     run.set_defaults(func=_cmd_run)
 

@@ -18,6 +18,7 @@ names, e.g. a full-state "observer" may declare an input ``state`` and output
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,18 +28,33 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.bellman import PointFeatures, point_features
+from ofrl_drake.bellman import Extrapolator, PointFeatures, point_features
 from ofrl_drake.errors import ModelError, ScenarioError, SwapError
+from ofrl_drake.learning import (
+    DEFAULT_GAMMA_BOUND,
+    POLICY_PERIOD_FRACTION,
+    LearningGains,
+    auto_gains,
+    basis_scales,
+    rho_metric,
+)
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.points import grid_points, uniform_points
-from ofrl_drake.scenario import Scenario, validate_scenario, variant_choices
+from ofrl_drake.scenario import (
+    Scenario,
+    critic_gains_choice,
+    validate_scenario,
+    variant_choices,
+)
 from ofrl_drake.systems import (
     BellmanExtrapolator,
     ControlAffinePlant,
     CriticWeights,
     GammaGain,
+    PolicyGate,
+    PolicyPassThrough,
     RunningCost,
     SaturatedController,
     ScheduledThreeGainObserver,
@@ -56,7 +72,9 @@ __all__ = [
     "SLOTS",
     "ClosedLoop",
     "ClosedLoopParts",
+    "CriticSettings",
     "build_closed_loop",
+    "critic_settings",
     "design_for",
     "drake_plant",
     "extrapolation_points",
@@ -64,7 +82,16 @@ __all__ = [
 ]
 
 #: The block slots of the closed loop, in build order.
-SLOTS = ("plant", "observer", "controller", "critic", "gamma", "bellman", "running_cost")
+SLOTS = (
+    "plant",
+    "observer",
+    "controller",
+    "critic",
+    "policy",
+    "gamma",
+    "bellman",
+    "running_cost",
+)
 
 #: Signal name -> the slot whose output port of that name provides it.
 SIGNALS = {
@@ -73,6 +100,7 @@ SIGNALS = {
     "estimated_state": "observer",
     "u": "controller",
     "weights": "critic",
+    "policy_weights": "policy",
     "gamma": "gamma",
     "critic_sum": "bellman",
     "gain_sum": "bellman",
@@ -89,6 +117,7 @@ OPTIONAL_LOGGED = {
     "solve_failed": ("observer", "solve_failed"),
     "solve_counts": ("observer", "solve_counts"),
     "verification": ("observer", "verification"),
+    "policy_updates": ("policy", "policy_updates"),
 }
 
 #: Log key -> signal name. Every variant logs these.
@@ -96,11 +125,35 @@ LOGGED = {
     "x": "state",
     "xhat": "estimated_state",
     "W": "weights",
+    "W_policy": "policy_weights",
     "Gamma": "gamma",
     "u": "u",
     "learning_condition": "learning_condition",
     "cost": "cost",
 }
+
+
+@dataclass(frozen=True)
+class CriticSettings:
+    """The critic's learning law and gains in force (:func:`critic_settings`).
+
+    Attributes
+    ----------
+    law : str
+        ``policy_iteration`` or ``paper`` (:mod:`ofrl_drake.learning`).
+    gains : LearningGains
+        As given (``critic.gains: manual``) or derived (``auto``).
+    metric : ndarray or None
+        The diagonal of the metric of ``rho`` (None: the paper's identity).
+    linearization : tuple of ndarray or None
+        ``(A, B)`` at the target, for the policy acceptance test and the
+        learning-health logs; None if it cannot be computed.
+    """
+
+    law: str
+    gains: LearningGains
+    metric: np.ndarray | None
+    linearization: tuple[np.ndarray, np.ndarray] | None
 
 
 @dataclass(frozen=True)
@@ -114,6 +167,7 @@ class ClosedLoopParts:
     design: Any
     Q: np.ndarray
     r: np.ndarray
+    critic: CriticSettings | None = None
 
 
 @dataclass
@@ -136,6 +190,14 @@ class ClosedLoop:
         """The ``ObserverDesign`` used by the observer (None if not designed)."""
         return self.parts.design
 
+    def resolved_scenario(self) -> Scenario:
+        """The scenario with the critic's gains in force written out (``critic.gains: manual``).
+
+        What ``scenario.yaml`` holds: running it gives the same loop whether
+        the gains were given or derived.
+        """
+        return resolved_scenario(self.parts.scenario, self.parts.critic)
+
     def logs(self, root_context: Context) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The sample times ``(T,)`` and every log ``(T, size)`` in ``root_context``.
 
@@ -149,7 +211,7 @@ class ClosedLoop:
             t = np.asarray(log.sample_times())
             logs[key] = log.data().T.copy()
         if "learning_condition" not in logs:
-            condition = self.blocks["bellman"].learning_condition_of(logs["W"])
+            condition = self.blocks["bellman"].learning_condition_of(logs["W_policy"])
             logs["learning_condition"] = condition[:, None]
         return t, logs
 
@@ -199,6 +261,124 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
     )
 
 
+def _linearization(system: ControlAffineSystem) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(A, B)`` of the plant at the origin: Drake's ``Linearize`` when ``f`` and ``g``
+    trace symbolically, else central differences of ``f`` and ``g(0)``; None if
+    the origin is not an equilibrium."""
+    from ofrl_drake.baselines import linearize_at_origin
+
+    try:
+        system.symbolic()
+    except ModelError:
+        f0 = np.asarray(system.f(np.zeros(system.n)), dtype=float)
+        if np.max(np.abs(f0)) > 1e-9:
+            return None
+        h = 1e-6
+        eye = np.eye(system.n)
+        A = np.column_stack(
+            [
+                (np.asarray(system.f(h * e), float) - np.asarray(system.f(-h * e), float)) / (2 * h)
+                for e in eye
+            ]
+        )
+        return A, np.asarray(system.g(np.zeros(system.n)), dtype=float)
+    try:
+        linearization = linearize_at_origin(system)
+    except ScenarioError:
+        return None
+    return np.asarray(linearization.A()), np.asarray(linearization.B())
+
+
+def critic_settings(
+    scenario: Scenario,
+    system: ControlAffineSystem,
+    basis: PolynomialBasis,
+    features: PointFeatures,
+    r: np.ndarray,
+) -> CriticSettings:
+    """The critic's law and gains in force: as the scenario gives them, or derived.
+
+    Under ``critic.gains: auto`` the gains come from
+    :func:`ofrl_drake.learning.auto_gains` at ``W0`` on the scenario's points
+    and horizon. Under ``policy_iteration``, ``rho`` uses the points' metric
+    (:func:`ofrl_drake.learning.basis_scales`) and the policy period and gamma
+    bound default to a tenth of the horizon and
+    :data:`~ofrl_drake.learning.DEFAULT_GAMMA_BOUND`.
+
+    Raises
+    ------
+    ScenarioError
+        If ``policy_iteration`` is asked for a plant whose origin is not an
+        equilibrium (no linearization for the acceptance test), or ``auto``
+        gains cannot be derived.
+    """
+    c = scenario.critic
+    linearization = _linearization(system)
+    metric = None
+    if c.law == "policy_iteration":
+        if linearization is None:
+            raise ScenarioError(
+                "critic.law: policy_iteration accepts a policy by its linearization at the "
+                "target, but the origin is not an equilibrium of f; give an equilibrium "
+                "(the equilibrium key) or use critic.law: paper."
+            )
+        try:
+            metric = rho_metric(basis_scales(basis, features.points))
+        except ModelError as err:
+            raise ScenarioError(f"points: {err}") from None
+    W0 = np.asarray(c.W0, dtype=float)
+    if critic_gains_choice(c) == "auto":
+        unit = Extrapolator(features, r, scenario.input_bound, 1.0, metric)(W0)
+        try:
+            gains = auto_gains(
+                lambda nu: (
+                    Extrapolator(features, r, scenario.input_bound, nu, metric).sums(W0).gain_sum
+                ),
+                unit.rho - 1.0,
+                scenario.simulation.duration,
+            )
+        except ModelError as err:
+            raise ScenarioError(str(err)) from None
+    else:
+        gains = LearningGains(
+            kc=float(c.kc),
+            nu=float(c.nu),
+            beta=float(c.beta),
+            Gamma0=np.asarray(c.Gamma0, dtype=float),
+            policy_period=POLICY_PERIOD_FRACTION * scenario.simulation.duration,
+            gamma_bound=DEFAULT_GAMMA_BOUND,
+        )
+    if c.law == "policy_iteration":
+        gains = dataclasses.replace(
+            gains,
+            policy_period=gains.policy_period if c.policy_period is None else c.policy_period,
+            gamma_bound=gains.gamma_bound if c.gamma_bound is None else c.gamma_bound,
+        )
+    else:
+        gains = dataclasses.replace(gains, policy_period=None, gamma_bound=None)
+    return CriticSettings(law=c.law, gains=gains, metric=metric, linearization=linearization)
+
+
+def resolved_scenario(scenario: Scenario, critic: CriticSettings | None) -> Scenario:
+    """``scenario`` with the gains of ``critic`` written out under ``critic.gains: manual``."""
+    if critic is None:
+        return scenario
+    g = critic.gains
+    return dataclasses.replace(
+        scenario,
+        critic=dataclasses.replace(
+            scenario.critic,
+            gains="manual",
+            kc=float(g.kc),
+            nu=float(g.nu),
+            beta=float(g.beta),
+            Gamma0=np.asarray(g.Gamma0, dtype=float).tolist(),
+            policy_period=None if g.policy_period is None else float(g.policy_period),
+            gamma_bound=None if g.gamma_bound is None else float(g.gamma_bound),
+        ),
+    )
+
+
 def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
     """Whether the plant, observer, controller and running cost are C++ symbolic blocks.
 
@@ -226,7 +406,7 @@ def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
 
 
 def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
-    s, c = parts.scenario, parts.scenario.critic
+    s, c, gains = parts.scenario, parts.scenario.critic, parts.critic.gains
     if slot == "plant":
         if symbolic:
             return SymbolicPlant(parts.system, initial_state=s.x0)
@@ -257,11 +437,20 @@ def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
         block = SymbolicController if symbolic else SaturatedController
         return block(parts.system, parts.basis, parts.r, s.input_bound)
     if slot == "critic":  # Python whatever ``symbolic`` (see ofrl_drake.systems.symbolic)
-        return CriticWeights(c.W0, c.kc)
+        return CriticWeights(c.W0, gains.kc)
+    if slot == "policy":
+        if parts.critic.law == "paper":
+            return PolicyPassThrough(parts.basis.size)
+        A, B = parts.critic.linearization
+        return PolicyGate(
+            c.W0, gains.policy_period, A, B, parts.Q, parts.r, parts.basis, parts.features.points
+        )
     if slot == "gamma":
-        return GammaGain(np.asarray(c.Gamma0, float), c.kc, c.beta)
+        return GammaGain(np.asarray(gains.Gamma0, float), gains.kc, gains.beta, gains.gamma_bound)
     if slot == "bellman":
-        return BellmanExtrapolator(parts.features, parts.r, s.input_bound, c.nu)
+        return BellmanExtrapolator(
+            parts.features, parts.r, s.input_bound, gains.nu, parts.critic.metric
+        )
     if slot == "running_cost":
         block = SymbolicRunningCost if symbolic else RunningCost
         return block(parts.Q, parts.r, s.input_bound)
@@ -352,7 +541,8 @@ def build_closed_loop(
 
             # Designed here, not inside the variant, so its certificate is reported.
             design = linear_observer_design(scenario, system)
-    parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r)
+    critic = critic_settings(scenario, system, basis, features, r)
+    parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r, critic)
     from ofrl_drake.variants import variant_blocks
 
     swaps = {**variant_blocks(choices, parts), **swaps}

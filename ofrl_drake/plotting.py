@@ -389,6 +389,86 @@ def plot_cost(result) -> Figure:
     return fig
 
 
+def plot_learning_curve(
+    entries: Sequence[dict],
+    *,
+    optimal_cost: float | None = None,
+    lqr_cost: float | None = None,
+) -> Figure:
+    """The policy in force at each checkpoint, evaluated alone (true state, critic frozen).
+
+    ``entries`` are :func:`ofrl_drake.learning_curve.learning_curve`'s. With
+    ``J*`` the axis is ``J / J*``; ``lqr_cost`` adds the LQR policy's cost as
+    a reference line. A checkpoint whose policy diverged is marked at the top.
+    """
+    fig, (ax,) = _figure(1, width=6.0, height=3.4)
+    t = np.array([e["t"] for e in entries], dtype=float)
+    cost = np.array([np.nan if e["policy_cost"] is None else e["policy_cost"] for e in entries])
+    scale = optimal_cost if optimal_cost is not None and np.isfinite(optimal_cost) else 1.0
+    ax.plot(t, cost / scale, "o-", lw=1.4, color="C0", label="policy in force at t")
+    if lqr_cost is not None and np.isfinite(lqr_cost):
+        ax.axhline(lqr_cost / scale, color="C2", ls="--", lw=1.0, label="LQR policy")
+    if scale != 1.0:
+        ax.axhline(1.0, color="k", ls=":", lw=1.0, label=r"$J^*$")
+        ax.set_ylabel(r"policy cost $J/J^*$ from $x_0$")
+    else:
+        ax.set_ylabel(r"policy cost $J$ from $x_0$")
+    diverged = ~np.isfinite(cost)
+    if np.any(diverged):
+        top = np.nanmax(cost / scale) if np.any(~diverged) else 1.0
+        ax.plot(t[diverged], np.full(diverged.sum(), top), "x", color="C3", label="diverged")
+    ax.set_xlabel("checkpoint time t [s]")
+    _legend(fig, [ax])
+    return fig
+
+
+def plot_learning_health(health) -> Figure:
+    """c(t), Gamma's norm and condition, the value's eigenvalues, the linearized loop.
+
+    ``health`` is a :class:`ofrl_drake.learning_curve.LearningHealth`. Policy
+    updates are marked on the last panel: accepted (green ticks) and rejected
+    (red crosses).
+    """
+    panels = 3 + (health.value_eigenvalues is not None) + (health.spectral_abscissa is not None)
+    with plt.rc_context(_STYLE):
+        fig, axes = plt.subplots(
+            panels, 1, figsize=(6.5, 1.9 * panels), layout="constrained", sharex=True
+        )
+    axes = list(np.atleast_1d(axes))
+    ax = axes[0]
+    ax.semilogy(health.t, np.maximum(health.learning_condition, 1e-300), color="C3")
+    ax.set_ylabel(r"$c(t)$")
+    ax = axes[1]
+    ax.semilogy(health.t, health.gamma_norm, color="C0")
+    ax.set_ylabel(r"$\|\Gamma\|_2$")
+    ax = axes[2]
+    ax.semilogy(health.t, health.gamma_condition, color="C1")
+    ax.set_ylabel(r"cond$(\Gamma)$")
+    k = 3
+    if health.value_eigenvalues is not None:
+        ax = axes[k]
+        ax.plot(health.t, health.value_eigenvalues, lw=1.0)
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_yscale("symlog", linthresh=1e-2)
+        ax.set_ylabel("eig $P(W)$")
+        k += 1
+    if health.spectral_abscissa is not None:
+        ax = axes[k]
+        ax.plot(health.t, health.spectral_abscissa, color="C4", label="policy in force")
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_ylabel(r"abscissa of $A+BK$")
+    last = axes[-1]
+    for i, times in enumerate((health.accepted_times, health.rejected_times)):
+        if times:
+            marker, color = ("|", "C2") if i == 0 else ("x", "C3")
+            label = "update accepted" if i == 0 else "update rejected"
+            y = np.full(len(times), last.get_ylim()[1])
+            last.plot(times, y, marker, color=color, ls="none", ms=8, label=label)
+    last.set_xlabel("t [s]")
+    _legend(fig, axes)
+    return fig
+
+
 def plot_comparison(results: dict, key: str = "x", component: int = 0) -> Figure:
     """One signal of several runs in one plot, e.g. a block swap against the baseline."""
     fig, axes = _figure(2)
@@ -520,10 +600,16 @@ def save_figures(
     weight_labels: Sequence[str] | None = None,
     box: Box | None = None,
     dpi: int = 200,
+    learning_curve: Sequence[dict] | None = None,
+    optimal_cost: float | None = None,
+    lqr_cost: float | None = None,
+    health=None,
 ) -> list[Path]:
     """Write every figure of ``result`` as PNG into ``directory``; return the paths.
 
     ``box`` is the observer box ``(lower, upper)``, drawn on the state plots.
+    ``learning_curve`` (with ``optimal_cost``, ``lqr_cost``) adds
+    ``learning_curve.png``; ``health`` adds ``learning_health.png``.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -535,6 +621,12 @@ def save_figures(
     figures["learning_condition"] = plot_learning_condition(result)
     figures["cost"] = plot_cost(result)
     figures["overview"] = plot_overview(result, input_bound, box)
+    if learning_curve:
+        figures["learning_curve"] = plot_learning_curve(
+            learning_curve, optimal_cost=optimal_cost, lqr_cost=lqr_cost
+        )
+    if health is not None:
+        figures["learning_health"] = plot_learning_health(health)
     extra = getattr(result, "extra", {})
     if "observer_gains" in extra:
         failed = extra.get("solve_failed", np.zeros((result.t.size, 1)))[:, 0] > 0.5

@@ -29,6 +29,9 @@ from ofrl_drake.errors import ScenarioError
 __all__ = [
     "ABORT_BOX_FACTOR",
     "BLOCK_KINDS",
+    "CRITIC_LAWS",
+    "GAIN_CHOICES",
+    "MANUAL_GAINS",
     "BoxConfig",
     "CostConfig",
     "CriticConfig",
@@ -40,6 +43,7 @@ __all__ = [
     "SimulationConfig",
     "VariantConfig",
     "abort_box",
+    "critic_gains_choice",
     "dump_scenario",
     "load_scenario",
     "validate_scenario",
@@ -69,20 +73,44 @@ class CostConfig:
     R: list[float] = field(default_factory=list)
 
 
+#: The critic's learning laws (``critic.law``; see :mod:`ofrl_drake.learning`).
+CRITIC_LAWS = ("policy_iteration", "paper")
+
+#: How the learning gains are chosen (``critic.gains``).
+GAIN_CHOICES = ("auto", "manual")
+
+#: The gains ``critic.gains: manual`` needs, and ``auto`` derives.
+MANUAL_GAINS = ("kc", "nu", "beta", "Gamma0")
+
+
 @dataclass
 class CriticConfig:
-    """Value-function basis, initial weights and the learning gains.
+    """Value-function basis, initial weights, the learning law and its gains.
 
-    ``Gamma0`` is the full initial least-squares gain (symmetric positive
-    definite). ``nu`` is the paper's normalization gain (its ``gamma``).
+    ``law`` (optional): ``policy_iteration`` (default; normalized regressors,
+    bounded-gain forgetting, policy updates that pass an acceptance test
+    on the linearization) or ``paper`` (the laws (W_c) and (gamma) as printed); see
+    :mod:`ofrl_drake.learning`. ``gains`` (optional): ``auto`` derives ``kc``,
+    ``nu``, ``beta``, ``Gamma0`` and ``policy_period`` from the plant, the
+    points and the horizon; ``manual`` takes them from the file. By default
+    ``manual`` when any of ``kc``, ``nu``, ``beta``, ``Gamma0`` is given, else
+    ``auto``. ``Gamma0`` is the full initial least-squares gain (symmetric
+    positive definite). ``nu`` is the paper's normalization gain (its
+    ``gamma``). ``policy_period`` (seconds between policy improvements) and
+    ``gamma_bound`` (``k0`` of bounded-gain forgetting) apply to
+    ``policy_iteration`` only.
     """
 
     basis_degrees: list[int] = field(default_factory=lambda: [2])
     W0: list[float] = field(default_factory=list)
-    Gamma0: list[list[float]] = field(default_factory=list)
-    kc: float = 0.01
-    nu: float = 0.7
-    beta: float = 0.2
+    Gamma0: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
+    kc: Optional[float] = field(default=None, metadata=_OPTIONAL)
+    nu: Optional[float] = field(default=None, metadata=_OPTIONAL)
+    beta: Optional[float] = field(default=None, metadata=_OPTIONAL)
+    law: str = field(default="policy_iteration", metadata=_OPTIONAL)
+    gains: str = field(default="", metadata=_OPTIONAL)
+    policy_period: Optional[float] = field(default=None, metadata=_OPTIONAL)
+    gamma_bound: Optional[float] = field(default=None, metadata=_OPTIONAL)
 
 
 @dataclass
@@ -375,11 +403,38 @@ def validate_scenario(scenario: Scenario) -> None:
         raise ScenarioError(f"critic.basis_degrees: {err}") from None
     L = basis.size
     _vector("critic.W0", c.W0, L)
-    Gamma0 = _matrix("critic.Gamma0", c.Gamma0, (L, L))
-    _spd("critic.Gamma0", Gamma0)
-    _positive("critic.kc", c.kc)
-    _positive("critic.nu", c.nu)
-    _positive("critic.beta", c.beta)
+    if c.law not in CRITIC_LAWS:
+        raise ScenarioError(f"critic.law: must be one of {list(CRITIC_LAWS)}; got {c.law!r}.")
+    gains = critic_gains_choice(c)
+    given = [k for k in MANUAL_GAINS if getattr(c, k) is not None]
+    if gains == "auto" and given:
+        raise ScenarioError(
+            f"critic.{given[0]}: given, but critic.gains is auto, which derives it; remove "
+            f"{', '.join('critic.' + k for k in given)} or set critic.gains: manual."
+        )
+    if gains == "manual":
+        missing = [k for k in MANUAL_GAINS if getattr(c, k) is None]
+        if missing:
+            raise ScenarioError(
+                f"critic.{missing[0]}: missing; critic.gains: manual needs "
+                f"{', '.join('critic.' + k for k in MANUAL_GAINS)} (or set critic.gains: auto)."
+            )
+        Gamma0 = _matrix("critic.Gamma0", c.Gamma0, (L, L))
+        _spd("critic.Gamma0", Gamma0)
+        _positive("critic.kc", c.kc)
+        _positive("critic.nu", c.nu)
+        _positive("critic.beta", c.beta)
+    if c.law == "paper":
+        for key in ("policy_period", "gamma_bound"):
+            if getattr(c, key) is not None:
+                raise ScenarioError(
+                    f"critic.{key}: applies to critic.law: policy_iteration only; the paper's "
+                    "law has no policy updates and a constant forgetting factor. Remove it."
+                )
+    if c.policy_period is not None:
+        _positive("critic.policy_period", c.policy_period)
+    if c.gamma_bound is not None:
+        _positive("critic.gamma_bound", c.gamma_bound)
 
     p = scenario.points
     if p.kind not in ("grid", "uniform"):
@@ -483,6 +538,23 @@ def validate_scenario(scenario: Scenario) -> None:
             )
     if s.max_wall_time is not None:
         _positive("simulation.max_wall_time", s.max_wall_time)
+
+
+def critic_gains_choice(critic: CriticConfig) -> str:
+    """``critic.gains`` in force: as given, else ``manual`` if any gain is given, else ``auto``.
+
+    Raises
+    ------
+    ScenarioError
+        If ``critic.gains`` is neither ``auto`` nor ``manual``.
+    """
+    if critic.gains:
+        if critic.gains not in GAIN_CHOICES:
+            raise ScenarioError(
+                f"critic.gains: must be one of {list(GAIN_CHOICES)}; got {critic.gains!r}."
+            )
+        return critic.gains
+    return "manual" if any(getattr(critic, k) is not None for k in MANUAL_GAINS) else "auto"
 
 
 def abort_box(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:

@@ -34,7 +34,17 @@ __all__ = [
 ]
 
 #: Keys of ``trajectories.npz``, in order.
-TRAJECTORY_KEYS = ("t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost")
+TRAJECTORY_KEYS = (
+    "t",
+    "x",
+    "xhat",
+    "W",
+    "W_policy",
+    "Gamma",
+    "u",
+    "learning_condition",
+    "cost",
+)
 
 #: File written by :meth:`SimulationResult.save` when there are extra logs.
 EXTRA_LOGS_FILE = "extra_logs.npz"
@@ -49,6 +59,10 @@ class SimulationResult:
     t : ndarray, shape (T,)
     x, xhat : ndarray, shape (T, n)
     W : ndarray, shape (T, L)
+        The critic's weights.
+    W_policy : ndarray, shape (T, L)
+        The weights of the policy in force, which the controller acts on:
+        ``W`` itself under the paper's law.
     Gamma : ndarray, shape (T, L, L)
     u : ndarray, shape (T, m)
     learning_condition : ndarray, shape (T,)
@@ -80,12 +94,17 @@ class SimulationResult:
     provenance : dict
         Start time, command line and package versions
         (:func:`~ofrl_drake.provenance.provenance`).
+    reports : dict
+        Further entries of ``summary.json`` that studies add after the run,
+        e.g. ``learning_curve`` and ``learning_health``
+        (:meth:`ofrl_drake.learning_curve.LearningReport.to_dict`).
     """
 
     t: np.ndarray
     x: np.ndarray
     xhat: np.ndarray
     W: np.ndarray
+    W_policy: np.ndarray
     Gamma: np.ndarray
     u: np.ndarray
     learning_condition: np.ndarray
@@ -107,6 +126,7 @@ class SimulationResult:
 
     stop: StopReport | None = None
     provenance: dict[str, Any] = field(default_factory=dict)
+    reports: dict[str, Any] = field(default_factory=dict)
 
     @property
     def status(self) -> str:
@@ -202,6 +222,7 @@ class SimulationResult:
         if counts is not None:
             out["failed_solves"] = counts["failed_solves"]
             out["observer_resolves"] = counts
+        out.update(self.reports)
         return out
 
     def _extra_log_arrays(self) -> dict[str, np.ndarray]:
@@ -457,6 +478,7 @@ def simulate(
         x=logs["x"],
         xhat=logs["xhat"],
         W=logs["W"],
+        W_policy=logs["W_policy"],
         Gamma=logs["Gamma"].reshape(-1, L, L),
         u=logs["u"],
         learning_condition=logs["learning_condition"][:, 0],

@@ -181,7 +181,9 @@ def _frozen_critic(parts: ClosedLoopParts) -> dict[str, System]:
 def _bellman_at(parts: ClosedLoopParts, points: np.ndarray) -> BellmanExtrapolator:
     s = parts.scenario
     features = point_features(parts.system, parts.basis, points, parts.Q)
-    return BellmanExtrapolator(features, parts.r, s.input_bound, s.critic.nu)
+    return BellmanExtrapolator(
+        features, parts.r, s.input_bound, parts.critic.gains.nu, parts.critic.metric
+    )
 
 
 def _grid(parts: ClosedLoopParts) -> dict[str, System]:
@@ -208,14 +210,21 @@ def _around_estimate(parts: ClosedLoopParts) -> dict[str, System]:
     offsets = point_offsets(parts.features.points, np.asarray(p.lower), np.asarray(p.upper))
     return {
         "bellman": MovingBellmanExtrapolator(
-            parts.system, parts.basis, offsets, parts.Q, parts.r, s.input_bound, s.critic.nu
+            parts.system,
+            parts.basis,
+            offsets,
+            parts.Q,
+            parts.r,
+            s.input_bound,
+            parts.critic.gains.nu,
+            parts.critic.metric,
         )
     }
 
 
 # ------------------------------------------------------------------- gamma
 def _constant_gamma(parts: ClosedLoopParts) -> dict[str, System]:
-    return {"gamma": GammaGain(np.asarray(parts.scenario.critic.Gamma0, float), kc=0.0, beta=0.0)}
+    return {"gamma": GammaGain(np.asarray(parts.critic.gains.Gamma0, float), kc=0.0, beta=0.0)}
 
 
 VARIANT_FACTORIES: dict[str, dict[str, Factory]] = {

@@ -128,7 +128,7 @@ def test_kernel_without_critic_sum_gives_the_same_gain_sum_bits():
     per_point = np.full_like(ex._scratch, np.nan)
     critic_sum, gain_sum = np.full(basis.size, -7.0), np.empty((basis.size, basis.size))
     m = system.m
-    args = (W, ex._data, m, ex._weight, LBAR, NU, per_point, critic_sum, gain_sum)
+    args = (W, W, ex._data, m, ex._weight, LBAR, NU, ex._metric, per_point, critic_sum, gain_sum)
     bellman_kernel(*args, False)
     np.testing.assert_array_equal(gain_sum, full.gain_sum)
     np.testing.assert_array_equal(per_point[2 * m : 2 * m + basis.size], full.omega)

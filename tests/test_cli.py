@@ -41,7 +41,18 @@ def test_run_writes_every_output(tmp_path):
     proc = _cli("run", _short_scenario(tmp_path), "--out", out)
     assert proc.returncode == 0, proc.stderr
     data = np.load(out / "trajectories.npz")
-    assert set(data.files) == {"t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost"}
+    assert set(data.files) == {
+        "t",
+        "x",
+        "xhat",
+        "W",
+        "W_policy",
+        "Gamma",
+        "u",
+        "learning_condition",
+        "cost",
+    }
+    np.testing.assert_array_equal(data["W_policy"], data["W"])  # the paper's law: W_pi = W
     summary = json.loads((out / "summary.json").read_text())
     assert summary["final_time"] == pytest.approx(2.0)
     figures = {p.name for p in (out / "figures").iterdir()}
@@ -52,8 +63,23 @@ def test_run_writes_every_output(tmp_path):
         "critic_weights.png",
         "control_input.png",
         "learning_condition.png",
+        "learning_curve.png",
+        "learning_health.png",
     ):
         assert name in figures
+    # The learning curve: 11 checkpoints 0, T/10, ..., T, each evaluated with the true state.
+    curve = summary["learning_curve"]
+    assert [e["t"] for e in curve] == pytest.approx(np.linspace(0.0, 2.0, 11), abs=1e-9)
+    assert all(e["status"] == "ok" and e["policy_cost"] > 0 for e in curve)
+    health = summary["learning_health"]
+    assert health["policy_updates_accepted"] == health["policy_updates_rejected"] == 0
+    assert health["min_learning_condition"] == pytest.approx(
+        float(np.min(data["learning_condition"])), rel=1e-12
+    )
+    series = np.load(out / "learning_health.npz")
+    assert {"t", "learning_condition", "gamma_norm", "gamma_condition"} <= set(series.files)
+    assert series["value_eigenvalues"].shape == (data["t"].size, 2)
+    assert series["spectral_abscissa"].shape == data["t"].shape
     from matplotlib.image import imread
 
     height = imread(out / "figures" / "state_1.png").shape[0]

@@ -86,6 +86,7 @@ def test_learning_condition_computed_after_the_run_equals_the_port(
     context = bellman.CreateDefaultContext()
     for k in (0, 1, len(paper_result.t) // 2, len(paper_result.t) - 1):
         bellman.get_weights_input_port().FixValue(context, paper_result.W[k])
+        bellman.get_policy_weights_input_port().FixValue(context, paper_result.W[k])
         port = bellman.get_learning_condition_output_port().Eval(context)[0]
         assert paper_result.learning_condition[k] == port  # the same kernels, bit for bit
 
@@ -98,7 +99,17 @@ def test_result_shapes_and_summary(paper_result, tmp_path):
     assert r.u.shape == (T, 1) and r.learning_condition.shape == r.cost.shape == (T,)
     r.save(tmp_path)
     data = np.load(tmp_path / "trajectories.npz")
-    assert set(data.files) == {"t", "x", "xhat", "W", "Gamma", "u", "learning_condition", "cost"}
+    assert set(data.files) == {
+        "t",
+        "x",
+        "xhat",
+        "W",
+        "W_policy",
+        "Gamma",
+        "u",
+        "learning_condition",
+        "cost",
+    }
     import json
 
     summary = json.loads((tmp_path / "summary.json").read_text())
@@ -177,8 +188,8 @@ def test_bad_swaps_raise(paper_scenario, paper_design):
         build_closed_loop(paper_scenario, design=paper_design, nonsense=CriticWeights([0.0], 0.1))
     with pytest.raises(
         SwapError,
-        match=r"controller: input port 'weights' has size 3, but critic's output "
-        r"'weights' has size 2",
+        match=r"critic: input port 'critic_sum' has size 2, but bellman's output "
+        r"'critic_sum' has size 3",
     ):
         build_closed_loop(
             paper_scenario, design=paper_design, critic=CriticWeights([0.0, 0.0], 0.1)

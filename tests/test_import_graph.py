@@ -43,6 +43,7 @@ LAYERS = {
         "validity",
         "guard",
         "provenance",
+        "learning",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
     2: {"variants", "scenario", "diagram"},  # wiring
@@ -55,6 +56,7 @@ LAYERS = {
         "plotting",
         "graph",
         "animation",
+        "learning_curve",
     },
     4: {"cli", "__main__", ""},  # the command line and the package's public face
 }

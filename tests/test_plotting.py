@@ -32,6 +32,7 @@ def _result(n=2, m=1, L=3, T=30.0, samples=1501, sawtooth=1e-6):
         x=x,
         xhat=x - e,
         W=np.tile(np.linspace(0.1, 1.0, L), (samples, 1)),
+        W_policy=np.tile(np.linspace(0.1, 1.0, L), (samples, 1)),
         Gamma=np.tile(np.eye(L), (samples, 1, 1)),
         u=-2.5 * np.tile(decay, (1, m)),
         learning_condition=np.full(samples, 0.1),

@@ -64,7 +64,16 @@ def _drop(*keys):
 BAD = [
     (_set("critic", "speed", value=1.0), r"critic\.speed: unknown key in critic"),
     (_set("bogus", value=1), r"bogus: unknown key in scenario"),
-    (_drop("critic", "kc"), r"critic\.kc: missing required key"),
+    (_drop("critic", "kc"), r"critic\.kc: missing; critic\.gains: manual needs critic\.kc"),
+    (
+        _set("critic", "law", value="newton"),
+        r"critic\.law: must be one of \[.policy_iteration., .paper.\]",
+    ),
+    (_set("critic", "gains", value="auto"), r"critic\.kc: given, but critic\.gains is auto"),
+    (
+        _set("critic", "policy_period", value=1.0),
+        r"critic\.policy_period: applies to critic\.law: policy_iteration only",
+    ),
     (_drop("x0"), r"x0: missing required key"),
     (
         _set("critic", "Gamma0", value=[[1, 2, 0], [2, 1, 0], [0, 0, 1]]),

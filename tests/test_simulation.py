@@ -329,6 +329,7 @@ def _synthetic(counts):
         x=np.zeros((T, 1)),
         xhat=np.zeros((T, 1)),
         W=np.zeros((T, 1)),
+        W_policy=np.zeros((T, 1)),
         Gamma=np.ones((T, 1, 1)),
         u=np.zeros((T, 1)),
         learning_condition=np.ones(T),

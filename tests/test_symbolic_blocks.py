@@ -150,7 +150,7 @@ def test_controller_output_matches_the_compiled_policy(name):
     for _ in range(5):
         inputs = {
             "estimated_state": rng.uniform(-2, 2, system.n),
-            "weights": rng.normal(size=basis.size),
+            "policy_weights": rng.normal(size=basis.size),
         }
         outputs = []
         for block in (symbolic, python):

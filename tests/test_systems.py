@@ -44,12 +44,15 @@ def test_block_structure(name):
         (GammaGain(np.eye(L), 0.01, 0.2), ({"gain_sum": L * L}, {"gamma": L * L}), L * L),
         (
             SaturatedController(system, basis, r, 3.0),
-            ({"estimated_state": n, "weights": L}, {"u": m}),
+            ({"estimated_state": n, "policy_weights": L}, {"u": m}),
             0,
         ),
         (
             BellmanExtrapolator(features, r, 3.0, 0.7),
-            ({"weights": L}, {"critic_sum": L, "gain_sum": L * L, "learning_condition": 1}),
+            (
+                {"weights": L, "policy_weights": L},
+                {"critic_sum": L, "gain_sum": L * L, "learning_condition": 1},
+            ),
             0,
         ),
         (RunningCost(np.eye(n), r, 3.0), ({"state": n, "u": m}, {"cost": 1}), 1),
@@ -152,7 +155,7 @@ def test_controller_output_closed_form(x):
     ctrl = SaturatedController(system, PolynomialBasis(2), np.array([2.0]), 3.0)
     context = ctrl.CreateDefaultContext()
     ctrl.get_estimated_state_input_port().FixValue(context, x)
-    ctrl.get_weights_input_port().FixValue(context, W)
+    ctrl.get_policy_weights_input_port().FixValue(context, W)
     grad_V = np.array([2 * W[0] * x[0] + W[1] * x[1], W[1] * x[0] + 2 * W[2] * x[1]])
     D = (1 / (2 * 3.0)) * (1 / 2.0) * (np.cos(2 * x[0]) + 2) * grad_V[1]
     np.testing.assert_allclose(
@@ -178,14 +181,15 @@ def test_bellman_outputs_share_one_extrapolation(monkeypatch):
     calls = []
     original = Extrapolator.sums_into
 
-    def counted(self, W, critic_sum, gain_sum):
+    def counted(self, W, critic_sum, gain_sum, W_policy=None):
         calls.append(1)
-        original(self, W, critic_sum, gain_sum)
+        original(self, W, critic_sum, gain_sum, W_policy)
 
     monkeypatch.setattr(Extrapolator, "sums_into", counted)
     context = block.CreateDefaultContext()
     W = np.array([0.4, 0.2, 0.8])
     block.get_weights_input_port().FixValue(context, W)
+    block.get_policy_weights_input_port().FixValue(context, W)
     first = block.extrapolation(context)
     critic_sum = block.get_critic_sum_output_port().Eval(context)
     gain_sum = block.get_gain_sum_output_port().Eval(context)
@@ -197,6 +201,7 @@ def test_bellman_outputs_share_one_extrapolation(monkeypatch):
     np.testing.assert_allclose(first.gain_sum, expected.gain_sum, rtol=1e-14, atol=1e-15)
     assert condition == pytest.approx(np.linalg.eigvalsh(expected.gain_sum)[0], rel=1e-12)
     block.get_weights_input_port().FixValue(context, np.array([1.0, 0.0, 1.0]))
+    block.get_policy_weights_input_port().FixValue(context, np.array([1.0, 0.0, 1.0]))
     block.get_critic_sum_output_port().Eval(context)
     assert len(calls) == 2  # an input change invalidates
 
@@ -261,7 +266,7 @@ def test_mimo_controller_output_closed_form(x):
     ctrl = SaturatedController(system, basis, r, 3.0)
     context = ctrl.CreateDefaultContext()
     ctrl.get_estimated_state_input_port().FixValue(context, x)
-    ctrl.get_weights_input_port().FixValue(context, W)
+    ctrl.get_policy_weights_input_port().FixValue(context, W)
     # grad V by central differences of V = W^T sigma, independent of basis.gradient.
     h = 1e-6
     grad_V = np.array([(W @ basis(x + h * e) - W @ basis(x - h * e)) / (2 * h) for e in np.eye(4)])

@@ -292,6 +292,7 @@ def test_moving_bellman_block_equals_the_fixed_one_at_shifted_points():
     assert block.get_estimated_state_input_port().get_name() == "estimated_state"
     context = block.CreateDefaultContext()
     block.get_weights_input_port().FixValue(context, W)
+    block.get_policy_weights_input_port().FixValue(context, W)
     for xhat in (np.zeros(2), np.array([0.6, -1.1])):
         block.get_estimated_state_input_port().FixValue(context, xhat)
         fixed = BellmanExtrapolator(
@@ -299,6 +300,7 @@ def test_moving_bellman_block_equals_the_fixed_one_at_shifted_points():
         )
         fctx = fixed.CreateDefaultContext()
         fixed.get_weights_input_port().FixValue(fctx, W)
+        fixed.get_policy_weights_input_port().FixValue(fctx, W)
         for name in ("critic_sum", "gain_sum", "learning_condition"):
             np.testing.assert_allclose(
                 block.GetOutputPort(name).Eval(context),

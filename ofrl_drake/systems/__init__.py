@@ -15,6 +15,7 @@ from ofrl_drake.systems.drake_plant import DrakePlant
 from ofrl_drake.systems.gamma import GammaGain
 from ofrl_drake.systems.observer import ThreeGainObserver
 from ofrl_drake.systems.plant import ControlAffinePlant
+from ofrl_drake.systems.policy_gate import PolicyGate, PolicyPassThrough
 from ofrl_drake.systems.scheduled_observer import ScheduledThreeGainObserver
 from ofrl_drake.systems.symbolic import (
     SymbolicController,
@@ -33,6 +34,8 @@ __all__ = [
     "GammaGain",
     "LinearizedLuenbergerObserver",
     "MovingBellmanExtrapolator",
+    "PolicyGate",
+    "PolicyPassThrough",
     "RunningCost",
     "SaturatedController",
     "SaturatedLqrController",

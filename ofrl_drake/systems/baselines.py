@@ -315,6 +315,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         name: MovingBellmanExtrapolator
         input_ports:
         - weights
+        - policy_weights
         - estimated_state
         output_ports:
         - critic_sum
@@ -336,6 +337,8 @@ class MovingBellmanExtrapolator(LeafSystem):
         lbar.
     nu : float
         Normalization gain of rho.
+    metric : array_like, shape (L,), optional
+        Diagonal of the metric of rho (default ones, the paper's).
 
     Notes
     -----
@@ -351,6 +354,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         r: np.ndarray,
         input_bound: float,
         nu: float,
+        metric: np.ndarray | None = None,
     ) -> None:
         super().__init__()
         self.system = system
@@ -360,6 +364,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         self.r = r
         self.input_bound = input_bound
         self.nu = nu
+        self.metric = metric
         self._offsets = np.asarray(offsets, dtype=float)
         if self._offsets.ndim != 2 or self._offsets.shape[0] != system.n:
             raise ModelError(
@@ -369,6 +374,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         self._r = np.asarray(r, dtype=float)
         size = basis.size
         self._weights_port = self.DeclareVectorInputPort("weights", size)
+        self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
         self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
         self._cache = self.DeclareCacheEntry(
             "bellman_extrapolation",
@@ -376,7 +382,11 @@ class MovingBellmanExtrapolator(LeafSystem):
                 allocate=AbstractValue.Make(object()).Clone,
                 calc=self._calc_extrapolation,
             ),
-            prerequisites_of_calc={self._weights_port.ticket(), self._xhat_port.ticket()},
+            prerequisites_of_calc={
+                self._weights_port.ticket(),
+                self._policy_port.ticket(),
+                self._xhat_port.ticket(),
+            },
         )
         deps = {self._cache.ticket()}
         self._critic_sum_port = self.DeclareVectorOutputPort(
@@ -392,6 +402,10 @@ class MovingBellmanExtrapolator(LeafSystem):
     def get_weights_input_port(self) -> InputPort:
         """Critic weights W (size L)."""
         return self._weights_port
+
+    def get_policy_weights_input_port(self) -> InputPort:
+        """Weights of the policy the Bellman errors follow (size L)."""
+        return self._policy_port
 
     def get_estimated_state_input_port(self) -> InputPort:
         """The estimate xhat the points move with (size n)."""
@@ -417,7 +431,17 @@ class MovingBellmanExtrapolator(LeafSystem):
         W = self._weights_port.Eval(context)
         xhat = self._xhat_port.Eval(context)
         features = point_features(self.system, self.basis, xhat[:, None] + self._offsets, self._Q)
-        value.set_value(extrapolate(features, W, self._r, self.input_bound, self.nu))
+        value.set_value(
+            extrapolate(
+                features,
+                W,
+                self._r,
+                self.input_bound,
+                self.nu,
+                W_policy=self._policy_port.Eval(context),
+                metric=self.metric,
+            )
+        )
 
     def _calc_critic_sum(self, context, output) -> None:
         output.SetFromVector(self._cache.Eval(context).critic_sum)

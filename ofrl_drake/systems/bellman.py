@@ -30,24 +30,26 @@ class _StackedSums(LeafSystem):
         self.extrapolator = extrapolator
         self._size = size
         self._weights_port = self.DeclareVectorInputPort("weights", size)
+        self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
+        inputs = {self._weights_port.ticket(), self._policy_port.ticket()}
         self._sums_port = self.DeclareVectorOutputPort(
-            "sums",
-            size + size * size,
-            self._calc_sums,
-            prerequisites_of_calc={self._weights_port.ticket()},
+            "sums", size + size * size, self._calc_sums, prerequisites_of_calc=inputs
         )
         self._learning_condition_port = self.DeclareVectorOutputPort(
             "learning_condition",
             1,
             self._calc_learning_condition,
-            prerequisites_of_calc={self._weights_port.ticket()},
+            prerequisites_of_calc=inputs,
         )
 
     def _calc_sums(self, context, output) -> None:
         L = self._size
         value = output.get_mutable_value()
         self.extrapolator.sums_into(
-            self._weights_port.Eval(context), value[:L], value[L:].reshape(L, L)
+            self._weights_port.Eval(context),
+            value[:L],
+            value[L:].reshape(L, L),
+            self._policy_port.Eval(context),
         )
 
     def _calc_learning_condition(self, context, output) -> None:
@@ -57,6 +59,11 @@ class _StackedSums(LeafSystem):
 
 class BellmanExtrapolator(Diagram):
     """Bellman errors at N fixed points, computed once per evaluation.
+
+    The errors ``delta_i = W^T omega_i + Q(x_i) + U(u_i)`` take the value's
+    weights ``W`` from ``weights`` and the policy ``u_i`` (hence ``omega_i``)
+    from ``policy_weights``: the paper's law feeds the same weights to both,
+    policy iteration the policy in force.
 
     One Python block computes both sums for the current weights in one
     compiled pass over the points, as one vector; Drake's ``Demultiplexer``
@@ -68,6 +75,7 @@ class BellmanExtrapolator(Diagram):
         name: BellmanExtrapolator
         input_ports:
         - weights
+        - policy_weights
         output_ports:
         - critic_sum
         - gain_sum
@@ -83,6 +91,9 @@ class BellmanExtrapolator(Diagram):
         lbar.
     nu : float
         Normalization gain of rho.
+    metric : array_like, shape (L,), optional
+        Diagonal of the metric of rho (default ones, the paper's; see
+        :class:`~ofrl_drake.bellman.Extrapolator`).
 
     Notes
     -----
@@ -90,21 +101,28 @@ class BellmanExtrapolator(Diagram):
     """
 
     def __init__(
-        self, features: PointFeatures, r: np.ndarray, input_bound: float, nu: float
+        self,
+        features: PointFeatures,
+        r: np.ndarray,
+        input_bound: float,
+        nu: float,
+        metric: np.ndarray | None = None,
     ) -> None:
         super().__init__()
         self.features = features
         self.r = r
         self.input_bound = input_bound
         self.nu = nu
+        self.metric = metric
         size = features.drift.shape[0]
         builder = DiagramBuilder()
         sums = builder.AddNamedSystem(
-            "sums", _StackedSums(Extrapolator(features, r, input_bound, nu), size)
+            "sums", _StackedSums(Extrapolator(features, r, input_bound, nu, metric), size)
         )
         split = builder.AddNamedSystem("split_sums", Demultiplexer([size, size * size]))
         builder.Connect(sums.GetOutputPort("sums"), split.get_input_port())
         builder.ExportInput(sums.GetInputPort("weights"), "weights")
+        builder.ExportInput(sums.GetInputPort("policy_weights"), "policy_weights")
         builder.ExportOutput(split.get_output_port(0), "critic_sum")
         builder.ExportOutput(split.get_output_port(1), "gain_sum")
         builder.ExportOutput(sums.GetOutputPort("learning_condition"), "learning_condition")
@@ -115,6 +133,10 @@ class BellmanExtrapolator(Diagram):
     def get_weights_input_port(self) -> InputPort:
         """Critic weights W (size L)."""
         return self.GetInputPort("weights")
+
+    def get_policy_weights_input_port(self) -> InputPort:
+        """Weights of the policy the Bellman errors follow (size L)."""
+        return self.GetInputPort("policy_weights")
 
     def get_critic_sum_output_port(self) -> OutputPort:
         """``(1/N) sum omega_i delta_i / rho_i`` (size L)."""
@@ -129,7 +151,7 @@ class BellmanExtrapolator(Diagram):
         return self.GetOutputPort("learning_condition")
 
     def learning_condition_of(self, weights: np.ndarray) -> np.ndarray:
-        """The ``learning_condition`` output for many weights, ``(T, L)`` -> ``(T,)``.
+        """The ``learning_condition`` output for many policy weights, ``(T, L)`` -> ``(T,)``.
 
         The same values as the port, in one compiled call: what the simulation
         uses for its logs after the run, instead of evaluating the port at every

@@ -22,7 +22,7 @@ class SaturatedController(LeafSystem):
         name: SaturatedController
         input_ports:
         - estimated_state
-        - weights
+        - policy_weights
         output_ports:
         - u
 
@@ -61,7 +61,7 @@ class SaturatedController(LeafSystem):
         self._lbar = float(input_bound)
         self._tables = basis.gradient_tables
         self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
-        self._weights_port = self.DeclareVectorInputPort("weights", basis.size)
+        self._weights_port = self.DeclareVectorInputPort("policy_weights", basis.size)
         self._u_port = self.DeclareVectorOutputPort(
             "u",
             system.m,
@@ -73,8 +73,8 @@ class SaturatedController(LeafSystem):
         """The state estimate xhat (size n)."""
         return self._xhat_port
 
-    def get_weights_input_port(self) -> InputPort:
-        """Critic weights W (size L)."""
+    def get_policy_weights_input_port(self) -> InputPort:
+        """The weights of the policy in force (size L): the critic's W under the paper's law."""
         return self._weights_port
 
     def get_u_output_port(self) -> OutputPort:

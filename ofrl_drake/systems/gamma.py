@@ -7,12 +7,16 @@ from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, Output
 
 from ofrl_drake.bellman import gamma_rate
 from ofrl_drake.checks import positive_number, spd_matrix
+from ofrl_drake.learning import bounded_forgetting
 
 __all__ = ["GammaGain"]
 
 
 class GammaGain(LeafSystem):
     """Least-squares gain with forgetting: ``Gamma' = beta Gamma - k_c Gamma S Gamma``.
+
+    With ``gamma_bound``, ``beta`` is Slotine and Li's bounded-gain forgetting
+    factor (see :mod:`ofrl_drake.learning`).
 
     ``S = gain_sum = (1/N) sum omega_i omega_i^T / rho_i^2``. Gamma is stored
     flattened row-major; its symmetric part is used and the derivative is
@@ -34,24 +38,40 @@ class GammaGain(LeafSystem):
         Adaptation gain k_c.
     beta : float
         Forgetting factor beta. ``beta = 0`` and ``kc = 0`` give a constant gain.
+    gamma_bound : float, optional
+        ``k0`` of bounded-gain forgetting (:func:`ofrl_drake.learning.bounded_forgetting`):
+        the forgetting factor is ``beta (1 - tr(Gamma0^{-1} Gamma) / (k0 L))``, so
+        ``tr(Gamma0^{-1} Gamma) / L`` never exceeds ``max(1, k0)``. None (the
+        paper's law) keeps ``beta`` constant.
 
     Raises
     ------
     ModelError
         If ``initial_gamma`` is not a finite symmetric positive definite
-        matrix, or ``kc`` or ``beta`` is negative or not finite.
+        matrix, or ``kc``, ``beta`` or ``gamma_bound`` is negative or not finite.
     """
 
-    def __init__(self, initial_gamma: np.ndarray, kc: float, beta: float) -> None:
+    def __init__(
+        self,
+        initial_gamma: np.ndarray,
+        kc: float,
+        beta: float,
+        gamma_bound: float | None = None,
+    ) -> None:
         super().__init__()
         self.initial_gamma = initial_gamma
         self.kc = kc
         self.beta = beta
+        self.gamma_bound = gamma_bound
         G0 = spd_matrix("GammaGain: initial_gamma", initial_gamma)
         positive_number("GammaGain: kc", kc, allow_zero=True)
         positive_number("GammaGain: beta", beta, allow_zero=True)
+        if gamma_bound is not None:
+            positive_number("GammaGain: gamma_bound", gamma_bound)
         self._size = G0.shape[0]
         self._kc, self._beta = float(kc), float(beta)
+        self._bound = None if gamma_bound is None else float(gamma_bound)
+        self._inverse_initial = np.linalg.inv(G0).ravel()
         self._rate = np.empty(G0.size)  # scratch for the derivative, copied out at once
         self._state_index = self.DeclareContinuousState(BasicVector(G0.ravel()))
         self._gain_sum_port = self.DeclareVectorInputPort("gain_sum", G0.size)
@@ -67,11 +87,10 @@ class GammaGain(LeafSystem):
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         rate = self._rate
-        gamma_rate(
-            context.get_continuous_state_vector().CopyToVector(),
-            self._gain_sum_port.Eval(context),
-            self._kc,
-            self._beta,
-            rate,
-        )
+        gamma = context.get_continuous_state_vector().CopyToVector()
+        beta = self._beta
+        if self._bound is not None:  # tr(Gamma0^{-1} Gamma) / L, both symmetric
+            ratio = float(self._inverse_initial @ gamma) / self._size
+            beta = bounded_forgetting(beta, ratio, self._bound)
+        gamma_rate(gamma, self._gain_sum_port.Eval(context), self._kc, beta, rate)
         derivatives.SetFromVector(rate)

@@ -278,7 +278,7 @@ class SymbolicController(Diagram):
         name: SymbolicController
         input_ports:
         - estimated_state
-        - weights
+        - policy_weights
         output_ports:
         - u
 
@@ -326,7 +326,7 @@ class SymbolicController(Diagram):
         policy = _add_symbolic_system(
             builder,
             "policy",
-            [("estimated_state", model.x), ("weights", W)],
+            [("estimated_state", model.x), ("policy_weights", W)],
             state=unused,
             dynamics=[0.0 * unused[0]],
             output=u,
@@ -338,9 +338,9 @@ class SymbolicController(Diagram):
         """The state estimate xhat (size n)."""
         return self.GetInputPort("estimated_state")
 
-    def get_weights_input_port(self) -> InputPort:
-        """Critic weights W (size L)."""
-        return self.GetInputPort("weights")
+    def get_policy_weights_input_port(self) -> InputPort:
+        """The weights of the policy in force (size L): the critic's W under the paper's law."""
+        return self.GetInputPort("policy_weights")
 
     def get_u_output_port(self) -> OutputPort:
         """The saturated input u (size m)."""

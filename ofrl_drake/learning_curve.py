@@ -1,0 +1,418 @@
+"""Is the critic learning? Policy-quality checkpoints and learning-health logs of a run.
+
+A run's closed-loop cost mixes the observer's transient with the learning. To
+see what learning buys, :func:`learning_curve` takes the policy in force at
+checkpoints ``t_k`` along the run and evaluates each one alone
+(:func:`evaluate_policy`): the critic frozen at ``W_pi(t_k)``, the **true
+state** fed back, from the scenario's ``x0`` over its horizon. Its cost, and
+its ratio to ``J*`` when that is known, is the learning curve.
+
+:func:`learning_health` reads the logs: the learning condition ``c(t)``,
+``||Gamma||_2`` and ``cond(Gamma)``, for bases with quadratic monomials the
+eigenvalues of the value's quadratic part ``P(W)``, the spectral abscissa of
+the linearized loop ``A + B K`` under the policy in force, and when each
+policy update was accepted or rejected (:class:`~ofrl_drake.systems.PolicyGate`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.framework import DiagramBuilder, EventStatus
+from pydrake.systems.primitives import ConstantVectorSource
+
+from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
+from ofrl_drake.learning import (
+    linear_policy_gain,
+    spectral_abscissa,
+    value_matrix,
+    value_weights,
+)
+from ofrl_drake.scenario import Scenario, abort_box
+from ofrl_drake.simulation import SimulationResult, simulator_config
+from ofrl_drake.systems import (
+    ControlAffinePlant,
+    RunningCost,
+    SaturatedController,
+    SymbolicController,
+    SymbolicPlant,
+    SymbolicRunningCost,
+)
+
+__all__ = [
+    "DEFAULT_CHECKPOINTS",
+    "LearningHealth",
+    "LearningReport",
+    "PolicyRun",
+    "evaluate_policy",
+    "learning_curve",
+    "learning_health",
+    "learning_report",
+    "lqr_weights",
+]
+
+#: Checkpoints of the learning curve by default (``run --checkpoints``).
+DEFAULT_CHECKPOINTS = 10
+
+
+@dataclass(frozen=True)
+class PolicyRun:
+    """One policy fed the true state from ``x0`` (:func:`evaluate_policy`).
+
+    ``cost`` is ``J(T)``, or NaN when the run left the abort box (``status``
+    then says ``diverged`` and when).
+    """
+
+    cost: float
+    final_state_norm: float
+    status: str
+
+
+def evaluate_policy(
+    loop: ClosedLoop,
+    W: np.ndarray,
+    *,
+    x0: np.ndarray | None = None,
+    duration: float | None = None,
+) -> PolicyRun:
+    """The cost of the saturated policy of weights ``W``, critic frozen, true state fed back.
+
+    A Drake diagram of the loop's plant model, its controller and running cost
+    (no observer, no learning), integrated with the scenario's integrator
+    settings. The run stops as ``diverged`` when the state leaves the
+    scenario's abort box.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop whose plant model, basis, cost and input bound are used.
+    W : ndarray, shape (L,)
+    x0 : ndarray, optional
+        Initial state (default: the scenario's).
+    duration : float, optional
+        Horizon (default: the scenario's).
+
+    Returns
+    -------
+    PolicyRun
+    """
+    parts = loop.parts
+    scenario: Scenario = parts.scenario
+    system = parts.system
+    start = np.asarray(scenario.x0 if x0 is None else x0, dtype=float)
+    horizon = float(scenario.simulation.duration if duration is None else duration)
+    symbolic = symbolic_blocks(scenario, system)
+    builder = DiagramBuilder()
+    if symbolic:
+        plant = builder.AddSystem(SymbolicPlant(system, initial_state=start))
+        controller = builder.AddSystem(
+            SymbolicController(system, parts.basis, parts.r, scenario.input_bound)
+        )
+        cost = builder.AddSystem(SymbolicRunningCost(parts.Q, parts.r, scenario.input_bound))
+    else:
+        plant = builder.AddSystem(ControlAffinePlant(system, initial_state=start))
+        controller = builder.AddSystem(
+            SaturatedController(system, parts.basis, parts.r, scenario.input_bound)
+        )
+        cost = builder.AddSystem(RunningCost(parts.Q, parts.r, scenario.input_bound))
+    weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))
+    builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("estimated_state"))
+    builder.Connect(weights.get_output_port(), controller.GetInputPort("policy_weights"))
+    builder.Connect(controller.GetOutputPort("u"), plant.GetInputPort("u"))
+    builder.Connect(plant.GetOutputPort("state"), cost.GetInputPort("state"))
+    builder.Connect(controller.GetOutputPort("u"), cost.GetInputPort("u"))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    ApplySimulatorConfig(simulator_config(scenario), simulator)
+    lower, upper = abort_box(scenario)
+    state_port = plant.GetOutputPort("state")
+    left: list[float] = []
+
+    def watch(root) -> EventStatus:
+        x = state_port.Eval(plant.GetMyContextFromRoot(root))
+        if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
+            left.append(root.get_time())
+            return EventStatus.ReachedTermination(diagram, "left the abort box")
+        return EventStatus.Succeeded()
+
+    simulator.set_monitor(watch)
+    simulator.Initialize()
+    try:
+        simulator.AdvanceTo(horizon)
+    except RuntimeError as err:  # an integrator that gives up: the policy diverged
+        left.append(simulator.get_context().get_time())
+        return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
+    context = simulator.get_context()
+    x = state_port.Eval(plant.GetMyContextFromRoot(context))
+    if left:
+        status = f"diverged: left the abort box at t = {left[0]:.6g}"
+        return PolicyRun(float("nan"), float(np.linalg.norm(x)), status)
+    J = cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context))[0]
+    return PolicyRun(float(J), float(np.linalg.norm(x)), "ok")
+
+
+def learning_curve(
+    loop: ClosedLoop,
+    result: SimulationResult,
+    *,
+    checkpoints: int = DEFAULT_CHECKPOINTS,
+    optimal_cost: float | None = None,
+) -> list[dict[str, Any]]:
+    """The policy in force at ``checkpoints + 1`` times ``0, T/K, ..., T``, each evaluated alone.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop ``result`` was simulated from.
+    result : SimulationResult
+    checkpoints : int
+        ``K >= 1``: the number of intervals between checkpoints.
+    optimal_cost : float, optional
+        ``J*`` of the scenario from ``x0``; then each entry has its ratio.
+
+    Returns
+    -------
+    list of dict
+        One entry per checkpoint: ``t`` (the logged sample nearest ``t_k``;
+        a stopped run has none after its stop), ``policy_cost``,
+        ``optimality_ratio`` (None without ``J*``), ``final_state_norm`` and
+        ``status`` of the evaluation.
+    """
+    if checkpoints < 1:
+        raise ValueError(f"checkpoints must be >= 1; got {checkpoints}.")
+    horizon = float(loop.parts.scenario.simulation.duration)
+    entries = []
+    seen: set[int] = set()
+    for t_k in np.linspace(0.0, horizon, checkpoints + 1):
+        if t_k > result.t[-1] + 1e-9:
+            break
+        i = int(np.argmin(np.abs(result.t - t_k)))
+        if i in seen:
+            continue
+        seen.add(i)
+        run = evaluate_policy(loop, result.W_policy[i])
+        ratio = (
+            run.cost / optimal_cost
+            if optimal_cost is not None and np.isfinite(optimal_cost) and np.isfinite(run.cost)
+            else None
+        )
+        entries.append(
+            {
+                "t": float(result.t[i]),
+                "policy_cost": _number(run.cost),
+                "optimality_ratio": _number(ratio),
+                "final_state_norm": _number(run.final_state_norm),
+                "status": run.status,
+            }
+        )
+    return entries
+
+
+@dataclass
+class LearningHealth:
+    """Learning-health series of a run (:func:`learning_health`), time first.
+
+    Attributes
+    ----------
+    t : ndarray, shape (T,)
+    learning_condition : ndarray, shape (T,)
+        ``c(t)`` for the policy in force.
+    gamma_norm, gamma_condition : ndarray, shape (T,)
+        ``||Gamma||_2`` and ``cond(Gamma)``.
+    value_eigenvalues : ndarray, shape (T, n) or None
+        Eigenvalues of the quadratic part ``P(W)`` of the critic's value
+        (None when the basis has no quadratic monomial).
+    spectral_abscissa : ndarray, shape (T,) or None
+        Of ``A + B K(W_pi)``, the linearized loop under the policy in force
+        (None without a linearization or quadratic monomials).
+    accepted_times, rejected_times : list of float
+        When the policy gate accepted or rejected an update (empty under the
+        paper's law, which has no gate).
+    """
+
+    t: np.ndarray
+    learning_condition: np.ndarray
+    gamma_norm: np.ndarray
+    gamma_condition: np.ndarray
+    value_eigenvalues: np.ndarray | None = None
+    spectral_abscissa: np.ndarray | None = None
+    accepted_times: list[float] = field(default_factory=list)
+    rejected_times: list[float] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The series for ``learning_health.npz``."""
+        out = {
+            "t": self.t,
+            "learning_condition": self.learning_condition,
+            "gamma_norm": self.gamma_norm,
+            "gamma_condition": self.gamma_condition,
+        }
+        if self.value_eigenvalues is not None:
+            out["value_eigenvalues"] = self.value_eigenvalues
+        if self.spectral_abscissa is not None:
+            out["spectral_abscissa"] = self.spectral_abscissa
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """Extremes and final values, for ``summary.json`` → ``learning_health``."""
+        out: dict[str, Any] = {
+            "min_learning_condition": _number(np.nanmin(self.learning_condition)),
+            "final_learning_condition": _number(self.learning_condition[-1]),
+            "max_gamma_norm": _number(np.nanmax(self.gamma_norm)),
+            "final_gamma_norm": _number(self.gamma_norm[-1]),
+            "max_gamma_condition": _number(np.nanmax(self.gamma_condition)),
+            "policy_updates_accepted": len(self.accepted_times),
+            "policy_updates_rejected": len(self.rejected_times),
+            "accepted_times": self.accepted_times,
+            "rejected_times": self.rejected_times,
+        }
+        if self.value_eigenvalues is not None:
+            smallest = self.value_eigenvalues[:, 0]
+            indefinite = np.flatnonzero(smallest <= 0.0)
+            out["min_value_eigenvalue"] = _number(np.nanmin(smallest))
+            out["final_value_eigenvalues"] = [_number(v) for v in self.value_eigenvalues[-1]]
+            out["value_indefinite_from"] = float(self.t[indefinite[0]]) if indefinite.size else None
+        if self.spectral_abscissa is not None:
+            unstable = np.flatnonzero(self.spectral_abscissa >= 0.0)
+            out["max_spectral_abscissa"] = _number(np.nanmax(self.spectral_abscissa))
+            out["final_spectral_abscissa"] = _number(self.spectral_abscissa[-1])
+            out["linearized_loop_unstable_from"] = (
+                float(self.t[unstable[0]]) if unstable.size else None
+            )
+        return out
+
+
+def learning_health(loop: ClosedLoop, result: SimulationResult) -> LearningHealth:
+    """The learning-health series of ``result``, simulated from ``loop``."""
+    G = 0.5 * (result.Gamma + np.swapaxes(result.Gamma, 1, 2))
+    finite = np.all(np.isfinite(G), axis=(1, 2))
+    gamma_norm = np.full(result.t.size, np.nan)
+    gamma_condition = np.full(result.t.size, np.nan)
+    if np.any(finite):
+        eig = np.linalg.eigvalsh(G[finite])
+        gamma_norm[finite] = np.abs(eig).max(axis=1)
+        with np.errstate(divide="ignore"):
+            gamma_condition[finite] = np.abs(eig).max(axis=1) / np.abs(eig).min(axis=1)
+    basis = loop.parts.basis
+    has_quadratic = bool(np.any(basis.exponents.sum(axis=1) == 2))
+    eigenvalues = abscissa = None
+    if has_quadratic:
+        P = value_matrix(basis, result.W)
+        ok = np.all(np.isfinite(P), axis=(1, 2))
+        eigenvalues = np.full((result.t.size, basis.n), np.nan)
+        if np.any(ok):
+            eigenvalues[ok] = np.linalg.eigvalsh(P[ok])
+        critic = loop.parts.critic
+        if critic is not None and critic.linearization is not None:
+            A, B = critic.linearization
+            P_pi = value_matrix(basis, result.W_policy)
+            K = linear_policy_gain(B, loop.parts.r, P_pi)
+            abscissa = spectral_abscissa(A[None, :, :] + B[None, :, :] @ K)
+    accepted: list[float] = []
+    rejected: list[float] = []
+    updates = result.extra.get("policy_updates")
+    if updates is not None:
+        steps = np.diff(np.asarray(updates, float), axis=0, prepend=np.zeros((1, 2)))
+        accepted = [float(t) for t in result.t[steps[:, 0] > 0.5]]
+        rejected = [float(t) for t in result.t[steps[:, 1] > 0.5]]
+    return LearningHealth(
+        t=result.t,
+        learning_condition=result.learning_condition,
+        gamma_norm=gamma_norm,
+        gamma_condition=gamma_condition,
+        value_eigenvalues=eigenvalues,
+        spectral_abscissa=abscissa,
+        accepted_times=accepted,
+        rejected_times=rejected,
+    )
+
+
+def lqr_weights(loop: ClosedLoop) -> np.ndarray | None:
+    """The LQR value of the linearization at the target, in the loop's basis.
+
+    Drake's ``LinearQuadraticRegulator`` with the scenario's ``Q`` and ``R``;
+    None when the loop has no linearization or the basis no quadratic monomial.
+    """
+    from pydrake.systems.controllers import LinearQuadraticRegulator
+
+    from ofrl_drake.errors import ModelError
+
+    critic = loop.parts.critic
+    if critic is None or critic.linearization is None:
+        return None
+    A, B = critic.linearization
+    try:
+        _, P = LinearQuadraticRegulator(A, B, loop.parts.Q, np.diag(loop.parts.r))
+        return value_weights(loop.parts.basis, P)
+    except (ModelError, RuntimeError):
+        return None
+
+
+@dataclass
+class LearningReport:
+    """What ``run`` reports on learning: the curve, the health, and the yardsticks.
+
+    Attributes
+    ----------
+    curve : list of dict or None
+        :func:`learning_curve` (None when switched off).
+    health : LearningHealth
+    optimal_cost : float or None
+        ``J*`` from ``x0`` when asked for.
+    lqr_policy_cost : float or None
+        The cost of the LQR policy of the linearization, evaluated like the
+        checkpoints (true state, from ``x0``).
+    """
+
+    curve: list[dict[str, Any]] | None
+    health: LearningHealth
+    optimal_cost: float | None = None
+    lqr_policy_cost: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """For ``summary.json``: ``learning_curve`` and ``learning_health``."""
+        health = self.health.summary()
+        health["optimal_cost"] = _number(self.optimal_cost)
+        health["lqr_policy_cost"] = _number(self.lqr_policy_cost)
+        if self.curve:
+            first, last = self.curve[0]["policy_cost"], self.curve[-1]["policy_cost"]
+            health["initial_policy_cost"] = first
+            health["final_policy_cost"] = last
+        out: dict[str, Any] = {"learning_health": health}
+        if self.curve is not None:
+            out["learning_curve"] = self.curve
+        return out
+
+
+def learning_report(
+    loop: ClosedLoop,
+    result: SimulationResult,
+    *,
+    checkpoints: int = DEFAULT_CHECKPOINTS,
+    optimal_cost: float | None = None,
+) -> LearningReport:
+    """The learning curve (``checkpoints`` intervals; 0 switches it off) and health of a run."""
+    curve = None
+    lqr_cost = None
+    if checkpoints > 0:
+        curve = learning_curve(loop, result, checkpoints=checkpoints, optimal_cost=optimal_cost)
+        W_lqr = lqr_weights(loop)
+        if W_lqr is not None:
+            lqr_cost = evaluate_policy(loop, W_lqr).cost
+    return LearningReport(
+        curve=curve,
+        health=learning_health(loop, result),
+        optimal_cost=optimal_cost,
+        lqr_policy_cost=lqr_cost,
+    )
+
+
+def _number(value: Any) -> float | None:
+    """A float for JSON; None for a missing or non-finite value."""
+    if value is None:
+        return None
+    value = float(value)
+    return value if np.isfinite(value) else None

@@ -1,0 +1,173 @@
+"""The policy slot: which critic weights the controller acts on."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pydrake.systems.framework import (
+    BasicVector,
+    Context,
+    Diagram,
+    DiagramBuilder,
+    DiscreteValues,
+    InputPort,
+    LeafSystem,
+    OutputPort,
+)
+from pydrake.systems.primitives import PassThrough
+
+from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.learning import PolicyCheck, check_policy, second_moment
+
+__all__ = ["PolicyGate", "PolicyPassThrough"]
+
+
+class PolicyGate(LeafSystem):
+    """Policy iteration's improvement step, guarded by an acceptance test.
+
+    Holds the policy in force ``W_pi`` as discrete state. Every ``period``
+    seconds (first at ``t = period``) it reads the critic's weights and puts
+    them in force if they pass the acceptance test of
+    :mod:`ofrl_drake.learning` (the value's quadratic part is positive
+    definite, the linearized loop of its policy is Hurwitz, and its local cost
+    over the points is no larger than the policy in force's:
+    :meth:`~ofrl_drake.learning.PolicyCheck.improves_on`); otherwise ``W_pi``
+    is kept and the rejection counted.
+
+    .. pydrake_system::
+
+        name: PolicyGate
+        input_ports:
+        - weights
+        output_ports:
+        - policy_weights
+        - policy_updates
+
+    ``policy_updates`` is ``[accepted, rejected]``, the counts so far.
+
+    Parameters
+    ----------
+    initial_weights : array_like, shape (L,)
+        The policy in force at ``t = 0``.
+    period : float
+        Seconds between improvement steps, > 0.
+    A, B : array_like
+        The plant's linearization at the target.
+    Q : array_like, shape (n, n)
+        State weight.
+    r : array_like, shape (m,)
+        Diagonal of R.
+    basis : PolynomialBasis
+        The critic's basis.
+    points : array_like, shape (n, N)
+        The extrapolation points, whose second moment weighs the local cost.
+
+    Raises
+    ------
+    ModelError
+        If ``initial_weights`` is not a finite vector of the basis' size or
+        ``period`` is not a positive number.
+    """
+
+    def __init__(
+        self,
+        initial_weights: Sequence[float],
+        period: float,
+        A: np.ndarray,
+        B: np.ndarray,
+        Q: np.ndarray,
+        r: np.ndarray,
+        basis: PolynomialBasis,
+        points: np.ndarray,
+    ) -> None:
+        super().__init__()
+        self.initial_weights = initial_weights
+        self.period = period
+        self.A = A
+        self.B = B
+        self.Q = Q
+        self.r = r
+        self.basis = basis
+        self.points = points
+        W0 = finite_vector("PolicyGate: initial_weights", initial_weights, size=basis.size)
+        positive_number("PolicyGate: period", period)
+        self._A = np.asarray(A, dtype=float)
+        self._B = np.asarray(B, dtype=float)
+        self._Q = np.asarray(Q, dtype=float)
+        self._r = np.asarray(r, dtype=float)
+        self._moment = second_moment(points)
+        size = basis.size
+        self._policy_index = self.DeclareDiscreteState(BasicVector(W0))
+        self._updates_index = self.DeclareDiscreteState(BasicVector(np.zeros(2)))
+        self._weights_port = self.DeclareVectorInputPort("weights", size)
+        self._policy_port = self.DeclareStateOutputPort("policy_weights", self._policy_index)
+        self._updates_port = self.DeclareStateOutputPort("policy_updates", self._updates_index)
+        self.DeclarePeriodicDiscreteUpdateEvent(
+            period_sec=float(period), offset_sec=float(period), update=self._improve
+        )
+
+    def get_weights_input_port(self) -> InputPort:
+        """The critic's weights W (size L)."""
+        return self._weights_port
+
+    def get_policy_weights_output_port(self) -> OutputPort:
+        """The weights of the policy in force (size L)."""
+        return self._policy_port
+
+    def get_policy_updates_output_port(self) -> OutputPort:
+        """``[accepted, rejected]``: improvement steps so far (size 2)."""
+        return self._updates_port
+
+    def check(self, W: np.ndarray) -> PolicyCheck:
+        """What the acceptance test reads off weights ``W``."""
+        return check_policy(self._A, self._B, self._Q, self._r, self.basis, W, self._moment)
+
+    def _improve(self, context: Context, discrete_state: DiscreteValues) -> None:
+        W = np.array(self._weights_port.Eval(context), dtype=float)
+        in_force = context.get_discrete_state(self._policy_index).CopyToVector()
+        counts = discrete_state.get_mutable_vector(self._updates_index)
+        if self.check(W).improves_on(self.check(in_force)):
+            discrete_state.get_mutable_vector(self._policy_index).SetFromVector(W)
+            counts.SetAtIndex(0, counts.GetAtIndex(0) + 1.0)
+        else:
+            counts.SetAtIndex(1, counts.GetAtIndex(1) + 1.0)
+
+
+class PolicyPassThrough(Diagram):
+    """The paper's law: the controller acts on the critic's own weights, ``W_pi = W``.
+
+    Drake's ``PassThrough`` (C++, direct feedthrough) under this slot's port
+    names, so it costs no Python call.
+
+    .. pydrake_system::
+
+        name: PolicyPassThrough
+        input_ports:
+        - weights
+        output_ports:
+        - policy_weights
+
+    Parameters
+    ----------
+    size : int
+        L, the number of weights.
+    """
+
+    def __init__(self, size: int) -> None:
+        super().__init__()
+        self.size = size
+        builder = DiagramBuilder()
+        through = builder.AddNamedSystem("pass_through", PassThrough(int(size)))
+        builder.ExportInput(through.get_input_port(), "weights")
+        builder.ExportOutput(through.get_output_port(), "policy_weights")
+        builder.BuildInto(self)
+
+    def get_weights_input_port(self) -> InputPort:
+        """The critic's weights W (size L)."""
+        return self.GetInputPort("weights")
+
+    def get_policy_weights_output_port(self) -> OutputPort:
+        """The same weights (size L)."""
+        return self.GetOutputPort("policy_weights")

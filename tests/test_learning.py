@@ -1,0 +1,238 @@
+"""The learning-law math of ofrl_drake.learning, in numpy only."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.linalg import solve_continuous_are
+
+from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.bellman import Extrapolator, point_features
+from ofrl_drake.errors import ModelError
+from ofrl_drake.examples import make_system
+from ofrl_drake.learning import (
+    auto_gains,
+    basis_scales,
+    bounded_forgetting,
+    check_policy,
+    linear_policy_gain,
+    rho_metric,
+    spectral_abscissa,
+    value_matrix,
+    value_weights,
+)
+from ofrl_drake.points import grid_points
+
+# A double integrator: x1' = x2, x2' = u.
+A = np.array([[0.0, 1.0], [0.0, 0.0]])
+B = np.array([[0.0], [1.0]])
+R = np.array([1.0])
+
+
+def _lqr_value(Q):
+    return solve_continuous_are(A, B, Q, np.diag(R))
+
+
+# ------------------------------------------------------------ value matrix
+@settings(max_examples=50, deadline=None)
+@given(st.integers(1, 4), st.data())
+def test_value_weights_invert_value_matrix(n, data):
+    basis = PolynomialBasis(n, (2, 4))
+    entries = data.draw(
+        st.lists(st.floats(-5, 5), min_size=n * n, max_size=n * n), label="P entries"
+    )
+    M = np.asarray(entries).reshape(n, n)
+    P = 0.5 * (M + M.T)
+    W = value_weights(basis, P)
+    np.testing.assert_allclose(value_matrix(basis, W), P, rtol=0, atol=1e-12)
+    # and V(x) = x^T P x for the quadratic part (degree-4 weights are zero)
+    x = np.linspace(-1.0, 1.0, n)
+    np.testing.assert_allclose(W @ basis(x), x @ P @ x, rtol=1e-12, atol=1e-12)
+
+
+def test_value_matrix_of_a_batch_matches_one_at_a_time():
+    basis = PolynomialBasis(3)
+    Ws = np.random.default_rng(0).normal(size=(5, basis.size))
+    batch = value_matrix(basis, Ws)
+    for W, P in zip(Ws, batch, strict=True):
+        np.testing.assert_array_equal(value_matrix(basis, W), P)
+
+
+def test_value_weights_need_a_quadratic_monomial():
+    with pytest.raises(ModelError, match=r"has no monomial of degree 2"):
+        value_weights(PolynomialBasis(2, (4,)), np.eye(2))
+
+
+def test_linear_policy_gain_is_the_linearized_saturated_policy():
+    """u = -lbar tanh(D) with D = (1/(2 lbar)) R^{-1} B^T 2 P x has du/dx = -R^{-1} B^T P."""
+    P = _lqr_value(np.eye(2))
+    K = linear_policy_gain(B, R, P)
+    lbar, h = 3.0, 1e-6
+    for e in np.eye(2):
+        D = lambda x: (1 / (2 * lbar)) / R * (B.T @ (2 * P @ x))  # noqa: E731
+        du = (-lbar * np.tanh(D(h * e)) + lbar * np.tanh(D(-h * e))) / (2 * h)
+        np.testing.assert_allclose(du, K @ e, rtol=1e-8)
+
+
+# ------------------------------------------------------------ acceptance
+MOMENT = np.diag([0.3, 0.5])  # second moment of some points
+
+
+def _check(P, Q=None):
+    basis = PolynomialBasis(2)
+    Q = np.eye(2) if Q is None else Q
+    return check_policy(A, B, Q, R, basis, value_weights(basis, P), MOMENT)
+
+
+def test_the_lqr_value_and_its_multiples_are_admissible_and_lqr_costs_least():
+    P = _lqr_value(np.eye(2))
+    lqr = _check(P)
+    assert lqr.admissible and lqr.spectral_abscissa < 0
+    # The local cost of the LQR policy is tr(P M): its own value.
+    assert lqr.local_cost == pytest.approx(np.trace(P @ MOMENT), rel=1e-10)
+    for scale in (3.0, 10.0):
+        check = _check(scale * P)
+        assert check.admissible and check.value_min_eigenvalue > 0 > check.lyapunov_max_eigenvalue
+        assert check.local_cost > lqr.local_cost  # LQR minimizes the local cost
+        assert lqr.improves_on(check) and not check.improves_on(lqr)
+
+
+def test_kleinman_steps_pass_the_acceptance_test():
+    """On a linear plant, exact policy evaluation then improvement is always accepted."""
+    from scipy.linalg import solve_continuous_lyapunov
+
+    Q = np.eye(2)
+    P = 3.0 * _lqr_value(Q)
+    current = _check(P, Q)
+    for _ in range(6):
+        K = -(B.T @ P) / R[0]
+        Acl = A + B @ K
+        P = solve_continuous_lyapunov(Acl.T, -(Q + K.T @ K * R[0]))  # value of K
+        candidate = _check(P, Q)
+        assert candidate.improves_on(current)
+        current = candidate
+    np.testing.assert_allclose(P, _lqr_value(Q), rtol=1e-6)
+
+
+def test_an_indefinite_or_destabilising_value_is_rejected():
+    indefinite = _check(np.diag([1.0, -1.0]))
+    assert not indefinite.admissible and indefinite.value_min_eigenvalue == pytest.approx(-1.0)
+    assert indefinite.local_cost == np.inf
+    # P > 0 whose policy K = [0, -1e-3] leaves x1 marginal: the linearized loop is not stable.
+    weak = _check(np.diag([1.0, 1e-3]))
+    assert not weak.admissible and weak.spectral_abscissa >= -1e-12
+    assert not weak.improves_on(indefinite)  # never accepted, whatever is in force
+    basis = PolynomialBasis(2)
+    nan = check_policy(A, B, np.eye(2), R, basis, np.array([np.nan, 0.0, 1.0]), MOMENT)
+    assert not nan.admissible and np.isnan(nan.spectral_abscissa)
+    # Anything admissible replaces a policy in force that is not.
+    assert _check(_lqr_value(np.eye(2))).improves_on(weak)
+
+
+def test_spectral_abscissa_of_a_batch():
+    mats = np.stack([np.diag([-1.0, -2.0]), np.array([[0.0, 1.0], [-1.0, 0.0]])])
+    np.testing.assert_allclose(spectral_abscissa(mats), [-1.0, 0.0], atol=1e-12)
+
+
+# ------------------------------------------------------ bounded forgetting
+@settings(max_examples=30, deadline=None)
+@given(
+    st.floats(0.1, 5.0),  # beta
+    st.floats(1.5, 20.0),  # bound
+    st.floats(1e-4, 1e-1),  # gain sum scale
+)
+def test_bounded_gain_forgetting_keeps_the_trace_ratio_bounded(beta, bound, s):
+    """Euler steps of Gamma' = beta(t) Gamma - kc Gamma S Gamma with a weak S: tr ratio <= bound."""
+    L = 3
+    G0 = np.diag([1.0, 2.0, 3.0])
+    G0inv = np.linalg.inv(G0)
+    S = s * np.diag([1.0, 1e-6, 0.0])  # two directions barely or never excited
+    G = G0.copy()
+    dt = 0.01 / beta
+    worst = 0.0
+    for _ in range(20000):
+        ratio = np.trace(G0inv @ G) / L
+        worst = max(worst, ratio)
+        b = bounded_forgetting(beta, ratio, bound)
+        G = G + dt * (b * G - G @ S @ G)
+    assert worst <= bound * (1 + 1e-3)
+    assert np.linalg.eigvalsh(G)[0] > 0
+    # Without the bound, the unexcited direction grows as exp(beta t):
+    assert np.exp(beta * 20000 * dt) > 1e80
+
+
+def test_bounded_forgetting_vanishes_at_the_bound_and_turns_negative_beyond():
+    assert bounded_forgetting(0.5, 1.0, 10.0) == pytest.approx(0.45)
+    assert bounded_forgetting(0.5, 10.0, 10.0) == 0.0
+    assert bounded_forgetting(0.5, 12.0, 10.0) < 0.0
+
+
+# ------------------------------------------------------------ units
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(0.01, 100.0), min_size=2, max_size=2))
+def test_normalized_bellman_sums_do_not_depend_on_the_state_units(factors):
+    """The twin x' = T x of a plant, with points, cost and weights transformed alike, has
+    the same rho and Bellman errors, and sums that transform as the weights do."""
+    t = np.asarray(factors)
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    X = grid_points([-1, -1], [1, 1], [5, 4])
+    Q = np.diag([5.0, 2.0])
+    W = np.array([0.4, 0.2, 0.8])
+    d = basis_scales(basis, X)
+    base = Extrapolator(point_features(system, basis, X, Q), R, 3.0, 0.7, rho_metric(d))(W)
+
+    from ofrl_drake.model import ControlAffineSystem
+
+    twin = ControlAffineSystem(
+        lambda x: (
+            t[:, None] * np.asarray(system.f(x / t[:, None]))
+            if np.ndim(x) == 2
+            else t * np.asarray(system.f(x / t))
+        ),
+        lambda x: (
+            t[:, None, None] * np.asarray(system.g(x / t[:, None]))
+            if np.ndim(x) == 2
+            else t[:, None] * np.asarray(system.g(x / t))
+        ),
+        C=system.output_matrix / t,
+        name="twin",
+    )
+    Xt = t[:, None] * X
+    Qt = Q / np.outer(t, t)
+    Dw = np.prod(t[None, :] ** basis.exponents, axis=1)  # sigma(T x) = Dw sigma(x)
+    dt = basis_scales(basis, Xt)
+    np.testing.assert_allclose(dt, d * Dw, rtol=1e-12)
+    other = Extrapolator(point_features(twin, basis, Xt, Qt), R, 3.0, 0.7, rho_metric(dt))(W / Dw)
+    np.testing.assert_allclose(other.rho, base.rho, rtol=1e-9)
+    np.testing.assert_allclose(other.delta, base.delta, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(other.u, base.u, rtol=1e-9, atol=1e-12)
+    # omega_twin = Dw omega: with Gamma_twin = Gamma / (Dw Dw^T) (what auto gains give), the
+    # critic law maps W -> W / Dw exactly.
+    np.testing.assert_allclose(other.critic_sum / Dw, base.critic_sum, rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(
+        other.gain_sum / np.outer(Dw, Dw), base.gain_sum, rtol=1e-9, atol=1e-14
+    )
+
+
+def test_basis_scales_need_points_that_spread():
+    with pytest.raises(ModelError, match=r"do not spread along state axes \[1\]"):
+        basis_scales(PolynomialBasis(2), np.array([[0.0, 1.0], [2.0, 2.0]]))
+
+
+# ------------------------------------------------------------ auto gains
+def test_auto_gains_put_gamma_at_the_steady_state_of_its_law():
+    S0 = np.array([[2.0, 0.3], [0.3, 0.5]])
+    gains = auto_gains(lambda nu: S0 / nu, np.array([1.0, 2.0, 4.0]), horizon=20.0)
+    assert gains.nu == pytest.approx(0.5)  # 1 / median
+    assert gains.policy_period == pytest.approx(2.0)
+    assert gains.beta == pytest.approx(2.5)
+    S = S0 / gains.nu
+    # Gamma0 is the fixed point of Gamma' = beta Gamma - kc Gamma S Gamma.
+    G = gains.Gamma0
+    np.testing.assert_allclose(gains.beta * G - gains.kc * G @ S @ G, 0, atol=1e-12)
+
+
+def test_auto_gains_refuse_points_that_excite_nothing():
+    with pytest.raises(ModelError, match=r"regressors omega_i vanish at W0"):
+        auto_gains(lambda nu: np.eye(2), np.zeros(5), horizon=1.0)

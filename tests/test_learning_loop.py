@@ -1,0 +1,261 @@
+"""Does the critic learn? The policy-iteration law in the closed loop, on shipped and new plants.
+
+The yardstick of issue 20: from a stabilising critic as poor as three times the
+LQR value of the linearization, the policy learned by the horizon T, frozen and
+fed the true state, costs at most max(1.02 J*, J_LQR + 0.01 J*) from x0, and
+less than the initial policy; the run over 5 T ends ok and regulated, with
+Gamma bounded and every policy in force stabilising its linearized loop.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from ofrl_drake import build_closed_loop, load_scenario, simulate
+from ofrl_drake.examples import EXAMPLES, register
+from ofrl_drake.learning import value_matrix
+from ofrl_drake.learning_curve import evaluate_policy, learning_health, lqr_weights
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.optimal import optimal_control
+from ofrl_drake.scenario import (
+    BoxConfig,
+    CostConfig,
+    CriticConfig,
+    ObserverConfig,
+    PointsConfig,
+    Scenario,
+    SimulationConfig,
+)
+
+from .conftest import ROOT
+
+PENDULUM = ROOT / "diagrams" / "pendulum_upright.yaml"
+CART_POLE = ROOT / "diagrams" / "cart_pole.yaml"
+PAPER = ROOT / "diagrams" / "two_state_paper.yaml"
+
+
+def _critic(scenario, **changes):
+    return dataclasses.replace(scenario, critic=dataclasses.replace(scenario.critic, **changes))
+
+
+def _policy_iteration(scenario):
+    """``scenario`` under the default law with derived gains."""
+    return _critic(
+        scenario,
+        law="policy_iteration",
+        gains="auto",
+        kc=None,
+        nu=None,
+        beta=None,
+        Gamma0=None,
+        policy_period=None,
+        gamma_bound=None,
+    )
+
+
+def _lqr(scenario):
+    loop = build_closed_loop(scenario)
+    return lqr_weights(loop)
+
+
+# ------------------------------------------------------------ user plants
+def _damped_pendulum(rate_unit: float = 1.0) -> ControlAffineSystem:
+    """An inverted pendulum with viscous damping, its rate in units of ``rate_unit`` rad/s."""
+    s = rate_unit
+
+    def f(x):
+        return np.array([x[1] / s, s * (9.81 * np.sin(x[0]) - 0.5 * x[1] / s)])
+
+    def g(x):
+        return np.array([[0 * x[0]], [s * 2.0 + 0 * x[0]]])
+
+    return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name=f"damped_pendulum_{s:g}")
+
+
+def _cart_spring(scale: float = 1.0) -> ControlAffineSystem:
+    """A cart on a hardening spring with a pendulum-like unstable coupling (n = 4, q = 2)."""
+
+    def f(x):
+        return np.array(
+            [
+                x[2],
+                x[3],
+                -x[0] - 0.5 * x[0] ** 3 + 0.4 * np.sin(x[1]) - 0.2 * x[2],
+                3.0 * np.sin(x[1]) - 0.5 * x[0] - 0.1 * x[3],
+            ]
+        )
+
+    def g(x):
+        return np.array(
+            [[0 * x[0]], [0 * x[0]], [1.0 + 0 * x[0]], [-np.cos(x[1]) * scale + 0 * x[0]]]
+        )
+
+    return ControlAffineSystem(f, g, C=[[1.0, 0, 0, 0], [0, 1.0, 0, 0]], name="cart_spring")
+
+
+def _user_scenario(system_name: str, n: int, *, units=None, duration=10.0) -> Scenario:
+    """A scenario a user might write: quadratic critic, derived gains, output feedback."""
+    t = np.ones(n) if units is None else np.asarray(units, float)
+    half = np.array([0.3, 0.2, 0.3, 0.5]) if n == 4 else np.array([0.4, 1.0])
+    box = np.array([1.0, 0.6, 1.5, 2.0]) if n == 4 else np.array([0.8, 3.0])
+    x0 = np.array([0.2, 0.1, 0.0, 0.0][:n]) if n == 4 else np.array([0.3, 0.0])
+    Q = np.eye(n) / np.outer(t, t)
+    return Scenario(
+        system=system_name,
+        x0=(t * x0).tolist(),
+        xhat0=(t * x0 * np.array([1, 1, 0, 0][:n] if n == 4 else [1, 0])).tolist(),
+        input_bound=10.0,
+        cost=CostConfig(Q=Q.tolist(), R=[1.0]),
+        critic=CriticConfig(basis_degrees=[2], W0=[0.0] * (n * (n + 1) // 2)),
+        points=PointsConfig(
+            kind="uniform", lower=(-t * half).tolist(), upper=(t * half).tolist(), number=200
+        ),
+        observer=ObserverConfig(
+            alpha=1.0,
+            box=BoxConfig(lower=(-t * box).tolist(), upper=(t * box).tolist()),
+            jacobian_method="sampled",
+        ),
+        simulation=SimulationConfig(
+            duration=duration, integrator="runge_kutta3", accuracy=1e-6, max_step=0.05
+        ),
+        name=system_name,
+    )
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _registered_user_plants():
+    added = {
+        "damped_pendulum": _damped_pendulum,
+        "damped_pendulum_x20": lambda: _damped_pendulum(20.0),
+        "cart_spring": _cart_spring,
+    }
+    for name, factory in added.items():
+        register(name, factory)
+    yield
+    for name in added:
+        EXAMPLES.pop(name, None)
+
+
+def _with_lqr_start(scenario, multiple):
+    W_lqr = _lqr(scenario)
+    return _critic(scenario, W0=(multiple * W_lqr).tolist()), W_lqr
+
+
+def _targets(scenario, W_lqr, W_learned, W_initial):
+    loop = build_closed_loop(scenario)
+    J_star = optimal_control(scenario)
+    assert J_star.converged, J_star.status
+    J_lqr = evaluate_policy(loop, W_lqr).cost
+    J_initial = evaluate_policy(loop, W_initial).cost
+    J_learned = evaluate_policy(loop, W_learned).cost
+    return J_star.cost, J_lqr, J_initial, J_learned
+
+
+CASES = {
+    "pendulum_upright": lambda: load_scenario(PENDULUM),
+    "cart_pole": lambda: load_scenario(CART_POLE),
+    "two_state_paper": lambda: _policy_iteration(load_scenario(PAPER)),
+    "damped_pendulum": lambda: _user_scenario("damped_pendulum", 2),
+    "cart_spring": lambda: _user_scenario("cart_spring", 4, duration=20.0),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_the_critic_learns_from_three_times_the_lqr_value(name):
+    base = CASES[name]()
+    scenario, W_lqr = _with_lqr_start(base, 3.0)
+    result = simulate(scenario, progress=False)
+    assert result.status == "ok"
+    J_star, J_lqr, J_initial, J_learned = _targets(
+        scenario, W_lqr, result.W_policy[-1], np.asarray(scenario.critic.W0)
+    )
+    target = max(1.02 * J_star, J_lqr + 0.01 * J_star)
+    assert J_learned <= target, (J_learned / J_star, target / J_star, J_initial / J_star)
+    assert J_learned < J_initial
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("multiple", [1.0, 3.0])
+def test_cart_pole_runs_five_horizons_regulated_with_a_bounded_gain(multiple):
+    base = load_scenario(CART_POLE)
+    start = _critic(base, W0=(multiple * np.asarray(base.critic.W0)).tolist())
+    loop = build_closed_loop(start)
+    resolved = loop.resolved_scenario()  # the gains derived for the horizon T
+    T = resolved.simulation.duration
+    long = dataclasses.replace(
+        resolved, simulation=dataclasses.replace(resolved.simulation, duration=5 * T)
+    )
+    long_loop = build_closed_loop(long)
+    result = simulate(long, loop=long_loop, progress=False)
+    assert result.status == "ok"
+    assert result.t[-1] == pytest.approx(5 * T)
+    assert np.linalg.norm(result.x[-1]) < 1e-6  # regulated
+    assert np.linalg.norm(result.e[-1]) < 1e-6
+    # Bounded-gain forgetting: tr(Gamma0^-1 Gamma) / L <= k0 at every sample.
+    G0inv = np.linalg.inv(np.asarray(long.critic.Gamma0))
+    L = G0inv.shape[0]
+    ratio = np.einsum("ij,tji->t", G0inv, result.Gamma) / L
+    assert np.max(ratio) <= long.critic.gamma_bound * (1 + 1e-9)
+    assert np.all(np.isfinite(result.Gamma))
+    # Every policy in force: positive definite value, stable linearized loop.
+    health = learning_health(long_loop, result)
+    assert np.max(health.spectral_abscissa) < 0.0
+    P = value_matrix(long_loop.parts.basis, result.W_policy)
+    assert np.min(np.linalg.eigvalsh(P)) > 0.0
+
+
+def test_the_paper_law_is_kept_as_printed(paper_result):
+    """``critic.law: paper``: the controller acts on the critic's own weights, no gate."""
+    np.testing.assert_array_equal(paper_result.W_policy, paper_result.W)
+    assert "policy_updates" not in paper_result.extra
+
+
+def test_a_rejected_update_keeps_the_policy_in_force():
+    """A critic whose value is indefinite is never put in force; every rejection is logged."""
+    from ofrl_drake.systems import CriticWeights
+
+    scenario = load_scenario(PENDULUM)
+    W0 = np.asarray(scenario.critic.W0)
+    bad = W0 * np.array([1.0, 1.0, -1.0])  # P22 < 0: indefinite
+    loop = build_closed_loop(scenario, critic=CriticWeights(bad, kc=0.0))
+    result = simulate(scenario, loop=loop, progress=False)
+    assert result.status == "ok"
+    np.testing.assert_array_equal(result.W_policy, np.tile(W0, (result.t.size, 1)))
+    health = learning_health(loop, result)
+    assert health.accepted_times == []
+    assert health.rejected_times == pytest.approx(np.arange(1.0, 10.0), abs=0.011)
+    assert result.extra["policy_updates"][-1].tolist() == [0.0, 9.0]
+    assert np.linalg.norm(result.x[-1]) < 1e-6  # the policy in force still regulates
+
+
+@settings(
+    max_examples=4,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(st.floats(0.05, 20.0))
+def test_a_plant_and_its_rescaled_twin_learn_the_same_policy(unit):
+    """The damped pendulum with its rate in units of ``unit`` rad/s: same policy, rescaled."""
+    twin = f"damped_pendulum_in_units_of_{unit!r}"  # plants are cached by name
+    register(twin, lambda: _damped_pendulum(unit))
+    try:
+        runs = []
+        for name, units in (("damped_pendulum", None), (twin, [1.0, unit])):
+            scenario = _user_scenario(name, 2, units=units, duration=5.0)
+            scenario = dataclasses.replace(
+                scenario,
+                variant=dataclasses.replace(scenario.variant, observer="true_state"),
+            )
+            W_lqr = _lqr(scenario)
+            scenario = _critic(scenario, W0=(3.0 * W_lqr).tolist())
+            runs.append(simulate(scenario, progress=False))
+    finally:
+        EXAMPLES.pop(twin, None)
+    Dw = np.array([1.0, unit, unit**2])  # sigma(T x) = Dw sigma(x) for T = diag(1, unit)
+    base, twin = runs
+    np.testing.assert_allclose(twin.W_policy[-1] * Dw, base.W_policy[-1], rtol=1e-5)
+    np.testing.assert_allclose(twin.x[:, 1] / unit, base.x[:, 1], rtol=1e-4, atol=1e-6)
