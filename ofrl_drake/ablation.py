@@ -102,6 +102,10 @@ CSV_COLUMNS = (
     "rms_estimation_error",
     "min_learning_condition",
     "time_outside_box",
+    "initial_policy_cost",
+    "final_policy_cost",
+    "initial_policy_ratio",
+    "final_policy_ratio",
     "wall_time",
     "status",
 )
@@ -113,6 +117,8 @@ _METRICS = (
     "rms_estimation_error",
     "min_learning_condition",
     "time_outside_box",
+    "initial_policy_cost",
+    "final_policy_cost",
 )
 CSV_NAME = "ablation.csv"
 PLAN_NAME = "ablation.json"
@@ -339,6 +345,7 @@ def run_variant(
     Runs inside a worker: the Drake diagram is built here from the scenario
     data. Any exception becomes the outcome's ``status``.
     """
+    from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.simulation import simulate
 
     label = initial_state_label(x0)
@@ -346,9 +353,10 @@ def run_variant(
     start = time.perf_counter()
     try:
         s = _scenario_for(scenario, variant, x0, duration)
-        result = simulate(s, progress=False)
+        loop = build_closed_loop(s)
+        result = simulate(s, loop=loop, progress=False)
         box = (np.asarray(s.observer.box.lower), np.asarray(s.observer.box.upper))
-        metrics = run_metrics(result, box)
+        metrics = {**run_metrics(result, box), **_policy_costs(loop, result, s)}
         status = "ok"
         if result.status != "ok":
             # Stopped by the guard: the metrics of a truncated run are not comparable.
@@ -370,6 +378,24 @@ def run_variant(
         learned=learned,
         logs=logs,
     )
+
+
+def _policy_costs(loop: Any, result: Any, scenario: Scenario) -> dict[str, float]:
+    """The policy in force at 0 and at the run's end, each fed the true state from x0.
+
+    What learning buys, apart from the observer: the critic frozen at
+    ``W_pi(0)`` and ``W_pi(T)``, over the scenario's horizon
+    (:func:`ofrl_drake.learning_curve.evaluate_policy`). NaN for a controller
+    that does not act on the critic (``lqr``, ``constant``).
+    """
+    from ofrl_drake.learning_curve import evaluate_policy
+
+    if variant_choices(scenario)["controller"] not in ("learned", "frozen_critic"):
+        return {"initial_policy_cost": math.nan, "final_policy_cost": math.nan}
+    return {
+        "initial_policy_cost": evaluate_policy(loop, result.W_policy[0]).cost,
+        "final_policy_cost": evaluate_policy(loop, result.W_policy[-1]).cost,
+    }
 
 
 def solve_optimal_task(
@@ -422,6 +448,10 @@ def _row(outcome: RunOutcome, optimum: OptimalControlResult) -> dict[str, Any]:
         "rms_estimation_error": m["rms_estimation_error"],
         "min_learning_condition": m["min_learning_condition"],
         "time_outside_box": m["time_outside_box"],
+        "initial_policy_cost": m["initial_policy_cost"],
+        "final_policy_cost": m["final_policy_cost"],
+        "initial_policy_ratio": optimality_ratio(m["initial_policy_cost"], optimum.cost),
+        "final_policy_ratio": optimality_ratio(m["final_policy_cost"], optimum.cost),
         "wall_time": outcome.wall_time,
         "status": " ".join(str(status).split()),
     }

@@ -47,6 +47,8 @@ REPORT_METRICS = {
     "rms_estimation_error": "rms \\|x - xhat\\|",
     "min_learning_condition": "min c(t)",
     "time_outside_box": "time outside box [s]",
+    "initial_policy_ratio": "policy(0)/J*",
+    "final_policy_ratio": "policy(T)/J*",
     "wall_time": "wall time [s]",
 }
 

@@ -259,3 +259,36 @@ def test_a_plant_and_its_rescaled_twin_learn_the_same_policy(unit):
     base, twin = runs
     np.testing.assert_allclose(twin.W_policy[-1] * Dw, base.W_policy[-1], rtol=1e-5)
     np.testing.assert_allclose(twin.x[:, 1] / unit, base.x[:, 1], rtol=1e-4, atol=1e-6)
+
+
+def test_run_writes_the_derived_gains_and_its_scenario_yaml_reproduces_the_run(tmp_path):
+    """``gains: auto``: scenario.yaml records them under ``gains: manual``, bit for bit."""
+    import json
+    import subprocess
+    import sys
+
+    from pydrake.common.yaml import yaml_load
+
+    def run(scenario, out):
+        command = [sys.executable, "-m", "ofrl_drake", "run", str(scenario), "--out", str(out)]
+        proc = subprocess.run(
+            [*command, "--quiet", "--checkpoints", "2"],
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        assert proc.returncode == 0, proc.stderr
+        return np.load(out / "trajectories.npz"), json.loads((out / "summary.json").read_text())
+
+    first, summary = run(PENDULUM, tmp_path / "a")
+    written = yaml_load(filename=str(tmp_path / "a" / "scenario.yaml"))["critic"]
+    assert written["law"] == "policy_iteration" and written["gains"] == "manual"
+    assert written["kc"] == 1.0 and written["policy_period"] == pytest.approx(1.0)
+    assert written["gamma_bound"] == 10.0
+    assert len(written["Gamma0"]) == 3
+    again, _ = run(tmp_path / "a" / "scenario.yaml", tmp_path / "b")
+    for key in first.files:
+        np.testing.assert_array_equal(again[key], first[key], err_msg=key)
+    assert [e["t"] for e in summary["learning_curve"]] == pytest.approx([0.0, 5.0, 10.0])
+    assert summary["learning_health"]["policy_updates_accepted"] == 0  # LQR is in force
+    assert summary["learning_health"]["policy_updates_rejected"] == 9
