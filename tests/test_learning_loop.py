@@ -176,6 +176,17 @@ def test_the_critic_learns_from_three_times_the_lqr_value(name):
     target = max(1.02 * J_star, J_lqr + 0.01 * J_star)
     assert J_learned <= target, (J_learned / J_star, target / J_star, J_initial / J_star)
     assert J_learned < J_initial
+    # Five horizons with the gains derived for T: ok and regulated.
+    resolved = build_closed_loop(scenario).resolved_scenario()
+    long = dataclasses.replace(
+        resolved,
+        simulation=dataclasses.replace(
+            resolved.simulation, duration=5 * resolved.simulation.duration
+        ),
+    )
+    long_result = simulate(long, progress=False)
+    assert long_result.status == "ok"
+    assert np.linalg.norm(long_result.x[-1]) < 1e-5
 
 
 @pytest.mark.slow
