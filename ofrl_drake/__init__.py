@@ -33,6 +33,7 @@ _EXPORTS = {
     "ScenarioError": "ofrl_drake.errors",
     "SwapError": "ofrl_drake.errors",
     "ControlAffineSystem": "ofrl_drake.model",
+    "montecarlo": "ofrl_drake.monte_carlo",
     "Scenario": "ofrl_drake.scenario",
     "load_scenario": "ofrl_drake.scenario",
     "SimulationResult": "ofrl_drake.simulation",
@@ -54,6 +55,7 @@ __all__ = [
     "ablate",
     "build_closed_loop",
     "load_scenario",
+    "montecarlo",
     "simulate",
 ]
 

@@ -44,17 +44,15 @@ observer certificate applies from ``t = 0``.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
-import io
 import json
 import math
 import os
 import re
 import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -72,6 +70,15 @@ from ofrl_drake.optimal import (
     optimal_control,
 )
 from ofrl_drake.scenario import Scenario, VariantConfig, variant_choices
+from ofrl_drake.sweep import (
+    DaskEngine,
+    Progress,
+    RowWriter,
+    SerialEngine,
+    TableError,
+    first_difference,
+    read_table,
+)
 
 __all__ = [
     "CSV_COLUMNS",
@@ -457,20 +464,6 @@ def _row(outcome: RunOutcome, optimum: OptimalControlResult) -> dict[str, Any]:
     }
 
 
-def _format_row(row: Mapping[str, Any]) -> str:
-    buffer = io.StringIO()
-    csv.writer(buffer, lineterminator="\n").writerow(
-        [row[c] if c in _TEXT_COLUMNS else repr(float(row[c])) for c in CSV_COLUMNS]
-    )
-    return buffer.getvalue()
-
-
-def _parse_row(values: Sequence[str]) -> dict[str, Any]:
-    return {
-        c: (v if c in _TEXT_COLUMNS else float(v)) for c, v in zip(CSV_COLUMNS, values, strict=True)
-    }
-
-
 def read_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dict[str, Any]]:
     """The rows of an ``ablation.csv``, numbers as floats.
 
@@ -486,46 +479,10 @@ def read_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dic
     AblationError
         If the header is not :data:`CSV_COLUMNS` or a row is malformed.
     """
-    path = Path(path)
-    data = path.read_bytes()
-    if not data.endswith(b"\n"):
-        data = data[: data.rfind(b"\n") + 1]
-        if repair:
-            with open(path, "r+b") as fh:
-                fh.truncate(len(data))
-    if not data and repair:
-        return []  # killed before the header was complete; the writer adds it
-    lines = list(csv.reader(io.StringIO(data.decode())))
-    if not lines or tuple(lines[0]) != CSV_COLUMNS:
-        raise AblationError(f"{path}: not an ablation table; expected the header {CSV_COLUMNS}.")
-    rows = []
-    for i, values in enumerate(lines[1:], start=2):
-        try:
-            rows.append(_parse_row(values))
-        except ValueError:
-            raise AblationError(f"{path}: line {i} is malformed: {values}.") from None
-    return rows
-
-
-class _RowWriter:
-    """Appends rows to the CSV, each flushed and fsynced before returning."""
-
-    def __init__(self, path: Path) -> None:
-        fresh = not path.exists() or path.stat().st_size == 0
-        self._fh = open(path, "a", encoding="utf-8", newline="")
-        if fresh:
-            self._write(",".join(CSV_COLUMNS) + "\n")
-
-    def _write(self, text: str) -> None:
-        self._fh.write(text)
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
-
-    def write(self, row: Mapping[str, Any]) -> None:
-        self._write(_format_row(row))
-
-    def close(self) -> None:
-        self._fh.close()
+    try:
+        return read_table(path, CSV_COLUMNS, _TEXT_COLUMNS, repair=repair, kind="ablation table")
+    except TableError as err:
+        raise AblationError(str(err)) from None
 
 
 def _run_file(runs_dir: Path, variant: str, label: str) -> Path:
@@ -565,89 +522,6 @@ def scenario_key(scenario: Scenario) -> str:
 
 
 # ----------------------------------------------------------------- engines
-class _SerialEngine:
-    """Runs tasks in this process, in submission order, when results are asked for."""
-
-    def __init__(self) -> None:
-        self._queue: list[tuple[int, Callable[..., Any], tuple]] = []
-
-    def submit(self, fn: Callable[..., Any], *args: Any) -> int:
-        handle = len(self._queue)
-        self._queue.append((handle, fn, args))
-        return handle
-
-    def completed(self) -> Iterator[tuple[int, Any, BaseException | None]]:
-        results: dict[int, Any] = {}
-        for handle, fn, args in self._queue:
-            resolved = tuple(results[a.handle] if isinstance(a, _Ref) else a for a in args)
-            try:
-                results[handle] = fn(*resolved)
-                yield handle, results[handle], None
-            except Exception as err:  # tasks catch their own errors; this is a safety net
-                results[handle] = None
-                yield handle, None, err
-
-    def ref(self, handle: int) -> Any:
-        return _Ref(handle)
-
-
-@dataclass(frozen=True)
-class _Ref:
-    handle: int
-
-
-class _DaskEngine:
-    """Submits tasks to a ``distributed.Client`` and yields them as they finish."""
-
-    def __init__(self, client: Any) -> None:
-        self._client = client
-        self._futures: list[Any] = []
-
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
-        future = self._client.submit(fn, *args, pure=False)
-        self._futures.append(future)
-        return future
-
-    def completed(self) -> Iterator[tuple[Any, Any, BaseException | None]]:
-        from distributed import as_completed
-
-        for future in as_completed(self._futures):
-            try:
-                yield future, future.result(), None
-            except Exception as err:
-                yield future, None, err
-
-    def ref(self, handle: Any) -> Any:
-        return handle
-
-
-class _Progress:
-    def __init__(self, total: int, done: int, show: bool) -> None:
-        self.total, self.done, self.show = total, done, show
-        self.start = time.perf_counter()
-        self._draw()
-
-    def advance(self) -> None:
-        self.done += 1
-        self._draw()
-
-    def _draw(self) -> None:
-        if not self.show:
-            return
-        width = 30
-        filled = round(width * self.done / max(self.total, 1))
-        sys.stderr.write(
-            f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} runs  "
-            f"{time.perf_counter() - self.start:6.1f} s"
-        )
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.show:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
-
-
 # -------------------------------------------------------------------- API
 def _plan(
     scenario: Scenario,
@@ -666,20 +540,6 @@ def _plan(
         "variants": {v.name: dict(v.choices) for v in variants},
         "scenario_values": dataclasses.asdict(scenario),
     }
-
-
-def _first_difference(old: Any, new: Any, path: str = "") -> str | None:
-    """The key path of the first difference between two JSON-like values, or None."""
-    if isinstance(old, dict) and isinstance(new, dict):
-        for key in sorted(set(old) | set(new)):
-            where = f"{path}.{key}" if path else str(key)
-            if key not in old or key not in new:
-                return where
-            found = _first_difference(old[key], new[key], where)
-            if found is not None:
-                return found
-        return None
-    return None if old == new else (path or "value")
 
 
 def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
@@ -718,7 +578,7 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
             f"this one {new['duration']} s"
         )
     if "scenario_values" in old:
-        where = _first_difference(old["scenario_values"], new["scenario_values"])
+        where = first_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:
             return (
                 f"the scenario differs in {where} ({lookup(old['scenario_values'], where)!r} "
@@ -757,7 +617,7 @@ class _Sweep:
     done: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict)
     optimum: dict[str, OptimalControlResult] = field(default_factory=dict)
     pending: dict[str, list[RunOutcome]] = field(default_factory=dict)
-    writer: _RowWriter | None = None
+    writer: RowWriter | None = None
     cache: OptimalCostCache | None = None
 
     @property
@@ -786,7 +646,7 @@ class _Sweep:
         if table.exists():
             for row in read_rows(table, repair=True):
                 self.done[(row["variant"], row["initial_state"])] = row
-        self.writer = _RowWriter(table)
+        self.writer = RowWriter(table, CSV_COLUMNS, _TEXT_COLUMNS)
         self.cache = OptimalCostCache(self.out_dir / "optimal", self.mesh, self.solver)
 
     def close(self) -> None:
@@ -952,9 +812,9 @@ def ablate(
     )
     sweep.open(resume)
     todo = [k for k in keys if k not in sweep.done]
-    engine = _SerialEngine() if client is None else _DaskEngine(client)
+    engine = SerialEngine() if client is None else DaskEngine(client)
     show = sys.stderr.isatty() if progress is None else progress
-    bar = _Progress(len(keys), len(keys) - len(todo), show)
+    bar = Progress(len(keys), len(keys) - len(todo), show)
     try:
         tasks = sweep.submit(engine, todo)
         for handle, value, err in engine.completed():

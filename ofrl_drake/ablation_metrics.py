@@ -14,6 +14,7 @@ import numpy as np
 __all__ = [
     "SETTLING_RADIUS",
     "optimality_ratio",
+    "regulated",
     "rms_estimation_error",
     "run_metrics",
     "settling_time",
@@ -64,6 +65,24 @@ def time_outside_box(
 
     bad = outside(x) | outside(xhat)
     return float(np.sum(np.diff(np.asarray(t, dtype=float)) * bad[:-1]))
+
+
+#: ``regulated``: every component of the final state within this fraction of
+#: the observer box's half-width of the target.
+REGULATION_FRACTION = 0.05
+
+
+def regulated(status: str, x_final: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether a run reached its target: it ended ``ok`` and every ``|x_i(T)|`` is
+    at most :data:`REGULATION_FRACTION` of the box's half-width along ``x_i``.
+
+    ``x_final`` is in the method's coordinates (``x - x*``). On the cart-pole's
+    box (``[-2, 2] m x [-0.4, 0.4] rad x ...``) that is 0.1 m and 0.02 rad.
+    """
+    lower, upper = (np.asarray(b, dtype=float) for b in box)
+    half = 0.5 * (upper - lower)
+    x = np.asarray(x_final, dtype=float)
+    return bool(status == "ok" and np.all(np.abs(x) <= REGULATION_FRACTION * half))
 
 
 def optimality_ratio(cost: float, optimal_cost: float) -> float:

@@ -424,6 +424,43 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_montecarlo(args: argparse.Namespace) -> int:
+    from ofrl_drake.monte_carlo import (
+        MonteCarloError,
+        montecarlo,
+        montecarlo_table,
+        write_montecarlo_report,
+    )
+    from ofrl_drake.scenario import load_scenario
+
+    if args.workers is not None and args.workers < 0:
+        raise MonteCarloError(f"--workers: must be >= 0; got {args.workers}.")
+    scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
+    out = Path(args.out)
+    options = {"mass_spread": args.mass_spread, "out": out, "resume": args.resume}
+    try:
+        if args.workers == 0 and not args.scheduler:
+            rows = montecarlo(scenario, args.runs, args.seed, **options)
+        else:
+            with _dask_client(args.scheduler, args.workers) as client:
+                rows = montecarlo(scenario, args.runs, args.seed, client=client, **options)
+    except KeyboardInterrupt:
+        print(
+            f"error: interrupted; finished rows are in {out / 'montecarlo.csv'}; rerun with "
+            "--resume to complete the sweep",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    write_montecarlo_report(out, rows, scenario.name)
+    print(montecarlo_table(rows), end="")
+    good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
+    print(
+        f"wrote {out}: {len(rows)} runs ({good} ok and regulated), montecarlo.csv, "
+        "montecarlo.md, figures/envelope.png"
+    )
+    return EXIT_OK
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ofrl-drake",
@@ -517,6 +554,31 @@ def _parser() -> argparse.ArgumentParser:
         "overrides simulation.max_wall_time",
     )
     ab.set_defaults(func=_cmd_ablate)
+
+    mc = sub.add_parser(
+        "montecarlo",
+        help="run a scenario under N noise seeds (and sampled truths); success rate and statistics",
+    )
+    mc.add_argument("scenario", help="scenario YAML file")
+    mc.add_argument("--runs", type=int, required=True, metavar="N", help="number of runs")
+    mc.add_argument(
+        "--seed", type=int, default=0, metavar="S", help="run k uses measurement seed S + k"
+    )
+    mc.add_argument(
+        "--mass-spread",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="scale each body mass of a multibody truth by U[1 - F, 1 + F] per run (default 0)",
+    )
+    mc.add_argument("--out", required=True, help="output folder (rows streamed as runs finish)")
+    mc.add_argument("--resume", action="store_true", help="complete the sweep in --out")
+    mc.add_argument("--workers", type=int, metavar="W", help="local Dask workers (0: serial)")
+    mc.add_argument("--scheduler", metavar="ADDR", help="tcp://HOST:PORT of a Dask scheduler")
+    mc.add_argument(
+        "--max-wall", type=float, metavar="SECONDS", help="stop each run after this wall time"
+    )
+    mc.set_defaults(func=_cmd_montecarlo)
     return parser
 
 

@@ -40,7 +40,7 @@ from ofrl_drake.learning import (
 )
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains
-from ofrl_drake.plants import resolve_system
+from ofrl_drake.plants import resolve_system, resolve_truth
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import (
     Scenario,
@@ -64,6 +64,7 @@ from ofrl_drake.systems import (
     SymbolicRunningCost,
     ThreeGainObserver,
 )
+from ofrl_drake.systems.world import MeasuredPlant, SampledController
 
 __all__ = [
     "LOGGED",
@@ -168,6 +169,7 @@ class ClosedLoopParts:
     Q: np.ndarray
     r: np.ndarray
     critic: CriticSettings | None = None
+    truth: ControlAffineSystem | None = None
 
 
 @dataclass
@@ -405,12 +407,51 @@ def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
     return True
 
 
+def _plant_block(parts: ClosedLoopParts, symbolic: bool) -> System:
+    """The plant simulated: the model, or the scenario's truth.
+
+    A multibody truth runs as its own ``MultibodyPlant`` in C++
+    (:class:`~ofrl_drake.systems.DrakePlant`, body masses scaled through the
+    Context); another truth as the model does, from its ``f`` and ``g``.
+    """
+    s = parts.scenario
+    truth = parts.truth
+    if truth is None:
+        block = SymbolicPlant if symbolic else ControlAffinePlant
+        return block(parts.system, initial_state=s.x0)
+    from ofrl_drake.plants import multibody_body_names
+    from ofrl_drake.systems.drake_plant import DrakePlant
+
+    if multibody_body_names(truth) is not None:
+        return DrakePlant(truth, initial_state=s.x0, body_mass_scale=s.truth.body_mass_scale)
+    try:
+        truth.symbolic()
+    except ModelError:
+        return ControlAffinePlant(truth, initial_state=s.x0)
+    return SymbolicPlant(truth, initial_state=s.x0)
+
+
+def _real_world(slot: str, block: System, scenario: Scenario) -> System:
+    """``block`` as the scenario's sensors and actuators see it.
+
+    See :mod:`ofrl_drake.systems.world`.
+    """
+    meas, act = scenario.measurement, scenario.actuation
+    if slot == "plant":
+        noise = list(meas.noise_std) if meas is not None else []
+        period = meas.period if meas is not None else 0.0
+        disturbance = list(act.disturbance) if act is not None else []
+        if any(noise) or period > 0 or any(disturbance):
+            return MeasuredPlant(block, noise_std=noise, period=period, disturbance=disturbance)
+    if slot == "controller" and act is not None and act.period > 0:
+        return SampledController(block, act.period)
+    return block
+
+
 def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
     s, c, gains = parts.scenario, parts.scenario.critic, parts.critic.gains
     if slot == "plant":
-        if symbolic:
-            return SymbolicPlant(parts.system, initial_state=s.x0)
-        return ControlAffinePlant(parts.system, initial_state=s.x0)
+        return _plant_block(parts, symbolic)
     if slot == "observer":
         o = s.observer
         if o.schedule_period > 0:
@@ -475,7 +516,7 @@ def drake_plant(parts: ClosedLoopParts) -> System:
     shifted), ``build_closed_loop(scenario, plant=drake_plant)`` puts a
     :class:`~ofrl_drake.systems.DrakePlant` in the plant slot instead of the
     :class:`~ofrl_drake.systems.ControlAffinePlant` that evaluates ``f`` and
-    ``g``; it starts from ``scenario.x0``, whose velocities must be zero.
+    ``g``; it starts from ``scenario.x0`` (``simulate`` sets its velocities).
     """
     from ofrl_drake.systems.drake_plant import DrakePlant
 
@@ -542,7 +583,8 @@ def build_closed_loop(
             # Designed here, not inside the variant, so its certificate is reported.
             design = linear_observer_design(scenario, system)
     critic = critic_settings(scenario, system, basis, features, r)
-    parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r, critic)
+    truth = resolve_truth(scenario)
+    parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r, critic, truth)
     from ofrl_drake.variants import variant_blocks
 
     swaps = {**variant_blocks(choices, parts), **swaps}
@@ -563,6 +605,7 @@ def build_closed_loop(
                 f"{slot}: a swap must be a Drake System or a factory f(parts) -> System; "
                 f"got {type(swap).__name__}."
             )
+        block = _real_world(slot, block, scenario)
         block.set_name(slot)
         blocks[slot] = builder.AddSystem(block)
 

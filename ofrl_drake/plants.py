@@ -48,7 +48,9 @@ __all__ = [
     "load_callable",
     "locate_model_file",
     "locate_system_entry",
+    "multibody_body_names",
     "resolve_system",
+    "resolve_truth",
     "system_from_entry",
 ]
 
@@ -293,7 +295,9 @@ def _base_system(scenario: Any) -> ControlAffineSystem:
     return _multibody(plant) if plant.multibody else _drake_system(plant)
 
 
-def _shift(system: ControlAffineSystem, equilibrium: Any) -> ControlAffineSystem:
+def _shift(
+    system: ControlAffineSystem, equilibrium: Any, *, check: bool = True
+) -> ControlAffineSystem:
     x, u = list(equilibrium.x), list(equilibrium.u)
     if len(x) != system.n:
         raise ScenarioError(
@@ -304,6 +308,8 @@ def _shift(system: ControlAffineSystem, equilibrium: Any) -> ControlAffineSystem
             f"equilibrium.u: expected {system.m} entries (the plant's inputs); got {len(u)}."
         )
     try:
+        if not check:  # a truth runs in the model's coordinates, equilibrium or not
+            return system.shifted(x, u or None, tol=float("inf"))
         return system.shifted(x, u or None)
     except ModelError as err:
         raise ScenarioError(f"equilibrium: {err}") from None
@@ -345,4 +351,67 @@ def resolve_system(scenario: Any) -> ControlAffineSystem:
         if equilibrium is not None:
             system = _shift(system, equilibrium)
         _BUILT[key] = system
+    return system
+
+
+def multibody_body_names(system: ControlAffineSystem) -> list[str] | None:
+    """The body names of a model built from a multibody plant; None for any other model."""
+    from ofrl_drake.drake_models import MultibodySource
+
+    source = getattr(system, "source", None)
+    if not isinstance(source, MultibodySource):
+        return None
+    from pydrake.multibody.tree import BodyIndex
+
+    plant = source.plant
+    return [plant.get_body(BodyIndex(i)).name() for i in range(plant.num_bodies())]
+
+
+def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
+    """The plant that ``scenario`` simulates when its ``truth`` is not the model; else None.
+
+    ``truth.system`` or ``truth.plant`` is built as the scenario's own plant
+    would be, shifted by the scenario's equilibrium without the equilibrium
+    check (a wrong model need not share it); with neither, it is the model's
+    own plant (for ``body_mass_scale``).
+
+    Raises
+    ------
+    ScenarioError
+        Naming ``truth`` and the entry, if the truth cannot be built, or
+        ``body_mass_scale`` names a body that does not exist or the truth is
+        not a multibody plant.
+    """
+    truth = getattr(scenario, "truth", None)
+    if truth is None:
+        return None
+    if not truth.system and truth.plant is None:
+        system = resolve_system(scenario)
+    else:
+        proxy = dataclasses.make_dataclass("TruthProxy", ["system", "plant", "equilibrium"])(
+            truth.system, truth.plant, getattr(scenario, "equilibrium", None)
+        )
+        key = "truth:" + _cache_key(proxy)
+        system = _BUILT.get(key)
+        if system is None:
+            try:
+                system = _base_system(proxy)
+                if proxy.equilibrium is not None:
+                    system = _shift(system, proxy.equilibrium, check=False)
+            except ScenarioError as err:
+                raise ScenarioError(f"truth.{err}") from None
+            _BUILT[key] = system
+    if truth.body_mass_scale:
+        names = multibody_body_names(system)
+        if names is None:
+            raise ScenarioError(
+                "truth.body_mass_scale: scales the bodies of a multibody plant; the truth "
+                f"{system.name!r} is not one (use truth.plant.multibody)."
+            )
+        for body in truth.body_mass_scale:
+            if body not in names:
+                raise ScenarioError(
+                    f"truth.body_mass_scale.{body}: no body of that name in {system.name!r}; "
+                    f"its bodies are {names}."
+                )
     return system

@@ -32,15 +32,18 @@ __all__ = [
     "CRITIC_LAWS",
     "GAIN_CHOICES",
     "MANUAL_GAINS",
+    "ActuationConfig",
     "BoxConfig",
     "CostConfig",
     "CriticConfig",
     "EquilibriumConfig",
+    "MeasurementConfig",
     "ObserverConfig",
     "PlantConfig",
     "PointsConfig",
     "Scenario",
     "SimulationConfig",
+    "TruthConfig",
     "VariantConfig",
     "abort_box",
     "critic_gains_choice",
@@ -241,6 +244,51 @@ class EquilibriumConfig:
 
 
 @dataclass
+class TruthConfig:
+    """The plant that is simulated, when it differs from the model (all keys optional).
+
+    ``system`` or ``plant`` name it as the scenario's own keys do; with neither,
+    the truth is the model's own plant. ``body_mass_scale`` multiplies the mass
+    of named bodies of a multibody truth (``{Pole: 1.2}``), through Drake's
+    parameters in the Context. The truth runs in the model's coordinates (the
+    scenario's equilibrium), without checking that ``x*`` is an equilibrium
+    of the truth: a wrong model may not have the same one.
+    """
+
+    system: str = field(default="", metadata=_OPTIONAL)
+    plant: Optional[PlantConfig] = field(default=None, metadata=_OPTIONAL)
+    body_mass_scale: dict[str, float] = field(default_factory=dict, metadata=_OPTIONAL)
+
+
+@dataclass
+class MeasurementConfig:
+    """What the sensors do to ``y`` (all keys optional).
+
+    Gaussian noise of standard deviations ``noise_std`` (one per output; empty
+    for none) from Drake's ``RandomSource``, seeded by ``seed``, and ``y`` sampled
+    and held every ``period`` seconds (0: continuous). Noise needs
+    ``period > 0``.
+    """
+
+    noise_std: list[float] = field(default_factory=list, metadata=_OPTIONAL)
+    period: float = field(default=0.0, metadata=_OPTIONAL)
+    seed: int = field(default=0, metadata=_OPTIONAL)
+
+
+@dataclass
+class ActuationConfig:
+    """What the actuators do to ``u`` (all keys optional).
+
+    The controller's output is held for ``period`` seconds (0: continuous), a
+    sampled-data controller; ``disturbance`` (one per input; empty for none)
+    is a constant input disturbance the plant receives on top of it.
+    """
+
+    period: float = field(default=0.0, metadata=_OPTIONAL)
+    disturbance: list[float] = field(default_factory=list, metadata=_OPTIONAL)
+
+
+@dataclass
 class Scenario:
     """One closed-loop experiment.
 
@@ -248,7 +296,9 @@ class Scenario:
     ``"module.path:callable"``) and ``plant`` (a Drake system or multibody
     model). Optional: ``system``/``plant`` (one of them), ``equilibrium``
     (then ``x0``, ``xhat0``, the boxes, the points and ``input_bound`` are
-    relative to it), ``name``, ``variant``.
+    relative to it), ``name``, ``variant``, and the real-world conditions
+    ``truth`` (the plant simulated, when it is not the model), ``measurement``
+    (noisy, sampled ``y``) and ``actuation`` (held ``u``, an input disturbance).
     """
 
     system: str = field(default="", metadata=_OPTIONAL)
@@ -264,6 +314,9 @@ class Scenario:
     variant: VariantConfig = field(default_factory=VariantConfig, metadata=_OPTIONAL)
     plant: Optional[PlantConfig] = field(default=None, metadata=_OPTIONAL)
     equilibrium: Optional[EquilibriumConfig] = field(default=None, metadata=_OPTIONAL)
+    truth: Optional[TruthConfig] = field(default=None, metadata=_OPTIONAL)
+    measurement: Optional[MeasurementConfig] = field(default=None, metadata=_OPTIONAL)
+    actuation: Optional[ActuationConfig] = field(default=None, metadata=_OPTIONAL)
 
 
 # --------------------------------------------------------------------------
@@ -286,6 +339,14 @@ def _check_value(path: str, tp: Any, value: Any) -> None:
         _check_mapping(path, tp, value)
         return
     origin = typing.get_origin(tp)
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ScenarioError(f"{path}: expected a mapping; got {value!r}.")
+        key_tp, item_tp = typing.get_args(tp)
+        for key, item in value.items():
+            _check_value(f"{path}.{key}", key_tp, key)
+            _check_value(f"{path}.{key}", item_tp, item)
+        return
     if origin is list:
         if not isinstance(value, list):
             raise ScenarioError(f"{path}: expected a list; got {value!r}.")
@@ -514,6 +575,8 @@ def validate_scenario(scenario: Scenario) -> None:
                 f"{scenario.input_bound}; got {scenario.variant.constant_input}."
             )
 
+    _validate_real_world(scenario, n, m, q)
+
     s = scenario.simulation
     _positive("simulation.duration", s.duration)
     _positive("simulation.accuracy", s.accuracy)
@@ -538,6 +601,51 @@ def validate_scenario(scenario: Scenario) -> None:
             )
     if s.max_wall_time is not None:
         _positive("simulation.max_wall_time", s.max_wall_time)
+
+
+def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
+    """Check ``truth``, ``measurement`` and ``actuation`` against the model's sizes."""
+    from ofrl_drake.plants import resolve_truth
+
+    meas = scenario.measurement
+    if meas is not None:
+        if meas.noise_std:
+            std = _vector("measurement.noise_std", meas.noise_std, q)
+            if np.any(std < 0):
+                raise ScenarioError(
+                    f"measurement.noise_std: entries must be >= 0; got {meas.noise_std}."
+                )
+        _positive("measurement.period", meas.period, allow_zero=True)
+        if meas.noise_std and any(v > 0 for v in meas.noise_std) and meas.period == 0:
+            raise ScenarioError(
+                "measurement.period: noise is drawn once per sample, so it needs a sampling "
+                f"period > 0; got 0 with noise_std = {meas.noise_std}. Set e.g. period: 0.01."
+            )
+        if meas.seed < 0:
+            raise ScenarioError(f"measurement.seed: must be an integer >= 0; got {meas.seed}.")
+    act = scenario.actuation
+    if act is not None:
+        _positive("actuation.period", act.period, allow_zero=True)
+        if act.disturbance:
+            _vector("actuation.disturbance", act.disturbance, m)
+    truth = scenario.truth
+    if truth is not None:
+        if truth.system and truth.plant is not None:
+            raise ScenarioError(
+                "truth: give at most one of truth.system and truth.plant (neither: the "
+                "model's own plant)."
+            )
+        for body, scale in truth.body_mass_scale.items():
+            if not (np.isfinite(scale) and scale > 0):
+                raise ScenarioError(
+                    f"truth.body_mass_scale.{body}: must be a number > 0; got {scale}."
+                )
+        system = resolve_truth(scenario)
+        if (system.n, system.m, system.q) != (n, m, q):
+            raise ScenarioError(
+                f"truth: the truth has (n, m, q) = ({system.n}, {system.m}, {system.q}), the "
+                f"model ({n}, {m}, {q}); they must agree."
+            )
 
 
 def critic_gains_choice(critic: CriticConfig) -> str:

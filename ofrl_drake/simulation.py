@@ -429,6 +429,7 @@ def simulate(
         _check_loop_arguments(scenario, loop, design, swaps)
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(simulator_config(scenario), simulator)
+    seeds = _initialize_context(loop, scenario, simulator.get_mutable_context())
     duration = scenario.simulation.duration
     show = sys.stderr.isatty() if progress is None else progress
     guard = RunGuard(
@@ -442,6 +443,8 @@ def simulate(
     # The guard is a monitor: it sees every step and changes none (see ofrl_drake.guard).
     simulator.set_monitor(guard)
     origin = provenance()
+    if seeds:
+        origin["seeds"] = seeds
     start = time.perf_counter()
     guard.start()
     simulator.Initialize()
@@ -495,11 +498,49 @@ def simulate(
     if getattr(system, "x_eq", None) is not None:  # a ShiftedSystem
         result.x_equilibrium = np.asarray(system.x_eq, float)
         result.u_equilibrium = np.asarray(system.u_eq, float)
+    if loop.parts.truth is not None:
+        from ofrl_drake.model_error import model_mismatch
+
+        o = scenario.observer
+        result.reports["model_error"] = model_mismatch(
+            loop.parts.system,
+            loop.parts.truth,
+            (o.box.lower, o.box.upper),
+            body_mass_scale=scenario.truth.body_mass_scale,
+        ).to_dict()
     box, note = _certified_region(loop, logs, result.t)
     result.validity = validity_report(
         result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note
     )
     return result
+
+
+def _initialize_context(loop: ClosedLoop, scenario: Scenario, context: Any) -> dict[str, int]:
+    """Seed the noise and let each block set what its default context cannot hold.
+
+    With measurement noise, ``SetRandomContext`` draws every ``RandomSource``'s
+    seed from ``RandomGenerator(measurement.seed)``: the same seed gives the
+    same noise, bit for bit. Then each block in slot order may set its own
+    context (:func:`ofrl_drake.systems.world.initialize_context`): a multibody
+    truth's velocities and masses, a hold's first value.
+
+    Returns
+    -------
+    dict
+        The seeds used, for the provenance (empty without noise).
+    """
+    from pydrake.common import RandomGenerator
+
+    from ofrl_drake.systems.world import initialize_context
+
+    seeds: dict[str, int] = {}
+    meas = scenario.measurement
+    if meas is not None and any(v > 0 for v in meas.noise_std):
+        loop.diagram.SetRandomContext(context, RandomGenerator(int(meas.seed)))
+        seeds["measurement"] = int(meas.seed)
+    for block in loop.blocks.values():
+        initialize_context(block, block.GetMyMutableContextFromRoot(context))
+    return seeds
 
 
 def _is_integrator_failure(err: RuntimeError) -> bool:

@@ -2,7 +2,7 @@
 
 A :class:`~ofrl_drake.scenario.VariantConfig` names one choice per slot::
 
-    observer:   three_gain | linear_luenberger | drake_luenberger | true_state
+    observer:   three_gain | linear_luenberger | drake_luenberger | kalman | true_state
     controller: learned | lqr | frozen_critic | constant
     points:     grid | uniform | around_estimate
     gamma:      least_squares | constant
@@ -23,6 +23,9 @@ What each choice builds:
     ``drake_luenberger``: Drake's ``LuenbergerObserver`` on the linearization
     at the origin, poles of ``A - L C`` at
     :func:`~ofrl_drake.baselines.luenberger_poles` ``(alpha, n)``.
+    ``kalman``: Drake's ``SteadyStateKalmanFilter`` gain on the same
+    linearization: measurement covariance from ``measurement``, process
+    covariance from what the linearization misses on the observer box.
     ``true_state``: full-state feedback, ``xhat = x``.
 ``controller``
     ``learned``: the saturated policy of the learned critic (default).
@@ -155,6 +158,40 @@ def _drake_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
     }
 
 
+def _kalman(parts: ClosedLoopParts) -> dict[str, System]:
+    """Drake's steady-state Kalman filter on the linearization at the target.
+
+    ``V = diag(noise_std^2)`` from ``measurement``, floored at ``(1e-3 w_j)^2``
+    with ``w_j`` the width of output ``j`` over the observer box (``V`` must be
+    positive definite; an exact sensor is trusted a thousand times its range).
+    The process noise is what the linear model misses on the observer box,
+    ``W = mean_i r_i r_i^T`` with ``r_i = f(x_i) - A x_i`` at 200 states drawn
+    in it (seed 0), plus ``B diag(d^2) B^T`` for ``actuation.disturbance``.
+    """
+    from pydrake.systems.estimators import SteadyStateKalmanFilter
+
+    s = parts.scenario
+    linearization = linearize_at_origin(parts.system)
+    A, B, C = linearization.A(), linearization.B(), linearization.C()
+    lower = np.asarray(s.observer.box.lower, dtype=float)
+    upper = np.asarray(s.observer.box.upper, dtype=float)
+    X = lower[:, None] + (upper - lower)[:, None] * np.random.default_rng(0).random(
+        (A.shape[0], 200)
+    )
+    residual = parts.system.f_batch(X) - A @ X
+    W = residual @ residual.T / X.shape[1] + 1e-12 * np.eye(A.shape[0])
+    if s.actuation is not None and s.actuation.disturbance:
+        d = np.asarray(s.actuation.disturbance, dtype=float)
+        W = W + B @ np.diag(d**2) @ B.T
+    widths = np.abs(C) @ (upper - lower)
+    noise = np.zeros(C.shape[0])
+    if s.measurement is not None and s.measurement.noise_std:
+        noise = np.asarray(s.measurement.noise_std, dtype=float)
+    V = np.diag(np.maximum(noise, 1e-3 * widths) ** 2)
+    gain = SteadyStateKalmanFilter(A, C, W, V)
+    return {"observer": LinearizedLuenbergerObserver(linearization, gain, initial_state=s.xhat0)}
+
+
 def _true_state(parts: ClosedLoopParts) -> dict[str, System]:
     return {"observer": FullStateObserver(parts.system.n)}
 
@@ -232,6 +269,7 @@ VARIANT_FACTORIES: dict[str, dict[str, Factory]] = {
         "three_gain": _default,
         "linear_luenberger": _linear_luenberger,
         "drake_luenberger": _drake_luenberger,
+        "kalman": _kalman,
         "true_state": _true_state,
     },
     "controller": {

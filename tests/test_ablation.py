@@ -42,6 +42,7 @@ DEFAULT_NAMES = [
     "baseline",
     "observer=linear_luenberger",
     "observer=drake_luenberger",
+    "observer=kalman",
     "observer=true_state",
     "controller=lqr",
     "controller=frozen_critic",
@@ -428,9 +429,9 @@ def test_cli_errors_are_one_line(short_files, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1
     assert "variants.x.estimator: unknown slot" in err
-    bad.write_text("x: {observer: kalman}\n")
+    bad.write_text("x: {observer: particle_filter}\n")
     assert main([*args, "--variants", str(bad)]) == 2
-    assert "variants.x.observer: unknown choice 'kalman'" in capsys.readouterr().err
+    assert "variants.x.observer: unknown choice 'particle_filter'" in capsys.readouterr().err
     (tmp_path / "o").mkdir()
     (tmp_path / "o" / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
     assert main([*args, "--variants", str(variants_file)]) == 2

@@ -60,10 +60,48 @@ def test_drake_plant_errors():
     with pytest.raises(ModelError, match=r"has none \(source = DrakeSystemSource\)"):
         DrakePlant(pendulum)
     system = ControlAffineSystem.from_multibody(CART_POLE)
-    with pytest.raises(ModelError, match=r"initial velocities are \[0.0, 0.5\]"):
-        DrakePlant(system, initial_state=[0.0, 0.1, 0.0, 0.5])
     with pytest.raises(ModelError, match=r"initial_state must have length n = 4"):
         DrakePlant(system, initial_state=[0.0, 0.1])
+    with pytest.raises(ModelError, match=r"body_mass_scale names 'Pendulum', which is not a body"):
+        DrakePlant(system, body_mass_scale={"Pendulum": 2.0})
+
+
+def _run_initialized(block, u, duration=1.0):
+    """As _run, with the block's initialize_context hook applied, as simulate() does."""
+    from ofrl_drake.systems.world import initialize_context
+
+    builder = DiagramBuilder()
+    plant = builder.AddSystem(block)
+    source = builder.AddSystem(ConstantVectorSource(u))
+    builder.Connect(source.get_output_port(), plant.get_u_input_port())
+    x_log = LogVectorOutput(plant.get_state_output_port(), builder, 0.05)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    simulator.get_mutable_integrator().set_target_accuracy(1e-10)
+    context = simulator.get_mutable_context()
+    initialize_context(plant, plant.GetMyMutableContextFromRoot(context))
+    simulator.Initialize()
+    simulator.AdvanceTo(duration)
+    return x_log.FindLog(simulator.get_context()).data()
+
+
+def test_drake_plant_starts_from_any_state_and_scales_masses():
+    """Velocities come from initialize_context; a mass scale of 1 changes nothing, 1.5 does."""
+    system = ControlAffineSystem.from_multibody(CART_POLE, C=[[1, 0, 0, 0], [0, 1, 0, 0]])
+    upright = system.shifted(UPRIGHT, [0.0])
+    z0 = [0.1, 0.1, -0.3, 0.5]  # moving
+    x_model = _run(ControlAffinePlant(upright, initial_state=z0), [3.0])[0]
+    x_drake = _run_initialized(DrakePlant(upright, initial_state=z0), [3.0])
+    np.testing.assert_allclose(x_drake[:, 0], z0, atol=0)
+    np.testing.assert_allclose(x_drake, x_model, rtol=0, atol=1e-6)
+    same = _run_initialized(
+        DrakePlant(upright, initial_state=z0, body_mass_scale={"Pole": 1.0}), [3.0]
+    )
+    np.testing.assert_allclose(same, x_drake, rtol=0, atol=1e-12)
+    heavy = _run_initialized(
+        DrakePlant(upright, initial_state=z0, body_mass_scale={"Pole": 1.5}), [3.0]
+    )
+    assert np.max(np.abs(heavy - x_drake)) > 1e-2
 
 
 def test_drake_plant_in_the_closed_loop_of_the_cart_pole_scenario():

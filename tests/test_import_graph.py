@@ -44,6 +44,8 @@ LAYERS = {
         "guard",
         "provenance",
         "learning",
+        "sweep",
+        "model_error",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
     2: {"variants", "scenario", "diagram"},  # wiring
@@ -57,6 +59,7 @@ LAYERS = {
         "graph",
         "animation",
         "learning_curve",
+        "monte_carlo",
     },
     4: {"cli", "__main__", ""},  # the command line and the package's public face
 }

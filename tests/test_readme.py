@@ -20,6 +20,7 @@ TYPE_NAMES = {
     list[float]: "vector",
     list[int]: "list of integers",
     list[list[float]]: "matrix",
+    dict[str, float]: "mapping of numbers",
 }
 
 #: Keys whose "required" column says more than yes/no.

@@ -65,7 +65,13 @@ def baseline_short(paper_scenario):
 
 def test_every_documented_choice_is_registered():
     assert {slot: sorted(options) for slot, options in VARIANT_FACTORIES.items()} == {
-        "observer": ["drake_luenberger", "linear_luenberger", "three_gain", "true_state"],
+        "observer": [
+            "drake_luenberger",
+            "kalman",
+            "linear_luenberger",
+            "three_gain",
+            "true_state",
+        ],
         "controller": ["constant", "frozen_critic", "learned", "lqr"],
         "points": ["around_estimate", "grid", "uniform"],
         "gamma": ["constant", "least_squares"],
@@ -86,8 +92,11 @@ def test_every_choice_builds_and_simulates_with_the_same_logs(paper_scenario, sl
     for key in ("x", "xhat", "W", "Gamma", "u", "learning_condition", "cost"):
         assert np.all(np.isfinite(getattr(r, key))), key
     assert np.all(np.abs(r.u) <= paper_scenario.input_bound)
-    # Every variant steers the paper's x0 = (-1, 1) towards the origin.
-    assert np.linalg.norm(r.x[-1]) < 0.1 * np.linalg.norm(r.x[0])
+    # Every variant steers the paper's x0 = (-1, 1) towards the origin. The Kalman filter
+    # keeps one pole at -1, the zero of x1' = -x1 + x2 seen from y = x2 with no process noise
+    # on x1 (its estimate error decays as e^-t), so it gets a looser bound.
+    factor = 0.2 if choice == "kalman" else 0.1
+    assert np.linalg.norm(r.x[-1]) < factor * np.linalg.norm(r.x[0])
 
 
 def test_true_state_feeds_the_state_through(paper_scenario):
@@ -323,8 +332,8 @@ def test_the_variant_section_of_a_scenario_file(tmp_path):
     loop = build_closed_loop(scenario)
     assert isinstance(loop.observer, FullStateObserver)
     assert isinstance(loop.controller, SaturatedLqrController)
-    path.write_text(text + "variant:\n  observer: kalman\n")
-    with pytest.raises(ScenarioError, match=r"variant.observer: unknown choice 'kalman'"):
+    path.write_text(text + "variant:\n  observer: particle_filter\n")
+    with pytest.raises(ScenarioError, match=r"variant.observer: unknown choice 'particle_filter'"):
         load_scenario(path)
 
 

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
-from pydrake.systems.framework import Diagram, DiagramBuilder, InputPort, OutputPort
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import AffineSystem
 
 from ofrl_drake.drake_models import MultibodySource
@@ -47,24 +47,32 @@ class DrakePlant(Diagram):
         A model from :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody`,
         possibly shifted.
     initial_state : array_like, shape (n,), optional
-        Default state, in the coordinates of ``system`` (zeros if omitted). It
-        becomes the clone's default positions; a multibody plant has no default
-        velocities, so the initial velocities ``v(0)`` (original coordinates)
-        must be zero.
+        Initial state, in the coordinates of ``system`` (zeros if omitted). The
+        positions become the clone's default positions; a multibody plant has
+        no default velocities, so :meth:`initialize_context` sets both in a
+        context (``simulate`` calls it).
+    body_mass_scale : mapping of str to float, optional
+        Factors on the masses of named bodies, set as Drake parameters in the
+        context by :meth:`initialize_context` (the center of mass and unit
+        inertia kept): a truth that differs from the model.
 
     Raises
     ------
     ModelError
         If ``system`` was not built from a multibody plant, ``initial_state``
-        has the wrong length, or asks for nonzero initial velocities.
+        has the wrong length, or ``body_mass_scale`` names no body of the plant.
     """
 
     def __init__(
-        self, system: ControlAffineSystem, initial_state: Sequence[float] | None = None
+        self,
+        system: ControlAffineSystem,
+        initial_state: Sequence[float] | None = None,
+        body_mass_scale: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__()
         self.system = system
         self.initial_state = initial_state
+        self.body_mass_scale = body_mass_scale
         source = system.source
         if not isinstance(source, MultibodySource):
             raise ModelError(
@@ -83,13 +91,14 @@ class DrakePlant(Diagram):
         x0 = z0 + x_eq
         plant = source.plant.Clone()
         nq = plant.num_positions()
-        if np.any(x0[nq:] != 0.0):
-            raise ModelError(
-                f"{system.name}: DrakePlant starts from the plant's default state, whose "
-                f"velocities are zero; the initial velocities are {x0[nq:].tolist()}. Start "
-                "at rest or use ControlAffinePlant, which takes any initial state."
-            )
         plant.SetDefaultPositions(x0[:nq])
+        self._x0 = x0
+        for body in body_mass_scale or {}:
+            if not plant.HasBodyNamed(body):
+                raise ModelError(
+                    f"{system.name}: body_mass_scale names {body!r}, which is not a body of "
+                    "the plant."
+                )
         builder = DiagramBuilder()
         self._plant = builder.AddNamedSystem("multibody_plant", plant)
         offset = builder.AddNamedSystem("add_input_offset", AffineSystem(D=np.eye(m), y0=u_eq))
@@ -103,6 +112,15 @@ class DrakePlant(Diagram):
         builder.ExportOutput(output.get_output_port(), "y")
         builder.ExportOutput(state.get_output_port(), "state")
         builder.BuildInto(self)
+
+    def initialize_context(self, context: Context) -> None:
+        """Set the initial positions and velocities, and the scaled masses, in ``context``."""
+        plant = self._plant
+        plant_context = self.GetMutableSubsystemContext(plant, context)
+        plant.SetPositionsAndVelocities(plant_context, self._x0)
+        for body, scale in (self.body_mass_scale or {}).items():
+            rigid = plant.GetBodyByName(body)
+            rigid.SetMass(plant_context, rigid.default_mass() * float(scale))
 
     @property
     def plant(self):

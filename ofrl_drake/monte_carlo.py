@@ -1,0 +1,352 @@
+"""Monte Carlo: one scenario under many noise seeds and sampled truths.
+
+Run ``k`` of ``montecarlo(scenario, runs, seed)`` uses the measurement seed
+``seed + k`` and, with ``mass_spread = s > 0``, a truth whose every body mass
+is scaled by a factor drawn uniformly in ``[1 - s, 1 + s]`` (times the
+scenario's own ``truth.body_mass_scale``), drawn from
+``numpy.random.default_rng([seed, k])``. Everything else is the scenario.
+
+Each run is scored like an ablation row: ``status``, ``regulated``
+(:func:`~ofrl_drake.ablation_metrics.regulated`), ``|x(T) - x*|``, the rms
+estimation error, ``J(T)`` and its ratio to ``J*`` of the nominal problem (the
+model, noise-free, from ``x0``; solved once). With ``out``, rows are appended
+to ``montecarlo.csv`` and fsynced as runs finish, ``montecarlo.json`` records
+what defines the sweep so that ``resume`` refuses another one by name, and
+``runs/`` keeps each run's trajectories for the envelope figure
+(:func:`write_montecarlo_report`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ofrl_drake.ablation_metrics import regulated, rms_estimation_error
+from ofrl_drake.atomic import atomic_file, atomic_write_text, check_output_folder
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig
+from ofrl_drake.sweep import (
+    DaskEngine,
+    Progress,
+    RowWriter,
+    SerialEngine,
+    TableError,
+    first_difference,
+    read_table,
+)
+
+__all__ = [
+    "CSV_COLUMNS",
+    "MonteCarloError",
+    "montecarlo",
+    "montecarlo_table",
+    "read_montecarlo_rows",
+    "run_for",
+    "write_montecarlo_report",
+]
+
+#: The columns of ``montecarlo.csv``, in order.
+CSV_COLUMNS = (
+    "seed",
+    "perturbation",
+    "status",
+    "regulated",
+    "final_state_norm",
+    "rms_estimation_error",
+    "cost",
+    "optimal_cost",
+    "optimality_ratio",
+    "wall_time",
+)
+_TEXT = ("seed", "perturbation", "status", "regulated")
+CSV_NAME = "montecarlo.csv"
+PLAN_NAME = "montecarlo.json"
+
+
+class MonteCarloError(OfrlError):
+    """A Monte Carlo sweep asked for with bad input (runs, spread, output, resume)."""
+
+
+def _bodies(scenario: Scenario) -> list[str]:
+    from ofrl_drake.plants import multibody_body_names, resolve_truth
+
+    truth = resolve_truth(dataclasses.replace(scenario, truth=scenario.truth or TruthConfig()))
+    names = multibody_body_names(truth)
+    if names is None:
+        raise MonteCarloError(
+            "--mass-spread: perturbs the body masses of a multibody truth; the scenario's "
+            "truth is not one (give plant.multibody or truth.plant.multibody)."
+        )
+    return [name for name in names if name != "world"]
+
+
+def run_for(scenario: Scenario, seed: int, k: int, mass_spread: float) -> tuple[Scenario, dict]:
+    """The scenario of run ``k``: its measurement seed and its perturbed truth, if any."""
+    measurement = scenario.measurement or MeasurementConfig()
+    changed = dataclasses.replace(
+        scenario, measurement=dataclasses.replace(measurement, seed=int(seed) + int(k))
+    )
+    perturbation: dict[str, float] = {}
+    if mass_spread > 0:
+        truth = scenario.truth or TruthConfig()
+        rng = np.random.default_rng([int(seed), int(k)])
+        for body in _bodies(scenario):
+            base = truth.body_mass_scale.get(body, 1.0)
+            perturbation[body] = float(base * rng.uniform(1 - mass_spread, 1 + mass_spread))
+        changed = dataclasses.replace(
+            changed, truth=dataclasses.replace(truth, body_mass_scale=perturbation)
+        )
+    return changed, perturbation
+
+
+def _one_run(scenario: Scenario, seed: int, k: int, mass_spread: float) -> dict[str, Any]:
+    """Simulate run ``k``; never raises (an error becomes its status)."""
+    from ofrl_drake.simulation import simulate
+
+    start = time.perf_counter()
+    run, perturbation = run_for(scenario, seed, k, mass_spread)
+    row: dict[str, Any] = {
+        "seed": str(int(seed) + int(k)),
+        "perturbation": json.dumps(perturbation, sort_keys=True),
+        "regulated": "false",
+        "final_state_norm": math.nan,
+        "rms_estimation_error": math.nan,
+        "cost": math.nan,
+    }
+    logs: dict[str, np.ndarray] = {}
+    try:
+        result = simulate(run, progress=False)
+        o = run.observer
+        box = (np.asarray(o.box.lower), np.asarray(o.box.upper))
+        row["status"] = "ok" if result.status == "ok" else f"{result.status}: {result.stop.reason}"
+        row["regulated"] = "true" if regulated(result.status, result.x[-1], box) else "false"
+        row["final_state_norm"] = float(np.linalg.norm(result.x[-1]))
+        row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)
+        row["cost"] = float(result.cost[-1])
+        logs = {"t": result.t, "x": result.original("x")}
+    except Exception as err:
+        row["status"] = " ".join(f"{type(err).__name__}: {err}".split())
+    row["wall_time"] = time.perf_counter() - start
+    return {"row": row, "logs": logs}
+
+
+def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dict]:
+    """The rows of a ``montecarlo.csv`` (``seed``, ``perturbation``, ``status``,
+    ``regulated`` as text, the rest as floats)."""
+    try:
+        return read_table(path, CSV_COLUMNS, _TEXT, repair=repair, kind="Monte Carlo table")
+    except TableError as err:
+        raise MonteCarloError(str(err)) from None
+
+
+def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[str, Any]:
+    return {
+        "scenario": scenario.name,
+        "runs": int(runs),
+        "seed": int(seed),
+        "mass_spread": float(mass_spread),
+        "scenario_values": dataclasses.asdict(scenario),
+    }
+
+
+def _open(out: Path, plan: dict[str, Any], resume: bool) -> list[dict]:
+    """Check or write ``montecarlo.json``; the rows already done (with ``resume``)."""
+    table = out / CSV_NAME
+    if table.exists() and not resume:
+        raise MonteCarloError(
+            f"--out: {table} exists; pass --resume to complete it, or choose another --out."
+        )
+    check_output_folder(out, marker=PLAN_NAME, command="montecarlo", error=MonteCarloError)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / PLAN_NAME
+    new = json.loads(json.dumps(plan))
+    if resume and path.is_file():
+        old = json.loads(path.read_text())
+        where = first_difference(old, new)
+        if where is not None:
+            raise MonteCarloError(
+                f"--resume: the folder's sweep differs in {where}; resume with the sweep's own "
+                "arguments, or choose another --out."
+            )
+    else:
+        atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
+    return read_montecarlo_rows(table, repair=True) if table.exists() else []
+
+
+def montecarlo(
+    scenario: Scenario,
+    runs: int,
+    seed: int = 0,
+    *,
+    mass_spread: float = 0.0,
+    client: Any = None,
+    out: str | os.PathLike[str] | None = None,
+    resume: bool = False,
+    progress: bool | None = None,
+    optimal_cost: float | None = None,
+) -> list[dict[str, Any]]:
+    """Run ``scenario`` under ``runs`` noise seeds (and sampled truths) and score each run.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        Validated; its ``measurement``, ``actuation`` and ``truth`` apply to
+        every run, with the seed and masses of the run.
+    runs : int
+        ``N >= 1``.
+    seed : int
+        Run ``k`` uses measurement seed ``seed + k``.
+    mass_spread : float
+        ``0 <= s < 1``: each body mass of a multibody truth is scaled by
+        ``U[1 - s, 1 + s]`` per run (0: no perturbation).
+    client : distributed.Client, optional
+        Run on this Dask cluster; without one, serially in this process.
+    out : str or Path, optional
+        Folder for ``montecarlo.csv`` (streamed), ``montecarlo.json`` and
+        ``runs/``.
+    resume : bool
+        Keep the rows already in ``out`` and run only the missing seeds.
+    progress : bool, optional
+        A bar of finished runs on stderr (default: only on a terminal).
+    optimal_cost : float, optional
+        ``J*`` of the nominal problem; solved here when omitted.
+
+    Returns
+    -------
+    list of dict
+        One row per run (:data:`CSV_COLUMNS`), in seed order.
+
+    Raises
+    ------
+    MonteCarloError
+        For bad arguments, an existing table without ``resume``, or a
+        ``resume`` of a different sweep (the first differing key named).
+    """
+    if not isinstance(runs, (int, np.integer)) or isinstance(runs, bool) or runs < 1:
+        raise MonteCarloError(f"--runs: must be an integer >= 1; got {runs!r}.")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise MonteCarloError(f"--seed: must be an integer >= 0; got {seed!r}.")
+    if not (math.isfinite(mass_spread) and 0 <= mass_spread < 1):
+        raise MonteCarloError(f"--mass-spread: must be in [0, 1); got {mass_spread}.")
+    if mass_spread > 0:
+        _bodies(scenario)  # refuse a truth without bodies before any run
+    out_dir = None if out is None else Path(out)
+    done: list[dict] = []
+    if out_dir is not None:
+        done = _open(out_dir, _plan(scenario, runs, seed, mass_spread), resume)
+    if optimal_cost is None:
+        from ofrl_drake.optimal import optimal_control
+
+        solved = optimal_control(scenario)
+        optimal_cost = solved.cost if solved.converged else math.nan
+    finished = {r["seed"]: r for r in done}
+    todo = [k for k in range(runs) if str(seed + k) not in finished]
+    engine = SerialEngine() if client is None else DaskEngine(client)
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = Progress(runs, runs - len(todo), show)
+    writer = None if out_dir is None else RowWriter(out_dir / CSV_NAME, CSV_COLUMNS, _TEXT)
+    if out_dir is not None:
+        (out_dir / "runs").mkdir(exist_ok=True)
+    try:
+        for k in todo:
+            engine.submit(_one_run, scenario, seed, k, mass_spread)
+        for _, value, err in engine.completed():
+            if err is not None:  # the task guards itself; a worker lost is recorded too
+                raise MonteCarloError(f"a Monte Carlo task failed: {err}")
+            row = value["row"]
+            row["optimal_cost"] = float(optimal_cost)
+            row["optimality_ratio"] = (
+                row["cost"] / optimal_cost
+                if math.isfinite(row["cost"]) and math.isfinite(optimal_cost) and optimal_cost > 0
+                else math.nan
+            )
+            if out_dir is not None and value["logs"]:
+                with atomic_file(out_dir / "runs" / f"seed_{row['seed']}.npz", "wb") as fh:
+                    np.savez(fh, **value["logs"])
+            if writer is not None:
+                writer.write(row)
+            finished[row["seed"]] = row
+            bar.advance()
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+    return [finished[str(seed + k)] for k in range(runs)]
+
+
+def _stats(values: Sequence[float]) -> str:
+    arr = np.asarray(values, dtype=float)
+    arr = arr[np.isfinite(arr)]
+    if arr.size == 0:
+        return "n/a"
+    return f"{arr.mean():.4g} ± {arr.std(ddof=1) if arr.size > 1 else 0.0:.2g}"
+
+
+def montecarlo_table(rows: Sequence[dict]) -> str:
+    """``montecarlo.md``'s statistics: success rate and mean ± standard deviation."""
+    n = len(rows)
+    ok = sum(r["status"] == "ok" for r in rows)
+    good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
+    lines = [
+        "| runs | ok | ok and regulated | success rate | \\|x(T) - x*\\| | rms \\|x - xhat\\| "
+        "| J | J/J* |",
+        "| --: | --: | --: | --: | --: | --: | --: | --: |",
+        f"| {n} | {ok} | {good} | {good / n:.0%} | "
+        f"{_stats([r['final_state_norm'] for r in rows])} | "
+        f"{_stats([r['rms_estimation_error'] for r in rows])} | "
+        f"{_stats([r['cost'] for r in rows])} | {_stats([r['optimality_ratio'] for r in rows])} |",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], name: str) -> None:
+    """``montecarlo.md`` and ``figures/envelope.png`` (the state envelope across runs)."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    failed = [r for r in rows if not (r["status"] == "ok" and r["regulated"] == "true")]
+    text = [
+        f"# Monte Carlo: {name}",
+        "",
+        "A run succeeds when it ends `ok` and `regulated` (every |x_i(T) - x*_i| within 5% of "
+        "the observer box's half-width).",
+        "",
+        montecarlo_table(rows),
+        "Runs that did not succeed:" if failed else "Every run succeeded.",
+        "",
+    ]
+    text += [f"- seed {r['seed']} ({r['perturbation']}): {r['status']}" for r in failed]
+    atomic_write_text(out / "montecarlo.md", "\n".join(text) + "\n")
+    logs = []
+    for r in rows:
+        path = out / "runs" / f"seed_{r['seed']}.npz"
+        if path.is_file():
+            with np.load(path) as data:
+                logs.append((data["t"], data["x"]))
+    if not logs:
+        return
+    n = logs[0][1].shape[1]
+    fig, axes = plt.subplots(n, 1, figsize=(6.5, 1.8 * n), sharex=True, layout="constrained")
+    axes = np.atleast_1d(axes)
+    for i, ax in enumerate(axes):
+        grid = logs[0][0]
+        stack = np.array([np.interp(grid, t, x[:, i]) for t, x in logs])
+        ax.fill_between(grid, stack.min(axis=0), stack.max(axis=0), alpha=0.3, label="min-max")
+        ax.plot(grid, np.median(stack, axis=0), lw=1.2, label="median")
+        ax.set_ylabel(f"$x_{i + 1}$")
+    axes[-1].set_xlabel("t [s]")
+    axes[0].legend(loc="upper right", fontsize=8)
+    fig.suptitle(f"{name}: state envelope over {len(logs)} runs")
+    (out / "figures").mkdir(exist_ok=True)
+    with atomic_file(out / "figures" / "envelope.png", "wb") as fh:
+        fig.savefig(fh, dpi=150, format="png")
+    plt.close(fig)

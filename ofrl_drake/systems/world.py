@@ -1,0 +1,195 @@
+"""Sensors and actuators around the plant and the controller: real-world conditions.
+
+:class:`MeasuredPlant` wraps whatever block fills the plant slot: the plant
+receives ``u`` plus a constant disturbance, and ``y`` reaches the loop with
+Gaussian noise from Drake's ``RandomSource``, sampled and held by a
+``ZeroOrderHold``. :class:`SampledController` wraps the controller slot's block:
+its output is held for a period, a sampled-data controller. Both keep the
+slot's port names, so the rest of the loop is wired as usual.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pydrake.common import RandomDistribution
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
+from pydrake.systems.primitives import (
+    Adder,
+    ConstantVectorSource,
+    MatrixGain,
+    RandomSource,
+    ZeroOrderHold,
+)
+
+from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.errors import ModelError
+
+__all__ = ["MeasuredPlant", "SampledController", "initialize_context"]
+
+
+def initialize_context(system: System, context: Context) -> None:
+    """Let ``system`` set what its default context cannot hold (its own ``context``).
+
+    Blocks that need it define ``initialize_context(context)``: a multibody
+    plant's initial velocities and body masses, a hold's first value. Others
+    are left as they are.
+    """
+    hook = getattr(system, "initialize_context", None)
+    if hook is not None:
+        hook(context)
+
+
+def _export_other_ports(builder: DiagramBuilder, inner: System, skip_in: set, skip_out: set):
+    for i in range(inner.num_input_ports()):
+        port = inner.get_input_port(i)
+        if port.get_name() not in skip_in:
+            builder.ExportInput(port, port.get_name())
+    for i in range(inner.num_output_ports()):
+        port = inner.get_output_port(i)
+        if port.get_name() not in skip_out:
+            builder.ExportOutput(port, port.get_name())
+
+
+class MeasuredPlant(Diagram):
+    """A plant block whose input gets a disturbance and whose output is noisy and sampled.
+
+    .. pydrake_system::
+
+        name: MeasuredPlant
+        input_ports:
+        - u
+        output_ports:
+        - y
+        - state
+
+    plus any other port of ``plant``, exported under its own name.
+
+    ``y_k = C x(t_k) + v_k`` with ``v_k ~ N(0, diag(noise_std)^2)`` drawn by
+    a ``RandomSource`` every ``period`` and held by a ``ZeroOrderHold``
+    (``t_k = k period``); the plant receives ``u + disturbance``. The noise
+    is seeded by the root context's random generator (``SetRandomContext``).
+
+    Parameters
+    ----------
+    plant : System
+        The block with ports ``u``, ``y`` and ``state``.
+    noise_std : array_like, shape (q,), optional
+        Standard deviations of the measurement noise (none if omitted).
+    period : float
+        Sampling period of ``y`` in seconds (0: continuous; noise needs > 0).
+    disturbance : array_like, shape (m,), optional
+        Constant input disturbance (none if omitted).
+
+    Raises
+    ------
+    ModelError
+        If the sizes do not match the plant's ports, a value is negative or
+        not finite, or noise is asked for with ``period = 0``.
+    """
+
+    def __init__(
+        self,
+        plant: System,
+        *,
+        noise_std: Sequence[float] | None = None,
+        period: float = 0.0,
+        disturbance: Sequence[float] | None = None,
+    ) -> None:
+        super().__init__()
+        self.plant = plant
+        self.noise_std = noise_std
+        self.period = period
+        self.disturbance = disturbance
+        q = plant.GetOutputPort("y").size()
+        m = plant.GetInputPort("u").size()
+        positive_number("MeasuredPlant: period", period, allow_zero=True)
+        std = np.zeros(q) if not noise_std else finite_vector("noise_std", noise_std, q)
+        if np.any(std < 0):
+            raise ModelError(f"MeasuredPlant: noise_std must be >= 0; got {std.tolist()}.")
+        if np.any(std > 0) and period == 0:
+            raise ModelError("MeasuredPlant: noise needs a sampling period > 0; got 0.")
+        d = np.zeros(m) if not disturbance else finite_vector("disturbance", disturbance, m)
+        builder = DiagramBuilder()
+        inner = builder.AddNamedSystem("plant", plant)
+        if np.any(d != 0):
+            add_d = builder.AddNamedSystem("add_disturbance", Adder(2, m))
+            source = builder.AddNamedSystem("disturbance", ConstantVectorSource(d))
+            builder.Connect(source.get_output_port(), add_d.get_input_port(1))
+            builder.Connect(add_d.get_output_port(), inner.GetInputPort("u"))
+            builder.ExportInput(add_d.get_input_port(0), "u")
+        else:
+            builder.ExportInput(inner.GetInputPort("u"), "u")
+        y = inner.GetOutputPort("y")
+        self._hold = None
+        if np.any(std > 0):
+            noise = builder.AddNamedSystem(
+                "noise", RandomSource(RandomDistribution.kGaussian, q, float(period))
+            )
+            scale = builder.AddNamedSystem("noise_std", MatrixGain(np.diag(std)))
+            add_v = builder.AddNamedSystem("add_noise", Adder(2, q))
+            builder.Connect(noise.get_output_port(0), scale.get_input_port())
+            builder.Connect(y, add_v.get_input_port(0))
+            builder.Connect(scale.get_output_port(), add_v.get_input_port(1))
+            y = add_v.get_output_port()
+        if period > 0:
+            self._hold = builder.AddNamedSystem("sample_and_hold", ZeroOrderHold(float(period), q))
+            builder.Connect(y, self._hold.get_input_port())
+            y = self._hold.get_output_port()
+        builder.ExportOutput(y, "y")
+        _export_other_ports(builder, inner, {"u"}, {"y"})
+        builder.BuildInto(self)
+        self._inner = inner
+
+    def initialize_context(self, context: Context) -> None:
+        """The inner plant's own initialization, then the hold starts at ``y(0)`` with its noise."""
+        initialize_context(self._inner, self.GetMutableSubsystemContext(self._inner, context))
+        if self._hold is not None:
+            hold_context = self.GetMutableSubsystemContext(self._hold, context)
+            value = self._hold.get_input_port().Eval(hold_context)
+            self._hold.SetVectorState(hold_context, value)
+
+
+class SampledController(Diagram):
+    """A controller block whose output ``u`` is held for ``period`` seconds.
+
+    .. pydrake_system::
+
+        name: SampledController
+        input_ports:
+        - (the inputs of ``controller``)
+        output_ports:
+        - u
+
+    The hold samples at ``t_k = k period`` and starts at the controller's
+    ``u(0)``.
+
+    Parameters
+    ----------
+    controller : System
+        A block with an output ``u``.
+    period : float
+        Hold period in seconds, > 0.
+    """
+
+    def __init__(self, controller: System, period: float) -> None:
+        super().__init__()
+        self.controller = controller
+        self.period = period
+        positive_number("SampledController: period", period)
+        m = controller.GetOutputPort("u").size()
+        builder = DiagramBuilder()
+        inner = builder.AddNamedSystem("controller", controller)
+        self._hold = builder.AddNamedSystem("hold", ZeroOrderHold(float(period), m))
+        builder.Connect(inner.GetOutputPort("u"), self._hold.get_input_port())
+        builder.ExportOutput(self._hold.get_output_port(), "u")
+        _export_other_ports(builder, inner, set(), {"u"})
+        builder.BuildInto(self)
+        self._inner = inner
+
+    def initialize_context(self, context: Context) -> None:
+        """The hold starts at the controller's ``u(0)``."""
+        initialize_context(self._inner, self.GetMutableSubsystemContext(self._inner, context))
+        hold_context = self.GetMutableSubsystemContext(self._hold, context)
+        self._hold.SetVectorState(hold_context, self._hold.get_input_port().Eval(hold_context))

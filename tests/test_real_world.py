@@ -1,0 +1,334 @@
+"""Real-world conditions: a wrong model, noisy sampled sensors, a held input, Monte Carlo."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pydrake.common import RandomGenerator
+from pydrake.common.yaml import yaml_dump, yaml_load
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+from scipy import stats
+
+from ofrl_drake import build_closed_loop, load_scenario, simulate
+from ofrl_drake.examples import make_system
+from ofrl_drake.monte_carlo import (
+    MonteCarloError,
+    montecarlo,
+    read_montecarlo_rows,
+    write_montecarlo_report,
+)
+from ofrl_drake.scenario import MeasurementConfig, TruthConfig
+from ofrl_drake.systems import ControlAffinePlant
+from ofrl_drake.systems.world import MeasuredPlant
+
+from .conftest import ROOT
+
+REAL = ROOT / "diagrams" / "cart_pole_real_world.yaml"
+CART_POLE = ROOT / "diagrams" / "cart_pole.yaml"
+
+
+@pytest.fixture(scope="module")
+def real():
+    return load_scenario(REAL)
+
+
+@pytest.fixture(scope="module")
+def real_result(real):
+    return simulate(real, progress=False)
+
+
+def _cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=cwd,
+    )
+
+
+# ---------------------------------------------------------------- done when
+def test_the_real_world_cart_pole_balances(real, real_result):
+    """Heavier pole, lighter cart, 2 mm / 2 mrad of noise at 100 Hz, a 10 ms hold."""
+    assert real.truth.body_mass_scale == {"Pole": 1.3, "Cart": 0.8}
+    assert real.measurement.noise_std == [0.002, 0.002] and real.measurement.period == 0.01
+    assert real.actuation.period == 0.01
+    r = real_result
+    assert r.status == "ok"
+    cart, angle = r.x[-1, 0], r.x[-1, 1]  # relative to upright
+    assert abs(angle) < 0.02 and abs(cart) < 0.1
+    assert r.provenance["seeds"] == {"measurement": 0}
+    error = r.summary()["model_error"]
+    assert "does not cover" in error["note"]
+    assert max(error["max_f_error"]) > 0.1  # the truth is not the model
+    assert max(abs(v) for v in error["equilibrium_residual"]) < 1e-12  # upright still is one
+
+
+def test_a_seed_reproduces_its_run_and_another_seed_changes_it(real, real_result):
+    again = simulate(real, progress=False)
+    for key in ("x", "xhat", "u", "W", "cost"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(real_result, key))
+    other = dataclasses.replace(real, measurement=dataclasses.replace(real.measurement, seed=1))
+    changed = simulate(other, progress=False)
+    assert not np.array_equal(changed.x, real_result.x)
+    assert changed.provenance["seeds"] == {"measurement": 1}
+
+
+def test_a_montecarlo_of_six_runs_succeeds_in_five(real, tmp_path):
+    rows = montecarlo(real, 6, seed=0, out=tmp_path, optimal_cost=35.6263)
+    assert [r["seed"] for r in rows] == [str(k) for k in range(6)]
+    good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
+    assert good >= 5, rows
+    write_montecarlo_report(tmp_path, rows, real.name)
+    assert "| 6 |" in (tmp_path / "montecarlo.md").read_text()
+    assert (tmp_path / "figures" / "envelope.png").stat().st_size > 10_000
+
+
+# ----------------------------------------------------------------- sensors
+def _measured_origin(noise_std, period, seed, duration=20.0):
+    """The paper's plant held at its equilibrium x = 0: the measured y is the noise alone."""
+    system = make_system("two_state")
+    builder = DiagramBuilder()
+    plant = builder.AddSystem(
+        MeasuredPlant(ControlAffinePlant(system), noise_std=noise_std, period=period)
+    )
+    zero = builder.AddSystem(ConstantVectorSource([0.0]))
+    builder.Connect(zero.get_output_port(), plant.GetInputPort("u"))
+    log = LogVectorOutput(plant.GetOutputPort("y"), builder, period)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    diagram.SetRandomContext(context, RandomGenerator(seed))
+    plant.initialize_context(plant.GetMyMutableContextFromRoot(context))
+    simulator.AdvanceTo(duration)
+    data = log.FindLog(simulator.get_context())
+    return data.sample_times(), data.data()[0]
+
+
+def test_noise_statistics_match_noise_std():
+    std = 0.05
+    _, y = _measured_origin([std], 0.01, seed=3)
+    samples = np.unique(y)  # each held value once: the noise draws
+    N = samples.size
+    assert N > 1500
+    # Mean: within 4 standard errors. Variance: inside the chi-square 99.99% interval.
+    assert abs(samples.mean()) < 4 * std / np.sqrt(N)
+    low, high = stats.chi2.ppf([5e-5, 1 - 5e-5], N - 1) / (N - 1)
+    assert low * std**2 < samples.var(ddof=1) < high * std**2
+
+
+def _interval(times, period):
+    """The hold interval of each logged time: ``(k h, (k + 1) h]``, and 0 for ``t = 0``.
+
+    A log at ``t = k h`` is published before the hold's update at that time, so it
+    still shows the value of the interval that ends there.
+    """
+    return np.maximum(np.ceil(times / period - 1e-9).astype(int) - 1, 0)
+
+
+def test_y_is_piecewise_constant_on_the_sampling_grid():
+    """Logged four times per period: constant inside each interval, C x at its start."""
+    system = make_system("two_state")
+    builder = DiagramBuilder()
+    plant = builder.AddSystem(
+        MeasuredPlant(ControlAffinePlant(system, initial_state=[0.5, -0.5]), period=0.01)
+    )
+    zero = builder.AddSystem(ConstantVectorSource([0.0]))
+    builder.Connect(zero.get_output_port(), plant.GetInputPort("u"))
+    y_log = LogVectorOutput(plant.GetOutputPort("y"), builder, 0.0025)
+    x_log = LogVectorOutput(plant.GetOutputPort("state"), builder, 0.0025)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    plant.initialize_context(plant.GetMyMutableContextFromRoot(context))
+    simulator.AdvanceTo(0.5)
+    ctx = simulator.get_context()
+    times = y_log.FindLog(ctx).sample_times()
+    held = y_log.FindLog(ctx).data()[0]
+    state = x_log.FindLog(ctx).data()
+    k = _interval(times, 0.01)
+    for interval in np.unique(k):
+        inside = held[k == interval]
+        assert np.all(inside == inside[0]), interval
+        # the held value is C x at the interval's start, t = k period
+        start = np.argmin(np.abs(times - 0.01 * interval))
+        assert inside[0] == pytest.approx(state[1, start], abs=1e-12)
+    assert np.ptp(state[1]) > 0.1  # while the true output moves
+
+
+def test_u_is_held_by_the_sampled_controller(real):
+    short = dataclasses.replace(
+        real,
+        simulation=dataclasses.replace(real.simulation, duration=0.3, log_period=0.0025),
+    )
+    r = simulate(short, progress=False)
+    k = _interval(r.t, 0.01)
+    for interval in np.unique(k):
+        inside = r.u[k == interval, 0]
+        assert np.all(inside == inside[0]), interval
+    assert np.ptp(r.u) > 1.0  # the command does change between samples
+
+
+# ------------------------------------------------------------------ truths
+def test_a_truth_with_unit_mass_scale_runs_the_model(tmp_path):
+    """``truth: {body_mass_scale: {Pole: 1.0}}`` runs Drake's MultibodyPlant: same loop."""
+    base = load_scenario(CART_POLE)
+    base = dataclasses.replace(
+        base, simulation=dataclasses.replace(base.simulation, duration=5.0, accuracy=1e-7)
+    )
+    truth = dataclasses.replace(base, truth=TruthConfig(body_mass_scale={"Pole": 1.0}))
+    loop = build_closed_loop(truth)
+    assert type(loop.plant).__name__ == "DrakePlant"
+    a, b = simulate(base, progress=False), simulate(truth, loop=loop, progress=False)
+    np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-5)
+    error = b.summary()["model_error"]
+    assert max(error["max_f_error"]) < 1e-10 and np.max(error["max_g_error"]) < 1e-10
+
+
+def test_kalman_observer_regulates_the_real_world_cart_pole(real):
+    scenario = dataclasses.replace(
+        real, variant=dataclasses.replace(real.variant, observer="kalman")
+    )
+    r = simulate(scenario, progress=False)
+    assert r.status == "ok"
+    assert abs(r.x[-1, 1]) < 0.02 and abs(r.x[-1, 0]) < 0.1
+    assert type(build_closed_loop(scenario).observer).__name__ == "LinearizedLuenbergerObserver"
+
+
+def test_without_real_world_keys_nothing_changes(paper_result, paper_scenario):
+    """No truth, measurement or actuation: no seeds, no model error, the same blocks."""
+    assert "seeds" not in paper_result.provenance
+    assert "model_error" not in paper_result.summary()
+    quiet = dataclasses.replace(paper_scenario, measurement=MeasurementConfig())
+    loop = build_closed_loop(quiet)
+    assert type(loop.plant).__name__ != "MeasuredPlant"
+
+
+# ----------------------------------------------------------------- montecarlo
+def test_montecarlo_statuses_resume_and_refusals(real, tmp_path):
+    short = dataclasses.replace(
+        real, simulation=dataclasses.replace(real.simulation, duration=1.0, max_wall_time=1e-4)
+    )
+    rows = montecarlo(short, 2, seed=5, out=tmp_path, optimal_cost=1.0)
+    assert [r["seed"] for r in rows] == ["5", "6"]
+    assert all(r["status"].startswith("timeout") and r["regulated"] == "false" for r in rows)
+    on_disk = read_montecarlo_rows(tmp_path / "montecarlo.csv")
+    assert [r["seed"] for r in on_disk] == ["5", "6"]
+    # A torn last line is dropped; --resume runs only what is missing.
+    text = (tmp_path / "montecarlo.csv").read_text()
+    (tmp_path / "montecarlo.csv").write_text(text[: text.rindex("\n", 0, -1) + 1] + "6,{}")
+    again = montecarlo(short, 2, seed=5, out=tmp_path, resume=True, optimal_cost=1.0)
+    assert [r["seed"] for r in again] == ["5", "6"]
+    assert len(read_montecarlo_rows(tmp_path / "montecarlo.csv")) == 2
+    with pytest.raises(MonteCarloError, match=r"exists; pass --resume"):
+        montecarlo(short, 2, seed=5, out=tmp_path, optimal_cost=1.0)
+    with pytest.raises(MonteCarloError, match=r"--resume: the folder's sweep differs in seed"):
+        montecarlo(short, 2, seed=6, out=tmp_path, resume=True, optimal_cost=1.0)
+    with pytest.raises(MonteCarloError, match=r"--mass-spread: must be in \[0, 1\); got 1.5"):
+        montecarlo(short, 2, mass_spread=1.5)
+    with pytest.raises(MonteCarloError, match=r"--runs: must be an integer >= 1; got 0"):
+        montecarlo(short, 0)
+
+
+def test_montecarlo_perturbs_every_body_mass_by_the_spread(real):
+    from ofrl_drake.monte_carlo import run_for
+
+    run, perturbation = run_for(real, 3, 2, 0.1)
+    assert set(perturbation) == {"Cart", "Pole"}
+    assert 0.8 * 0.9 <= perturbation["Cart"] <= 0.8 * 1.1
+    assert 1.3 * 0.9 <= perturbation["Pole"] <= 1.3 * 1.1
+    assert run.measurement.seed == 5
+    assert run_for(real, 3, 2, 0.1)[1] == perturbation  # drawn from the seed and the index
+
+
+def test_montecarlo_command_on_dask(tmp_path):
+    out = tmp_path / "mc"
+    scenario = tmp_path / "short.yaml"
+    data = yaml_load(filename=str(REAL))
+    data["simulation"]["duration"] = 2.0
+    data["truth"]["body_mass_scale"] = {"Pole": 1.3, "Cart": 0.8}
+    scenario.write_text(yaml_dump(data))
+    proc = _cli("montecarlo", scenario, "--runs", 2, "--workers", 2, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "wrote" in proc.stdout and "montecarlo.md" in proc.stdout
+    rows = read_montecarlo_rows(out / "montecarlo.csv")
+    assert sorted(r["seed"] for r in rows) == ["0", "1"]
+    plan = json.loads((out / "montecarlo.json").read_text())
+    assert plan["runs"] == 2 and plan["seed"] == 0
+
+
+# ------------------------------------------------------------------ errors
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        ({"measurement": {"period": -0.01}}, r"measurement\.period: must be >= 0; got -0\.01"),
+        (
+            {"measurement": {"noise_std": [0.1], "period": 0.01}},
+            r"measurement\.noise_std: expected 2 entries; got 1",
+        ),
+        (
+            {"measurement": {"noise_std": [0.1, 0.1]}},
+            r"measurement\.period: noise is drawn once per sample",
+        ),
+        ({"actuation": {"period": -1.0}}, r"actuation\.period: must be >= 0; got -1\.0"),
+        (
+            {"truth": {"body_mass_scale": {"Pendulum": 1.2}}},
+            r"truth\.body_mass_scale\.Pendulum: no body of that name .* "
+            r"\['world', 'Cart', 'Pole'\]",
+        ),
+        (
+            {"truth": {"body_mass_scale": {"Pole": -1.0}}},
+            r"truth\.body_mass_scale\.Pole: must be a number > 0; got -1\.0",
+        ),
+        ({"truth": {"mass": 2.0}}, r"truth\.mass: unknown key in truth"),
+    ],
+)
+def test_bad_real_world_keys_exit_2_naming_the_key(tmp_path, edit, message):
+    import re
+
+    data = yaml_load(filename=str(CART_POLE))
+    data.update(edit)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml_dump(data))
+    proc = _cli("run", path, "--out", tmp_path / "o")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and re.search(message, lines[0]), lines
+    assert not (tmp_path / "o").exists()
+
+
+def test_run_writes_a_scenario_yaml_that_reproduces_the_noisy_run(tmp_path):
+    """The truth, measurement and actuation keys round-trip through scenario.yaml, bit for bit."""
+    import ofrl_drake as od
+
+    assert od.montecarlo is montecarlo
+    data = yaml_load(filename=str(REAL))
+    data["simulation"]["duration"] = 1.0
+    path = tmp_path / "short.yaml"
+    path.write_text(yaml_dump(data))
+    first = _cli("run", path, "--out", tmp_path / "a", "--quiet", "--checkpoints", "0")
+    assert first.returncode == 0, first.stderr
+    again = _cli(
+        "run",
+        tmp_path / "a" / "scenario.yaml",
+        "--out",
+        tmp_path / "b",
+        "--quiet",
+        "--checkpoints",
+        "0",
+    )
+    assert again.returncode == 0, again.stderr
+    a, b = (
+        np.load(tmp_path / "a" / "trajectories.npz"),
+        np.load(tmp_path / "b" / "trajectories.npz"),
+    )
+    for key in a.files:
+        np.testing.assert_array_equal(b[key], a[key], err_msg=key)
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["provenance"]["seeds"] == {"measurement": 0}
+    assert "model_error" in summary
