@@ -185,7 +185,11 @@ def test_a_truth_with_unit_mass_scale_runs_the_model(tmp_path):
     loop = build_closed_loop(truth)
     assert type(loop.plant).__name__ == "DrakePlant"
     a, b = simulate(base, progress=False), simulate(truth, loop=loop, progress=False)
+    # Drake's plant against the model's f and g: the same loop to the integrator's accuracy.
     np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-5)
+    # A scale of 1.0 against no scale on the same multibody truth: the same run to round-off.
+    unscaled = simulate(dataclasses.replace(base, truth=TruthConfig()), progress=False)
+    np.testing.assert_allclose(b.x, unscaled.x, rtol=0, atol=1e-12)
     error = b.summary()["model_error"]
     assert max(error["max_f_error"]) < 1e-10 and np.max(error["max_g_error"]) < 1e-10
 
