@@ -77,6 +77,7 @@ from ofrl_drake.sweep import (
     SerialEngine,
     TableError,
     first_difference,
+    format_row,
     read_table,
 )
 
@@ -113,10 +114,11 @@ CSV_COLUMNS = (
     "final_policy_cost",
     "initial_policy_ratio",
     "final_policy_ratio",
+    "regulated",
     "wall_time",
     "status",
 )
-_TEXT_COLUMNS = ("variant", "initial_state", "status")
+_TEXT_COLUMNS = ("variant", "initial_state", "regulated", "status")
 _METRICS = (
     "cost",
     "final_state_norm",
@@ -321,6 +323,8 @@ class RunOutcome:
         True if the variant uses the learned controller (a J* warm start).
     logs : dict of str to ndarray
         ``t, x, xhat, u, cost`` (empty if the run failed).
+    regulated : bool
+        The run's verdict (:func:`~ofrl_drake.ablation_metrics.regulation`).
     """
 
     variant: str
@@ -330,6 +334,7 @@ class RunOutcome:
     wall_time: float
     learned: bool
     logs: dict[str, np.ndarray] = field(default_factory=dict)
+    regulated: bool = False
 
     def warm_start(self) -> Trajectory | None:
         """The run as a :class:`~ofrl_drake.optimal.Trajectory`, if it reached its horizon."""
@@ -358,12 +363,14 @@ def run_variant(
     label = initial_state_label(x0)
     learned = variant.full_choices(scenario)["controller"] == "learned"
     start = time.perf_counter()
+    regulated = False
     try:
         s = _scenario_for(scenario, variant, x0, duration)
         loop = build_closed_loop(s)
         result = simulate(s, loop=loop, progress=False)
         box = (np.asarray(s.observer.box.lower), np.asarray(s.observer.box.upper))
         metrics = {**run_metrics(result, box), **_policy_costs(loop, result, s)}
+        regulated = bool(result.regulated)
         status = "ok"
         if result.status != "ok":
             # Stopped by the guard: the metrics of a truncated run are not comparable.
@@ -384,6 +391,7 @@ def run_variant(
         wall_time=time.perf_counter() - start,
         learned=learned,
         logs=logs,
+        regulated=regulated,
     )
 
 
@@ -459,6 +467,7 @@ def _row(outcome: RunOutcome, optimum: OptimalControlResult) -> dict[str, Any]:
         "final_policy_cost": m["final_policy_cost"],
         "initial_policy_ratio": optimality_ratio(m["initial_policy_cost"], optimum.cost),
         "final_policy_ratio": optimality_ratio(m["final_policy_cost"], optimum.cost),
+        "regulated": "true" if outcome.regulated else "false",
         "wall_time": outcome.wall_time,
         "status": " ".join(str(status).split()),
     }
@@ -628,10 +637,20 @@ class _Sweep:
         simulation = dataclasses.replace(self.scenario.simulation, duration=self.duration)
         return dataclasses.replace(self.scenario, simulation=simulation)
 
-    def open(self, resume: bool) -> None:
-        """Read the rows and optima already on disk; open the table for appending."""
+    def open(self, resume: bool, retry_failed: bool = False) -> None:
+        """Read the rows and optima already on disk; open the table for appending.
+
+        With ``retry_failed``, rows whose status is not ``ok`` are dropped from
+        the table (rewritten whole) so that their runs are done again.
+        """
         if self.out_dir is None:
             return
+        if (self.out_dir / CSV_NAME).exists() and not (self.out_dir / PLAN_NAME).exists():
+            raise AblationError(
+                f"--out: {self.out_dir / PLAN_NAME} is missing; it records the sweep that "
+                f"{CSV_NAME} belongs to, so it cannot be resumed. Restore it, or move "
+                f"{CSV_NAME} away to start a new sweep in {self.out_dir}."
+            )
         check_output_folder(self.out_dir, marker=PLAN_NAME, command="ablate", error=AblationError)
         ensure_parent(self.out_dir / PLAN_NAME)
         table = self.out_dir / CSV_NAME
@@ -644,7 +663,15 @@ class _Sweep:
         )
         _plan_file(self.out_dir, plan, resume)
         if table.exists():
-            for row in read_rows(table, repair=True):
+            rows = read_rows(table, repair=True)
+            if retry_failed:
+                kept = [r for r in rows if r["status"] == "ok"]
+                if len(kept) < len(rows):
+                    text = ",".join(CSV_COLUMNS) + "\n"
+                    text += "".join(format_row(r, CSV_COLUMNS, _TEXT_COLUMNS) for r in kept)
+                    atomic_write_text(table, text)
+                rows = kept
+            for row in rows:
                 self.done[(row["variant"], row["initial_state"])] = row
         self.writer = RowWriter(table, CSV_COLUMNS, _TEXT_COLUMNS)
         self.cache = OptimalCostCache(self.out_dir / "optimal", self.mesh, self.solver)
@@ -733,6 +760,7 @@ def ablate(
     solver: str | None = None,
     progress: bool | None = None,
     seed: int | None = None,
+    retry_failed: bool = False,
 ) -> list[dict[str, Any]]:
     """Run every variant from every initial state and compare with ``J*``.
 
@@ -765,6 +793,8 @@ def ablate(
         The seed the initial states were drawn with
         (:func:`sample_initial_states`); recorded in ``ablation.json`` so a
         ``resume`` with another seed is refused by name.
+    retry_failed : bool
+        With ``resume``, run again the rows whose status is not ``ok``.
 
     Returns
     -------
@@ -810,7 +840,7 @@ def ablate(
         out_dir=None if out is None else Path(out),
         seed=seed,
     )
-    sweep.open(resume)
+    sweep.open(resume, retry_failed)
     todo = [k for k in keys if k not in sweep.done]
     engine = SerialEngine() if client is None else DaskEngine(client)
     show = sys.stderr.isatty() if progress is None else progress

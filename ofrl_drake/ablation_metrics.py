@@ -15,6 +15,7 @@ __all__ = [
     "SETTLING_RADIUS",
     "optimality_ratio",
     "regulated",
+    "regulation",
     "rms_estimation_error",
     "run_metrics",
     "settling_time",
@@ -67,22 +68,55 @@ def time_outside_box(
     return float(np.sum(np.diff(np.asarray(t, dtype=float)) * bad[:-1]))
 
 
-#: ``regulated``: every component of the final state within this fraction of
-#: the observer box's half-width of the target.
+#: ``simulation.regulation_tolerance`` by default: every component of the final
+#: state within this fraction of the observer box's half-width of the target.
 REGULATION_FRACTION = 0.05
 
 
-def regulated(status: str, x_final: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> bool:
-    """Whether a run reached its target: it ended ``ok`` and every ``|x_i(T)|`` is
-    at most :data:`REGULATION_FRACTION` of the box's half-width along ``x_i``.
+def regulation(
+    status: str,
+    x_final: np.ndarray,
+    box: tuple[np.ndarray, np.ndarray],
+    tolerance: float = REGULATION_FRACTION,
+    xhat_final: np.ndarray | None = None,
+) -> dict:
+    """Whether a run reached its target, with the numbers behind the verdict.
 
-    ``x_final`` is in the method's coordinates (``x - x*``). On the cart-pole's
-    box (``[-2, 2] m x [-0.4, 0.4] rad x ...``) that is 0.1 m and 0.02 rad.
+    A run is regulated when it ended ``ok``, every ``|x_i(T)|`` (``x`` in the
+    method's coordinates, ``x - x*``) is at most ``tolerance`` times the
+    observer box's half-width along ``x_i``, and ``x(T)`` (and ``xhat(T)``
+    when given) lie inside the observer box. On the cart-pole's box
+    (``[-2, 2] m x [-0.4, 0.4] rad x ...``) the default is 0.1 m and 0.02 rad.
+
+    Returns
+    -------
+    dict
+        ``regulated`` (bool), ``tolerance`` (the per-component bound),
+        ``final_error`` (``|x_i(T)|``), ``inside_observer_box``, ``status``.
     """
     lower, upper = (np.asarray(b, dtype=float) for b in box)
-    half = 0.5 * (upper - lower)
+    bound = tolerance * 0.5 * (upper - lower)
     x = np.asarray(x_final, dtype=float)
-    return bool(status == "ok" and np.all(np.abs(x) <= REGULATION_FRACTION * half))
+    finals = [x] if xhat_final is None else [x, np.asarray(xhat_final, dtype=float)]
+    inside = bool(all(np.all((v >= lower) & (v <= upper)) for v in finals))
+    close = bool(np.all(np.isfinite(x)) and np.all(np.abs(x) <= bound))
+    return {
+        "regulated": bool(status == "ok" and close and inside),
+        "tolerance": bound.tolist(),
+        "final_error": np.abs(x).tolist(),
+        "inside_observer_box": inside,
+        "status": status,
+    }
+
+
+def regulated(
+    status: str,
+    x_final: np.ndarray,
+    box: tuple[np.ndarray, np.ndarray],
+    tolerance: float = REGULATION_FRACTION,
+) -> bool:
+    """:func:`regulation`'s verdict alone."""
+    return regulation(status, x_final, box, tolerance)["regulated"]
 
 
 def optimality_ratio(cost: float, optimal_cost: float) -> float:

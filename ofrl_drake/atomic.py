@@ -21,8 +21,10 @@ __all__ = [
     "atomic_file",
     "atomic_write_text",
     "check_output_folder",
+    "check_output_target",
     "check_writable",
     "ensure_parent",
+    "output_lock",
     "umask_mode",
 ]
 
@@ -106,16 +108,80 @@ def check_output_folder(
     return target
 
 
+def check_output_target(target: str | Path, what: str = "--out", *, folder: bool = False) -> Path:
+    """Refuse an output path that a rename would mistreat.
+
+    ``target`` must be a non-empty path that, if it exists, is a regular file
+    (or, with ``folder``, a folder) and not a symbolic link: replacing a
+    device, a FIFO, a socket or a link by renaming a file onto it would
+    destroy it (``--out /dev/null`` would replace the machine's ``/dev/null``).
+
+    Raises
+    ------
+    OutputError
+        Naming the path and what it is.
+    """
+    if str(target) == "":
+        kind = "folder" if folder else "file"
+        raise OutputError(f"{what}: the path is empty; name an output {kind}.")
+    path = Path(target).expanduser()
+    if path.is_symlink():
+        raise OutputError(
+            f"{what}: {path} is a symbolic link; ofrl-drake writes only regular files and "
+            "folders it creates. Name the link's target, or another path."
+        )
+    if path.exists():
+        if folder and path.is_dir():
+            return path
+        if not folder and path.is_file():
+            return path
+        kind = "a folder" if path.is_dir() else "not a regular file (a device, FIFO or socket)"
+        want = "a folder" if folder else "a file"
+        raise OutputError(f"{what}: {path} is {kind}; name {want} ofrl-drake may replace.")
+    return path
+
+
+@contextlib.contextmanager
+def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
+    """Hold an exclusive lock on ``target`` for the block; refuse if another process holds it.
+
+    The lock is ``flock`` on a hidden file ``.NAME.lock`` beside ``target``,
+    released when the block ends or the process dies, so two ``ofrl-drake``
+    commands writing the same output cannot interleave.
+
+    Raises
+    ------
+    OutputError
+        If another process holds the lock.
+    """
+    import fcntl
+
+    path = ensure_parent(Path(target).expanduser().absolute(), what)
+    lock = path.with_name(f".{path.name}.lock")
+    with open(lock, "a+") as fh:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise OutputError(
+                f"{what}: another ofrl-drake command is writing {path} now; wait for it to "
+                "finish, or choose another path."
+            ) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
 @contextlib.contextmanager
 def atomic_file(target: str | Path, mode: str = "w", *, what: str = "output") -> Iterator[IO[Any]]:
     """Open a temporary file next to ``target``; rename it onto ``target`` on success.
 
     On any exception the temporary file is removed and ``target`` is left as
-    it was.
+    it was. A target that is not a regular file (a device, FIFO, socket,
+    folder or symbolic link) is refused (:func:`check_output_target`).
     """
-    target = ensure_parent(Path(target), what)
-    if target.is_dir():
-        raise OutputError(f"{what}: {target} is a folder; name a file inside it.")
+    target = check_output_target(target, what)
+    target = ensure_parent(target, what)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
     except OSError as err:
@@ -128,10 +194,21 @@ def atomic_file(target: str | Path, mode: str = "w", *, what: str = "output") ->
         with os.fdopen(fd, mode) as fh:
             yield fh
         os.replace(tmp, target)
+    except OSError as err:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise OutputError(
+            f"{what}: {_os_error(err)} writing {target}; nothing was written."
+        ) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _os_error(err: OSError) -> str:
+    """An ``OSError`` in a few words: "no space left on device", "permission denied"..."""
+    return (err.strerror or type(err).__name__).lower()
 
 
 def atomic_write_text(target: str | Path, text: str, *, what: str = "--out") -> None:

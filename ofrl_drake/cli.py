@@ -30,6 +30,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,8 +39,10 @@ from ofrl_drake import __version__
 from ofrl_drake.atomic import (
     atomic_write_text,
     check_output_folder,
+    check_output_target,
     check_writable,
     ensure_parent,
+    output_lock,
     umask_mode,
 )
 from ofrl_drake.errors import OfrlError, OutputError
@@ -52,6 +55,7 @@ EXIT_BAD_INPUT = 2
 EXIT_STOPPED = 3
 EXIT_FALSIFIED = 4
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
 
 #: Written into every output folder of ``run``; only such folders are replaced.
@@ -70,11 +74,36 @@ def check_output_directory(target: Path) -> Path:
     ``target`` may be absent, an empty folder, or the output of an earlier
     ``run`` (it holds :data:`OUTPUT_MARKER`).
     """
+    check_output_target(target, folder=True)
     target = Path(target).expanduser().resolve()
     if target == target.parent:
         raise OutputError(f"--out: {target} is a filesystem root; name an output folder.")
+    if target == Path.cwd().resolve() or target in Path.cwd().resolve().parents:
+        raise OutputError(
+            f"--out: {target} is the current folder or holds it; name an output folder below it."
+        )
     check_output_folder(target, marker=OUTPUT_MARKER, command="run")
     return check_writable(target)
+
+
+def _remove_stale_partials(target: Path) -> None:
+    """Remove ``.NAME.partial-PID.*`` folders beside ``target`` whose process is gone.
+
+    A run killed by SIGKILL (or a power cut) cannot clean up its temporary
+    folder; the next run into the same ``--out`` does. Folders of a live
+    process are left alone.
+    """
+    for stale in target.parent.glob(f".{target.name}.partial-*"):
+        try:
+            pid = int(stale.name.split(".partial-", 1)[1].split(".", 1)[0])
+        except ValueError:
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            shutil.rmtree(stale, ignore_errors=True)
+        except PermissionError:
+            continue
 
 
 @contextlib.contextmanager
@@ -82,12 +111,17 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     """Yield a temporary folder that replaces ``target`` only on success.
 
     The folder is built beside ``target`` and renamed into place, so a failure
-    at any point leaves ``target`` as it was and no temporary folder behind.
+    at any point leaves ``target`` as it was and no temporary folder behind. The
+    temporary folder's name holds ``partial`` and the process id.
     """
     target = check_output_directory(target)
     ensure_parent(target)
+    _remove_stale_partials(target)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+        # "partial" and the pid mark the folder as unfinished; a later run removes it if the
+        # process is gone (SIGKILL cannot be caught).
+        prefix = f".{target.name}.partial-{os.getpid()}."
+        tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=target.parent))
     except OSError as err:
         raise OutputError(f"--out: cannot write in {target.parent} ({err.strerror}).") from None
     backup = target.with_name(f".{target.name}.old")
@@ -168,6 +202,22 @@ def _outside_box_warning(scenario: Any) -> str | None:
     )
 
 
+def _not_regulated(details: dict[str, Any]) -> str:
+    """One line saying why a run that ended ``ok`` did not reach its target."""
+    error, bound = details["final_error"], details["tolerance"]
+    worst = max(range(len(error)), key=lambda i: error[i] / bound[i] if bound[i] > 0 else 0.0)
+    why = []
+    if error[worst] > bound[worst]:
+        why.append(f"|x_{worst + 1}(T) - x*_{worst + 1}| = {error[worst]:.3g} > {bound[worst]:.3g}")
+    if not details["inside_observer_box"]:
+        why.append("x(T) or xhat(T) is outside the observer box")
+    return (
+        f"warning: the run did not regulate: {'; '.join(why) or details['status']} "
+        "(simulation.regulation_tolerance, a fraction of the observer box's half-width; "
+        "summary.json -> regulation)."
+    )
+
+
 def _learning_report(args: argparse.Namespace, loop: Any, result: Any) -> Any:
     """The learning curve and health of ``run`` (``--checkpoints``, ``--optimal``)."""
     from ofrl_drake.learning_curve import learning_report
@@ -189,6 +239,13 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any) -> Any:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    """``run``, holding the output's lock (:func:`ofrl_drake.atomic.output_lock`)."""
+    check_output_directory(Path(args.out))
+    with output_lock(Path(args.out).expanduser().resolve()):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ofrl_drake.diagram import build_closed_loop
@@ -266,11 +323,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if verification is not None:
         print(f"observer: {verification.verdict(loop.design.is_decay_certified)}")
     s = result.summary()
+    if not s["regulated"]:
+        print(_not_regulated(s["regulation"]), file=sys.stderr)
     distance = "|x(T)|" if result.x_equilibrium is None else "|x(T) - x*|"
     print(
         f"wrote {out}: {distance} = {s['final_state_norm']:.3g}, "
         f"|e(T)| = {s['final_estimation_error_norm']:.3g}, J(T) = {s['final_cost']:.4g}, "
-        f"{s['wall_time']:.2f} s"
+        f"simulated in {s['wall_time']:.2f} s, {time.perf_counter() - args.started:.1f} s in all"
     )
     return EXIT_OK
 
@@ -366,6 +425,22 @@ def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[object]
         yield client
 
 
+def _locked(command: Any) -> Any:
+    """``command(args)`` holding the lock of ``args.out`` (:func:`ofrl_drake.atomic.output_lock`).
+
+    Two sweeps into one folder (two ``--resume`` at once) would write the same
+    rows twice; the second is refused instead.
+    """
+
+    def run(args: argparse.Namespace) -> int:
+        out = check_output_target(args.out, folder=True)
+        with output_lock(out):
+            return command(args)
+
+    run.__doc__ = command.__doc__
+    return run
+
+
 def _cmd_ablate(args: argparse.Namespace) -> int:
     from ofrl_drake.ablation import (
         AblationError,
@@ -385,23 +460,28 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
     variants = load_variants(args.variants) if args.variants else default_variants(scenario)
     states = sample_initial_states(scenario, args.initial_states, args.seed)
     out = Path(args.out)
+    if args.retry_failed and not args.resume:
+        raise AblationError("--retry-failed: reruns failed rows of a sweep; pass --resume too.")
+    options = {
+        "out": out,
+        "resume": args.resume,
+        "seed": args.seed,
+        "retry_failed": args.retry_failed,
+    }
     try:
         if args.workers == 0 and not args.scheduler:
-            rows = ablate(
-                scenario, variants, states, None, out=out, resume=args.resume, seed=args.seed
-            )
+            rows = ablate(scenario, variants, states, None, **options)
         else:
             with _dask_client(args.scheduler, args.workers) as client:
-                rows = ablate(
-                    scenario, variants, states, client, out=out, resume=args.resume, seed=args.seed
-                )
-    except KeyboardInterrupt:
+                rows = ablate(scenario, variants, states, client, **options)
+    except KeyboardInterrupt as err:
+        what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
         print(
-            f"error: interrupted; finished rows are in {out / 'ablation.csv'}; rerun with "
+            f"error: {what}; finished rows are in {out / 'ablation.csv'}; rerun with "
             "--resume to complete the sweep",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
     x0_label = initial_state_label(scenario.x0)
     optimum = OptimalCostCache(out / "optimal").get(scenario, scenario.x0)
     write_report(
@@ -444,13 +524,14 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         else:
             with _dask_client(args.scheduler, args.workers) as client:
                 rows = montecarlo(scenario, args.runs, args.seed, client=client, **options)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
+        what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
         print(
-            f"error: interrupted; finished rows are in {out / 'montecarlo.csv'}; rerun with "
+            f"error: {what}; finished rows are in {out / 'montecarlo.csv'}; rerun with "
             "--resume to complete the sweep",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
     write_montecarlo_report(out, rows, scenario.name)
     print(montecarlo_table(rows), end="")
     good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
@@ -547,13 +628,18 @@ def _parser() -> argparse.ArgumentParser:
         "--resume", action="store_true", help="keep the rows in DIR/ablation.csv; run the rest"
     )
     ab.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="with --resume, also run again the rows whose status is not ok",
+    )
+    ab.add_argument(
         "--max-wall",
         type=float,
         metavar="SECONDS",
         help="stop each run after this much wall time (status timeout in its row); "
         "overrides simulation.max_wall_time",
     )
-    ab.set_defaults(func=_cmd_ablate)
+    ab.set_defaults(func=_locked(_cmd_ablate))
 
     mc = sub.add_parser(
         "montecarlo",
@@ -578,7 +664,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument(
         "--max-wall", type=float, metavar="SECONDS", help="stop each run after this wall time"
     )
-    mc.set_defaults(func=_cmd_montecarlo)
+    mc.set_defaults(func=_locked(_cmd_montecarlo))
     return parser
 
 
@@ -599,6 +685,14 @@ _COMMAND_MODULES = {
 }
 #: What any other command imports first: enough to initialize pydrake.
 _DEFAULT_MODULES = ("ofrl_drake.diagram",)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Python next runs, so it unwinds like Ctrl-C: nothing partial."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated
 
 
 @contextlib.contextmanager
@@ -626,8 +720,14 @@ def _sigint_held() -> Iterator[None]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code."""
 
+    started = time.perf_counter()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         args = _parser().parse_args(argv)
+        args.started = started
+        if getattr(args, "out", None) == "":
+            raise OutputError("--out: the path is empty; name an output file or folder.")
         with _sigint_held():
             for module in _COMMAND_MODULES.get(args.command, _DEFAULT_MODULES):
                 importlib.import_module(module)
@@ -635,6 +735,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OfrlError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except Terminated:
+        print("error: terminated (SIGTERM); no output written", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("error: interrupted; no output written", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -193,6 +193,7 @@ class SimulationConfig:
     blocks: str = field(default="auto", metadata=_OPTIONAL)
     abort_box: Optional[BoxConfig] = field(default=None, metadata=_OPTIONAL)
     max_wall_time: Optional[float] = field(default=None, metadata=_OPTIONAL)
+    regulation_tolerance: float = field(default=0.05, metadata=_OPTIONAL)
 
 
 @dataclass
@@ -432,6 +433,16 @@ def _spd(path: str, M: np.ndarray, *, semi: bool = False) -> None:
         )
 
 
+#: Drake schemes that cannot run the closed loop: ``cenic`` needs a discrete
+#: contact model, which no ofrl_drake plant has.
+UNSUPPORTED_SCHEMES = ("cenic",)
+
+
+def integration_schemes() -> list[str]:
+    """Drake's integration schemes that run the closed loop, sorted."""
+    return sorted(set(GetIntegrationSchemes()) - set(UNSUPPORTED_SCHEMES))
+
+
 def validate_scenario(scenario: Scenario) -> None:
     """Check every value of ``scenario`` against its system's dimensions.
 
@@ -582,10 +593,16 @@ def validate_scenario(scenario: Scenario) -> None:
     _positive("simulation.accuracy", s.accuracy)
     _positive("simulation.max_step", s.max_step)
     _positive("simulation.log_period", s.log_period)
-    if s.integrator not in GetIntegrationSchemes():
+    if s.integrator not in integration_schemes():
         raise ScenarioError(
             f"simulation.integrator: unknown scheme {s.integrator!r}; choose one of "
-            f"{sorted(GetIntegrationSchemes())}."
+            f"{integration_schemes()}."
+        )
+    if s.log_period > s.duration:
+        raise ScenarioError(
+            f"simulation.log_period: {s.log_period} s is longer than the horizon "
+            f"simulation.duration = {s.duration} s, so nothing after t = 0 would be logged; "
+            "use a log period below the horizon."
         )
     if s.blocks not in BLOCK_KINDS:
         raise ScenarioError(
@@ -601,6 +618,7 @@ def validate_scenario(scenario: Scenario) -> None:
             )
     if s.max_wall_time is not None:
         _positive("simulation.max_wall_time", s.max_wall_time)
+    _positive("simulation.regulation_tolerance", s.regulation_tolerance)
 
 
 def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
@@ -733,6 +751,61 @@ def _locate_files(scenario: Scenario, folder: Path) -> None:
         scenario.plant.multibody = locate_model_file(scenario.plant.multibody, folder.resolve())
 
 
+#: Largest scenario file read, in bytes: a scenario is a page of YAML.
+MAX_SCENARIO_BYTES = 1_000_000
+
+#: Most YAML nodes a scenario may expand to (aliases included): a bound on
+#: "billion laughs" files, far above any real scenario.
+MAX_YAML_NODES = 100_000
+
+
+def _check_yaml(path: Path, text: str) -> None:
+    """Refuse alias bombs and duplicate keys before Drake's loader sees the file.
+
+    The file is composed (not constructed) with PyYAML's safe loader; its node
+    graph is walked as an expanding loader would walk it, counting every node
+    an alias repeats, up to :data:`MAX_YAML_NODES`. A mapping that repeats a
+    key is refused with the key and both lines (Drake's loader keeps the last).
+
+    Raises
+    ------
+    ScenarioError
+    """
+    import yaml
+
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as err:
+        raise ScenarioError(f"{path}: not valid YAML: {' '.join(str(err).split())[:300]}") from None
+    stack = [] if root is None else [root]
+    expanded = 0
+    checked: set[int] = set()
+    while stack:
+        node = stack.pop()
+        expanded += 1
+        if expanded > MAX_YAML_NODES:
+            raise ScenarioError(
+                f"{path}: the YAML expands to more than {MAX_YAML_NODES} values (aliases "
+                "repeat a part many times); write the scenario out without them."
+            )
+        if isinstance(node, yaml.MappingNode):
+            if id(node) not in checked:
+                checked.add(id(node))
+                seen: dict[str, int] = {}
+                for key, _ in node.value:
+                    name = key.value if isinstance(key, yaml.ScalarNode) else repr(key)
+                    if name in seen:
+                        raise ScenarioError(
+                            f"{path}: key {name[:80]!r} appears twice in one mapping (lines "
+                            f"{seen[name] + 1} and {key.start_mark.line + 1}); keep one."
+                        )
+                    seen[name] = key.start_mark.line
+            for key, value in node.value:
+                stack.extend((key, value))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+
+
 def load_scenario(path: str | Path) -> Scenario:
     """Load and validate a scenario YAML file.
 
@@ -753,6 +826,17 @@ def load_scenario(path: str | Path) -> Scenario:
     path = Path(path)
     if not path.is_file():
         raise ScenarioError(f"{path}: no such scenario file.")
+    size = path.stat().st_size
+    if size > MAX_SCENARIO_BYTES:
+        raise ScenarioError(
+            f"{path}: the file is {size / 1e6:.1f} MB; a scenario file is at most "
+            f"{MAX_SCENARIO_BYTES / 1e6:g} MB."
+        )
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ScenarioError(f"{path}: cannot be read ({err}).") from None
+    _check_yaml(path, text)
     try:
         raw = yaml_load(filename=str(path))
     except Exception as err:

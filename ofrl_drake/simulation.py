@@ -129,6 +129,14 @@ class SimulationResult:
     reports: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def regulated(self) -> bool | None:
+        """Whether the run reached its target (``summary.json`` → ``regulation``).
+
+        None for a result that was not scored (built by hand).
+        """
+        return self.reports.get("regulated")
+
+    @property
     def status(self) -> str:
         """``ok`` (reached the horizon), ``diverged`` or ``timeout`` (see :attr:`stop`)."""
         return self.stop.status if self.stop is not None else STATUS_OK
@@ -508,6 +516,17 @@ def simulate(
             (o.box.lower, o.box.upper),
             body_mass_scale=scenario.truth.body_mass_scale,
         ).to_dict()
+    from ofrl_drake.ablation_metrics import regulation
+
+    o = scenario.observer
+    result.reports["regulation"] = regulation(
+        result.status,
+        result.x[-1],
+        (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)),
+        scenario.simulation.regulation_tolerance,
+        result.xhat[-1],
+    )
+    result.reports["regulated"] = result.reports["regulation"]["regulated"]
     box, note = _certified_region(loop, logs, result.t)
     result.validity = validity_report(
         result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note

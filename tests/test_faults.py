@@ -1,0 +1,239 @@
+"""Fault injection: bad outputs, signals, concurrent writers, hostile YAML, bad values.
+
+Each case is a failure class found by trying the tool as a new user would
+(issue 22): every one ends with one line, the documented exit code, the key or
+path named, and nothing partial left behind.
+"""
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_dump, yaml_load
+
+from ofrl_drake.atomic import atomic_write_text, output_lock
+from ofrl_drake.errors import OutputError
+
+from .conftest import PAPER_SCENARIO, ROOT
+
+PENDULUM = ROOT / "diagrams" / "pendulum_upright.yaml"
+
+
+def _cli(*args, cwd=None, timeout=900):
+    return subprocess.run(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=cwd,
+    )
+
+
+def _one_line(proc, code, pattern):
+    import re
+
+    assert proc.returncode == code, (proc.returncode, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert re.search(pattern, lines[0]), lines[0]
+
+
+def _short(tmp_path, source=PAPER_SCENARIO, **simulation):
+    data = yaml_load(filename=str(source))
+    data["simulation"].update({"duration": 1.0, **simulation})
+    path = tmp_path / "short.yaml"
+    path.write_text(yaml_dump(data))
+    return path
+
+
+# ------------------------------------------------------------------ outputs
+def test_out_refuses_a_fifo_a_symlink_and_a_device(tmp_path):
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    proc = _cli("design-observer", PAPER_SCENARIO, "--out", fifo)
+    _one_line(proc, 2, r"--out: .*pipe is not a regular file \(a device, FIFO or socket\)")
+    assert fifo.is_fifo()  # untouched
+    target = tmp_path / "real.json"
+    target.write_text("{}")
+    link = tmp_path / "link.json"
+    link.symlink_to(target)
+    proc = _cli("design-observer", PAPER_SCENARIO, "--out", link)
+    _one_line(proc, 2, r"--out: .*link\.json is a symbolic link")
+    assert link.is_symlink() and target.read_text() == "{}"
+    proc = _cli("verify-observer", PAPER_SCENARIO, "--samples", 10, "--out", "/dev/null")
+    _one_line(proc, 2, r"--out: /dev/null is not a regular file")
+    assert not os.path.isfile("/dev/null")  # still the device
+    os.symlink(tmp_path, tmp_path / "dir_link")
+    proc = _cli("run", PAPER_SCENARIO, "--out", tmp_path / "dir_link")
+    _one_line(proc, 2, r"--out: .*dir_link is a symbolic link")
+
+
+def test_out_refuses_the_empty_path_and_the_current_folder(tmp_path):
+    (tmp_path / "keep.txt").write_text("mine")
+    proc = _cli("run", PAPER_SCENARIO, "--out", "", cwd=tmp_path)
+    _one_line(proc, 2, r"--out: the path is empty")
+    proc = _cli("run", PAPER_SCENARIO, "--out", ".", cwd=tmp_path)
+    _one_line(proc, 2, r"--out: .* is the current folder or holds it")
+    assert (tmp_path / "keep.txt").read_text() == "mine"
+
+
+def test_a_full_disk_is_named_and_leaves_nothing(tmp_path, monkeypatch):
+    real_fdopen = os.fdopen
+
+    def full(fd, mode="r", *args, **kwargs):
+        fh = real_fdopen(fd, mode, *args, **kwargs)
+
+        class Full:
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *exc):
+                fh.close()
+                return False
+
+            def write(self, data):
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+        return Full()
+
+    monkeypatch.setattr(os, "fdopen", full)
+    with pytest.raises(OutputError, match=r"--out: no space left on device writing .*out\.json"):
+        atomic_write_text(tmp_path / "out.json", "{}")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ---------------------------------------------------------------- signals
+def test_sigterm_exits_143_with_nothing_partial(tmp_path):
+    out = tmp_path / "o"
+    long = _short(tmp_path, duration=3000.0)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ofrl_drake", "run", str(long), "--out", str(out), "--quiet"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(8.0)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 143, stderr
+    assert stderr.strip().splitlines()[-1] == "error: terminated (SIGTERM); no output written"
+    assert not out.exists()
+    assert not list(tmp_path.glob(".o.partial-*"))
+
+
+def test_a_partial_folder_of_a_dead_run_is_removed_by_the_next_run(tmp_path):
+    out = tmp_path / "o"
+    stale = tmp_path / ".o.partial-4194303.abc"  # above any pid: its process is gone
+    stale.mkdir()
+    (stale / "summary.json").write_text('{"status": "ok"}')
+    proc = _cli("run", _short(tmp_path), "--out", out, "--quiet", "--checkpoints", "0")
+    assert proc.returncode == 0, proc.stderr
+    assert not stale.exists()
+    assert (out / "summary.json").is_file()
+
+
+# ------------------------------------------------------------- concurrency
+def test_a_second_writer_of_the_same_output_is_refused(tmp_path):
+    out = tmp_path / "o"
+    with output_lock(out):
+        proc = _cli("run", _short(tmp_path), "--out", out, "--quiet")
+        _one_line(proc, 2, r"--out: another ofrl-drake command is writing .*o now")
+        proc = _cli("ablate", _short(tmp_path), "--workers", 0, "--out", out)
+        _one_line(proc, 2, r"--out: another ofrl-drake command is writing")
+    assert not out.exists()
+
+
+# ------------------------------------------------------------ hostile YAML
+def test_duplicate_keys_are_refused_with_both_lines(tmp_path):
+    text = PAPER_SCENARIO.read_text().replace(
+        "name: two_state_paper\n", "name: two_state_paper\nname: other\n", 1
+    )
+    path = tmp_path / "dup.yaml"
+    path.write_text(text)
+    proc = _cli("run", path, "--out", tmp_path / "o")
+    _one_line(proc, 2, r"key 'name' appears twice in one mapping \(lines \d+ and \d+\)")
+
+
+def test_an_alias_bomb_is_refused_at_once(tmp_path):
+    rows = ['a: &a ["x","x","x","x","x","x","x","x","x"]']
+    for prev, name in zip("abcdefgh", "bcdefghi", strict=True):
+        rows.append(f"{name}: &{name} [{','.join([f'*{prev}'] * 9)}]")
+    rows.append("name: *i")
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(rows) + "\n")
+    start = time.perf_counter()
+    proc = _cli("run", path, "--out", tmp_path / "o")
+    _one_line(proc, 2, r"expands to more than 100000 values")
+    assert time.perf_counter() - start < 60  # was: 123 s and 11.5 GB
+
+
+def test_a_huge_file_is_refused_before_parsing(tmp_path):
+    path = tmp_path / "huge.yaml"
+    path.write_text("name: " + "x" * 2_000_000 + "\n")
+    proc = _cli("run", path, "--out", tmp_path / "o")
+    _one_line(proc, 2, r"the file is 2\.0 MB; a scenario file is at most 1 MB")
+
+
+# -------------------------------------------------------------- bad values
+def test_a_log_period_beyond_the_horizon_is_refused(tmp_path):
+    proc = _cli("run", _short(tmp_path, log_period=5.0), "--out", tmp_path / "o")
+    _one_line(proc, 2, r"simulation\.log_period: 5\.0 s is longer than the horizon")
+
+
+def test_cenic_is_not_offered(tmp_path):
+    proc = _cli("run", _short(tmp_path, integrator="cenic"), "--out", tmp_path / "o")
+    _one_line(proc, 2, r"simulation\.integrator: unknown scheme 'cenic'; choose one of \[")
+    assert "'cenic'" not in proc.stderr.split("choose one of")[1]
+
+
+# --------------------------------------------------------------- regulated
+def test_summary_says_whether_the_run_regulated_and_run_warns_when_not(tmp_path):
+    out = tmp_path / "short"
+    proc = _cli("run", _short(tmp_path, source=PENDULUM, duration=0.3), "--out", out, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "ok" and summary["regulated"] is False
+    details = summary["regulation"]
+    assert details["tolerance"] == pytest.approx([0.03, 0.15])  # 5% of half-widths 0.6, 3
+    assert details["final_error"][0] > 0.03 or details["final_error"][1] > 0.15
+    assert "warning: the run did not regulate: |x_" in proc.stderr
+    assert "simulation.regulation_tolerance" in proc.stderr
+    full = tmp_path / "full"
+    proc = _cli("run", PENDULUM, "--out", full, "--quiet", "--checkpoints", "0")
+    summary = json.loads((full / "summary.json").read_text())
+    assert summary["regulated"] is True and "did not regulate" not in proc.stderr
+    assert np.all(np.asarray(summary["regulation"]["final_error"]) < 1e-6)
+
+
+# ------------------------------------------------------------------ resume
+def test_resume_retry_failed_reruns_failed_rows_and_a_missing_plan_is_explained(tmp_path):
+    from ofrl_drake.ablation import CSV_COLUMNS, read_rows
+
+    scenario = _short(tmp_path)
+    variants = tmp_path / "variants.yaml"
+    variants.write_text("baseline: {}\n")
+    out = tmp_path / "sweep"
+    args = ["ablate", scenario, "--variants", variants, "--workers", 0, "--out", out]
+    assert _cli(*args).returncode == 0
+    table = out / "ablation.csv"
+    (row,) = read_rows(table)
+    assert row["status"] == "ok" and row["regulated"] in ("true", "false")
+    failed = table.read_text().replace(",ok\n", ",timeout: injected\n")
+    table.write_text(failed)
+    proc = _cli(*args, "--resume")
+    assert proc.returncode == 0 and read_rows(table)[0]["status"].startswith("timeout")
+    proc = _cli(*args, "--resume", "--retry-failed")
+    assert proc.returncode == 0, proc.stderr
+    rows = read_rows(table)
+    assert len(rows) == 1 and rows[0]["status"] == "ok"
+    assert tuple(table.read_text().splitlines()[0].split(",")) == CSV_COLUMNS
+    proc = _cli(*args[:-2], "--out", out, "--retry-failed")
+    _one_line(proc, 2, r"--retry-failed: reruns failed rows of a sweep; pass --resume too")
+    (out / "ablation.json").unlink()
+    proc = _cli(*args, "--resume")
+    _one_line(proc, 2, r"ablation\.json is missing; it records the sweep .* Restore it, or move")
