@@ -601,7 +601,13 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
 def _plan_file(out: Path, plan: Mapping[str, Any], resume: bool) -> None:
     path = out / PLAN_NAME
     if resume and path.is_file():
-        old = json.loads(path.read_text())
+        try:
+            old = json.loads(path.read_text())
+        except (ValueError, UnicodeDecodeError):
+            raise AblationError(
+                f"--resume: {path} is not valid JSON (cut short?); it records the sweep that "
+                f"{CSV_NAME} belongs to. Restore it, or move the folder away and start again."
+            ) from None
         why = _resume_mismatch(old, json.loads(json.dumps(plan)))
         if why is not None:
             raise AblationError(

@@ -135,7 +135,9 @@ def check_output_target(target: str | Path, what: str = "--out", *, folder: bool
             return path
         if not folder and path.is_file():
             return path
-        kind = "a folder" if path.is_dir() else "not a regular file (a device, FIFO or socket)"
+        if path.is_dir():
+            raise OutputError(f"{what}: {path} is a folder; name a file inside it.")
+        kind = "a file" if path.is_file() else "not a regular file (a device, FIFO or socket)"
         want = "a folder" if folder else "a file"
         raise OutputError(f"{what}: {path} is {kind}; name {want} ofrl-drake may replace.")
     return path
@@ -145,7 +147,8 @@ def check_output_target(target: str | Path, what: str = "--out", *, folder: bool
 def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
     """Hold an exclusive lock on ``target`` for the block; refuse if another process holds it.
 
-    The lock is ``flock`` on a hidden file ``.NAME.lock`` beside ``target``,
+    The lock is ``flock`` on a file named by a hash of ``target``'s absolute
+    path in ``<tmp>/ofrl_drake-locks`` (nothing is added beside the output),
     released when the block ends or the process dies, so two ``ofrl-drake``
     commands writing the same output cannot interleave.
 
@@ -155,10 +158,13 @@ def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
         If another process holds the lock.
     """
     import fcntl
+    import hashlib
 
-    path = ensure_parent(Path(target).expanduser().absolute(), what)
-    lock = path.with_name(f".{path.name}.lock")
-    with open(lock, "a+") as fh:
+    path = Path(target).expanduser().absolute()
+    folder = Path(tempfile.gettempdir()) / "ofrl_drake-locks"
+    folder.mkdir(mode=0o777, exist_ok=True)
+    name = hashlib.sha256(str(path).encode()).hexdigest()[:32]
+    with open(folder / f"{name}.lock", "a+") as fh:
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -64,6 +64,10 @@ OUTPUT_MARKER = ".ofrl_drake_output"
 #: The resolved scenario as run, in every output folder of ``run``.
 SCENARIO_FILE = "scenario.yaml"
 
+#: Where the README explains a falsified observer design, and a state outside its box.
+CERTIFICATE_DOCS = "(why: README.md, 'What the observer certificate does, and does not, prove')"
+VALIDITY_DOCS = "(why: README.md, 'Observer design', on the certified box)"
+
 #: The learning-health series of a run (:class:`ofrl_drake.learning_curve.LearningHealth`).
 LEARNING_HEALTH_FILE = "learning_health.npz"
 
@@ -310,7 +314,7 @@ def _run(args: argparse.Namespace) -> int:
             "diagram.svg (install with `apt-get install -y graphviz`)."
         )
     if result.validity is not None and not result.validity.valid:
-        print(result.validity.warning(), file=sys.stderr)
+        print(f"{result.validity.warning()} {VALIDITY_DOCS}", file=sys.stderr)
     elif result.validity is not None and not result.validity.box_checked:
         print(f"note: {result.validity.note}.", file=sys.stderr)
     if loop.design is not None and not loop.design.is_decay_certified:
@@ -321,7 +325,8 @@ def _run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if verification is not None:
-        print(f"observer: {verification.verdict(loop.design.is_decay_certified)}")
+        line = verification.verdict(loop.design.is_decay_certified)
+        print(f"observer: {line}" + (f" {CERTIFICATE_DOCS}" if verification.falsified else ""))
     s = result.summary()
     if not s["regulated"]:
         print(_not_regulated(s["regulation"]), file=sys.stderr)
@@ -388,8 +393,14 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
 
 
 @contextlib.contextmanager
-def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[object]:
-    """A client of the cluster at ``scheduler``, or of an embedded ``LocalCluster``."""
+def _dask_client(
+    scheduler: str | None, workers: int | None, wait: float = 60.0
+) -> Iterator[object]:
+    """A client of the cluster at ``scheduler``, or of an embedded ``LocalCluster``.
+
+    A scheduler with no worker is waited for at most ``wait`` seconds
+    (``--scheduler-timeout``); then the command stops with exit 2.
+    """
     import logging
 
     from distributed import Client, LocalCluster
@@ -407,6 +418,13 @@ def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[object]
                 "tcp://HOST:PORT of a running dask scheduler."
             ) from None
         with client:
+            try:
+                client.wait_for_workers(1, timeout=wait)
+            except TimeoutError:
+                raise AblationError(
+                    f"--scheduler: no worker joined {scheduler} within {wait:g} s; start one "
+                    f"(dask worker {scheduler}) or raise --scheduler-timeout."
+                ) from None
             yield client
         return
     if workers is None:
@@ -472,7 +490,7 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         if args.workers == 0 and not args.scheduler:
             rows = ablate(scenario, variants, states, None, **options)
         else:
-            with _dask_client(args.scheduler, args.workers) as client:
+            with _dask_client(args.scheduler, args.workers, args.scheduler_timeout) as client:
                 rows = ablate(scenario, variants, states, client, **options)
     except KeyboardInterrupt as err:
         what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
@@ -522,7 +540,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         if args.workers == 0 and not args.scheduler:
             rows = montecarlo(scenario, args.runs, args.seed, **options)
         else:
-            with _dask_client(args.scheduler, args.workers) as client:
+            with _dask_client(args.scheduler, args.workers, args.scheduler_timeout) as client:
                 rows = montecarlo(scenario, args.runs, args.seed, client=client, **options)
     except KeyboardInterrupt as err:
         what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
@@ -540,6 +558,16 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         "montecarlo.md, figures/envelope.png"
     )
     return EXIT_OK
+
+
+def _scheduler_timeout_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scheduler-timeout",
+        type=float,
+        default=60.0,
+        metavar="SECONDS",
+        help="wait at most this long for a worker of --scheduler (default 60)",
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -639,6 +667,7 @@ def _parser() -> argparse.ArgumentParser:
         help="stop each run after this much wall time (status timeout in its row); "
         "overrides simulation.max_wall_time",
     )
+    _scheduler_timeout_option(ab)
     ab.set_defaults(func=_locked(_cmd_ablate))
 
     mc = sub.add_parser(
@@ -664,6 +693,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument(
         "--max-wall", type=float, metavar="SECONDS", help="stop each run after this wall time"
     )
+    _scheduler_timeout_option(mc)
     mc.set_defaults(func=_locked(_cmd_montecarlo))
     return parser
 

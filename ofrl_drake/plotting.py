@@ -609,7 +609,8 @@ def save_figures(
 
     ``box`` is the observer box ``(lower, upper)``, drawn on the state plots.
     ``learning_curve`` (with ``optimal_cost``, ``lqr_cost``) adds
-    ``learning_curve.png``; ``health`` adds ``learning_health.png``.
+    ``learning_curve.png``; ``health`` adds ``learning_health.png``. Each
+    figure is titled with the scenario's name.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -631,8 +632,11 @@ def save_figures(
     if "observer_gains" in extra:
         failed = extra.get("solve_failed", np.zeros((result.t.size, 1)))[:, 0] > 0.5
         figures["gain_schedule"] = plot_gain_schedule(result.t, extra["observer_gains"], failed)
+    title = getattr(result, "scenario_name", "")
     paths = []
     for name, fig in figures.items():
+        if title:  # in the corner, clear of the legends above the axes
+            fig.text(0.998, 0.002, title, ha="right", va="bottom", fontsize=7, color="0.45")
         path = directory / f"{name}.png"
         fig.savefig(path, dpi=dpi)
         plt.close(fig)

@@ -456,6 +456,11 @@ def validate_scenario(scenario: Scenario) -> None:
     from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.plants import resolve_system
 
+    if len(scenario.name) > MAX_NAME_LENGTH:
+        raise ScenarioError(
+            f"name: {len(scenario.name)} characters; a name is at most {MAX_NAME_LENGTH} "
+            "(it labels the files, figures and diagram)."
+        )
     system = resolve_system(scenario)
     n, m, q = system.n, system.m, system.q
     _vector("x0", scenario.x0, n)
@@ -525,6 +530,18 @@ def validate_scenario(scenario: Scenario) -> None:
             )
     elif p.number < 1:
         raise ScenarioError(f"points.number: must be >= 1; got {p.number}.")
+    if p.seed < 0:
+        raise ScenarioError(f"points.seed: must be an integer >= 0; got {p.seed}.")
+    count = p.number if p.kind == "uniform" else int(np.prod([float(c) for c in p.counts]))
+    need = 8.0 * count * (L * n + 2 * m * L + L + n + 8)  # gradients and per-point data
+    if need > MAX_POINT_BYTES:
+        key = "points.number" if p.kind == "uniform" else "points.counts"
+        fit = int(MAX_POINT_BYTES / (8.0 * (L * n + 2 * m * L + L + n + 8)))
+        raise ScenarioError(
+            f"{key}: {count:.3g} points would need about {need / 2**30:.3g} GiB for the "
+            f"Bellman features (L = {L} basis functions, n = {n}); at most about {fit} "
+            f"points fit in {MAX_POINT_BYTES / 2**30:g} GiB."
+        )
 
     o = scenario.observer
     _positive("observer.alpha", o.alpha)
@@ -750,6 +767,12 @@ def _locate_files(scenario: Scenario, folder: Path) -> None:
         )
         scenario.plant.multibody = locate_model_file(scenario.plant.multibody, folder.resolve())
 
+
+#: Largest memory the extrapolation points may take, in bytes.
+MAX_POINT_BYTES = 2 * 2**30
+
+#: Longest ``name``, in characters (it labels files, figures and the diagram).
+MAX_NAME_LENGTH = 200
 
 #: Largest scenario file read, in bytes: a scenario is a page of YAML.
 MAX_SCENARIO_BYTES = 1_000_000

@@ -103,9 +103,16 @@ class RowWriter:
             self._write(",".join(self.columns) + "\n")
 
     def _write(self, line: str) -> None:
-        self._fh.write(line)
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
+        try:
+            self._fh.write(line)
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+        except OSError as err:
+            problem = (err.strerror or type(err).__name__).lower()
+            raise TableError(
+                f"{problem} writing {self.path}; the rows written before are kept: free the "
+                "problem and rerun with --resume."
+            ) from None
 
     def write(self, row: Mapping[str, Any]) -> None:
         """Append ``row`` (every column) and make it durable."""

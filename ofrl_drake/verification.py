@@ -504,6 +504,10 @@ def _refine(
 
 
 # ---------------------------------------------------------------- verifier
+#: Most samples :func:`verify_observer` draws in one call (memory grows with them).
+MAX_SAMPLES = 10_000_000
+
+
 def verify_observer(
     design: Any,
     system: ControlAffineSystem,
@@ -559,6 +563,11 @@ def verify_observer(
             raise VerificationError(f"{name} must be an integer >= {least}; got {value!r}.")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise VerificationError(f"seed must be an integer >= 0; got {seed!r}.")
+    if samples > MAX_SAMPLES:
+        raise VerificationError(
+            f"samples: {samples} would need about {samples * 8 * 6 * system.n / 2**30:.3g} GiB "
+            f"for the sampled states; at most {MAX_SAMPLES} per run (run several seeds)."
+        )
     if not (isinstance(tol, int | float) and math.isfinite(tol) and tol >= 0):
         raise VerificationError(f"tol must be a finite number >= 0; got {tol!r}.")
     start = time.perf_counter()

@@ -178,6 +178,7 @@ def test_csv_columns_are_exactly_the_issue_s():
         "final_policy_cost",
         "initial_policy_ratio",
         "final_policy_ratio",
+        "regulated",
         "wall_time",
         "status",
     )
@@ -435,7 +436,7 @@ def test_cli_errors_are_one_line(short_files, tmp_path, capsys):
     (tmp_path / "o").mkdir()
     (tmp_path / "o" / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
     assert main([*args, "--variants", str(variants_file)]) == 2
-    assert "o is not empty and was not written by ofrl-drake ablate" in capsys.readouterr().err
+    assert "ablation.json is missing; it records the sweep" in capsys.readouterr().err
     (tmp_path / "o" / "ablation.json").write_text("{}\n")  # now it is an earlier sweep
     assert main([*args, "--variants", str(variants_file)]) == 2
     assert "ablation.csv exists; pass --resume" in capsys.readouterr().err

@@ -237,3 +237,89 @@ def test_resume_retry_failed_reruns_failed_rows_and_a_missing_plan_is_explained(
     (out / "ablation.json").unlink()
     proc = _cli(*args, "--resume")
     _one_line(proc, 2, r"ablation\.json is missing; it records the sweep .* Restore it, or move")
+
+
+# ------------------------------------------------------------------- sizes
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        (
+            {"kind": "uniform", "number": 10**12},
+            r"points\.number: 1e\+12 points would need about .* GiB .* at most about \d+ points",
+        ),
+        (
+            {"kind": "grid", "counts": [10**6, 10**6]},
+            r"points\.counts: 1e\+12 points would need about",
+        ),
+        ({"seed": -5}, r"points\.seed: must be an integer >= 0; got -5"),
+    ],
+)
+def test_point_sets_are_checked_before_any_allocation(tmp_path, points, message):
+    data = yaml_load(filename=str(PAPER_SCENARIO))
+    data["points"].update(points)
+    path = tmp_path / "big.yaml"
+    path.write_text(yaml_dump(data))
+    start = time.perf_counter()
+    proc = _cli("run", path, "--out", tmp_path / "o")
+    _one_line(proc, 2, message)
+    assert time.perf_counter() - start < 60
+
+
+def test_a_long_name_and_too_many_samples_are_refused(tmp_path):
+    data = yaml_load(filename=str(PAPER_SCENARIO))
+    data["name"] = "n" * 20_000
+    path = tmp_path / "long.yaml"
+    path.write_text(yaml_dump(data))
+    _one_line(_cli("run", path, "--out", tmp_path / "o"), 2, r"name: 20000 characters")
+    proc = _cli("verify-observer", PAPER_SCENARIO, "--samples", 10**9)
+    _one_line(proc, 2, r"samples: 1000000000 would need about .* GiB .* at most 10000000")
+
+
+# --------------------------------------------------------------- sweeps
+def test_a_cut_short_plan_and_a_failing_table_write_are_named(tmp_path, monkeypatch):
+    from ofrl_drake.errors import OfrlError
+    from ofrl_drake.sweep import RowWriter
+
+    scenario = _short(tmp_path)
+    variants = tmp_path / "variants.yaml"
+    variants.write_text("baseline: {}\n")
+    out = tmp_path / "sweep"
+    args = ["ablate", scenario, "--variants", variants, "--workers", 0, "--out", out]
+    assert _cli(*args).returncode == 0
+    plan = out / "ablation.json"
+    plan.write_text(plan.read_text()[:40])
+    _one_line(_cli(*args, "--resume"), 2, r"ablation\.json is not valid JSON \(cut short\?\)")
+    writer = RowWriter(tmp_path / "t.csv", ("a",), ())
+    writer._fh.close()
+    writer._fh = open("/dev/full", "w")  # every write: no space left on device
+    with pytest.raises(OfrlError, match=r"no space left on device writing .*t\.csv; the rows"):
+        writer.write({"a": 1.0})
+
+
+def test_a_scheduler_without_workers_is_waited_for_a_stated_time(tmp_path):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=0, dashboard_address=None, processes=True) as cluster:
+        start = time.perf_counter()
+        proc = _cli(
+            "ablate",
+            _short(tmp_path),
+            "--out",
+            tmp_path / "o",
+            "--scheduler",
+            cluster.scheduler_address,
+            "--scheduler-timeout",
+            3,
+        )
+        _one_line(proc, 2, r"--scheduler: no worker joined tcp://.* within 3 s; start one")
+        assert time.perf_counter() - start < 60
+
+
+# ------------------------------------------------------------ first run
+def test_the_first_runs_warnings_point_to_the_docs(tmp_path):
+    proc = _cli("run", _short(tmp_path), "--out", tmp_path / "o", "--quiet", "--checkpoints", 0)
+    assert proc.returncode == 0, proc.stderr
+    assert "falsified: r = +" in proc.stdout
+    assert "What the observer certificate does, and does not, prove" in proc.stdout
+    assert "left the certified region" in proc.stderr and "README.md" in proc.stderr
+    assert "s in all" in proc.stdout  # the command's own wall time
