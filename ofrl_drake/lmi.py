@@ -450,7 +450,8 @@ def box_corners(lower: Any, upper: Any) -> np.ndarray:
     Raises
     ------
     LmiError
-        If the shapes differ, an entry has ``lower > upper`` (or is NaN), or
+        If the shapes differ, an entry has ``lower > upper`` or is NaN or
+        infinite (the message names the entry and the likely cause), or
         ``2**k`` exceeds :data:`MAX_CORNERS`.
 
     Examples
@@ -462,8 +463,27 @@ def box_corners(lower: Any, upper: Any) -> np.ndarray:
     hi = np.asarray(upper, dtype=float)
     if lo.shape != hi.shape:
         raise LmiError(f"box lower has shape {lo.shape} but upper has {hi.shape}.")
-    if not np.all(lo <= hi):
-        raise LmiError("box lower must be <= upper element-wise (and not NaN).")
+    bad = ~(np.isfinite(lo) & np.isfinite(hi) & (lo <= hi))
+    if np.any(bad):
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        a, b = float(lo[where]), float(hi[where])
+        if np.isnan(a) or np.isnan(b):
+            cause = (
+                "a bound is NaN: f or g is undefined somewhere on the box (a log or square "
+                "root of a negative number, a division by zero)"
+            )
+        elif not (np.isfinite(a) and np.isfinite(b)):
+            cause = (
+                "a bound is infinite: the certified enclosure did not converge there, or a "
+                "value overflows (an input_bound too large?)"
+            )
+        else:
+            cause = "the lower bound exceeds the upper"
+        raise LmiError(
+            f"Jacobian bounds at entry {list(where)}: lower = {a:.6g}, upper = {b:.6g}; {cause}. "
+            "Check f and g on the observer box, shrink observer.box, or use "
+            "observer.jacobian_method: sampled."
+        )
     free = np.flatnonzero(lo.ravel() != hi.ravel())
     k = free.size
     if 2**k > MAX_CORNERS:

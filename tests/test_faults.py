@@ -323,3 +323,22 @@ def test_the_first_runs_warnings_point_to_the_docs(tmp_path):
     assert "What the observer certificate does, and does not, prove" in proc.stdout
     assert "left the certified region" in proc.stderr and "README.md" in proc.stderr
     assert "s in all" in proc.stdout  # the command's own wall time
+
+
+# -------------------------------------------------------------- bounds
+def test_bad_jacobian_bounds_name_the_entry_and_the_cause():
+    """One message used to cover three causes; now each is named with its entry."""
+    from ofrl_drake.lmi import LmiError, box_corners
+
+    with pytest.raises(
+        LmiError, match=r"entry \[1, 0\]: lower = nan, upper = 1; a bound is NaN: f"
+    ):
+        box_corners([[0.0, 0.0], [np.nan, 0.0]], [[1.0, 0.0], [1.0, 0.0]])
+    with pytest.raises(
+        LmiError, match=r"entry \[0, 1\]: lower = -inf, upper = inf; a bound is inf"
+    ):
+        box_corners([[0.0, -np.inf]], [[1.0, np.inf]])
+    with pytest.raises(
+        LmiError, match=r"entry \[0\]: lower = 2, upper = 1; the lower bound exceeds"
+    ):
+        box_corners([2.0], [1.0])
