@@ -747,6 +747,31 @@ def _sigint_held() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
+def _user_code_frame(err: BaseException) -> Any:
+    """The innermost frame of ``err``'s traceback in the user's own code, or None.
+
+    A frame is the user's when its file is neither in ofrl_drake, nor in an
+    installed package (``site-packages``, ``dist-packages``), nor in Python's
+    standard library: e.g. the module of a plant named ``module:callable``,
+    whose ``f`` raised during a run.
+    """
+    import sysconfig
+    import traceback
+
+    package = Path(__file__).resolve().parent
+    stdlib = Path(sysconfig.get_paths()["stdlib"]).resolve()
+    for frame in reversed(traceback.extract_tb(err.__traceback__)):
+        if frame.filename.startswith("<"):
+            continue
+        path = Path(frame.filename).resolve()
+        if package in path.parents or stdlib in path.parents:
+            continue
+        if {"site-packages", "dist-packages"} & set(path.parts):
+            continue
+        return frame
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code."""
 
@@ -772,7 +797,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("error: interrupted; no output written", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:
-        msg = " ".join(str(err).split())
+        msg = " ".join(str(err).split())[:500]
+        frame = _user_code_frame(err)
+        if frame is not None:
+            print(
+                f"error: your code raised {type(err).__name__}: {msg} (at {frame.filename}:"
+                f"{frame.lineno}, in {frame.name}); fix it there, it is not an ofrl_drake error",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
         print(f"internal error: {type(err).__name__}: {msg}", file=sys.stderr)
         return EXIT_INTERNAL
 

@@ -342,3 +342,46 @@ def test_bad_jacobian_bounds_name_the_entry_and_the_cause():
         LmiError, match=r"entry \[0\]: lower = 2, upper = 1; the lower bound exceeds"
     ):
         box_corners([2.0], [1.0])
+
+
+# ------------------------------------------------------------ user code
+USER_PLANT = """
+import numpy as np
+from ofrl_drake import ControlAffineSystem
+
+
+def f(x):
+    if np.any(np.asarray(x[0], dtype=float) > 0.9):
+        raise ZeroDivisionError("my model breaks beyond 0.9")
+    return np.array([-x[0] + x[1], -x[0] - 0.5 * x[1]])
+
+
+def g(x):
+    return np.array([[0 * x[0]], [1 + 0 * x[0]]])
+
+
+def make_plant():
+    return ControlAffineSystem(f, g, C=[[0.0, 1.0]], name="my_plant")
+"""
+
+
+def test_an_error_inside_the_users_f_names_the_users_file_not_ofrl_drake(tmp_path):
+    (tmp_path / "my_plant.py").write_text(USER_PLANT)
+    data = yaml_load(filename=str(PAPER_SCENARIO))
+    data.update(
+        system="my_plant:make_plant",
+        x0=[1.0, 0.0],
+        xhat0=[1.0, 0.0],
+        variant={"observer": "true_state"},  # f cannot be traced: no designed observer
+    )
+    data["simulation"]["duration"] = 1.0
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml_dump(data))
+    proc = _cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
+    _one_line(
+        proc,
+        2,
+        r"your code raised ZeroDivisionError: my model breaks beyond 0\.9 \(at .*my_plant\.py:8, "
+        r"in f\); fix it there",
+    )
+    assert not (tmp_path / "o").exists()
