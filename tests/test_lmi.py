@@ -225,7 +225,9 @@ def test_box_corners_vary_only_the_uncertain_entries():
     got = {tuple(c.ravel()) for c in corners}
     assert got == {(a, 1.0, 2.0, b) for a in (0.0, 3.0) for b in (-1.0, 4.0)}
     np.testing.assert_array_equal(box_corners(lo, lo), lo[None])
-    with pytest.raises(LmiError, match="lower must be <= upper"):
+    with pytest.raises(
+        LmiError, match=r"entry \[0, 0\]: lower = 3, upper = 0; the lower bound exceeds"
+    ):
         box_corners(hi, lo)
     with pytest.raises(LmiError, match=r"17 uncertain entries, 131072 corners, more than"):
         box_corners(np.zeros(17), np.ones(17))
