@@ -466,6 +466,12 @@ def validate_scenario(scenario: Scenario) -> None:
     _vector("x0", scenario.x0, n)
     _vector("xhat0", scenario.xhat0, n)
     _positive("input_bound", scenario.input_bound)
+    if scenario.input_bound > MAX_INPUT_BOUND:
+        raise ScenarioError(
+            f"input_bound: {scenario.input_bound:g} is beyond what the input sector and the "
+            f"input cost hold in double precision (products with it overflow); at most "
+            f"{MAX_INPUT_BOUND:g}."
+        )
 
     Q = _matrix("cost.Q", scenario.cost.Q, (n, n))
     _spd("cost.Q", Q, semi=True)
@@ -767,6 +773,10 @@ def _locate_files(scenario: Scenario, folder: Path) -> None:
         )
         scenario.plant.multibody = locate_model_file(scenario.plant.multibody, folder.resolve())
 
+
+#: Largest ``input_bound``: the sector bounds multiply it with Jacobian bounds and
+#: the input cost squares it, so far larger values overflow.
+MAX_INPUT_BOUND = 1e12
 
 #: Largest memory the extrapolation points may take, in bytes.
 MAX_POINT_BYTES = 2 * 2**30

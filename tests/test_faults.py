@@ -180,6 +180,15 @@ def test_a_huge_file_is_refused_before_parsing(tmp_path):
 
 
 # -------------------------------------------------------------- bad values
+def test_an_input_bound_that_would_overflow_is_named(tmp_path):
+    data = yaml_load(filename=str(PAPER_SCENARIO))
+    data["input_bound"] = 1e308
+    path = tmp_path / "huge_u.yaml"
+    path.write_text(yaml_dump(data))
+    proc = _cli("design-observer", path, "--out", tmp_path / "d.json")
+    _one_line(proc, 2, r"input_bound: 1e\+308 is beyond what the input sector .* at most 1e\+12")
+
+
 def test_a_log_period_beyond_the_horizon_is_refused(tmp_path):
     proc = _cli("run", _short(tmp_path, log_period=5.0), "--out", tmp_path / "o")
     _one_line(proc, 2, r"simulation\.log_period: 5\.0 s is longer than the horizon")
