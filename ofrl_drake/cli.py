@@ -459,6 +459,27 @@ def _locked(command: Any) -> Any:
     return run
 
 
+def _run_sweep(args: argparse.Namespace, sweep: Any, table: Path) -> list[dict] | int:
+    """``sweep(client)``: serially with ``--workers 0``, else on Dask; its rows.
+
+    An interrupt (SIGINT, SIGTERM) keeps the rows finished in ``table`` and
+    returns the exit code, after one line saying how to resume.
+    """
+    try:
+        if args.workers == 0 and not args.scheduler:
+            return sweep(None)
+        with _dask_client(args.scheduler, args.workers, args.scheduler_timeout) as client:
+            return sweep(client)
+    except KeyboardInterrupt as err:
+        what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
+        print(
+            f"error: {what}; finished rows are in {table}; rerun with --resume to complete "
+            "the sweep",
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
+
+
 def _cmd_ablate(args: argparse.Namespace) -> int:
     from ofrl_drake.ablation import (
         AblationError,
@@ -486,20 +507,13 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "retry_failed": args.retry_failed,
     }
-    try:
-        if args.workers == 0 and not args.scheduler:
-            rows = ablate(scenario, variants, states, None, **options)
-        else:
-            with _dask_client(args.scheduler, args.workers, args.scheduler_timeout) as client:
-                rows = ablate(scenario, variants, states, client, **options)
-    except KeyboardInterrupt as err:
-        what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
-        print(
-            f"error: {what}; finished rows are in {out / 'ablation.csv'}; rerun with "
-            "--resume to complete the sweep",
-            file=sys.stderr,
-        )
-        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
+    rows = _run_sweep(
+        args,
+        lambda client: ablate(scenario, variants, states, client, **options),
+        out / "ablation.csv",
+    )
+    if isinstance(rows, int):
+        return rows
     x0_label = initial_state_label(scenario.x0)
     optimum = OptimalCostCache(out / "optimal").get(scenario, scenario.x0)
     write_report(
@@ -536,20 +550,13 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     out = Path(args.out)
     options = {"mass_spread": args.mass_spread, "out": out, "resume": args.resume}
-    try:
-        if args.workers == 0 and not args.scheduler:
-            rows = montecarlo(scenario, args.runs, args.seed, **options)
-        else:
-            with _dask_client(args.scheduler, args.workers, args.scheduler_timeout) as client:
-                rows = montecarlo(scenario, args.runs, args.seed, client=client, **options)
-    except KeyboardInterrupt as err:
-        what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
-        print(
-            f"error: {what}; finished rows are in {out / 'montecarlo.csv'}; rerun with "
-            "--resume to complete the sweep",
-            file=sys.stderr,
-        )
-        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
+    rows = _run_sweep(
+        args,
+        lambda client: montecarlo(scenario, args.runs, args.seed, client=client, **options),
+        out / "montecarlo.csv",
+    )
+    if isinstance(rows, int):
+        return rows
     write_montecarlo_report(out, rows, scenario.name)
     print(montecarlo_table(rows), end="")
     good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ofrl_drake.drake_models import MultibodySource
 from ofrl_drake.model import ControlAffineSystem, ShiftedSystem
+from ofrl_drake.points import uniform_points
 
 __all__ = ["ModelMismatch", "model_mismatch"]
 
@@ -120,9 +121,8 @@ def model_mismatch(
     ModelMismatch
     """
     lower, upper = (np.asarray(b, dtype=float) for b in box)
-    rng = np.random.default_rng(seed)
-    X = lower[:, None] + (upper - lower)[:, None] * rng.random((model.n, samples))
-    X = np.concatenate([np.zeros((model.n, 1)), X], axis=1)
+    drawn = uniform_points(lower, upper, samples, seed)
+    X = np.concatenate([np.zeros((model.n, 1)), drawn], axis=1)
     f_model, g_model = model.f_batch(X), model.g_batch(X)
     if body_mass_scale and isinstance(getattr(truth, "source", None), MultibodySource):
         f_true, g_true = _multibody_dynamics(truth, body_mass_scale, X)

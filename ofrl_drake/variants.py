@@ -175,9 +175,7 @@ def _kalman(parts: ClosedLoopParts) -> dict[str, System]:
     A, B, C = linearization.A(), linearization.B(), linearization.C()
     lower = np.asarray(s.observer.box.lower, dtype=float)
     upper = np.asarray(s.observer.box.upper, dtype=float)
-    X = lower[:, None] + (upper - lower)[:, None] * np.random.default_rng(0).random(
-        (A.shape[0], 200)
-    )
+    X = uniform_points(lower, upper, 200, seed=0)
     residual = parts.system.f_batch(X) - A @ X
     W = residual @ residual.T / X.shape[1] + 1e-12 * np.eye(A.shape[0])
     if s.actuation is not None and s.actuation.disturbance:
