@@ -10,10 +10,17 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["FRAMES_PER_SECOND", "MeshcatUnavailable", "animation_html", "frame_samples"]
+__all__ = [
+    "FRAMES_PER_SECOND",
+    "MeshcatUnavailable",
+    "animation_html",
+    "camera_window",
+    "frame_samples",
+]
 
 #: Frame rate of the recording; denser logs are thinned to it.
 FRAMES_PER_SECOND = 64.0
@@ -61,7 +68,7 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     ValueError
         If ``q`` does not have one column per position of the model.
     """
-    from pydrake.geometry import Meshcat, MeshcatVisualizer, Role
+    from pydrake.geometry import GeometrySet, Meshcat, MeshcatVisualizer, Role
     from pydrake.multibody.parsing import Parser
     from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
     from pydrake.systems.framework import DiagramBuilder
@@ -95,11 +102,90 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     context = diagram.CreateDefaultContext()
     plant_context = plant.GetMyContextFromRoot(context)
     visualizer_context = visualizer.GetMyContextFromRoot(context)
+    scene_context = scene_graph.GetMyContextFromRoot(context)
+    inspector = scene_graph.model_inspector()
+    geometries = inspector.GetGeometryIds(
+        GeometrySet(inspector.GetAllFrameIds()), Role.kIllustration
+    )
+    sizes = np.array([_radius(inspector.GetShape(g)) for g in geometries])
+    centres = []
     visualizer.StartRecording(set_transforms_while_recording=False)
     for i in frame_samples(np.asarray(t, dtype=float)):
         context.SetTime(float(t[i]))
         plant.SetPositions(plant_context, q[i])
         visualizer.ForcedPublish(visualizer_context)
+        query = scene_graph.get_query_output_port().Eval(scene_context)
+        centres.append([query.GetPoseInWorld(g).translation() for g in geometries])
     visualizer.StopRecording()
     visualizer.PublishRecording()
+    _frame_camera(meshcat, np.asarray(centres), sizes)
     return meshcat.StaticHtml()
+
+
+#: Margin around the swept volume of the model, as a fraction of its size.
+CAMERA_MARGIN = 0.15
+#: Widest aspect (width / height) of a planar view; a tall view is widened to it.
+ASPECT = 16.0 / 9.0
+
+
+def _radius(shape: Any) -> float:
+    """Radius of a sphere around ``shape`` centred on its frame (0 for unknown shapes)."""
+    from pydrake.geometry import Box, Capsule, Cylinder, Ellipsoid, Sphere
+
+    if isinstance(shape, Sphere):
+        return shape.radius()
+    if isinstance(shape, Box):
+        return 0.5 * float(np.linalg.norm([shape.width(), shape.depth(), shape.height()]))
+    if isinstance(shape, Cylinder):
+        return float(np.hypot(shape.radius(), 0.5 * shape.length()))
+    if isinstance(shape, Capsule):
+        return shape.radius() + 0.5 * shape.length()
+    if isinstance(shape, Ellipsoid):
+        return max(shape.a(), shape.b(), shape.c())
+    return 0.0
+
+
+def camera_window(centres: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The box ``(lower, upper)`` in world coordinates that the model sweeps during the run.
+
+    ``centres`` has shape (frames, geometries, 3): each geometry's origin per
+    frame; ``sizes`` the radius of a sphere around each geometry. The box is
+    widened by :data:`CAMERA_MARGIN` of its largest side.
+    """
+    lower = (centres - sizes[None, :, None]).min(axis=(0, 1))
+    upper = (centres + sizes[None, :, None]).max(axis=(0, 1))
+    pad = CAMERA_MARGIN * max(float(np.max(upper - lower)), 1e-3)
+    return lower - pad, upper + pad
+
+
+def _frame_camera(meshcat: Any, centres: np.ndarray, sizes: np.ndarray) -> None:
+    """Point Meshcat's camera at the model: a 2D view for a model moving in the x-z plane.
+
+    Planar models (the cart-pole, the acrobot) are drawn by an orthographic
+    camera looking along +y at the window the model sweeps, so that a small
+    tilt is visible; other models by a perspective camera at a distance that
+    fits the swept volume.
+    """
+    from pydrake.math import RigidTransform
+
+    if centres.size == 0:
+        return
+    lower, upper = camera_window(centres, sizes)
+    centre = 0.5 * (lower + upper)
+    spread_y = float(np.ptp(centres[..., 1], axis=0).max())
+    if spread_y <= 1e-9:  # every geometry keeps its y: the motion is in the x-z plane
+        half_w, half_h = 0.5 * (upper[0] - lower[0]), 0.5 * (upper[2] - lower[2])
+        half_w = max(half_w, ASPECT * half_h)
+        half_h = max(half_h, half_w / ASPECT)
+        meshcat.Set2dRenderMode(
+            X_WC=RigidTransform([0.0, lower[1] - 1.0, 0.0]),
+            xmin=centre[0] - half_w,
+            xmax=centre[0] + half_w,
+            ymin=centre[2] - half_h,
+            ymax=centre[2] + half_h,
+        )
+        return
+    radius = 0.5 * float(np.linalg.norm(upper - lower))
+    distance = radius / np.tan(np.radians(75.0) / 2)  # Meshcat's default field of view
+    direction = np.array([1.0, -2.0, 1.0]) / np.sqrt(6.0)
+    meshcat.SetCameraPose(centre + distance * direction, centre)

@@ -487,7 +487,39 @@ def from_multibody(
         tuple(plant.GetActuatorNames(False)),
     )
     _check_multibody(label, plant, f, g, nq + nv, nu, check_points, seed)
-    return ControlAffineSystem(f, g, C, name=label, source=source)
+    state_units, input_units = _multibody_units(plant)
+    return ControlAffineSystem(
+        f, g, C, name=label, source=source, state_units=state_units, input_units=input_units
+    )
+
+
+#: Units of a joint's positions by its Drake type name; velocities add "/s".
+_JOINT_UNITS = {"revolute": ("rad",), "prismatic": ("m",), "planar": ("m", "m", "rad")}
+#: Units of an actuator's effort by the type of the joint it drives.
+_EFFORT_UNITS = {"revolute": "N·m", "prismatic": "N"}
+
+
+def _multibody_units(plant: Any) -> tuple[tuple[str, ...] | None, tuple[str, ...] | None]:
+    """The units of ``x = [q; v]`` and of ``u`` from the joint types, or None if unknown."""
+    from pydrake.multibody.tree import JointActuatorIndex, JointIndex
+
+    positions: list[str | None] = [None] * plant.num_positions()
+    velocities: list[str | None] = [None] * plant.num_velocities()
+    for i in range(plant.num_joints()):
+        joint = plant.get_joint(JointIndex(i))
+        kinds = _JOINT_UNITS.get(joint.type_name())
+        if kinds is not None and len(kinds) == joint.num_positions() == joint.num_velocities():
+            start = joint.position_start()
+            positions[start : start + len(kinds)] = kinds
+            start = joint.velocity_start()
+            velocities[start : start + len(kinds)] = [f"{u}/s" for u in kinds]
+    efforts = [
+        _EFFORT_UNITS.get(plant.get_joint_actuator(JointActuatorIndex(k)).joint().type_name())
+        for k in range(plant.num_actuators())
+    ]
+    units = positions + velocities
+    state = None if None in units else tuple(units)
+    return state, (None if None in efforts else tuple(efforts))
 
 
 def _multibody_equations(

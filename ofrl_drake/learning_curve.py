@@ -259,11 +259,11 @@ class LearningHealth:
     def summary(self) -> dict[str, Any]:
         """Extremes and final values, for ``summary.json`` → ``learning_health``."""
         out: dict[str, Any] = {
-            "min_learning_condition": _number(np.nanmin(self.learning_condition)),
+            "min_learning_condition": _number(_extreme(np.nanmin, self.learning_condition)),
             "final_learning_condition": _number(self.learning_condition[-1]),
-            "max_gamma_norm": _number(np.nanmax(self.gamma_norm)),
+            "max_gamma_norm": _number(_extreme(np.nanmax, self.gamma_norm)),
             "final_gamma_norm": _number(self.gamma_norm[-1]),
-            "max_gamma_condition": _number(np.nanmax(self.gamma_condition)),
+            "max_gamma_condition": _number(_extreme(np.nanmax, self.gamma_condition)),
             "policy_updates_accepted": len(self.accepted_times),
             "policy_updates_rejected": len(self.rejected_times),
             "accepted_times": self.accepted_times,
@@ -408,6 +408,12 @@ def learning_report(
         optimal_cost=optimal_cost,
         lqr_policy_cost=lqr_cost,
     )
+
+
+def _extreme(reduce: Any, values: np.ndarray) -> float:
+    """``reduce`` (nanmin or nanmax) of ``values``; NaN, without a warning, when all are NaN."""
+    values = np.asarray(values, dtype=float)
+    return float(reduce(values)) if np.isfinite(values).any() else float("nan")
 
 
 def _number(value: Any) -> float | None:

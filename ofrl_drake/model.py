@@ -15,7 +15,7 @@ Write constants that must broadcast over a batch as ``0 * x[0]`` or
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -93,6 +93,12 @@ class ControlAffineSystem:
         Where ``f`` and ``g`` came from, kept for blocks that can use it (the
         Drake ``System`` of :meth:`from_drake`, the model of
         :meth:`from_multibody`); None for hand-written plants.
+    state_units, input_units : sequence of str, optional
+        The unit of each state and input, e.g. ``("m", "rad", "m/s", "rad/s")``
+        and ``("N",)``; figures label their axes with them. ``""`` for a
+        dimensionless entry; None (the default) when the units are not known.
+        :func:`~ofrl_drake.drake_models.from_multibody` fills them from the
+        joints and actuators.
 
     Attributes
     ----------
@@ -129,12 +135,16 @@ class ControlAffineSystem:
         *,
         name: str = "control_affine_system",
         source: Any = None,
+        state_units: Sequence[str] | None = None,
+        input_units: Sequence[str] | None = None,
     ) -> None:
         self.f = f
         self.g = g
         self.C = C
         self.name = name
         self.source = source
+        self.state_units = state_units
+        self.input_units = input_units
 
         C_arr = np.asarray(C, dtype=float)
         if C_arr.ndim != 2 or C_arr.shape[0] < 1 or C_arr.shape[1] < 1:
@@ -162,6 +172,16 @@ class ControlAffineSystem:
                 "e.g. np.array([[0 * x[0]], [1 + 0 * x[0]]]) for m = 1."
             )
         self.m = gx.shape[1]
+        for what, units, size in (("state", state_units, self.n), ("input", input_units, self.m)):
+            if units is not None and (
+                isinstance(units, str)
+                or len(units) != size
+                or not all(isinstance(u, str) for u in units)
+            ):
+                raise ModelError(
+                    f"{what}_units must give one string per {what} ({size} in all); got {units!r}. "
+                    'Use "" for a dimensionless entry, or leave it None.'
+                )
         self.vectorized = self._check_batch()
 
     # ------------------------------------------------------------------ checks
@@ -422,6 +442,8 @@ class ShiftedSystem(ControlAffineSystem):
             base.C,
             name=base.name,
             source=base.source,
+            state_units=base.state_units,
+            input_units=base.input_units,
         )
 
     def _column(self, vector: np.ndarray, z: np.ndarray) -> np.ndarray:

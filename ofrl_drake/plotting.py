@@ -87,6 +87,19 @@ def _equilibrium(result, key: str) -> np.ndarray | None:
     return getattr(result, f"{key}_equilibrium", None)
 
 
+def _unit(result, key: str, i: int | None = None) -> str:
+    """`` [m]`` for entry ``i`` of ``x``/``e`` (``key="state"``) or ``u`` (``"input"``).
+
+    With ``i`` None, the unit shared by every entry, if there is one. Empty
+    when the model does not know its units (e.g. the paper's dimensionless toy).
+    """
+    units = getattr(result, f"{key}_units", None)
+    if not units:
+        return ""
+    chosen = set(units) if i is None else {units[i]}
+    return f" [{chosen.pop()}]" if len(chosen) == 1 and "" not in chosen else ""
+
+
 def transient_end(result, fraction: float = 0.02, minimum: float = 0.5) -> float:
     """End of the zoomed panel: where x and e have settled.
 
@@ -262,7 +275,7 @@ def plot_state(result, i: int, box: Box | None = None) -> Figure:
     for ax in axes:
         _autoscale_visible(ax, result.t, both, levels)
     where = "" if x_eq is None else " (plant coordinates)"
-    axes[0].set_ylabel(rf"state $x_{{{i + 1}}}$ and estimate{where}")
+    axes[0].set_ylabel(rf"state $x_{{{i + 1}}}$ and estimate{where}{_unit(result, 'state', i)}")
     _legend(fig, axes)
     return fig
 
@@ -272,12 +285,17 @@ def plot_estimation_error(result) -> Figure:
     fig, axes = _figure(2)
     for ax in axes:
         for i in range(result.x.shape[1]):
-            ax.plot(result.t, result.e[:, i], lw=1.4, label=rf"$e_{{{i + 1}}}$")
+            ax.plot(
+                result.t,
+                result.e[:, i],
+                lw=1.4,
+                label=rf"$e_{{{i + 1}}}${_unit(result, 'state', i)}",
+            )
     _windows(result, axes)
     _mark_stop(result, axes)
     for ax in axes:
         _autoscale_visible(ax, result.t, result.e, [0.0])
-    axes[0].set_ylabel(r"estimation error $e = x - \hat{x}$")
+    axes[0].set_ylabel(r"estimation error $e = x - \hat{x}$" + _unit(result, "state"))
     _legend(fig, axes)
     return fig
 
@@ -295,7 +313,12 @@ def plot_estimation_error_log(result) -> Figure:
     """
     fig, (ax,) = _figure(1, width=6.0, height=3.2)
     for i in range(result.x.shape[1]):
-        ax.semilogy(result.t, _log_magnitude(result.e[:, i]), lw=1.3, label=rf"$|e_{{{i + 1}}}|$")
+        ax.semilogy(
+            result.t,
+            _log_magnitude(result.e[:, i]),
+            lw=1.3,
+            label=rf"$|e_{{{i + 1}}}|${_unit(result, 'state', i)}",
+        )
     _windows(result, [ax])
     _mark_stop(result, [ax])
     shade_numerical_floor(
@@ -330,15 +353,22 @@ def _input_levels(result, input_bound: float | None) -> list[float]:
 
 
 def _input_label(result) -> str:
+    unit = _unit(result, "input")
     if _equilibrium(result, "u") is None:
-        return r"control input $u$"
-    return r"input $u$ ($|u - u^*| \leq \bar\lambda$)"
+        return r"control input $u$" + unit
+    return r"input $u$ ($|u - u^*| \leq \bar\lambda$)" + unit
 
 
 def _input_lines(result, ax: Axes, input_bound: float | None) -> None:
     u = _shown(result, "u")
     for k in range(u.shape[1]):
-        ax.plot(result.t, u[:, k], lw=1.4, color=f"C{k}", label=rf"$u_{{{k + 1}}}$")
+        ax.plot(
+            result.t,
+            u[:, k],
+            lw=1.4,
+            color=f"C{k}",
+            label=rf"$u_{{{k + 1}}}${_unit(result, 'input', k)}",
+        )
     around = "" if _equilibrium(result, "u") is None else "u^* "
     for j, level in enumerate(_input_levels(result, input_bound)):
         ax.axhline(
@@ -529,7 +559,9 @@ def plot_overview(result, input_bound: float | None = None, box: Box | None = No
     if _equilibrium(result, "x") is not None:
         box = None  # its bounds differ per state in the plant's coordinates: see state_i.png
     for i in range(n):
-        (line,) = ax.plot(result.t, x[:, i], lw=1.5, label=rf"$x_{{{i + 1}}}$")
+        (line,) = ax.plot(
+            result.t, x[:, i], lw=1.5, label=rf"$x_{{{i + 1}}}${_unit(result, 'state', i)}"
+        )
         ax.plot(
             result.t,
             xhat[:, i],

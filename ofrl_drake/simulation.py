@@ -22,7 +22,7 @@ from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, ProgressBar, RunGuard, StopReport
 from ofrl_drake.observer_certificate import certificate_of
 from ofrl_drake.provenance import provenance
-from ofrl_drake.scenario import Scenario, abort_box
+from ofrl_drake.scenario import Scenario, abort_box, load_scenario
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
 __all__ = [
@@ -82,6 +82,9 @@ class SimulationResult:
     extra : dict of ndarray
         Further logs of the loop beyond :data:`~ofrl_drake.diagram.LOGGED`
         (e.g. ``observer_gains`` of a scheduled observer), time first.
+    state_units, input_units : tuple of str or None
+        The model's units (``ControlAffineSystem.state_units``), for the figures
+        and ``summary.json``; None when the model does not know them.
     x_equilibrium, u_equilibrium : ndarray or None
         The scenario's equilibrium ``(x*, u*)``, when it has one. ``x``,
         ``xhat`` and ``u`` are then the method's coordinates ``x - x*`` and
@@ -117,6 +120,8 @@ class SimulationResult:
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     x_equilibrium: np.ndarray | None = None
     u_equilibrium: np.ndarray | None = None
+    state_units: tuple[str, ...] | None = None
+    input_units: tuple[str, ...] | None = None
 
     def original(self, key: str) -> np.ndarray:
         """``x``, ``xhat`` or ``u`` in the plant's own coordinates (``+ x*``, ``+ u*``)."""
@@ -200,12 +205,21 @@ class SimulationResult:
             "final_estimation_error": self.e[-1].tolist(),
             "final_estimation_error_norm": float(np.linalg.norm(self.e[-1])),
             "final_weights": self.W[-1].tolist(),
-            "final_gamma_eigenvalues": np.linalg.eigvalsh(Gamma_T).tolist(),
+            "final_gamma_eigenvalues": (
+                np.linalg.eigvalsh(Gamma_T).tolist()
+                if np.isfinite(Gamma_T).all()
+                else [None] * len(Gamma_T)  # a run stopped on a non-finite Gamma
+            ),
             "min_learning_condition": float(np.min(self.learning_condition)),
             "final_cost": float(self.cost[-1]),
             "wall_time": self.wall_time,
             "integrator": self.integrator,
         }
+        if self.state_units is not None or self.input_units is not None:
+            out["units"] = {
+                "state": None if self.state_units is None else list(self.state_units),
+                "input": None if self.input_units is None else list(self.input_units),
+            }
         if self.x_equilibrium is not None:
             out["equilibrium"] = {
                 "x": np.asarray(self.x_equilibrium, float).tolist(),
@@ -382,7 +396,7 @@ def _design_dict(loop: ClosedLoop) -> dict[str, Any] | None:
 
 
 def simulate(
-    scenario: Scenario,
+    scenario: Scenario | str | Path,
     *,
     design: Any = None,
     progress: bool | None = None,
@@ -401,7 +415,9 @@ def simulate(
 
     Parameters
     ----------
-    scenario : Scenario
+    scenario : Scenario, str or Path
+        The scenario, or the path of its YAML file (loaded with
+        :func:`~ofrl_drake.load_scenario`).
     design : ObserverDesign, optional
         Observer design; computed from the scenario if omitted. Not allowed
         with ``loop``.
@@ -431,6 +447,13 @@ def simulate(
     ScenarioError
         If ``loop`` was built from a scenario that differs from ``scenario``.
     """
+    if isinstance(scenario, (str, Path)):
+        scenario = load_scenario(scenario)
+    if not isinstance(scenario, Scenario):
+        raise TypeError(
+            f"simulate: scenario must be a Scenario or the path of a scenario file; got "
+            f"{type(scenario).__name__}. Load one with ofrl_drake.load_scenario(path)."
+        )
     if loop is None:
         loop = build_closed_loop(scenario, design=design, **swaps)
     else:
@@ -463,6 +486,16 @@ def simulate(
             if not _is_integrator_failure(err):
                 raise
             guard.fail(f"the integrator gave up: {' '.join(str(err).split())}")
+        except ValueError as err:
+            if not _is_domain_error(err):
+                raise
+            cause = " ".join(str(err).split())[:200]
+            guard.fail(
+                f"the model's f or g was evaluated outside its domain ({cause}) for the model "
+                f"{loop.parts.system.name!r}: the state (or the estimate, or an extrapolation "
+                "point) left the region where f and "
+                "g are defined; restrict x0, the points box or simulation.abort_box to that region"
+            )
     wall = time.perf_counter() - start
     stop = guard.report(simulator.get_context())
     if not stop.ok:
@@ -498,6 +531,8 @@ def simulate(
         integrator=stats,
         design=design_dict,
         scenario_name=scenario.name,
+        state_units=_units(loop.parts.system.state_units),
+        input_units=_units(loop.parts.system.input_units),
         extra={k: v for k, v in logs.items() if k not in LOGGED},
         stop=stop,
         provenance=origin,
@@ -560,6 +595,15 @@ def _initialize_context(loop: ClosedLoop, scenario: Scenario, context: Any) -> d
     for block in loop.blocks.values():
         initialize_context(block, block.GetMyMutableContextFromRoot(context))
     return seeds
+
+
+def _units(units: Any) -> tuple[str, ...] | None:
+    return None if units is None else tuple(str(u) for u in units)
+
+
+def _is_domain_error(err: ValueError) -> bool:
+    """True for Drake's symbolic math refusing an argument, e.g. ``log(nan)`` or ``sqrt(-1)``."""
+    return "out of domain" in str(err)
 
 
 def _is_integrator_failure(err: RuntimeError) -> bool:

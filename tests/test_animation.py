@@ -12,6 +12,7 @@ from ofrl_drake.animation import (
     FRAMES_PER_SECOND,
     MeshcatUnavailable,
     animation_html,
+    camera_window,
     frame_samples,
 )
 
@@ -97,3 +98,43 @@ def test_cli_notes_a_missing_meshcat_in_one_line_and_goes_on(monkeypatch, tmp_pa
     note = cli._write_animation(scenario, Result(), tmp_path)
     assert note == "note: Meshcat cannot start (no free port); no animation.html written."
     assert not (tmp_path / "animation.html").exists()
+
+
+def camera(html):
+    """The orthographic camera window (left, right, bottom, top) set in the page, or None."""
+    for blob in re.findall(r'data:application/octet-binary;base64,([A-Za-z0-9+/=]+)"', html):
+        command = msgpack.unpackb(base64.b64decode(blob), strict_map_key=False)
+        if command.get("path") == "/Cameras/default/rotated" and command["type"] == "set_object":
+            cam = command["object"]["object"]
+            if cam["type"] == "OrthographicCamera":
+                return cam["left"], cam["right"], cam["bottom"], cam["top"]
+    return None
+
+
+def test_the_camera_frames_a_planar_model_tightly_so_a_small_tilt_shows():
+    # The cart-pole balancing: cart within 0.1 m, pole 0.15 rad from upright (pi).
+    t = np.arange(0.0, 2.0, 0.01)
+    q = np.stack([0.1 * np.sin(t), np.pi + 0.15 * np.cos(3 * t)], axis=1)
+    left, right, bottom, top = camera(animation_html(CART_POLE_SDF, t, q))
+    # The window holds the pole's tip (0.5 m above the cart) at every tilt and the cart at
+    # every position ...
+    tip_x = 0.1 * np.sin(t) + 0.5 * np.sin(0.15 * np.cos(3 * t))
+    assert left < tip_x.min() and tip_x.max() < right
+    assert bottom < 0.0 and 0.5 * np.cos(0.15) < top
+    # ... and is tight: the 0.5 m pole spans more than a third of its height, and the
+    # window is no wider than the 16:9 frame around that height.
+    assert 0.5 / (top - bottom) > 1 / 3
+    assert (right - left) / (top - bottom) <= 16 / 9 + 1e-9
+
+
+def test_camera_window_holds_every_geometry_with_a_margin():
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(20, 3, 3))
+    sizes = np.array([0.1, 0.0, 0.5])
+    lower, upper = camera_window(centres, sizes)
+    assert np.all(lower < (centres - sizes[None, :, None]).min(axis=(0, 1)))
+    assert np.all(upper > (centres + sizes[None, :, None]).max(axis=(0, 1)))
+    tight = (centres + sizes[None, :, None]).max(axis=(0, 1)) - (
+        centres - sizes[None, :, None]
+    ).min(axis=(0, 1))
+    np.testing.assert_allclose(upper - lower, tight + 2 * 0.15 * tight.max(), rtol=1e-12)

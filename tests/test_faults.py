@@ -8,6 +8,7 @@ path named, and nothing partial left behind.
 import errno
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -36,8 +37,6 @@ def _cli(*args, cwd=None, timeout=900):
 
 
 def _one_line(proc, code, pattern):
-    import re
-
     assert proc.returncode == code, (proc.returncode, proc.stderr)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
@@ -394,3 +393,59 @@ def test_an_error_inside_the_users_f_names_the_users_file_not_ofrl_drake(tmp_pat
         r"in f\); fix it there",
     )
     assert not (tmp_path / "o").exists()
+
+
+LOG_PLANT = """
+import numpy as np
+from ofrl_drake import ControlAffineSystem
+
+
+def f(x):
+    return np.array([x[1], -x[0] + np.log(x[0] + 0.2)])  # undefined for x_1 <= -0.2
+
+
+def g(x):
+    return np.array([[0 * x[0]], [1 + 0 * x[0]]])
+
+
+def make_plant():
+    return ControlAffineSystem(f, g, C=[[0.0, 1.0]], name="log_plant")
+"""
+
+
+def test_a_users_f_that_leaves_its_domain_stops_the_run_and_says_so(tmp_path):
+    # log(nan) inside a traced f is raised by Drake's symbolic math mid-run: the run stops
+    # as diverged (exit 3) naming the model and the cause, not as an internal error.
+    (tmp_path / "log_plant.py").write_text(LOG_PLANT)
+    data = yaml_load(filename=str(PAPER_SCENARIO))
+    data.update(
+        system="log_plant:make_plant",
+        x0=[1.0, 0.0],
+        xhat0=[1.0, 0.0],
+        variant={"observer": "true_state"},
+    )
+    data["simulation"]["duration"] = 1.0
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml_dump(data))
+    proc = _cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
+    assert proc.returncode == 3, proc.stderr
+    assert "internal error" not in proc.stderr
+    assert re.search(
+        r"stopped: diverged: the model's f or g was evaluated outside its domain \(log\(nan\).*"
+        r"for the model 'log_plant'",
+        proc.stderr,
+    ), proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["status"] == "diverged"
+    assert "outside its domain" in summary["stop"]["reason"]
+
+
+def test_simulate_takes_a_path_and_names_a_wrong_type():
+    import ofrl_drake as od
+
+    with pytest.raises(TypeError, match=r"scenario must be a Scenario or the path .*got int"):
+        od.simulate(42)
+    with pytest.raises(od.ScenarioError, match=r"no_such_scenario\.yaml"):
+        od.simulate("no_such_scenario.yaml")
+    result = od.simulate(str(PAPER_SCENARIO))  # a path is loaded, as by the CLI
+    assert result.scenario_name == od.load_scenario(PAPER_SCENARIO).name

@@ -148,3 +148,26 @@ def test_a_stopped_run_is_marked_and_its_figures_are_written(tmp_path):
     paths = save_figures(one_sample, tmp_path, input_bound=3.0, box=([-2.0] * 2, [2.0] * 2))
     assert {p.name for p in paths} >= {"state_1.png", "estimation_error_log.png", "overview.png"}
     assert all(p.stat().st_size > 0 for p in paths)
+
+
+def test_axes_carry_the_models_units_and_none_when_unknown():
+    r = dataclasses.replace(
+        _result(n=4), state_units=("m", "rad", "m/s", "rad/s"), input_units=("N",)
+    )
+    assert plot_state(r, 0).axes[0].get_ylabel().endswith("[m]")
+    assert plot_state(r, 3).axes[0].get_ylabel().endswith("[rad/s]")
+    assert plot_input(r, 3.0).axes[0].get_ylabel().endswith("[N]")
+    assert "$u_{1}$ [N]" in _labels(plot_input(r, 3.0))
+    labels = _labels(plot_estimation_error_log(r))
+    assert "$|e_{2}|$ [rad]" in labels and "$|e_{3}|$ [m/s]" in labels
+    assert "$x_{1}$ [m]" in _labels(plot_overview(r, 3.0))
+    # The paper's toy is dimensionless: no brackets anywhere.
+    plain = _result(n=2)
+    assert "[" not in plot_state(plain, 0).axes[0].get_ylabel()
+    assert "[" not in plot_input(plain, 3.0).axes[0].get_ylabel()
+
+
+def test_summary_records_the_units():
+    r = dataclasses.replace(_result(n=2), state_units=("rad", "rad/s"), input_units=("N·m",))
+    assert r.summary()["units"] == {"state": ["rad", "rad/s"], "input": ["N·m"]}
+    assert "units" not in _result(n=2).summary()
