@@ -261,8 +261,18 @@ class PolicyCheck:
     spectral_abscissa: float
 
     def improves_on(self, current: PolicyCheck) -> bool:
-        """Whether this policy may replace ``current``: admissible, and no larger local cost."""
-        return self.admissible and self.local_cost <= current.local_cost
+        """Whether this policy may replace ``current``: admissible, and no larger local cost.
+
+        Costs equal to within :data:`COST_ROUNDOFF` (relative) count as equal: a
+        converged policy iteration re-evaluates the same policy, and its cost
+        then moves by a few units in the last place.
+        """
+        bound = current.local_cost * (1.0 + COST_ROUNDOFF)
+        return self.admissible and self.local_cost <= bound
+
+
+#: Relative round-off allowed when comparing two local costs (:meth:`PolicyCheck.improves_on`).
+COST_ROUNDOFF = 1e-12
 
 
 def check_policy(

@@ -236,3 +236,15 @@ def test_auto_gains_put_gamma_at_the_steady_state_of_its_law():
 def test_auto_gains_refuse_points_that_excite_nothing():
     with pytest.raises(ModelError, match=r"regressors omega_i vanish at W0"):
         auto_gains(lambda nu: np.eye(2), np.zeros(5), horizon=1.0)
+
+
+def test_equal_costs_up_to_round_off_count_as_no_rise_and_a_real_rise_is_refused():
+    import dataclasses
+
+    current = _check(3.0 * _lqr_value(np.eye(2)))
+    same = dataclasses.replace(current, local_cost=np.nextafter(current.local_cost, np.inf))
+    assert same.improves_on(current)  # a converged iteration: the same policy, re-evaluated
+    higher = dataclasses.replace(current, local_cost=current.local_cost * (1 + 1e-9))
+    assert not higher.improves_on(current)
+    inadmissible = dataclasses.replace(current, admissible=False, local_cost=0.0)
+    assert not inadmissible.improves_on(current)
