@@ -813,13 +813,30 @@ def _check_yaml(path: Path, text: str) -> None:
     stack = [] if root is None else [root]
     expanded = 0
     checked: set[int] = set()
+    visited: set[int] = set()
+    repeated = False  # an alias made the walk see a node twice
+    longest: Any = None  # the longest list, named when the file itself is too big
     while stack:
         node = stack.pop()
         expanded += 1
+        repeated = repeated or id(node) in visited
+        visited.add(id(node))
         if expanded > MAX_YAML_NODES:
+            if repeated:
+                raise ScenarioError(
+                    f"{path}: the YAML expands to more than {MAX_YAML_NODES} values (aliases "
+                    "repeat a part many times); write the scenario out without them."
+                )
+            where = (
+                ""
+                if longest is None
+                else f"; the longest list ({len(longest.value)} entries) starts at line "
+                f"{longest.start_mark.line + 1}"
+            )
             raise ScenarioError(
-                f"{path}: the YAML expands to more than {MAX_YAML_NODES} values (aliases "
-                "repeat a part many times); write the scenario out without them."
+                f"{path}: the YAML holds more than {MAX_YAML_NODES} values, far more than any "
+                f"scenario needs{where}; shorten it (e.g. give a critic's Gamma0 for the basis "
+                "in use, or leave it out for critic.gains: auto)."
             )
         if isinstance(node, yaml.MappingNode):
             if id(node) not in checked:
@@ -836,6 +853,8 @@ def _check_yaml(path: Path, text: str) -> None:
             for key, value in node.value:
                 stack.extend((key, value))
         elif isinstance(node, yaml.SequenceNode):
+            if longest is None or len(node.value) > len(longest.value):
+                longest = node
             stack.extend(node.value)
 
 

@@ -171,6 +171,25 @@ def test_an_alias_bomb_is_refused_at_once(tmp_path):
     assert time.perf_counter() - start < 60  # was: 123 s and 11.5 GB
 
 
+def test_a_long_list_without_aliases_is_named_by_its_line_not_blamed_on_aliases(tmp_path):
+    from ofrl_drake import ScenarioError, load_scenario
+
+    text = PAPER_SCENARIO.read_text()
+    identity = ",".join(
+        "[" + ",".join("1" if i == j else "0" for j in range(400)) + "]" for i in range(400)
+    )
+    text = re.sub(r"(?m)^  Gamma0: .*$", f"  Gamma0: [{identity}]", text, count=1)
+    path = tmp_path / "gamma.yaml"
+    path.write_text(text)  # 320 kB: under the size limit
+    line = 1 + text.splitlines().index(next(x for x in text.splitlines() if "Gamma0: [[" in x))
+    with pytest.raises(
+        ScenarioError,
+        match=rf"holds more than 100000 values.*the longest list \(400 entries\) starts at "
+        rf"line {line}; shorten it",
+    ):
+        load_scenario(path)
+
+
 def test_a_huge_file_is_refused_before_parsing(tmp_path):
     path = tmp_path / "huge.yaml"
     path.write_text("name: " + "x" * 2_000_000 + "\n")
