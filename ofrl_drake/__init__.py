@@ -1,7 +1,7 @@
 """ofrl_drake: output-feedback, model-based RL control as Drake block diagrams.
 
 The method of Output Feedback Adaptive Optimal Control of Affine Nonlinear
-Systems with a Linear Measurement Model (see the README for the reference) in
+Systems with a Linear Measurement Model (see the README, Citation) in
 blocks: a plant, a three-gain observer with LMI-certified gains, a critic
 learned from extrapolated Bellman errors, a least-squares gain Gamma and a
 saturated controller.

@@ -7,7 +7,7 @@ Subcommands::
     ofrl-drake verify-observer SCENARIO            falsify the design against the dynamics
     ofrl-drake ablate SCENARIO --out DIR           every variant vs the optimum, on Dask
 
-Exit codes (the README has the table): 0 success; 1 internal error (a bug:
+Exit codes (docs/cli.md has the table): 0 success; 1 internal error (a bug:
 please report it); 2 bad input, printed on one line (``error: ...``); 3 ``run``
 stopped early because the run diverged or timed out (its output folder is
 written and says so); 4 ``verify-observer`` found a counterexample to the
@@ -64,9 +64,11 @@ OUTPUT_MARKER = ".ofrl_drake_output"
 #: The resolved scenario as run, in every output folder of ``run``.
 SCENARIO_FILE = "scenario.yaml"
 
-#: Where the README explains a falsified observer design, and a state outside its box.
-CERTIFICATE_DOCS = "(why: README.md, 'What the observer certificate does, and does not, prove')"
-VALIDITY_DOCS = "(why: README.md, 'Observer design', on the certified box)"
+#: Where the docs explain a falsified observer design, and a state outside its box.
+CERTIFICATE_DOCS = (
+    "(why: docs/theory.md, 'What the observer certificate does, and does not, prove')"
+)
+VALIDITY_DOCS = "(why: docs/theory.md, 'Where the certificate holds')"
 
 #: The learning-health series of a run (:class:`ofrl_drake.learning_curve.LearningHealth`).
 LEARNING_HEALTH_FILE = "learning_health.npz"
@@ -321,7 +323,7 @@ def _run(args: argparse.Namespace) -> int:
         print(
             f"note: the observer gains satisfy the {loop.design.formulation!r} LMI but not "
             "the sound decay certificate (is_decay_certified is false); use "
-            "formulation: polytopic for a guarantee. See the README.",
+            "formulation: polytopic for a guarantee. See docs/theory.md.",
             file=sys.stderr,
         )
     if verification is not None:

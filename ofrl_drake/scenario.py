@@ -139,7 +139,7 @@ class ObserverConfig:
     Optional: ``formulation``: ``polytopic`` (default; a sound decay
     certificate over every corner of the Jacobian bounds, with H = K = 0) or
     ``paper`` (the paper's (lmi2) with the sign-correct sector, which does not
-    imply decay for every nonlinear plant; see the README);
+    imply decay for every nonlinear plant; see docs/theory.md);
     ``L``, ``H``, ``K`` pin the gains (all three or none);
     ``jacobian_method`` (``sampled`` or ``certified``), ``solver``;
     ``schedule_period`` > 0 re-solves the LMI every that many seconds over the

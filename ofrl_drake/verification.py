@@ -31,7 +31,7 @@ inputs ``u_k in {-lambda_bar, 0, +lambda_bar}``, and every one is evaluated
 Sampling can only find counterexamples: a report that is not ``falsified``
 means that none was found with this budget, not that the claim holds. A
 ``polytopic`` design is a proof (when its bounds are certified); a ``paper``
-design is not, and on the two-state example it is falsified (README).
+design is not, and on the two-state example it is falsified (docs/theory.md).
 """
 
 from __future__ import annotations

@@ -379,7 +379,7 @@ def _ablate_command(scenario_file, variants_file, out, *, initial_states, worker
 
 
 def test_cli_with_an_embedded_local_cluster(short_files, tmp_path):
-    """`--workers 2`, the README's command: the CLI starts and stops its own LocalCluster."""
+    """`--workers 2` (docs/ablations.md): the CLI starts and stops its own LocalCluster."""
     scenario_file, variants_file = short_files
     out = tmp_path / "local"
     proc = subprocess.run(

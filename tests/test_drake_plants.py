@@ -1,6 +1,6 @@
 """The shipped Drake-plant scenarios: pendulum_upright.yaml and cart_pole.yaml.
 
-Each runs through the command line and meets the numbers the README promises:
+Each runs through the command line and meets the numbers docs/own_plant.md states:
 by T, |x - x*| and |e| are below 1e-3, |u - u*| stays within the bound, and the
 observer is designed with the sound polytopic formulation and decay-certified.
 """

@@ -348,7 +348,7 @@ def test_the_first_runs_warnings_point_to_the_docs(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "falsified: r = +" in proc.stdout
     assert "What the observer certificate does, and does not, prove" in proc.stdout
-    assert "left the certified region" in proc.stderr and "README.md" in proc.stderr
+    assert "left the certified region" in proc.stderr and "docs/theory.md" in proc.stderr
     assert "s in all" in proc.stdout  # the command's own wall time
 
 
