@@ -125,15 +125,15 @@ def test_kernel_without_critic_sum_gives_the_same_gain_sum_bits():
     W = np.random.default_rng(2).normal(size=basis.size) * 4.0  # |D| on both sides of 0.5
     full = ex(W)
     assert np.min(np.abs(full.D)) < 0.5 < np.max(np.abs(full.D))
-    per_point = np.full_like(ex._scratch, np.nan)
+    rows = ex.layout.per_point
+    per_point = np.full((rows.rows, X.shape[1]), np.nan)
     critic_sum, gain_sum = np.full(basis.size, -7.0), np.empty((basis.size, basis.size))
-    m = system.m
-    args = (W, W, ex._data, m, ex._weight, LBAR, NU, ex._metric, per_point, critic_sum, gain_sum)
-    bellman_kernel(*args, False)
+    args = (W, W, ex._data, system.m, ex._weight, LBAR, NU, ex._metric, per_point)
+    bellman_kernel(*args, critic_sum, gain_sum, False)
     np.testing.assert_array_equal(gain_sum, full.gain_sum)
-    np.testing.assert_array_equal(per_point[2 * m : 2 * m + basis.size], full.omega)
+    np.testing.assert_array_equal(per_point[rows.omega], full.omega)
     assert np.all(critic_sum == -7.0)  # untouched
-    assert np.all(np.isnan(per_point[2 * m + basis.size]))  # delta untouched
+    assert np.all(np.isnan(per_point[rows.delta]))  # delta untouched
 
 
 def test_learning_condition_is_min_eigenvalue():
