@@ -21,8 +21,13 @@ Everything that does not depend on ``W`` is precomputed once per point set in
 :class:`PointFeatures`. The ``W``-dependent part is one compiled loop over
 the points (:func:`bellman_kernel`, numba ``@njit``) that accumulates both
 sums without forming per-point arrays, unless they are asked for
-(:func:`extrapolate`). The update laws themselves, :func:`critic_rate` and
+(:func:`extrapolate`); its packed arrays' rows are named by
+:func:`kernel_layout`. The update laws themselves, :func:`critic_rate` and
 :func:`gamma_rate`, are compiled too.
+
+This module is the fast path. The same laws written as the equations, in
+vectorized numpy, are :mod:`ofrl_drake.update_laws`, which the tests hold
+these kernels to.
 """
 
 from __future__ import annotations
@@ -674,7 +679,10 @@ def learning_condition(gain_sum: np.ndarray) -> float:
 
 @njit(**JIT)
 def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.ndarray) -> None:
-    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,)."""
+    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,).
+
+    The readable form: :func:`ofrl_drake.update_laws.critic_rate`.
+    """
     L = critic_sum.shape[0]
     for a in range(L):
         acc = 0.0
@@ -691,6 +699,7 @@ def gamma_rate(
 
     ``gamma`` and ``gain_sum`` (``S``) are flattened row-major (L*L,); so is
     ``out``, which is exactly symmetric, so Gamma stays symmetric to round-off.
+    The readable form: :func:`ofrl_drake.update_laws.gamma_rate`.
     """
     L = int(np.sqrt(gamma.shape[0]) + 0.5)
     G = np.empty((L, L))
