@@ -18,7 +18,8 @@ The names below are imported on first use, so ``import ofrl_drake`` (and the
 # the ``ofrl-drake`` command can handle a SIGINT from its first instant.
 import importlib
 
-__version__ = "0.1.0"
+# ``__version__`` is read on first use (``__getattr__``) from the installed
+# distribution's metadata, whose one source is ``version`` in pyproject.toml.
 
 #: Public name -> the module that defines it.
 _EXPORTS = {
@@ -62,6 +63,11 @@ __all__ = [
 
 def __getattr__(name: str) -> object:
     """Import a public name, or a submodule (``ofrl_drake.systems``), on first use."""
+    if name == "__version__":  # the version provenance records: ``not installed`` if so
+        from ofrl_drake.provenance import versions
+
+        globals()[name] = versions()["ofrl_drake"]
+        return globals()[name]
     if name in _EXPORTS:
         value = getattr(importlib.import_module(_EXPORTS[name]), name)
         globals()[name] = value

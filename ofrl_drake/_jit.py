@@ -11,4 +11,14 @@ division in the Bellman kernel). No kernel here divides by zero, and IEEE
 
 from __future__ import annotations
 
-JIT = {"cache": True, "error_model": "numpy"}
+from typing import Literal, TypedDict
+
+
+class JitOptions(TypedDict):
+    """The keyword arguments of ``numba.njit`` used here, typed so ``njit(**JIT)`` type-checks."""
+
+    cache: bool
+    error_model: Literal["python", "numpy"]
+
+
+JIT: JitOptions = {"cache": True, "error_model": "numpy"}

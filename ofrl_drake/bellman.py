@@ -21,13 +21,19 @@ Everything that does not depend on ``W`` is precomputed once per point set in
 :class:`PointFeatures`. The ``W``-dependent part is one compiled loop over
 the points (:func:`bellman_kernel`, numba ``@njit``) that accumulates both
 sums without forming per-point arrays, unless they are asked for
-(:func:`extrapolate`). The update laws themselves, :func:`critic_rate` and
+(:func:`extrapolate`); its packed arrays' rows are named by
+:func:`kernel_layout`. The update laws themselves, :func:`critic_rate` and
 :func:`gamma_rate`, are compiled too.
+
+This module is the fast path. The same laws written as the equations, in
+vectorized numpy, are :mod:`ofrl_drake.update_laws`, which the tests hold
+these kernels to.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -42,11 +48,15 @@ __all__ = [
     "BellmanExtrapolation",
     "BellmanSums",
     "Extrapolator",
+    "KernelLayout",
+    "PerPointRows",
+    "PointDataRows",
     "PointFeatures",
     "bellman_kernel",
     "critic_rate",
     "extrapolate",
     "gamma_rate",
+    "kernel_layout",
     "learning_condition",
     "point_features",
 ]
@@ -143,6 +153,134 @@ def point_features(
     )
 
 
+class PointDataRows(NamedTuple):
+    """Where each ``W``-independent quantity sits in the packed point data ``(rows, N)``.
+
+    One column per point. Built by :func:`kernel_layout`; :class:`Extrapolator`
+    fills the array and :func:`bellman_kernel` reads it.
+
+    Attributes
+    ----------
+    policy_input : slice
+        ``m L`` rows, input-major: row ``k L + a`` is
+        ``(grad sigma_i g_i)_{a k} / (2 lbar r_k)``, so ``D_k`` is ``W`` times
+        rows ``k L`` to ``k L + L - 1``.
+    input : slice
+        ``m L`` rows, input-major: ``(grad sigma_i g_i)_{a k}``.
+    drift : slice
+        ``L`` rows: ``grad sigma_i f_i``.
+    state_cost : int
+        The row of ``Q(x_i)``.
+    rows : int
+        The number of rows, ``2 m L + L + 1``.
+    """
+
+    policy_input: slice
+    input: slice
+    drift: slice
+    state_cost: int
+    rows: int
+
+
+class PerPointRows(NamedTuple):
+    """Where each per-point value sits in :func:`bellman_kernel`'s output ``(rows, N)``.
+
+    Attributes
+    ----------
+    D, u : slice
+        ``m`` rows each.
+    omega : slice
+        ``L`` rows.
+    delta, rho : int
+        One row each.
+    scaled : slice
+        ``L`` rows of scratch: ``omega / rho``.
+    tanh_D, expm1_D : int
+        One row each of scratch: ``tanh |D_k|`` and ``expm1(-2 |D_k|)``, one
+        input at a time.
+    rows : int
+        The number of rows, ``2 m + 2 L + 4``.
+    """
+
+    D: slice
+    u: slice
+    omega: slice
+    delta: int
+    rho: int
+    scaled: slice
+    tanh_D: int
+    expm1_D: int
+    rows: int
+
+
+class KernelLayout(NamedTuple):
+    """The sizes and row layouts of :func:`bellman_kernel`'s two packed arrays.
+
+    Attributes
+    ----------
+    num_inputs : int
+        m.
+    num_weights : int
+        L.
+    data : PointDataRows
+        The ``W``-independent point data.
+    per_point : PerPointRows
+        The per-point output and scratch.
+    """
+
+    num_inputs: int
+    num_weights: int
+    data: PointDataRows
+    per_point: PerPointRows
+
+
+def kernel_layout(num_inputs: int, num_weights: int) -> KernelLayout:
+    """The row layout of the packed arrays for ``m = num_inputs`` and ``L = num_weights``.
+
+    Each block starts where the one before it ends. :func:`bellman_kernel`
+    builds the same layout from ``m`` and ``L`` (this function, compiled), so
+    its callers pass two integers, not this tuple: numba types a tuple
+    argument on every call, which costs more than a small kernel's whole work.
+    """
+    m, L = num_inputs, num_weights
+    policy_input = slice(0, m * L)
+    inp = slice(policy_input.stop, policy_input.stop + m * L)
+    drift = slice(inp.stop, inp.stop + L)
+    state_cost = drift.stop
+    data = PointDataRows(
+        policy_input=policy_input,
+        input=inp,
+        drift=drift,
+        state_cost=state_cost,
+        rows=state_cost + 1,
+    )
+    D = slice(0, m)
+    u = slice(D.stop, D.stop + m)
+    omega = slice(u.stop, u.stop + L)
+    delta = omega.stop
+    rho = delta + 1
+    scaled = slice(rho + 1, rho + 1 + L)
+    tanh_D = scaled.stop
+    expm1_D = tanh_D + 1
+    per_point = PerPointRows(
+        D=D,
+        u=u,
+        omega=omega,
+        delta=delta,
+        rho=rho,
+        scaled=scaled,
+        tanh_D=tanh_D,
+        expm1_D=expm1_D,
+        rows=expm1_D + 1,
+    )
+    return KernelLayout(num_inputs=m, num_weights=L, data=data, per_point=per_point)
+
+
+#: :func:`kernel_layout` compiled, for the kernels only: numba cannot return
+#: the slices it holds to Python.
+_kernel_layout = njit(**JIT)(kernel_layout)
+
+
 @njit(**JIT)
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
     """``a @ b``, accumulated in four interleaved partial sums.
@@ -193,11 +331,9 @@ def bellman_kernel(
         The weights of the policy ``u_i`` (hence ``omega_i`` and ``U``): ``W``
         itself for the paper's law, the policy in force for policy iteration.
     data : (2 m L + L + 1, N)
-        The ``W``-independent point data, rows stacked: ``policy_input``
-        (``m L`` rows, ``(grad sigma_i g_i)^T / (2 lbar r_k)``, input-major,
-        so ``D_k = W @ policy_input[k]``), ``input`` (``m L`` rows,
-        ``(grad sigma_i g_i)^T``), ``drift`` (``L`` rows,
-        ``grad sigma_i f_i``) and ``Q(x_i)`` (one row).
+        The ``W``-independent point data, rows as in
+        ``kernel_layout(m, L).data`` (:class:`PointDataRows`):
+        ``policy_input``, ``input``, ``drift``, ``state_cost``.
     num_inputs : int
         m.
     weight : (m,)
@@ -206,9 +342,9 @@ def bellman_kernel(
     metric : (L,)
         ``rho_i = 1 + nu sum_a metric_a omega_ai^2``; ones for the paper's ``rho``.
     per_point : (2 m + 2 L + 4, N)
-        Output: rows ``D`` (m), ``u`` (m), ``omega`` (L), ``delta``, ``rho``,
-        then scratch: ``omega / rho`` (L), ``tanh |D_k|`` and
-        ``expm1(-2 |D_k|)`` (one input at a time).
+        Output, rows as in ``kernel_layout(m, L).per_point``
+        (:class:`PerPointRows`): ``D``, ``u``, ``omega``, ``delta``, ``rho``,
+        then scratch.
     critic_sum : (L,); gain_sum : (L, L)
         Outputs: the normalized sums.
     with_critic_sum : bool
@@ -220,15 +356,16 @@ def bellman_kernel(
     m = num_inputs
     L = W.shape[0]
     N = data.shape[1]
-    mL = m * L
-    # Row offsets of the blocks in ``data`` and ``per_point``.
-    inp0, drift0, cost_row = mL, 2 * mL, 2 * mL + L
-    u0, omega0 = m, 2 * m
-    delta_row, rho_row, scaled0 = 2 * m + L, 2 * m + L + 1, 2 * m + L + 2
-    delta = per_point[delta_row]
-    rho = per_point[rho_row]
-    tanh_D = per_point[scaled0 + L]
-    expm1_D = per_point[scaled0 + L + 1]
+    layout = _kernel_layout(m, L)
+    # First rows of the blocks in ``data`` and ``per_point``.
+    policy0, inp0 = layout.data.policy_input.start, layout.data.input.start
+    drift0, cost_row = layout.data.drift.start, layout.data.state_cost
+    rows = layout.per_point
+    D0, u0, omega0, scaled0 = rows.D.start, rows.u.start, rows.omega.start, rows.scaled.start
+    delta = per_point[rows.delta]
+    rho = per_point[rows.rho]
+    tanh_D = per_point[rows.tanh_D]
+    expm1_D = per_point[rows.expm1_D]
     for a in range(L):
         omega = per_point[omega0 + a]
         drift = data[drift0 + a]
@@ -238,13 +375,13 @@ def bellman_kernel(
         for i in range(N):
             delta[i] = data[cost_row, i]
     for k in range(m):
-        D = per_point[k]
+        D = per_point[D0 + k]
         u = per_point[u0 + k]
         for i in range(N):
             D[i] = 0.0
         for a in range(L):
             w = W_policy[a]
-            row = data[k * L + a]
+            row = data[policy0 + k * L + a]
             for i in range(N):
                 D[i] += w * row[i]
         # Two passes, each of independent calls (see tanh_log_cosh).
@@ -341,24 +478,26 @@ class Extrapolator:
         self.metric = metric
         inp = np.asarray(features.input, dtype=float)  # (m, L, N)
         m, L, N = inp.shape
+        layout = kernel_layout(m, L)
+        self._layout = layout
         # D_k = W @ policy_input[k], policy_input = input / (2 lbar r_k).
         policy_input = inp / (2.0 * self.input_bound * self.r)[:, None, None]
-        self._data = np.ascontiguousarray(
-            np.concatenate(
-                [
-                    policy_input.reshape(m * L, N),
-                    inp.reshape(m * L, N),
-                    np.asarray(features.drift, dtype=float),
-                    np.asarray(features.state_cost, dtype=float).reshape(1, N),
-                ]
-            )
-        )
-        self._shape = (m, L, N)
+        rows = layout.data
+        self._data = np.empty((rows.rows, N))
+        self._data[rows.policy_input] = policy_input.reshape(m * L, N)
+        self._data[rows.input] = inp.reshape(m * L, N)
+        self._data[rows.drift] = features.drift
+        self._data[rows.state_cost] = features.state_cost
         self._metric = np.ones(L) if metric is None else np.asarray(metric, dtype=float)
         if self._metric.shape != (L,) or not np.all(np.isfinite(self._metric) & (self._metric > 0)):
             raise ModelError(f"metric must hold {L} positive finite numbers; got {metric!r}.")
         self._weight = self.input_bound**2 * self.r
-        self._scratch = np.empty((2 * m + 2 * L + 4, N))
+        self._scratch = np.empty((layout.per_point.rows, N))
+
+    @property
+    def layout(self) -> KernelLayout:
+        """The rows of the packed point data and of the per-point values (:func:`kernel_layout`)."""
+        return self._layout
 
     def _run(
         self,
@@ -368,13 +507,12 @@ class Extrapolator:
         critic_sum: np.ndarray,
         gain_sum: np.ndarray,
     ) -> None:
-        m, _, _ = self._shape
         W = np.asarray(W, dtype=float)
         bellman_kernel(
             W,
             W if W_policy is None else np.asarray(W_policy, dtype=float),
             self._data,
-            m,
+            self._layout.num_inputs,
             self._weight,
             self.input_bound,
             self.nu,
@@ -386,7 +524,7 @@ class Extrapolator:
 
     def empty_sums(self) -> BellmanSums:
         """A :class:`BellmanSums` with uninitialized arrays."""
-        L = self._shape[1]
+        L = self._layout.num_weights
         return BellmanSums(np.empty(L), np.empty((L, L)))
 
     def sums_into(
@@ -412,14 +550,14 @@ class Extrapolator:
         weights in force (the critic's own under the paper's law).
         """
         Ws = np.ascontiguousarray(weights, dtype=float)
-        L = self._shape[1]
+        L = self._layout.num_weights
         if Ws.ndim != 2 or Ws.shape[1] != L:
             raise ModelError(f"weights must have shape (T, {L}); got {Ws.shape}.")
         out = np.empty(Ws.shape[0])
         _learning_conditions(
             Ws,
             self._data,
-            self._shape[0],
+            self._layout.num_inputs,
             self._weight,
             self.input_bound,
             self.nu,
@@ -440,18 +578,18 @@ class Extrapolator:
 
         ``W_policy``: the weights of the policy followed (default ``W``).
         """
-        m, L, _ = self._shape
+        rows = self._layout.per_point
         per_point = np.empty_like(self._scratch)  # its own, since the result keeps views of it
         out = self.empty_sums()
         self._run(W, W_policy, per_point, out.critic_sum, out.gain_sum)
         return BellmanExtrapolation(
             critic_sum=out.critic_sum,
             gain_sum=out.gain_sum,
-            D=per_point[:m],
-            u=per_point[m : 2 * m],
-            omega=per_point[2 * m : 2 * m + L],
-            delta=per_point[2 * m + L],
-            rho=per_point[2 * m + L + 1],
+            D=per_point[rows.D],
+            u=per_point[rows.u],
+            omega=per_point[rows.omega],
+            delta=per_point[rows.delta],
+            rho=per_point[rows.rho],
         )
 
 
@@ -541,7 +679,10 @@ def learning_condition(gain_sum: np.ndarray) -> float:
 
 @njit(**JIT)
 def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.ndarray) -> None:
-    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,)."""
+    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,).
+
+    The readable form: :func:`ofrl_drake.update_laws.critic_rate`.
+    """
     L = critic_sum.shape[0]
     for a in range(L):
         acc = 0.0
@@ -558,6 +699,7 @@ def gamma_rate(
 
     ``gamma`` and ``gain_sum`` (``S``) are flattened row-major (L*L,); so is
     ``out``, which is exactly symmetric, so Gamma stays symmetric to round-off.
+    The readable form: :func:`ofrl_drake.update_laws.gamma_rate`.
     """
     L = int(np.sqrt(gamma.shape[0]) + 0.5)
     G = np.empty((L, L))

@@ -27,7 +27,11 @@ def utc_now() -> str:
 
 
 def versions() -> dict[str, str]:
-    """Versions of ofrl_drake, Drake, numpy, scipy and Python (``"not installed"`` if absent)."""
+    """Versions of ofrl_drake, Drake, numpy, scipy and Python (``"not installed"`` if absent).
+
+    Read from the installed distributions' metadata; ofrl_drake's is
+    ``version`` in pyproject.toml, and ``ofrl_drake.__version__`` is this entry.
+    """
     return dict(_installed_versions())
 
 

@@ -1,4 +1,5 @@
-"""Bellman extrapolation: vectorized math against a per-point reference."""
+"""Bellman extrapolation and the update laws: the compiled kernels against the readable laws
+(ofrl_drake.update_laws), and those against a per-point loop written from the paper."""
 
 import numpy as np
 import pytest
@@ -6,18 +7,24 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ofrl_drake import PolynomialBasis
+from ofrl_drake import update_laws as laws
 from ofrl_drake.bellman import (
     Extrapolator,
     bellman_kernel,
+    critic_rate,
     extrapolate,
+    gamma_rate,
+    kernel_layout,
     learning_condition,
     point_features,
 )
 from ofrl_drake.cost import input_cost_from_D
 from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
+from ofrl_drake.learning import LearningGains, bounded_forgetting
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.policy import saturated_policy
+from ofrl_drake.systems import CriticWeights, GammaGain
 
 LBAR, NU = 3.0, 0.7
 
@@ -125,15 +132,15 @@ def test_kernel_without_critic_sum_gives_the_same_gain_sum_bits():
     W = np.random.default_rng(2).normal(size=basis.size) * 4.0  # |D| on both sides of 0.5
     full = ex(W)
     assert np.min(np.abs(full.D)) < 0.5 < np.max(np.abs(full.D))
-    per_point = np.full_like(ex._scratch, np.nan)
+    rows = ex.layout.per_point
+    per_point = np.full((rows.rows, X.shape[1]), np.nan)
     critic_sum, gain_sum = np.full(basis.size, -7.0), np.empty((basis.size, basis.size))
-    m = system.m
-    args = (W, W, ex._data, m, ex._weight, LBAR, NU, ex._metric, per_point, critic_sum, gain_sum)
-    bellman_kernel(*args, False)
+    args = (W, W, ex._data, system.m, ex._weight, LBAR, NU, ex._metric, per_point)
+    bellman_kernel(*args, critic_sum, gain_sum, False)
     np.testing.assert_array_equal(gain_sum, full.gain_sum)
-    np.testing.assert_array_equal(per_point[2 * m : 2 * m + basis.size], full.omega)
+    np.testing.assert_array_equal(per_point[rows.omega], full.omega)
     assert np.all(critic_sum == -7.0)  # untouched
-    assert np.all(np.isnan(per_point[2 * m + basis.size]))  # delta untouched
+    assert np.all(np.isnan(per_point[rows.delta]))  # delta untouched
 
 
 def test_learning_condition_is_min_eigenvalue():
@@ -184,3 +191,166 @@ def test_sums_alone_equal_the_full_extrapolation():
     first = extrapolator.sums(W)
     extrapolator.sums(2 * W)  # the scratch is reused; returned sums are not
     np.testing.assert_array_equal(first.critic_sum, sums.critic_sum)
+
+
+# ------------------------------------------- the readable laws (ofrl_drake.update_laws)
+LAW_CASES = [("two_state", "paper"), ("two_state", "policy_iteration")]
+LAW_CASES += [("coupled_two_state", "paper"), ("coupled_two_state", "policy_iteration")]
+
+
+def _random_case(name, law, seed):
+    """Random points, weights, R, nu and (under policy_iteration) a metric and a policy."""
+    rng = np.random.default_rng(seed)
+    system = make_system(name)
+    basis = PolynomialBasis(system.n)
+    L = basis.size
+    X = uniform_points(-np.ones(system.n), np.ones(system.n), 53, seed=seed)
+    F = point_features(system, basis, X, np.diag(rng.uniform(0.5, 5.0, system.n)))
+    W = rng.normal(size=L) * 3.0
+    W_policy = rng.normal(size=L) * 3.0 if law == "policy_iteration" else None
+    metric = rng.uniform(0.2, 5.0, L) if law == "policy_iteration" else None
+    r = rng.uniform(0.5, 2.0, system.m)
+    return F, W, W_policy, metric, r, rng.uniform(0.1, 2.0)
+
+
+def _close(actual, expected, rtol=1e-12):
+    """Equal to ``rtol`` of the largest entry of ``expected`` (sums and differences cancel)."""
+    np.testing.assert_allclose(actual, expected, rtol=rtol, atol=rtol * np.max(np.abs(expected)))
+
+
+def _random_spd(rng, L):
+    A = rng.normal(size=(L, L))
+    return A @ A.T + 0.5 * np.eye(L)
+
+
+@pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
+def test_readable_laws_match_the_per_point_reference(name):
+    system = make_system(name)
+    basis = PolynomialBasis(system.n)
+    X = uniform_points(-np.ones(system.n), np.ones(system.n), 40, seed=3)
+    W, Q = np.linspace(-0.5, 0.9, basis.size), 5 * np.eye(system.n)
+    r = np.linspace(1.0, 2.0, system.m)
+    F = point_features(system, basis, X, Q)
+    errors = laws.bellman_errors(F, W, laws.policy_weights("paper", W), r, LBAR)
+    sums = laws.normalized_sums(errors.omega, errors.delta, laws.normalization(errors.omega, NU))
+    s1, S2, deltas = _reference(system, basis, X, W, Q, r)
+    np.testing.assert_allclose(errors.delta, deltas, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sums.critic_sum, s1, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sums.gain_sum, S2, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize(("name", "law"), LAW_CASES)
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_extrapolation_matches_the_readable_laws(name, law, seed):
+    F, W, W_policy, metric, r, nu = _random_case(name, law, seed)
+    W_pi = laws.policy_weights(law, W, W_policy)
+    errors = laws.bellman_errors(F, W, W_pi, r, LBAR)
+    rho = laws.normalization(errors.omega, nu, metric)
+    expected = laws.normalized_sums(errors.omega, errors.delta, rho)
+    ex = Extrapolator(F, r, LBAR, nu, metric)
+    got = ex(W, W_policy)
+    for field in ("D", "u", "omega", "delta"):
+        _close(getattr(got, field), getattr(errors, field))
+    _close(got.rho, rho)
+    _close(got.critic_sum, expected.critic_sum, rtol=1e-11)
+    _close(got.gain_sum, expected.gain_sum, rtol=1e-11)
+    sums = ex.sums(W, W_policy)  # what the Bellman block computes
+    np.testing.assert_array_equal(sums.critic_sum, got.critic_sum)
+    np.testing.assert_array_equal(sums.gain_sum, got.gain_sum)
+    if law == "policy_iteration":  # the errors follow W_policy, not W: the laws differ here
+        assert np.max(np.abs(got.D - ex(W).D)) > 1e-3
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("L", [1, 3, 10])
+def test_compiled_rates_match_the_readable_laws(seed, L):
+    rng = np.random.default_rng(seed)
+    Gamma = _random_spd(rng, L) + 1e-3 * rng.normal(size=(L, L))  # not quite symmetric
+    S, s = _random_spd(rng, L), rng.normal(size=L)
+    kc, beta = rng.uniform(0.01, 2.0), rng.uniform(0.0, 1.0)
+    W_dot, Gamma_dot = np.empty(L), np.empty(L * L)
+    critic_rate(Gamma.ravel(), s, kc, W_dot)
+    gamma_rate(Gamma.ravel(), S.ravel(), kc, beta, Gamma_dot)
+    _close(W_dot, laws.critic_rate(Gamma, s, kc))
+    _close(Gamma_dot.reshape(L, L), laws.gamma_rate(Gamma, S, kc, beta))
+    assert np.max(np.abs(Gamma_dot.reshape(L, L) - beta * Gamma)) > 1e-6  # S mattered
+
+
+def _block_derivative(block, state, inputs):
+    context = block.CreateDefaultContext()
+    context.SetContinuousState(state)
+    for port, value in inputs:
+        port.FixValue(context, value)
+    return block.EvalTimeDerivatives(context).CopyToVector()
+
+
+@pytest.mark.parametrize(("name", "law"), LAW_CASES)
+@pytest.mark.parametrize("gamma_bound", [None, 1.5])
+def test_blocks_follow_the_readable_update_rates(name, law, gamma_bound):
+    """The compiled path the simulation takes (sums, critic and Gamma blocks): update_rates."""
+    F, W, W_policy, metric, r, nu = _random_case(name, law, seed=11)
+    rng = np.random.default_rng(7)
+    L = W.size
+    Gamma0, Gamma = _random_spd(rng, L), _random_spd(rng, L)
+    gains = LearningGains(kc=0.7, nu=nu, beta=0.4, Gamma0=Gamma0, gamma_bound=gamma_bound)
+    expected = laws.update_rates(
+        F, W, Gamma, gains, law=law, r=r, input_bound=LBAR, W_policy=W_policy, metric=metric
+    )
+    sums = Extrapolator(F, r, LBAR, nu, metric).sums(W, W_policy)
+    critic = CriticWeights(np.zeros(L), gains.kc)
+    W_dot = _block_derivative(
+        critic,
+        W,
+        [
+            (critic.get_critic_sum_input_port(), sums.critic_sum),
+            (critic.get_gamma_input_port(), Gamma.ravel()),
+        ],
+    )
+    gamma = GammaGain(Gamma0, gains.kc, gains.beta, gamma_bound)
+    Gamma_dot = _block_derivative(
+        gamma, Gamma.ravel(), [(gamma.get_gain_sum_input_port(), sums.gain_sum.ravel())]
+    )
+    _close(W_dot, expected.W_dot, rtol=1e-11)
+    _close(Gamma_dot.reshape(L, L), expected.Gamma_dot, rtol=1e-11)
+    if gamma_bound is None:
+        assert expected.beta == gains.beta
+    else:
+        ratio = np.trace(np.linalg.inv(Gamma0) @ Gamma) / L
+        assert expected.beta == pytest.approx(bounded_forgetting(0.4, ratio, 1.5), rel=1e-12)
+        assert expected.beta != pytest.approx(gains.beta, rel=1e-3)  # the bound acted
+
+
+def test_the_paper_law_is_policy_iteration_with_the_policy_at_the_critic():
+    F, W, _, _, r, nu = _random_case("coupled_two_state", "paper", seed=2)
+    gains = LearningGains(kc=1.0, nu=nu, beta=0.2, Gamma0=np.eye(W.size))
+    paper = laws.update_rates(F, W, np.eye(W.size), gains, law="paper", r=r, input_bound=LBAR)
+    same = laws.update_rates(
+        F, W, np.eye(W.size), gains, law="policy_iteration", r=r, input_bound=LBAR, W_policy=W
+    )
+    np.testing.assert_array_equal(paper.W_dot, same.W_dot)
+    np.testing.assert_array_equal(paper.Gamma_dot, same.Gamma_dot)
+
+
+def test_readable_laws_name_bad_arguments():
+    F, W, _, _, r, _ = _random_case("two_state", "paper", seed=0)
+    with pytest.raises(ModelError, match=r"law must be one of \['policy_iteration', 'paper'\]"):
+        laws.policy_weights("gradient", W)
+    with pytest.raises(ModelError, match=r"law 'policy_iteration' needs W_policy"):
+        laws.policy_weights("policy_iteration", W)
+    with pytest.raises(ModelError, match=r"W_policy must have shape \(L,\) = \(3,\); got \(4,\)"):
+        laws.bellman_errors(F, W, np.zeros(4), r, LBAR)
+    with pytest.raises(ModelError, match=r"gamma_bound = 2.0 needs Gamma0"):
+        laws.forgetting_factor(0.2, np.eye(3), None, 2.0)
+
+
+def test_kernel_layout_blocks_tile_both_arrays():
+    """Every row of both packed arrays belongs to exactly one named block."""
+    layout = kernel_layout(2, 5)
+    for rows, size in [(layout.data, 2 * 2 * 5 + 5 + 1), (layout.per_point, 2 * 2 + 2 * 5 + 4)]:
+        assert rows.rows == size
+        covered = []
+        for value in rows[:-1]:
+            block = value if isinstance(value, slice) else slice(value, value + 1)
+            covered.extend(range(size)[block])
+        assert sorted(covered) == list(range(size))
+    assert layout.data.drift == slice(20, 25) and layout.per_point.omega == slice(4, 9)

@@ -28,6 +28,7 @@ LAYERS = {
         "cost",
         "policy",
         "bellman",
+        "update_laws",
         "points",
         "sector",
         "observer",
