@@ -42,7 +42,10 @@ def design_observer(
     formulation: str = "polytopic",
     injection_gains: bool = True,
 ) -> ObserverDesign:
-    """Design certified observer gains by solving an LMI (see the module docstring).
+    """Design certified observer gains by solving an LMI.
+
+    The formulations are described in :mod:`ofrl_drake.design.formulations`,
+    the semidefinite program and its objectives in :mod:`ofrl_drake.design.sdp`.
 
     Parameters
     ----------
@@ -56,7 +59,8 @@ def design_observer(
         vertices, hence for every ``|u_k| <= input_bound``.
     alpha : float
         Decay rate: ``dV_e/dt <= -2 alpha V_e``, ``V_e = e^T P e`` (for
-        ``"paper"``, only in the sense of (lmi2); see the module docstring).
+        ``"paper"``, only in the sense of (lmi2); see
+        :mod:`ofrl_drake.design.formulations`).
     bounds : JacobianBounds, optional
         Precomputed bounds on a box containing ``box``; default: computed with
         ``jacobian_method``.
@@ -70,7 +74,7 @@ def design_observer(
     margin : float
         Strict margin: ``LMI <= -margin I`` at every vertex (and corner).
     objective : {"min_gain", "min_condition", "feasibility"}
-        See the module docstring; "min_gain" minimizes ``||R||_2`` (plus
+        See :mod:`ofrl_drake.design.sdp`; "min_gain" minimizes ``||R||_2`` (plus
         ``||[H K]||_F`` when ``H, K`` are free).
     max_gain : float, optional
         Enforce ``||L||_2 <= max_gain`` (through ``||R||_2 <= max_gain``).
