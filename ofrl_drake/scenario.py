@@ -454,6 +454,8 @@ def validate_scenario(scenario: Scenario) -> None:
     # Imported here: the registry imports model code, the scenario does not need it
     # for parsing.
     from ofrl_drake.basis import PolynomialBasis
+    from ofrl_drake.design import FORMULATIONS, SOLVERS
+    from ofrl_drake.jacobian_bounds import METHODS
     from ofrl_drake.plants import resolve_system
 
     if len(scenario.name) > MAX_NAME_LENGTH:
@@ -558,18 +560,19 @@ def validate_scenario(scenario: Scenario) -> None:
             f"observer.box.upper: must exceed observer.box.lower element-wise; got "
             f"lower={o.box.lower}, upper={o.box.upper}."
         )
-    if o.formulation not in ("polytopic", "paper"):
+    if o.formulation not in FORMULATIONS:
         raise ScenarioError(
-            f"observer.formulation: must be 'polytopic' or 'paper'; got {o.formulation!r}."
+            f"observer.formulation: must be {' or '.join(map(repr, FORMULATIONS))}; got "
+            f"{o.formulation!r}."
         )
-    if o.jacobian_method not in ("sampled", "certified"):
+    if o.jacobian_method not in METHODS:
         raise ScenarioError(
-            f"observer.jacobian_method: must be 'sampled' or 'certified'; got "
+            f"observer.jacobian_method: must be {' or '.join(map(repr, METHODS))}; got "
             f"{o.jacobian_method!r}."
         )
-    if o.solver not in ("clarabel", "scs", "csdp", "mosek"):
+    if o.solver not in SOLVERS:
         raise ScenarioError(
-            f"observer.solver: must be one of clarabel, scs, csdp, mosek; got {o.solver!r}."
+            f"observer.solver: must be one of {', '.join(SOLVERS)}; got {o.solver!r}."
         )
     pinned = [k for k in ("L", "H", "K") if getattr(o, k) is not None]
     if pinned and len(pinned) != 3:

@@ -19,7 +19,7 @@ from ofrl_drake.design import (
     design_observer,
     max_decay_rate,
 )
-from ofrl_drake.design_cvxpy import design_observer_cvxpy
+from ofrl_drake.design.driver import design_observer_cvxpy
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.examples import make_system
 from ofrl_drake.jacobian_bounds import BoxError, JacobianBounds, jacobian_bounds
@@ -587,7 +587,7 @@ def test_backends_agree_on_feasibility_with_scs(two_state, formulation, half, al
 def test_a_solution_that_fails_the_certificate_is_inaccurate_not_infeasible(
     two_state, bounds2, monkeypatch
 ):
-    import ofrl_drake.design as design_module
+    import ofrl_drake.design.pipeline as design_module
 
     real = design_module._solve
 

@@ -1,0 +1,227 @@
+"""The Drake backend: the observer SDP as a ``pydrake.solvers.MathematicalProgram``.
+
+Every LMI goes to ``AddLinearMatrixInequalityConstraint`` as its numeric
+coefficient matrices ``F_0 + sum_i z_i F_i``, read off the pure-numpy LMI
+blocks of the formulation (:meth:`ofrl_drake.design.formulations.Formulation.lmi_blocks`,
+assembled by :mod:`ofrl_drake.lmi`), which are affine in the decision variables
+``z``, so no symbolic matrix arithmetic is needed. Solvers: Clarabel, SCS,
+CSDP and MOSEK (with a licence).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydrake.solvers import (
+    ClarabelSolver,
+    CsdpSolver,
+    MathematicalProgram,
+    MosekSolver,
+    ScsSolver,
+    SolutionResult,
+)
+
+from ofrl_drake.design.errors import DesignError
+from ofrl_drake.design.formulations import FORMULATIONS
+from ofrl_drake.design.sdp import LmiProblem, SdpBackend, SdpSolution
+
+__all__ = ["DrakeBackend"]
+
+#: The solvers of this backend, by the names ``design_observer(solver=...)`` takes.
+_MAKERS = {
+    "clarabel": ClarabelSolver,
+    "scs": ScsSolver,
+    "csdp": CsdpSolver,
+    "mosek": MosekSolver,
+}
+#: SCS exit codes (scs.h) that Drake folds into its SolutionResult.
+_SCS_STATUS = {
+    1: "solved",
+    2: "solved inaccurate",
+    -1: "unbounded",
+    -2: "infeasible",
+    -3: "indeterminate",
+    -4: "interrupted",
+    -5: "signal",
+    -6: "unbounded inaccurate",
+    -7: "infeasible inaccurate",
+}
+# SCS (first order) needs tight tolerances to return numbers that certify.
+_DRAKE_OPTIONS: dict[str, dict[str, float | int]] = {
+    "scs": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iters": 200_000},
+}
+
+
+def _drake_solver(name: str) -> Any:
+    if name not in _MAKERS:
+        raise DesignError(f"solver must be one of {tuple(_MAKERS)}; got {name!r}.")
+    solver = _MAKERS[name]()
+    if not (solver.available() and solver.enabled()):
+        hint = " (MOSEK needs a licence: set MOSEKLM_LICENSE_FILE)" * (name == "mosek")
+        raise DesignError(
+            f"solver {name!r} is not usable here: available()="
+            f"{solver.available()}, enabled()={solver.enabled()}{hint}; use "
+            "solver='clarabel' or 'scs'."
+        )
+    return solver
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where each unknown sits in the decision vector ``z`` of the Drake program.
+
+    ``z = [vech(P), vec(R), vec(H), vec(K), t, s]``, each part present only
+    when it is a variable: ``R`` unless ``L`` is pinned, ``H, K`` unless
+    pinned, ``t`` for ``min_gain``, ``s`` for ``min_gain`` with free ``H, K``
+    and for ``min_condition``.
+    """
+
+    problem: LmiProblem
+    names: tuple[tuple[str, int], ...]
+
+    @classmethod
+    def of(cls, problem: LmiProblem) -> _Layout:
+        """The layout of ``problem``'s unknowns."""
+        n, q = problem.n, problem.q
+        names = [("P", n * (n + 1) // 2)]
+        if problem.L is None:
+            names.append(("R", n * q))
+        if problem.HK is None:
+            names += [("H", n * q), ("K", n * q)]
+        if problem.objective == "min_gain":
+            names.append(("t", 1))
+            if problem.HK is None:
+                names.append(("s", 1))
+        elif problem.objective == "min_condition":
+            names.append(("s", 1))
+        return cls(problem, tuple(names))
+
+    @property
+    def size(self) -> int:
+        """Length of ``z``."""
+        return sum(k for _, k in self.names)
+
+    def unpack(self, z: np.ndarray) -> dict[str, Any]:
+        """``P, R, H, K`` (and ``t, s`` if present) from ``z``; affine in ``z``."""
+        n, q, p = self.problem.n, self.problem.q, self.problem
+        parts: dict[str, Any] = {}
+        pos = 0
+        for name, k in self.names:
+            parts[name] = z[pos : pos + k]
+            pos += k
+        P = np.zeros((n, n))
+        rows, cols = np.triu_indices(n)
+        P[rows, cols] = parts["P"]
+        P[cols, rows] = parts["P"]
+        out: dict[str, Any] = {"P": P}
+        out["R"] = parts["R"].reshape(n, q) if p.L is None else P @ p.L
+        if p.HK is None:
+            out["H"] = parts["H"].reshape(n, q)
+            out["K"] = parts["K"].reshape(n, q)
+        else:
+            out["H"], out["K"] = p.HK
+        for name in ("t", "s"):
+            if name in parts:
+                out[name] = float(parts[name][0])
+        return out
+
+
+def _psd_blocks(problem: LmiProblem, v: dict[str, Any]) -> list[np.ndarray]:
+    """Every matrix the SDP asks to be positive semidefinite, at the numbers ``v``.
+
+    Affine in the decision vector (see :class:`_Layout`), so the Drake backend
+    reads the coefficient matrices ``F_i`` off it.
+    """
+    n, q = problem.n, problem.q
+    P, R, H, K = v["P"], v["R"], v["H"], v["K"]
+    eye = np.eye(n)
+    blocks = [P - eye]
+    blocks += FORMULATIONS[problem.formulation].lmi_blocks(problem, P, R, H, K)
+    if problem.max_gain is not None:
+        g = float(problem.max_gain)
+        blocks.append(np.block([[g * eye, R], [R.T, g * np.eye(q)]]))
+    if problem.objective == "min_gain":
+        t = v["t"]
+        blocks.append(np.block([[t * eye, R], [R.T, t * np.eye(q)]]))
+        if problem.HK is None:
+            s = v["s"]
+            w = np.concatenate([H.ravel(), K.ravel()])[:, None]
+            blocks.append(np.block([[np.array([[s]]), w.T], [w, s * np.eye(w.shape[0])]]))
+    elif problem.objective == "min_condition":
+        blocks.append(v["s"] * eye - P)
+    return [0.5 * (B + B.T) for B in blocks]
+
+
+def _drake_program(problem: LmiProblem) -> tuple[MathematicalProgram, np.ndarray, _Layout]:
+    """The SDP as a ``MathematicalProgram``; returns it, ``z`` and its layout.
+
+    Each LMI ``F_0 + sum_i z_i F_i >= 0`` is added with its numeric ``F_i``:
+    ``F_0`` is :func:`_psd_blocks` at ``z = 0`` and ``F_i`` its change at the
+    unit vector ``e_i`` (exact for an affine map), keeping only the variables
+    that appear in that block.
+    """
+    layout = _Layout.of(problem)
+    prog = MathematicalProgram()
+    z = np.concatenate([prog.NewContinuousVariables(k, name) for name, k in layout.names])
+    N = layout.size
+    F0 = _psd_blocks(problem, layout.unpack(np.zeros(N)))
+    Fi = [
+        [B - B0 for B, B0 in zip(_psd_blocks(problem, layout.unpack(e)), F0, strict=True)]
+        for e in np.eye(N)
+    ]
+    for j, B0 in enumerate(F0):
+        used = [i for i in range(N) if np.any(Fi[i][j])]
+        prog.AddLinearMatrixInequalityConstraint([B0] + [Fi[i][j] for i in used], z[used])
+    if problem.objective in ("min_gain", "min_condition"):
+        cost = np.zeros(N)
+        pos = 0
+        for name, k in layout.names:
+            if name in ("t", "s"):
+                cost[pos] = 1.0
+            pos += k
+        prog.AddLinearCost(cost, 0.0, z)
+    return prog, z, layout
+
+
+class DrakeBackend(SdpBackend):
+    """The SDP as a Drake ``MathematicalProgram``, solved by a Drake solver."""
+
+    name = "drake"
+    solvers = tuple(_MAKERS)
+
+    def solve(self, problem: LmiProblem, solver: str) -> SdpSolution:
+        """Build and solve ``problem`` with ``pydrake.solvers.MathematicalProgram``.
+
+        Raises
+        ------
+        DesignError
+            For an unknown solver or one not usable here (MOSEK without licence).
+        """
+        drake_solver = _drake_solver(solver)
+        start = time.perf_counter()
+        prog, z, layout = _drake_program(problem)
+        for key, value in _DRAKE_OPTIONS.get(solver, {}).items():
+            prog.SetSolverOption(drake_solver.solver_id(), key, value)
+        result = drake_solver.Solve(prog)
+        elapsed = time.perf_counter() - start
+        code = result.get_solution_result()
+        status = code.name
+        details = result.get_solver_details()
+        if hasattr(details, "status") and isinstance(details.status, str):
+            status = f"{status} ({details.status})"
+        scs = getattr(details, "scs_status", None)
+        if scs is not None:
+            # Drake reports SCS's "solved inaccurate" (2) as kSolutionFound; say which.
+            name = _SCS_STATUS.get(int(scs), f"code {int(scs)}")
+            status = f"{status} (SCS: {name}, {details.iter} iterations)"
+        infeasible = code in (
+            SolutionResult.kInfeasibleConstraints,
+            SolutionResult.kInfeasibleOrUnbounded,
+        )
+        if infeasible:
+            return SdpSolution(None, None, None, None, status, True, elapsed)
+        v = layout.unpack(np.asarray(result.GetSolution(z), dtype=float))
+        return SdpSolution(v["P"], v["R"], v["H"], v["K"], status, False, elapsed)

@@ -1,0 +1,186 @@
+"""The observer design's entry point: :func:`design_observer`.
+
+It checks its arguments, builds the SDP of the chosen formulation
+(:mod:`ofrl_drake.design.formulations`), solves it with the chosen backend
+(:mod:`ofrl_drake.design.backends`) and returns the numbers as an
+:class:`~ofrl_drake.design.result.ObserverDesign` only if they certify in numpy
+(:mod:`ofrl_drake.design.pipeline`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ofrl_drake.design.backends import SOLVERS, get_backend
+from ofrl_drake.design.errors import DesignError
+from ofrl_drake.design.formulations import get_formulation
+from ofrl_drake.design.pipeline import _box_and_bounds, _check_numbers, _finish, _problem
+from ofrl_drake.design.result import ObserverDesign
+from ofrl_drake.design.sdp import DEFAULT_MARGIN
+from ofrl_drake.jacobian_bounds import JacobianBounds
+from ofrl_drake.model import ControlAffineSystem
+
+__all__ = ["design_observer", "design_observer_cvxpy"]
+
+
+def design_observer(
+    system: ControlAffineSystem,
+    box: Any,
+    input_bound: float,
+    alpha: float,
+    *,
+    bounds: JacobianBounds | None = None,
+    jacobian_method: str = "certified",
+    solver: str = "clarabel",
+    margin: float = DEFAULT_MARGIN,
+    objective: str = "min_gain",
+    max_gain: float | None = None,
+    backend: str = "drake",
+    sector: str = "sign_correct",
+    formulation: str = "polytopic",
+    injection_gains: bool = True,
+) -> ObserverDesign:
+    """Design certified observer gains by solving an LMI.
+
+    The formulations are described in :mod:`ofrl_drake.design.formulations`,
+    the semidefinite program and its objectives in :mod:`ofrl_drake.design.sdp`.
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The plant.
+    box : Box or (lower, upper)
+        Compact set where the Jacobian bounds hold; ``x`` and ``x-hat`` must
+        stay in it for the certificate to apply.
+    input_bound : float
+        ``lambda_bar``; one common set of gains is certified at all 3**m
+        vertices, hence for every ``|u_k| <= input_bound``.
+    alpha : float
+        Decay rate: ``dV_e/dt <= -2 alpha V_e``, ``V_e = e^T P e`` (for
+        ``"paper"``, only in the sense of (lmi2); see
+        :mod:`ofrl_drake.design.formulations`).
+    bounds : JacobianBounds, optional
+        Precomputed bounds on a box containing ``box``; default: computed with
+        ``jacobian_method``.
+    jacobian_method : {"certified", "sampled"}
+        How to compute ``bounds`` when they are not given. ``"certified"``
+        (default) gives guaranteed interval enclosures, so a decay certificate
+        is a proof; ``"sampled"`` is an inner estimate, faster but not a
+        guarantee (see :attr:`ObserverDesign.bounds_are_guaranteed`).
+    solver : {"clarabel", "scs", "csdp", "mosek"}
+        SDP solver (the cvxpy backend accepts "clarabel" and "scs").
+    margin : float
+        Strict margin: ``LMI <= -margin I`` at every vertex (and corner).
+    objective : {"min_gain", "min_condition", "feasibility"}
+        See :mod:`ofrl_drake.design.sdp`; "min_gain" minimizes ``||R||_2`` (plus
+        ``||[H K]||_F`` when ``H, K`` are free).
+    max_gain : float, optional
+        Enforce ``||L||_2 <= max_gain`` (through ``||R||_2 <= max_gain``).
+    backend : {"drake", "cvxpy"}
+        Modelling layer.
+    sector : {"sign_correct", "paper"}
+        Input sector of the ``"paper"`` formulation; "paper" reproduces the
+        paper's literal (aug_jac_g), valid only for ``u >= 0``.
+    formulation : {"polytopic", "paper"}
+        ``"polytopic"``: the sound decay certificate with ``H = K = 0``.
+        ``"paper"``: the paper's (lmi2).
+    injection_gains : bool
+        ``"paper"`` only: False pins ``H = K = 0`` (a linear Luenberger observer
+        checked against (lmi2)). The polytopic formulation always has ``H = K =
+        0`` and ignores it.
+
+    Returns
+    -------
+    ObserverDesign
+        Certified: :attr:`ObserverDesign.is_certified` is True (and, for
+        ``"polytopic"``, so is :attr:`ObserverDesign.is_decay_certified`).
+
+    Raises
+    ------
+    ObserverDesignInfeasible
+        If the solver reports infeasibility or the numbers do not certify.
+    DesignError
+        For an unknown solver, backend, objective, sector or formulation, a
+        solver that is not usable here (MOSEK without licence), bounds that do
+        not match, or too many corners for the polytopic formulation.
+
+    Examples
+    --------
+    >>> from ofrl_drake.examples import make_system
+    >>> d = design_observer(make_system("two_state"), ([-2, -2], [2, 2]), 3.0, 0.5)
+    >>> d.is_certified, d.is_decay_certified, d.condition_number < 1e3
+    (True, True, True)
+    >>> p = design_observer(make_system("two_state"), ([-2, -2], [2, 2]), 3.0, 2.0,
+    ...                     formulation="paper")
+    >>> p.is_certified, p.is_decay_certified
+    (True, False)
+    """
+    if solver not in SOLVERS:
+        raise DesignError(f"solver must be one of {SOLVERS}; got {solver!r}.")
+    get_backend(backend)
+    get_formulation(formulation, sector)
+    alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
+    box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
+    n, q = system.n, system.q
+    pinned = None if injection_gains else (np.zeros((n, q)), np.zeros((n, q)))
+    problem = _problem(
+        system.output_matrix,
+        bounds,
+        input_bound,
+        alpha,
+        margin,
+        objective,
+        max_gain,
+        sector,
+        formulation,
+        HK=pinned,
+    )
+    return _finish(
+        ObserverDesign, problem, bounds, box, input_bound, solver, backend, sector, max_gain
+    )
+
+
+def design_observer_cvxpy(
+    system: ControlAffineSystem,
+    box: Any,
+    input_bound: float,
+    alpha: float,
+    *,
+    bounds: JacobianBounds | None = None,
+    jacobian_method: str = "certified",
+    solver: str = "clarabel",
+    margin: float = DEFAULT_MARGIN,
+    objective: str = "min_gain",
+    max_gain: float | None = None,
+    sector: str = "sign_correct",
+    formulation: str = "polytopic",
+    injection_gains: bool = True,
+) -> ObserverDesign:
+    """:func:`design_observer` with ``backend="cvxpy"``.
+
+    Parameters and exceptions are those of :func:`design_observer`; ``solver``
+    is "clarabel" or "scs".
+
+    Returns
+    -------
+    ObserverDesign
+        Certified, with ``backend == "cvxpy"``.
+    """
+    return design_observer(
+        system,
+        box,
+        input_bound,
+        alpha,
+        bounds=bounds,
+        jacobian_method=jacobian_method,
+        solver=solver,
+        margin=margin,
+        objective=objective,
+        max_gain=max_gain,
+        backend="cvxpy",
+        sector=sector,
+        formulation=formulation,
+        injection_gains=injection_gains,
+    )

@@ -1,0 +1,331 @@
+"""The LMI formulations of the observer design, each a :class:`Formulation` object.
+
+A formulation owns everything that differs between the two ways of posing the
+observer LMI: the SDP data it needs (:meth:`Formulation.problem`), its LMI
+blocks in each backend (:meth:`Formulation.lmi_blocks`,
+:meth:`Formulation.cvxpy_blocks`) and the numpy re-check of a design's numbers
+(:meth:`Formulation.certificate`, :meth:`Formulation.is_certified`).
+:data:`FORMULATIONS` holds them by name (``design_observer(formulation=...)``).
+
+``"polytopic"`` (default): a sound decay certificate.
+    ``H = K = 0`` are fixed; the error then obeys ``e' = (M_f + M_gu - L C) e``
+    with ``M_f + M_gu`` in the element-wise box ``[M_f1 + M_ug1(u), M_f2 +
+    M_ug2(u)]`` (the row-wise mean value theorem; :mod:`ofrl_drake.lmi`), and
+    ``P A_cl`` is linear in ``P`` and ``R = P L``. One common ``(P, R)`` is asked
+    to satisfy
+
+        A^T P + P A - C^T R^T - R C + 2 alpha P <= -margin I
+
+    at every corner ``A`` of that box and every input vertex
+    ``u_k in {-input_bound, 0, +input_bound}``
+    (:func:`ofrl_drake.lmi.corner_matrices`); by convexity this gives
+    ``dV/dt <= -2 alpha V`` for ``V = e^T P e``, every ``x, xhat`` in the box and
+    every ``|u_k| <= input_bound``. Feasible only for rates the plant allows: on
+    the two-state example no quadratic ``V`` certifies ``alpha >= 1``.
+``"paper"``: the paper's (lmi2), exactly as stated, with the sign-correct input
+    sector, at the ``3**m`` input vertices (docs/paper_notes.md, "one set of gains"), linear
+    in ``(P, R, H, K)``. It is the paper's method, kept for reproduction and
+    comparison, but it is not a decay certificate for nonlinear plants (a design
+    that satisfies it at alpha = 2 on the two-state example has ``dV/dt = +39 V``
+    at some states; see :mod:`ofrl_drake.lmi`). ``injection_gains=False`` pins
+    ``H = K = 0`` (a linear Luenberger observer certified by (lmi2)).
+
+Every design also carries the polytopic decay certificate of its own numbers
+(:meth:`~ofrl_drake.design.ObserverDesign.decay_certificate`), so a "paper"
+design says honestly whether it certifies decay.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from ofrl_drake.design.errors import DesignError
+from ofrl_drake.design.sdp import LmiProblem
+from ofrl_drake.jacobian_bounds import JacobianBounds
+from ofrl_drake.lmi import (
+    MAX_CORNERS,
+    SECTORS,
+    LmiError,
+    certificate,
+    corner_count,
+    corner_matrices,
+    is_certified,
+    lmi2_blocks,
+    polytopic_lmi,
+    vertex_data,
+)
+from ofrl_drake.sector import input_vertices
+
+if TYPE_CHECKING:
+    from ofrl_drake.design.result import ObserverDesign
+
+__all__ = [
+    "FORMULATIONS",
+    "Formulation",
+    "PaperFormulation",
+    "PolytopicFormulation",
+    "get_formulation",
+]
+
+
+def _sym(M: Any) -> Any:
+    return 0.5 * (M + M.T)
+
+
+class Formulation(ABC):
+    """One way to pose the observer LMI: its SDP data, LMI blocks and numpy re-check.
+
+    Attributes
+    ----------
+    name : str
+        Its key in :data:`FORMULATIONS` and in ``ObserverDesign.formulation``.
+    """
+
+    name: ClassVar[str]
+
+    def check_sector(self, sector: str) -> None:
+        """Raise :class:`DesignError` unless ``sector`` can be used with this formulation."""
+        if sector not in SECTORS:
+            raise DesignError(f"sector must be one of {SECTORS}; got {sector!r}.")
+
+    @abstractmethod
+    def problem(
+        self,
+        C: np.ndarray,
+        bounds: JacobianBounds,
+        input_bound: float,
+        alpha: float,
+        margin: float,
+        objective: str,
+        max_gain: float | None,
+        sector: str,
+        *,
+        L: np.ndarray | None = None,
+        HK: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> LmiProblem:
+        """The SDP data of this formulation (arguments checked by the caller).
+
+        Parameters
+        ----------
+        C : ndarray, shape (q, n)
+            Output matrix.
+        bounds : JacobianBounds
+            The Jacobian bounds.
+        input_bound, alpha, margin : float
+            ``|u_k| <= input_bound``, decay rate, strict margin.
+        objective : str
+            One of :data:`ofrl_drake.design.sdp.OBJECTIVES`.
+        max_gain : float or None
+            Cap on ``||R||_2``.
+        sector : str
+            The input sector (checked by :meth:`check_sector`).
+        L, HK : optional
+            Pinned gains (see :class:`~ofrl_drake.design.sdp.LmiProblem`).
+
+        Raises
+        ------
+        DesignError
+            If the formulation cannot be set up (too many corners).
+        """
+
+    @abstractmethod
+    def lmi_blocks(
+        self, problem: LmiProblem, P: np.ndarray, R: np.ndarray, H: np.ndarray, K: np.ndarray
+    ) -> list[np.ndarray]:
+        """The matrices ``-LMI - margin I`` that must be positive semidefinite, in numpy.
+
+        Built from :mod:`ofrl_drake.lmi`'s assembly and affine in ``P, R, H,
+        K``, so the Drake backend reads its coefficient matrices off them.
+        """
+
+    @abstractmethod
+    def cvxpy_blocks(self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any) -> list[Any]:
+        """The same matrices as cvxpy expressions, for cvxpy variables ``P, R`` (``H, K``).
+
+        Written in cvxpy expressions directly, independently of the numpy
+        assembly of :meth:`lmi_blocks`, so agreement of the two backends is a
+        check of both.
+        """
+
+    @abstractmethod
+    def certificate(self, design: ObserverDesign) -> list[tuple[np.ndarray, float]]:
+        """``(u vertex, max eigenvalue)`` of this formulation's LMI at ``design``'s numbers."""
+
+    @abstractmethod
+    def is_certified(self, design: ObserverDesign) -> bool:
+        """True if ``design``'s ``P`` is positive definite and :meth:`certificate` is negative."""
+
+
+class PolytopicFormulation(Formulation):
+    """The sound decay certificate over every corner of the Jacobian bounds, ``H = K = 0``.
+
+    Its LMI is ``A^T P + P A - C^T R^T - R C + 2 alpha P <= -margin I`` at every
+    corner matrix ``A``; its certificate is the decay certificate.
+    """
+
+    name = "polytopic"
+
+    def check_sector(self, sector: str) -> None:
+        """Only the sign-correct input sector."""
+        super().check_sector(sector)
+        if sector != "sign_correct":
+            raise DesignError(
+                f"sector={sector!r} applies to formulation='paper' only; the polytopic "
+                "formulation always uses the sign-correct input sector."
+            )
+
+    def problem(
+        self,
+        C: np.ndarray,
+        bounds: JacobianBounds,
+        input_bound: float,
+        alpha: float,
+        margin: float,
+        objective: str,
+        max_gain: float | None,
+        sector: str,
+        *,
+        L: np.ndarray | None = None,
+        HK: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> LmiProblem:
+        """The distinct corner matrices over all input vertices, built with ``H, K`` (0 if None).
+
+        Raises
+        ------
+        DesignError
+            If there are more than :data:`ofrl_drake.lmi.MAX_CORNERS` corners.
+        """
+        n, q = C.shape[1], C.shape[0]
+        if HK is None:
+            HK = (np.zeros((n, q)), np.zeros((n, q)))
+        us = input_vertices(input_bound, bounds.m)
+        try:
+            total = sum(corner_count(bounds, u, *HK, C) for u in us)
+            if total > MAX_CORNERS:
+                raise LmiError(
+                    f"{total} corner matrices over {len(us)} input vertices, more than "
+                    f"MAX_CORNERS = {MAX_CORNERS}; tighten the Jacobian bounds, use a "
+                    "smaller box or formulation='paper'."
+                )
+            stacks = [corner_matrices(bounds, u, *HK, C) for u in us]
+        except LmiError as err:
+            raise DesignError(f"formulation='polytopic': {err}") from err
+        corners = np.unique(np.concatenate(stacks), axis=0)
+        return LmiProblem(self.name, C, [], corners, alpha, margin, objective, max_gain, L, HK)
+
+    def lmi_blocks(
+        self, problem: LmiProblem, P: np.ndarray, R: np.ndarray, H: np.ndarray, K: np.ndarray
+    ) -> list[np.ndarray]:
+        """One block per corner, from :func:`ofrl_drake.lmi.polytopic_lmi`."""
+        M = polytopic_lmi(P, R, problem.corners, problem.C, problem.alpha)
+        return list(-M - problem.margin * np.eye(problem.n))
+
+    def cvxpy_blocks(self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any) -> list[Any]:
+        """One block per corner."""
+        C, eye = problem.C, np.eye(problem.n)
+        blocks = []
+        for A in problem.corners:
+            M = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
+            blocks.append(_sym(-M) - problem.margin * eye)
+        return blocks
+
+    def certificate(self, design: ObserverDesign) -> list[tuple[np.ndarray, float]]:
+        """The decay certificate (:meth:`ObserverDesign.decay_certificate`)."""
+        return design.decay_certificate()
+
+    def is_certified(self, design: ObserverDesign) -> bool:
+        """:attr:`ObserverDesign.is_decay_certified`."""
+        return design.is_decay_certified
+
+
+class PaperFormulation(Formulation):
+    """The paper's (lmi2) at the ``3**m`` input vertices, in the chosen input sector."""
+
+    name = "paper"
+
+    def problem(
+        self,
+        C: np.ndarray,
+        bounds: JacobianBounds,
+        input_bound: float,
+        alpha: float,
+        margin: float,
+        objective: str,
+        max_gain: float | None,
+        sector: str,
+        *,
+        L: np.ndarray | None = None,
+        HK: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> LmiProblem:
+        """The constant matrices of (lmi2) at each input vertex.
+
+        From :func:`ofrl_drake.lmi.vertex_data` in the given input ``sector``.
+        """
+        n = C.shape[1]
+        vertices = []
+        for u in input_vertices(input_bound, bounds.m):
+            A, Jf21, Jg21 = vertex_data(bounds, u, sector)
+            vertices.append((u, A, Jf21, Jg21))
+        corners = np.zeros((0, n, n))
+        return LmiProblem(
+            self.name, C, vertices, corners, alpha, margin, objective, max_gain, L, HK
+        )
+
+    def lmi_blocks(
+        self, problem: LmiProblem, P: np.ndarray, R: np.ndarray, H: np.ndarray, K: np.ndarray
+    ) -> list[np.ndarray]:
+        """One ``2n x 2n`` block per input vertex, from :func:`ofrl_drake.lmi.lmi2_blocks`."""
+        n, C = problem.n, problem.C
+        blocks = []
+        for _, A, Jf21, Jg21 in problem.vertices:
+            M = lmi2_blocks(P, R, H, K, C, A, Jf21, Jg21, problem.alpha)
+            blocks.append(-M - problem.margin * np.eye(2 * n))
+        return blocks
+
+    def cvxpy_blocks(self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any) -> list[Any]:
+        """One ``2n x 2n`` block per input vertex."""
+        import cvxpy as cp  # on first use: the Drake backend does not pay its import time
+
+        n, C = problem.n, problem.C
+        eye = np.eye(n)
+        blocks = []
+        for _, A, Jf21, Jg21 in problem.vertices:
+            J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
+            M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
+            M21 = P - J21
+            M = cp.bmat([[M11, M21.T], [M21, -2.0 * eye]])
+            blocks.append(_sym(-M) - problem.margin * np.eye(2 * n))
+        return blocks
+
+    def certificate(self, design: ObserverDesign) -> list[tuple[np.ndarray, float]]:
+        """The (lmi2) eigenvalues at each input vertex (:func:`ofrl_drake.lmi.certificate`)."""
+        return certificate(*design._numbers(), design.sector)
+
+    def is_certified(self, design: ObserverDesign) -> bool:
+        """:func:`ofrl_drake.lmi.is_certified`."""
+        return is_certified(*design._numbers(), design.sector)
+
+
+#: The formulations by name; the first is the default.
+FORMULATIONS: dict[str, Formulation] = {
+    f.name: f for f in (PolytopicFormulation(), PaperFormulation())
+}
+
+
+def get_formulation(name: str, sector: str = "sign_correct") -> Formulation:
+    """The formulation called ``name``, checked against the input ``sector``.
+
+    Raises
+    ------
+    DesignError
+        For an unknown formulation or sector, or a sector the formulation
+        does not take.
+    """
+    if name not in FORMULATIONS:
+        raise DesignError(f"formulation must be one of {tuple(FORMULATIONS)}; got {name!r}.")
+    formulation = FORMULATIONS[name]
+    formulation.check_sector(sector)
+    return formulation

@@ -1,0 +1,205 @@
+"""The steps every observer design takes, from checked inputs to a certified design.
+
+Check the numbers, the box and the Jacobian bounds; build the SDP of the
+formulation (:mod:`ofrl_drake.design.formulations`); solve it with a backend
+(:mod:`ofrl_drake.design.backends`); and keep the numbers only if they certify.
+Whatever the solver reports, the returned numbers are accepted only if the
+certificate of the formulation, recomputed in numpy from ``P, L, H, K, C`` and
+the bounds alone, is negative at every vertex; otherwise
+:class:`~ofrl_drake.design.ObserverDesignInfeasible` (or its subclass
+:class:`~ofrl_drake.design.ObserverDesignInaccurate`) is raised.
+
+Shared by :func:`ofrl_drake.design.design_observer` and
+:meth:`ofrl_drake.design.ObserverDesign.from_gains`, which passes its own class.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ofrl_drake.design.backends import get_backend
+from ofrl_drake.design.errors import DesignError, ObserverDesignInaccurate, ObserverDesignInfeasible
+from ofrl_drake.design.formulations import get_formulation
+from ofrl_drake.design.sdp import OBJECTIVES, LmiProblem, SdpSolution
+from ofrl_drake.jacobian_bounds import Box, JacobianBounds, jacobian_bounds
+from ofrl_drake.model import ControlAffineSystem
+
+if TYPE_CHECKING:
+    from ofrl_drake.design.result import ObserverDesign
+
+
+def _check_numbers(alpha: float, input_bound: float, margin: float) -> tuple[float, float, float]:
+    for name, value in (
+        ("alpha", alpha),
+        ("input_bound", input_bound),
+        ("margin", margin),
+    ):
+        if not isinstance(value, int | float | np.floating | np.integer) or not (
+            math.isfinite(value) and value >= 0
+        ):
+            raise DesignError(f"{name} must be a finite number >= 0; got {value!r}.")
+    return float(alpha), float(input_bound), float(margin)
+
+
+def _box_and_bounds(
+    system: ControlAffineSystem,
+    box: Any,
+    bounds: JacobianBounds | None,
+    jacobian_method: str,
+) -> tuple[Box, JacobianBounds]:
+    box = Box.coerce(box, system.n)
+    if bounds is None:
+        return box, jacobian_bounds(system, box, jacobian_method)
+    if not isinstance(bounds, JacobianBounds):
+        raise DesignError(f"bounds must be a JacobianBounds; got {type(bounds).__name__}.")
+    if bounds.Mg1.shape != (system.n, system.n, system.m):
+        raise DesignError(
+            f"bounds are for n = {bounds.n}, m = {bounds.m} but the system has "
+            f"n = {system.n}, m = {system.m}."
+        )
+    inside = np.all(bounds.box.lower <= box.lower) and np.all(box.upper <= bounds.box.upper)
+    if not inside:
+        raise DesignError(
+            f"bounds hold on {bounds.box!r}, which does not contain the design "
+            f"box {box!r}; recompute them on the design box."
+        )
+    return box, bounds
+
+
+def _problem(
+    C: np.ndarray,
+    bounds: JacobianBounds,
+    input_bound: float,
+    alpha: float,
+    margin: float,
+    objective: str,
+    max_gain: float | None,
+    sector: str,
+    formulation: str,
+    *,
+    L: np.ndarray | None = None,
+    HK: tuple[np.ndarray, np.ndarray] | None = None,
+) -> LmiProblem:
+    form = get_formulation(formulation, sector)
+    if objective not in OBJECTIVES:
+        raise DesignError(f"objective must be one of {OBJECTIVES}; got {objective!r}.")
+    if max_gain is not None and not (math.isfinite(max_gain) and max_gain > 0):
+        raise DesignError(f"max_gain must be a positive number; got {max_gain!r}.")
+    return form.problem(
+        C, bounds, input_bound, alpha, margin, objective, max_gain, sector, L=L, HK=HK
+    )
+
+
+def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
+    hint = "try a smaller alpha, a smaller box, a smaller input bound"
+    if max_gain is not None:
+        hint += ", a larger max_gain"
+    if inaccurate:
+        hint += ", a larger margin or a more accurate solver ('clarabel')"
+    return hint
+
+
+def _solve(problem: LmiProblem, solver: str, backend: str) -> SdpSolution:
+    return get_backend(backend).solve(problem, solver)
+
+
+def _finish(
+    design_type: type[ObserverDesign],
+    problem: LmiProblem,
+    bounds: JacobianBounds,
+    box: Box,
+    input_bound: float,
+    solver: str,
+    backend: str,
+    sector: str,
+    max_gain: float | None,
+) -> ObserverDesign:
+    """Solve ``problem`` and return the certified ``design_type`` (ObserverDesign or a subclass).
+
+    Raises
+    ------
+    ObserverDesignInfeasible
+        If the solver reports infeasibility or returns no numbers.
+    ObserverDesignInaccurate
+        If the numbers are not finite, ``P`` is singular, or the numpy
+        certificate of the formulation fails.
+    """
+    sol = _solve(problem, solver, backend)
+    where = (
+        f"formulation={problem.formulation}, alpha={problem.alpha:g}, box "
+        f"{box.lower.tolist()}..{box.upper.tolist()}, |u_k| <= {input_bound:g}"
+    )
+
+    pinned = problem.L is not None
+
+    def fail(
+        reason: str, inaccurate: bool = True, kind: type = ObserverDesignInfeasible
+    ) -> ObserverDesignInfeasible:
+        if pinned:
+            head = f"the given gains L, H, K are not certified for {where}: no P >= I found"
+            hint = (
+                "if they come from a scenario, remove observer.L/H/K to let the LMI design "
+                f"the gains, or {_relax_hint(max_gain, inaccurate)}"
+            )
+        else:
+            head, hint = f"no certified observer for {where}", _relax_hint(max_gain, inaccurate)
+        return kind(
+            f"{head} ({solver}/{backend}: {reason}); {hint}.",
+            alpha=problem.alpha,
+            box=box,
+            input_bound=input_bound,
+            status=sol.status,
+            solver=solver,
+            formulation=problem.formulation,
+        )
+
+    if sol.infeasible or sol.P is None:
+        raise fail(f"solver status {sol.status}", inaccurate=not sol.infeasible)
+    numbers = [sol.P, sol.R, sol.H, sol.K]
+    if not all(np.all(np.isfinite(a)) for a in numbers):
+        raise fail(
+            f"solver status {sol.status}, non-finite solution", kind=ObserverDesignInaccurate
+        )
+    P = 0.5 * (sol.P + sol.P.T)
+    if problem.L is not None:
+        L = problem.L
+    else:
+        try:
+            L = np.linalg.solve(P, sol.R)
+        except np.linalg.LinAlgError:
+            raise fail(
+                f"solver status {sol.status}, singular P", kind=ObserverDesignInaccurate
+            ) from None
+    design = design_type(
+        P=P,
+        L=L,
+        H=sol.H,
+        K=sol.K,
+        R=sol.R,
+        alpha=problem.alpha,
+        box=box,
+        input_bound=input_bound,
+        bounds=bounds,
+        C=problem.C,
+        solver=solver,
+        solve_time=sol.solve_time,
+        status=sol.status,
+        backend=backend,
+        sector=sector,
+        objective=problem.objective,
+        margin=problem.margin,
+        formulation=problem.formulation,
+    )
+    if not design.is_certified:
+        raise fail(
+            f"solver status {sol.status}, but its solution fails the numpy certificate "
+            f"with max eigenvalue {design.max_eigenvalue:.3g}: the solver was not accurate "
+            "enough, which proves nothing about feasibility",
+            kind=ObserverDesignInaccurate,
+        )
+    if max_gain is not None and design.gain_norm > max_gain * (1 + 1e-6):
+        raise fail(f"||L|| = {design.gain_norm:.4g} exceeds max_gain", False)
+    return design

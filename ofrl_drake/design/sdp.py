@@ -1,0 +1,157 @@
+"""The observer SDP as data, what a backend returns, and what a backend is.
+
+The semidefinite program, in either backend (:mod:`ofrl_drake.design.backend_drake`,
+:mod:`ofrl_drake.design.backend_cvxpy`):
+
+* ``P = P^T >= I`` (normalizes the scale of the homogeneous LMI, so that
+  ``lambda_max(P)`` is a bound on ``cond(P)`` and ``||L|| <= ||R||``);
+* the formulation's LMI ``<= -margin I`` at every vertex (and corner)
+  (:mod:`ofrl_drake.design.formulations`): a strict margin, so the numbers the
+  solver returns still certify after rounding;
+* ``objective="min_gain"`` (default): minimize ``||R||_2`` (plus ``||[H K]||_F``
+  when ``H, K`` are free), with ``||R||_2 <= t`` as the LMI
+  ``[[t I, R], [R^T, t I]] >= 0`` and ``||[H K]||_F <= s`` as
+  ``[[s, v^T], [v, s I]] >= 0`` (``v = vec[H K]``).
+  A bare feasibility solve can return a nearly singular ``P`` and a huge ``L``
+  (docs/paper_notes.md, "conditioning"); a large ``L`` makes the observer stiff and costs
+  simulation time, and since ``P >= I`` gives ``||L|| = ||P^{-1} R|| <= ||R||``,
+  minimizing ``||R||_2`` minimizes a bound on the gain while also keeping ``P``
+  from growing (``R = P L``). The ``||[H K]||_F`` term, weighted equally with
+  ``||R||_2`` (objective ``t + s``), pins the directions
+  of ``H`` and ``K`` that the LMI does not see (e.g. ``K`` entries multiplying
+  a zero column of ``M_g2 - M_g1``) to zero instead of leaving them to the solver.
+  ``"min_condition"`` minimizes ``lambda_max(P)`` (a bound on ``cond(P)``);
+  ``"feasibility"`` has no objective.
+* ``max_gain``: the constraint ``||R||_2 <= max_gain``, which implies
+  ``||L||_2 <= max_gain`` because ``P >= I`` (sufficient, slightly conservative);
+  ``||L||_2`` is then also checked in numpy.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+__all__ = ["DEFAULT_MARGIN", "OBJECTIVES", "LmiProblem", "SdpBackend", "SdpSolution"]
+
+OBJECTIVES = ("min_gain", "min_condition", "feasibility")
+DEFAULT_MARGIN = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class LmiProblem:
+    """The numeric data of one observer SDP, shared by both backends.
+
+    Attributes
+    ----------
+    formulation : str
+        The name of its formulation, a key of
+        :data:`ofrl_drake.design.formulations.FORMULATIONS` (``"polytopic"`` or
+        ``"paper"``), which built it and owns its LMI blocks.
+    C : ndarray, shape (q, n)
+        Output matrix.
+    vertices : list of (u, A, Jf21, Jg21)
+        ``"paper"``: per input vertex, the constant matrices of (lmi2)
+        (:func:`ofrl_drake.lmi.vertex_data`). Empty for ``"polytopic"``.
+    corners : ndarray, shape (N, n, n)
+        ``"polytopic"``: the distinct corner matrices ``A`` over all input
+        vertices (:func:`ofrl_drake.lmi.corner_matrices`, built with the pinned
+        ``H, K``), with ``A_cl = A - L C``. Empty for ``"paper"``.
+    alpha, margin : float
+        Decay rate and strict margin (``LMI <= -margin I``).
+    objective : str
+        One of :data:`OBJECTIVES`.
+    max_gain : float or None
+        Cap on ``||R||_2`` (hence on ``||L||_2``).
+    L : ndarray or None
+        If given, ``L`` is pinned and ``R = P L``; else ``R`` is a variable.
+    HK : tuple of (H, K) or None
+        If given, ``H, K`` are pinned; else they are variables (``"paper"``
+        only: ``"polytopic"`` always pins them).
+    """
+
+    formulation: str
+    C: np.ndarray
+    vertices: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+    corners: np.ndarray
+    alpha: float
+    margin: float
+    objective: str
+    max_gain: float | None
+    L: np.ndarray | None = None
+    HK: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return int(self.C.shape[1])
+
+    @property
+    def q(self) -> int:
+        """Output dimension."""
+        return int(self.C.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class SdpSolution:
+    """What a backend returns: numbers (or None) and the solver's verdict.
+
+    Attributes
+    ----------
+    P, R, H, K : ndarray or None
+        The solution, None if the solver returned none.
+    status : str
+        The solver's status, as text.
+    infeasible : bool
+        True if the solver reported (primal) infeasibility.
+    solve_time : float
+        Wall-clock seconds spent in the backend (building and solving).
+    """
+
+    P: np.ndarray | None
+    R: np.ndarray | None
+    H: np.ndarray | None
+    K: np.ndarray | None
+    status: str
+    infeasible: bool
+    solve_time: float
+
+
+class SdpBackend(ABC):
+    """A modelling layer that builds an :class:`LmiProblem` and solves it.
+
+    Attributes
+    ----------
+    name : str
+        What ``design_observer(backend=...)`` calls it.
+    solvers : tuple of str
+        The solver names it accepts.
+    """
+
+    name: ClassVar[str]
+    solvers: ClassVar[tuple[str, ...]]
+
+    @abstractmethod
+    def solve(self, problem: LmiProblem, solver: str) -> SdpSolution:
+        """Build and solve ``problem`` with ``solver``.
+
+        Parameters
+        ----------
+        problem : LmiProblem
+            The SDP data.
+        solver : str
+            One of :attr:`solvers`.
+
+        Returns
+        -------
+        SdpSolution
+            Numbers (None if the solver returned none) and the solver's status.
+
+        Raises
+        ------
+        DesignError
+            For a solver this backend does not offer, or one not usable here.
+        """
