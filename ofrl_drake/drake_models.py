@@ -192,6 +192,16 @@ def _system_label(system: System) -> str:
     return system.get_name() or type(system).__name__
 
 
+def _check_points(label: str, check_points: int) -> None:
+    """The numerical checks need at least one point; with none they would pass unseen."""
+    integral = isinstance(check_points, int | np.integer) and not isinstance(check_points, bool)
+    if not integral or check_points < 1:
+        raise ModelError(
+            f"{label}: check_points must be a positive integer; got {check_points!r} "
+            f"(the default is {AFFINITY_POINTS})."
+        )
+
+
 def extract_drake_system(
     system: System,
     input_port: int | str = 0,
@@ -241,7 +251,7 @@ def extract_drake_system(
     name : str, optional
         The model's name; defaults to the system's name or class name.
     check_points : int
-        Random points of the numerical checks.
+        Random points of the numerical checks (at least 1).
     seed : int
         Seed of those points.
 
@@ -253,14 +263,16 @@ def extract_drake_system(
     Raises
     ------
     ModelError
-        If the system does not support symbolic scalars, has other kinds of
-        state, time-varying dynamics, no such vector input port, or dynamics
-        that are not affine in ``u`` (the message names the state rows, the
-        tolerance and the number of points).
+        If ``check_points`` is not a positive integer, the system does not
+        support symbolic scalars, has other kinds of state, time-varying
+        dynamics, no such vector input port, or dynamics that are not affine
+        in ``u`` (the message names the state rows, the tolerance and the
+        number of points).
     """
     if not isinstance(system, System):
         raise ModelError(f"from_drake needs a Drake System; got {type(system).__name__}.")
     label = name or _system_label(system)
+    _check_points(label, check_points)
     try:
         symbolic = system.ToSymbolic()
     except Exception as err:
@@ -565,12 +577,14 @@ def extract_multibody(
     Raises
     ------
     ModelError
-        If the model cannot be loaded, the plant is discrete or not finalized,
-        has quaternion (floating) joints, effort limits, no actuators, or the
-        equations disagree with ``EvalTimeDerivatives``.
+        If ``check_points`` is not a positive integer, the model cannot be
+        loaded, the plant is discrete or not finalized, has quaternion
+        (floating) joints, effort limits, no actuators, or the equations
+        disagree with ``EvalTimeDerivatives``.
     """
     plant, path, stem = _load_plant(model)
     label = name or stem
+    _check_points(label, check_points)
     if plant.time_step() != 0.0:
         raise ModelError(
             f"{label}: the plant is discrete (time_step = {plant.time_step()}); "

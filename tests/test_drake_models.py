@@ -264,6 +264,16 @@ def _DoubleFails_(T):
     return Impl
 
 
+@pytest.mark.parametrize("points", [0, -3, 2.5, True])
+def test_check_points_must_be_a_positive_integer(points):
+    with pytest.raises(
+        ModelError, match=rf"PendulumPlant: check_points must be a positive integer; got {points!r}"
+    ):
+        ControlAffineSystem.from_drake(PendulumPlant(), [[1.0, 0.0]], check_points=points)
+    with pytest.raises(ModelError, match=r"cart_pole: check_points must be a positive integer"):
+        ControlAffineSystem.from_multibody(CART_POLE, check_points=points)
+
+
 def test_from_drake_refuses_a_system_whose_double_derivatives_always_fail():
     with pytest.raises(
         ModelError,
