@@ -1,34 +1,37 @@
-"""Control-affine models from Drake systems and multibody models.
+"""Control-affine dynamics extracted from Drake systems and multibody models.
 
-Two routes turn a Drake model into a :class:`~ofrl_drake.model.ControlAffineSystem`
-whose ``f`` and ``g`` are ``pydrake.symbolic`` expressions
+Two routes turn a Drake model into ``f`` and ``g`` of ``x' = f(x) + g(x) u``
+as ``pydrake.symbolic`` expressions
 (:class:`~ofrl_drake.expression_function.ExpressionFunction`), so they evaluate
 over ``(n, N)`` batches, differentiate symbolically and admit certified
 Jacobian bounds:
 
-* :func:`from_drake`: any Drake ``System`` with one continuous state vector and
-  a vector input that supports the symbolic scalar type (``ToSymbolic``).
-  ``f(x) = xdot(x, u = 0)`` and ``g(x) = d xdot / d u`` come from the
-  symbolic ``EvalTimeDerivatives``.
-* :func:`from_multibody`: a model file, a ``package://`` URL or a finalized
+* :func:`extract_drake_system`: any Drake ``System`` with one continuous state
+  vector and a vector input that supports the symbolic scalar type
+  (``ToSymbolic``). ``f(x) = xdot(x, u = 0)`` and ``g(x) = d xdot / d u`` come
+  from the symbolic ``EvalTimeDerivatives``.
+* :func:`extract_multibody`: a model file, a ``package://`` URL or a finalized
   continuous ``MultibodyPlant``. ``f = [v; M^-1 (tau_g + tau_app - C(q, v) v)]``
   and ``g = [0; M^-1 B]`` are assembled from ``CalcMassMatrix``,
   ``CalcBiasTerm``, ``CalcGravityGeneralizedForces``, the joint damping and
   ``MakeActuationMatrix`` on the symbolic plant.
 
-The system keeps where it came from in ``source`` (:class:`DrakeSystemSource`
-or :class:`MultibodySource`) so blocks can use the Drake model itself, e.g. to
-draw it.
+Both return a :class:`DrakeDynamics`, which keeps where the equations came from
+in ``source`` (:class:`DrakeSystemSource` or :class:`MultibodySource`) so blocks
+can use the Drake model itself, e.g. to draw it.
+:meth:`ControlAffineSystem.from_drake <ofrl_drake.model.ControlAffineSystem.from_drake>`
+and :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody` call these and
+add the output matrix; this module does not import :mod:`ofrl_drake.model`
+(the import runs one way, model -> drake_models).
 
 >>> from pydrake.examples import PendulumPlant
->>> from ofrl_drake.model import ControlAffineSystem
->>> pendulum = ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]])
->>> (pendulum.n, pendulum.m, pendulum.q)
-(2, 1, 1)
->>> cart_pole = ControlAffineSystem.from_multibody(
+>>> pendulum = extract_drake_system(PendulumPlant())
+>>> (pendulum.n, pendulum.m, pendulum.name)
+(2, 1, 'PendulumPlant')
+>>> cart_pole = extract_multibody(
 ...     "package://drake/examples/multibody/cart_pole/cart_pole.sdf")
->>> (cart_pole.n, cart_pole.m, cart_pole.q)
-(4, 1, 2)
+>>> (cart_pole.n, cart_pole.m, cart_pole.default_C.shape)
+(4, 1, (2, 4))
 """
 
 from __future__ import annotations
@@ -42,27 +45,36 @@ from pydrake.systems.framework import InputPort, PortDataType, System
 
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
-from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
     "AFFINITY_POINTS",
     "AFFINITY_RTOL",
+    "EXPAND_MAX_CHARS",
+    "DrakeDynamics",
     "DrakeSystemSource",
     "MultibodySource",
-    "from_drake",
-    "from_multibody",
+    "extract_drake_system",
+    "extract_multibody",
 ]
 
-#: Random (x, u) points at which the extracted f + g u is compared with the
-#: system's own double-precision ``EvalTimeDerivatives``.
+#: Random (x, u) points (standard normal, seeded) of the numerical checks: an
+#: entry of ``d xdot / d u`` that still names ``u`` after expansion is compared
+#: at ``u = 0`` and at ``u``, and ``f + g u`` is compared with the system's own
+#: double-precision ``EvalTimeDerivatives``.
 AFFINITY_POINTS = 20
-#: Relative tolerance of that comparison: ``|xdot - (f + g u)| <= rtol (1 + |xdot|)``.
+#: Relative tolerance of both comparisons, ``|a - b| <= rtol (1 + |b|)``: of
+#: ``d xdot / d u`` at ``u`` (``a``) and at ``u = 0`` (``b``), and of
+#: ``f + g u`` (``a``) and ``xdot`` (``b``).
 AFFINITY_RTOL = 1e-8
+#: Largest printed size (characters) of an entry of ``d xdot / d u`` that is
+#: expanded symbolically to see whether ``u`` cancels; larger entries that name
+#: ``u`` are only checked numerically.
+EXPAND_MAX_CHARS = 20_000
 
 
 @dataclass(frozen=True, eq=False)
 class DrakeSystemSource:
-    """The Drake system a :func:`from_drake` model was extracted from.
+    """The Drake system :func:`extract_drake_system` extracted a model from.
 
     Attributes
     ----------
@@ -86,7 +98,7 @@ class DrakeSystemSource:
 
 @dataclass(frozen=True, eq=False)
 class MultibodySource:
-    """The multibody model a :func:`from_multibody` model was built from.
+    """The multibody model :func:`extract_multibody` built a model from.
 
     Attributes
     ----------
@@ -104,6 +116,52 @@ class MultibodySource:
     position_names: tuple[str, ...] = ()
     velocity_names: tuple[str, ...] = ()
     actuator_names: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class DrakeDynamics:
+    """``f`` and ``g`` extracted from a Drake model, and where they came from.
+
+    Built by :func:`extract_drake_system` and :func:`extract_multibody`;
+    :meth:`~ofrl_drake.model.ControlAffineSystem.from_drake` and
+    :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody` turn it into a
+    :class:`~ofrl_drake.model.ControlAffineSystem` with an output matrix.
+
+    Attributes
+    ----------
+    name : str
+        The model's name (given, or the system's name, class or file stem).
+    f : ExpressionFunction
+        Drift, shape ``(n,)``, in the state variables.
+    g : ExpressionFunction
+        Input matrix, shape ``(n, m)``, in the same variables (no ``u``).
+    source : DrakeSystemSource or MultibodySource
+        The Drake model the equations came from.
+    default_C : ndarray of shape (q, n), or None
+        The output matrix used when none is given: the positions ``y = q`` of a
+        multibody plant; None for a Drake system (``C`` is then required).
+    state_units, input_units : tuple of str, or None
+        The units of ``x`` and ``u`` where the model knows them (a multibody
+        plant's joint types); None otherwise.
+    """
+
+    name: str
+    f: ExpressionFunction
+    g: ExpressionFunction
+    source: DrakeSystemSource | MultibodySource
+    default_C: np.ndarray | None = None
+    state_units: tuple[str, ...] | None = None
+    input_units: tuple[str, ...] | None = None
+
+    @property
+    def n(self) -> int:
+        """Number of states."""
+        return self.f.shape[0]
+
+    @property
+    def m(self) -> int:
+        """Number of inputs."""
+        return self.g.shape[1]
 
 
 # ------------------------------------------------------------- Drake systems
@@ -135,45 +193,57 @@ def _resolve_input_port(system: System, input_port: int | str) -> InputPort:
     return port
 
 
-def _check_output_matrix(label: str, C: Any, n: int) -> None:
-    """A clear error when C does not have one column per state."""
-    try:
-        shape = np.shape(np.asarray(C, dtype=float))
-    except (TypeError, ValueError):
-        return  # ControlAffineSystem names the bad entries
-    if len(shape) == 2 and shape[1] != n:
-        raise ModelError(
-            f"{label}: C has {shape[1]} columns but the system has n = {n} states; "
-            f"give C one column per state (shape (q, {n}))."
-        )
-
-
 def _system_label(system: System) -> str:
     return system.get_name() or type(system).__name__
 
 
-def from_drake(
+def _check_points(label: str, check_points: int) -> None:
+    """The numerical checks need at least one point; with none they would pass unseen."""
+    integral = isinstance(check_points, int | np.integer) and not isinstance(check_points, bool)
+    if not integral or check_points < 1:
+        raise ModelError(
+            f"{label}: check_points must be a positive integer; got {check_points!r} "
+            f"(the default is {AFFINITY_POINTS})."
+        )
+
+
+def extract_drake_system(
     system: System,
-    C: Any,
     input_port: int | str = 0,
     *,
     name: str | None = None,
     check_points: int = AFFINITY_POINTS,
     seed: int = 0,
-) -> ControlAffineSystem:
-    """A control-affine model of a Drake system, extracted symbolically.
+) -> DrakeDynamics:
+    """Control-affine dynamics of a Drake system, extracted symbolically.
 
     The system is converted with ``ToSymbolic()``; its default context (so
     its default parameters) gets symbolic state ``x``, input ``u`` and time
     ``t``, every other vector input port is held at zero, and
     ``EvalTimeDerivatives`` gives ``xdot(x, u)``. Then
-    ``f(x) = xdot(x, 0)`` and ``g(x) = d xdot / d u``.
+    ``f(x) = xdot(x, 0)`` and ``g(x) = d xdot / d u`` at ``u = 0``.
 
-    Affinity in ``u`` is checked twice: symbolically (``d xdot / d u`` must not
-    depend on ``u``), and numerically, by comparing ``f(x) + g(x) u`` with the
-    system's own double-precision ``EvalTimeDerivatives`` at ``check_points``
-    random ``(x, u)`` (standard normal, seeded), to a relative
-    :data:`AFFINITY_RTOL`.
+    The dynamics are affine in ``u`` exactly when ``d xdot / d u`` does not
+    depend on ``u``; which variables an expression names is not enough (Drake
+    leaves terms such as ``u * (0 / d(x))`` in the derivative of a solved mass
+    matrix, as in ``AcrobotPlant`` and ``QuadrotorPlant``). Each entry of
+    ``d xdot / d u`` that names ``u`` is decided
+
+    1. symbolically: expanded (``Expression.Expand``, for entries of at most
+       :data:`EXPAND_MAX_CHARS` printed characters), it is affine if ``u``
+       cancels;
+    2. otherwise numerically: at ``check_points`` (default
+       :data:`AFFINITY_POINTS` = 20) random ``(x, u)``, standard normal and
+       seeded with ``seed``, the entry at ``u`` must equal the entry at
+       ``u = 0`` to ``|a - b| <= rtol (1 + |b|)`` with ``rtol =``
+       :data:`AFFINITY_RTOL` (1e-8).
+
+    Finally ``f(x) + g(x) u`` is compared with the system's own
+    double-precision ``EvalTimeDerivatives`` at the same ``(x, u)`` and
+    tolerance (which catches a system whose symbolic and double paths differ);
+    a point where ``EvalTimeDerivatives`` raises a ``RuntimeError`` (such as
+    the gimbal-lock guard of ``QuadrotorPlant``'s roll-pitch-yaw angles) is
+    left out of this comparison.
 
     Parameters
     ----------
@@ -181,33 +251,33 @@ def from_drake(
         One continuous state vector (no discrete or abstract state), a vector
         input, and support for the symbolic scalar type; for example
         ``pydrake.examples.PendulumPlant()``.
-    C : array_like, shape (q, n)
-        Output matrix, ``y = C x``.
     input_port : int or str
         The input port that is ``u``, by index or name.
     name : str, optional
         The model's name; defaults to the system's name or class name.
     check_points : int
-        Random points of the numerical check.
+        Random points of the numerical checks (at least 1).
     seed : int
         Seed of those points.
 
     Returns
     -------
-    ControlAffineSystem
-        With ``source`` a :class:`DrakeSystemSource`.
+    DrakeDynamics
+        With ``source`` a :class:`DrakeSystemSource` and no ``default_C``.
 
     Raises
     ------
     ModelError
-        If the system does not support symbolic scalars, has other kinds of
-        state, time-varying dynamics, no such vector input port, dynamics that
-        are not affine in ``u`` (the message names the state rows), or if
-        ``C`` does not fit.
+        If ``check_points`` is not a positive integer, the system does not
+        support symbolic scalars, has other kinds of state, time-varying
+        dynamics, no such vector input port, or dynamics that are not affine
+        in ``u`` (the message names the state rows, the tolerance and the
+        number of points).
     """
-    label = name or _system_label(system)
     if not isinstance(system, System):
         raise ModelError(f"from_drake needs a Drake System; got {type(system).__name__}.")
+    label = name or _system_label(system)
+    _check_points(label, check_points)
     try:
         symbolic = system.ToSymbolic()
     except Exception as err:
@@ -264,23 +334,79 @@ def from_drake(
             f"{label}: d xdot / d u cannot be taken symbolically ({err}); the "
             "dynamics must be differentiable in u (and affine: x' = f(x) + g(x) u)."
         ) from err
-    bad = sorted(
-        {i for i in range(n) for k in range(m) if any(B[i, k].GetVariables().include(v) for v in u)}
-    )
-    if bad:
-        raise ModelError(
-            f"{label}: the dynamics are not affine in u: d xdot / d u depends on u in "
-            f"state rows {bad} (e.g. row {bad[0]}: xdot = {xdot[bad[0]]}); "
-            "ofrl_drake needs x' = f(x) + g(x) u."
-        )
+    rng = np.random.default_rng(seed)
+    X = rng.standard_normal((n, check_points))
+    U = rng.standard_normal((m, check_points))
     zero_u = {v: Expression(0.0) for v in u}
+    g_expr = _input_matrix(label, B, x, u, zero_u, X, U)
     f_expr = np.array([e.Substitute(zero_u) for e in xdot], dtype=object)
     f = ExpressionFunction(f_expr, x)
-    g = ExpressionFunction(B, x)
-    _check_output_matrix(label, C, n)
+    g = ExpressionFunction(g_expr, x)
     source = DrakeSystemSource(system, port.get_name(), fixed, n)
-    _check_against_double(label, system, port, fixed, f, g, n, m, check_points, seed)
-    return ControlAffineSystem(f, g, C, name=label, source=source)
+    _check_against_double(label, system, port, fixed, f, g, X, U)
+    return DrakeDynamics(label, f, g, source)
+
+
+def _names_any(expression: Expression, variables: np.ndarray) -> bool:
+    names = expression.GetVariables()
+    return any(names.include(v) for v in variables)
+
+
+def _input_matrix(
+    label: str,
+    B: np.ndarray,
+    x: np.ndarray,
+    u: np.ndarray,
+    zero_u: dict[Variable, Expression],
+    X: np.ndarray,
+    U: np.ndarray,
+) -> np.ndarray:
+    """``g(x)``: ``B = d xdot / d u`` at ``u = 0``, once ``B`` is shown not to depend on ``u``.
+
+    Entries that name ``u`` are expanded (if at most :data:`EXPAND_MAX_CHARS`
+    long) and, if ``u`` does not cancel, compared at ``u = 0`` and ``u = U[:, k]``
+    for each column of ``X``; entries that do not name ``u`` are kept as they are.
+    """
+    g_expr = np.array(B, dtype=object)
+    undecided: list[tuple[int, int]] = []
+    for (i, k), entry in np.ndenumerate(B):
+        if not _names_any(entry, u):
+            continue
+        if len(entry.to_string()) <= EXPAND_MAX_CHARS and not _names_any(entry.Expand(), u):
+            g_expr[i, k] = entry.Substitute(zero_u)
+        else:
+            undecided.append((i, k))
+    bad: dict[int, str] = {}
+    points = X.shape[1]
+    for i, k in undecided:
+        entry = B[i, k]
+        for p in range(points):
+            env = {v: float(value) for v, value in zip(x, X[:, p], strict=True)}
+            at_zero = entry.Evaluate({**env, **{v: 0.0 for v in u}})
+            at_u = entry.Evaluate({**env, **{v: float(w) for v, w in zip(u, U[:, p], strict=True)}})
+            same = (
+                at_u == at_zero
+                or abs(at_u - at_zero) <= AFFINITY_RTOL * (1.0 + abs(at_zero))
+                or (np.isnan(at_u) and np.isnan(at_zero))
+            )
+            if not same:
+                bad.setdefault(
+                    i,
+                    f"d xdot[{i}] / d u[{k}] = {entry} is {at_zero:.6g} at u = 0 but "
+                    f"{at_u:.6g} at u = {U[:, p].tolist()} (x = {X[:, p].tolist()})",
+                )
+                break
+        else:
+            g_expr[i, k] = entry.Substitute(zero_u)
+    if bad:
+        rows = sorted(bad)
+        raise ModelError(
+            f"{label}: the dynamics are not affine in u: d xdot / d u depends on u in "
+            f"state rows {rows} (e.g. {bad[rows[0]]}; compared at u = 0 and at u for "
+            f"{points} random (x, u), standard normal, to a relative {AFFINITY_RTOL:g}); "
+            "ofrl_drake needs x' = f(x) + g(x) u."
+        )
+    return g_expr
 
 
 def _check_against_double(
@@ -290,37 +416,50 @@ def _check_against_double(
     fixed: dict[str, np.ndarray],
     f: ExpressionFunction,
     g: ExpressionFunction,
-    n: int,
-    m: int,
-    points: int,
-    seed: int,
+    X: np.ndarray,
+    U: np.ndarray,
 ) -> None:
-    """Compare f + g u with the double system's derivatives at random points."""
-    rng = np.random.default_rng(seed)
-    X = rng.standard_normal((n, points))
-    U = rng.standard_normal((m, points))
+    """Compare f + g u with the double system's derivatives at the columns of X, U.
+
+    Points where the double system raises are skipped; all of them raising is an error.
+    """
+    points = X.shape[1]
     context = system.CreateDefaultContext()
     for name, value in fixed.items():
         system.GetInputPort(name).FixValue(context, value)
     fX, gX = f(X), g(X)
     bad_rows: set[int] = set()
     worst = (0.0, -1, None)
+    refused: list[tuple[int, Exception]] = []
     for k in range(points):
         context.SetContinuousState(X[:, k])
         port.FixValue(context, U[:, k])
-        xdot = system.EvalTimeDerivatives(context).CopyToVector()
+        try:
+            xdot = system.EvalTimeDerivatives(context).CopyToVector()
+        except RuntimeError as err:  # e.g. the gimbal-lock guard of roll-pitch-yaw
+            refused.append((k, err))
+            continue
         model = fX[:, k] + gX[:, :, k] @ U[:, k]
         err = np.abs(xdot - model)
         rows = np.flatnonzero(~(err <= AFFINITY_RTOL * (1.0 + np.abs(xdot))))
         bad_rows.update(int(i) for i in rows)
-        if rows.size and err[rows].max() > worst[0]:
+        err = np.where(np.isnan(err), np.inf, err)  # a NaN row is the worst
+        if rows.size and (worst[1] < 0 or err[rows].max() > worst[0]):
             worst = (float(err[rows].max()), k, int(rows[np.argmax(err[rows])]))
+    if refused and len(refused) == points:
+        k, err = refused[0]
+        raise ModelError(
+            f"{label}: the system's own EvalTimeDerivatives failed at all {points} random "
+            f"(x, u) of the check (e.g. at x = {X[:, k].tolist()}: "
+            f"{str(err).splitlines()[0]}); it must evaluate at standard normal states."
+        )
     if bad_rows:
         _, k, row = worst
         raise ModelError(
             f"{label}: the dynamics are not affine in u: xdot differs from "
             f"f(x) + g(x) u in state rows {sorted(bad_rows)} (row {row} by {worst[0]:.3g} "
-            f"at x = {X[:, k].tolist()}, u = {U[:, k].tolist()}); ofrl_drake needs "
+            f"at x = {X[:, k].tolist()}, u = {U[:, k].tolist()}; compared at {points} "
+            f"random (x, u) to a relative {AFFINITY_RTOL:g}); ofrl_drake needs "
             "x' = f(x) + g(x) u."
         )
 
@@ -391,15 +530,14 @@ def _solve_spd(M: np.ndarray, R: np.ndarray) -> np.ndarray:
     return X
 
 
-def from_multibody(
+def extract_multibody(
     model: Any,
-    C: Any = None,
     *,
     name: str | None = None,
     check_points: int = AFFINITY_POINTS,
     seed: int = 0,
-) -> ControlAffineSystem:
-    """A control-affine model of a continuous multibody plant.
+) -> DrakeDynamics:
+    """Control-affine dynamics of a continuous multibody plant.
 
     With state ``x = [q; v]`` and input ``u`` the actuation,
 
@@ -420,15 +558,14 @@ def from_multibody(
     limits is refused: Drake clamps the actuation to them) and any force
     Drake applies outside position limits: the model holds inside them.
     The equations are compared with the plant's own double-precision
-    ``EvalTimeDerivatives`` at ``check_points`` random ``(x, u)``.
+    ``EvalTimeDerivatives`` at ``check_points`` random ``(x, u)`` to a
+    relative :data:`AFFINITY_RTOL`.
 
     Parameters
     ----------
     model : str, pathlib.Path or MultibodyPlant
         An SDF/URDF/MJCF file, a ``package://`` URL (parsed into a continuous
         plant without geometry), or a finalized continuous plant.
-    C : array_like, shape (q, n), optional
-        Output matrix; by default the positions ``y = q``.
     name : str, optional
         Defaults to the file's stem or the plant's name.
     check_points : int
@@ -438,18 +575,21 @@ def from_multibody(
 
     Returns
     -------
-    ControlAffineSystem
-        With ``source`` a :class:`MultibodySource`.
+    DrakeDynamics
+        With ``source`` a :class:`MultibodySource` and ``default_C`` measuring
+        the positions, ``[I 0]`` of shape ``(nq, nq + nv)``.
 
     Raises
     ------
     ModelError
-        If the model cannot be loaded, the plant is discrete or not finalized,
-        has quaternion (floating) joints, effort limits, no actuators, or the
-        equations disagree with ``EvalTimeDerivatives``.
+        If ``check_points`` is not a positive integer, the model cannot be
+        loaded, the plant is discrete or not finalized, has quaternion
+        (floating) joints, effort limits, no actuators, or the equations
+        disagree with ``EvalTimeDerivatives``.
     """
     plant, path, stem = _load_plant(model)
     label = name or stem
+    _check_points(label, check_points)
     if plant.time_step() != 0.0:
         raise ModelError(
             f"{label}: the plant is discrete (time_step = {plant.time_step()}); "
@@ -476,9 +616,6 @@ def from_multibody(
     # numpy's object loops flag "invalid value" on Drake expressions; harmless.
     with np.errstate(invalid="ignore"):
         f, g = _multibody_equations(plant, nq, nv, nu)
-    if C is None:
-        C = np.hstack([np.eye(nq), np.zeros((nq, nv))])
-    _check_output_matrix(label, C, nq + nv)
     source = MultibodySource(
         plant,
         path,
@@ -487,10 +624,9 @@ def from_multibody(
         tuple(plant.GetActuatorNames(False)),
     )
     _check_multibody(label, plant, f, g, nq + nv, nu, check_points, seed)
+    positions = np.hstack([np.eye(nq), np.zeros((nq, nv))])
     state_units, input_units = _multibody_units(plant)
-    return ControlAffineSystem(
-        f, g, C, name=label, source=source, state_units=state_units, input_units=input_units
-    )
+    return DrakeDynamics(label, f, g, source, positions, state_units, input_units)
 
 
 #: Units of a joint's positions by its Drake type name; velocities add "/s".
@@ -525,7 +661,7 @@ def _multibody_units(plant: Any) -> tuple[tuple[str, ...] | None, tuple[str, ...
 def _multibody_equations(
     plant: Any, nq: int, nv: int, nu: int
 ) -> tuple[ExpressionFunction, ExpressionFunction]:
-    """``f`` and ``g`` of :func:`from_multibody` from the symbolic plant."""
+    """``f`` and ``g`` of :func:`extract_multibody` from the symbolic plant."""
     from pydrake.multibody.tree import MultibodyForces_
 
     symbolic = plant.ToSymbolic()

@@ -22,6 +22,12 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression, MakeVectorVariable
 
+from ofrl_drake.drake_models import (
+    AFFINITY_POINTS,
+    DrakeDynamics,
+    extract_drake_system,
+    extract_multibody,
+)
 from ofrl_drake.errors import ModelError
 from ofrl_drake.interval import as_expression
 
@@ -36,6 +42,19 @@ ArrayFunction = Callable[[np.ndarray], np.ndarray]
 def _probe_point(n: int) -> np.ndarray:
     """A deterministic, generic point: nonzero, distinct entries."""
     return 0.1 + 0.05 * np.arange(n, dtype=float)
+
+
+def _check_output_columns(label: str, C: Any, n: int) -> None:
+    """A clear error when C does not have one column per state of a Drake model."""
+    try:
+        shape = np.shape(np.asarray(C, dtype=float))
+    except (TypeError, ValueError):
+        return  # ControlAffineSystem names the bad entries
+    if len(shape) == 2 and shape[1] != n:
+        raise ModelError(
+            f"{label}: C has {shape[1]} columns but the system has n = {n} states; "
+            f"give C one column per state (shape (q, {n}))."
+        )
 
 
 def _to_expressions(values: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -278,13 +297,44 @@ class ControlAffineSystem:
     # ------------------------------------------------------------ from Drake
     @classmethod
     def from_drake(
-        cls, system: Any, C: Any, input_port: int | str = 0, **options: Any
+        cls,
+        system: Any,
+        C: Any,
+        input_port: int | str = 0,
+        *,
+        name: str | None = None,
+        check_points: int = AFFINITY_POINTS,
+        seed: int = 0,
     ) -> ControlAffineSystem:
         """A model of a Drake ``System``, extracted with symbolic scalars.
 
-        Delegates to :func:`ofrl_drake.drake_models.from_drake` (see there for
-        the options, the affinity checks and the errors); ``f`` and ``g`` are
+        ``f`` and ``g`` come from
+        :func:`ofrl_drake.drake_models.extract_drake_system` (see there for
+        the affinity checks: ``d xdot / d u`` must not depend on ``u``,
+        symbolically after expansion or else at ``check_points`` random
+        ``(x, u)`` to a relative ``drake_models.AFFINITY_RTOL``); they are
         ``pydrake.symbolic`` expressions and ``source`` keeps the system.
+
+        Parameters
+        ----------
+        system : pydrake.systems.framework.System
+            One continuous state vector, a vector input, symbolic support.
+        C : array_like, shape (q, n)
+            Output matrix, ``y = C x``.
+        input_port : int or str
+            The input port that is ``u``, by index or name.
+        name : str, optional
+            Defaults to the system's name or class name.
+        check_points : int
+            Random points of the numerical checks.
+        seed : int
+            Their seed.
+
+        Raises
+        ------
+        ModelError
+            As :func:`~ofrl_drake.drake_models.extract_drake_system`, or if ``C``
+            does not have ``n`` columns.
 
         Examples
         --------
@@ -292,21 +342,36 @@ class ControlAffineSystem:
         >>> ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]]).n
         2
         """
-        from ofrl_drake.drake_models import from_drake
-
-        return from_drake(system, C, input_port, **options)
+        dynamics = extract_drake_system(
+            system, input_port, name=name, check_points=check_points, seed=seed
+        )
+        return _from_dynamics(dynamics, C)
 
     @classmethod
-    def from_multibody(cls, model: Any, C: Any = None, **options: Any) -> ControlAffineSystem:
+    def from_multibody(
+        cls,
+        model: Any,
+        C: Any = None,
+        *,
+        name: str | None = None,
+        check_points: int = AFFINITY_POINTS,
+        seed: int = 0,
+    ) -> ControlAffineSystem:
         """A model of a multibody plant: state ``[q; v]``, input the actuation.
 
-        Delegates to :func:`ofrl_drake.drake_models.from_multibody` (see there);
-        ``model`` is a file path, a ``package://`` URL or a finalized continuous
-        ``MultibodyPlant``, and ``C`` defaults to measuring the positions.
-        """
-        from ofrl_drake.drake_models import from_multibody
+        ``f`` and ``g`` come from :func:`ofrl_drake.drake_models.extract_multibody`
+        (see there); ``model`` is a file path, a ``package://`` URL or a
+        finalized continuous ``MultibodyPlant``, and ``C`` defaults to
+        measuring the positions.
 
-        return from_multibody(model, C, **options)
+        Raises
+        ------
+        ModelError
+            As :func:`~ofrl_drake.drake_models.extract_multibody`, or if ``C``
+            does not have ``n`` columns.
+        """
+        dynamics = extract_multibody(model, name=name, check_points=check_points, seed=seed)
+        return _from_dynamics(dynamics, dynamics.default_C if C is None else C)
 
     # ------------------------------------------------------ operating points
     def shifted(
@@ -357,6 +422,20 @@ class ControlAffineSystem:
 
     def __repr__(self) -> str:
         return f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, q={self.q})"
+
+
+def _from_dynamics(dynamics: DrakeDynamics, C: Any) -> ControlAffineSystem:
+    """The :class:`ControlAffineSystem` of extracted Drake dynamics, measured by ``C``."""
+    _check_output_columns(dynamics.name, C, dynamics.n)
+    return ControlAffineSystem(
+        dynamics.f,
+        dynamics.g,
+        C,
+        name=dynamics.name,
+        source=dynamics.source,
+        state_units=dynamics.state_units,
+        input_units=dynamics.input_units,
+    )
 
 
 def _as_vector(value: Any, size: int, what: str, fix: str) -> np.ndarray:

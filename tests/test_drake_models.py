@@ -1,9 +1,10 @@
 """Control-affine models from Drake systems and multibody models."""
 
 import numpy as np
+import pydrake.math as pmath
 import pytest
 from pydrake.autodiffutils import ExtractGradient, InitializeAutoDiff
-from pydrake.examples import PendulumParams, PendulumPlant
+from pydrake.examples import AcrobotPlant, PendulumParams, PendulumPlant, QuadrotorPlant
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import LinearSpringDamper
@@ -13,7 +14,13 @@ from pydrake.systems.framework import LeafSystem, LeafSystem_
 from pydrake.systems.primitives import SymbolicVectorSystem
 from pydrake.systems.scalar_conversion import TemplateSystem
 
-from ofrl_drake.drake_models import DrakeSystemSource, MultibodySource
+from ofrl_drake import drake_models
+from ofrl_drake.drake_models import (
+    AFFINITY_POINTS,
+    DrakeSystemSource,
+    MultibodySource,
+    extract_drake_system,
+)
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
 from ofrl_drake.jacobian_bounds import jacobian_bounds
@@ -93,6 +100,194 @@ def _Quadratic_(T):
 def test_from_drake_non_affine_leaf_system_names_its_row():
     with pytest.raises(ModelError, match=r"not affine in u.*state rows \[1\]"):
         ControlAffineSystem.from_drake(_Quadratic_[float](), C=[[1.0, 0.0]])
+
+
+def _check_against_system(model, plant, X, U):
+    """f(x) = xdot(x, 0) and f(x) + g(x) u = xdot(x, u), the system's own derivatives."""
+    context = plant.CreateDefaultContext()
+    port = plant.get_input_port(0)
+    fX, gX = model.f_batch(X), model.g_batch(X)
+    for k in range(X.shape[1]):
+        context.SetContinuousState(X[:, k])
+        port.FixValue(context, np.zeros(model.m))
+        drift = plant.EvalTimeDerivatives(context).CopyToVector()
+        port.FixValue(context, U[:, k])
+        xdot = plant.EvalTimeDerivatives(context).CopyToVector()
+        np.testing.assert_allclose(fX[:, k], drift, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(fX[:, k] + gX[:, :, k] @ U[:, k], xdot, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(model.f(X[:, k]) + model.g(X[:, k]) @ U[:, k], xdot, rtol=1e-9)
+
+
+def _acrobot_points(rng, points):
+    return rng.uniform(-np.pi, np.pi, (4, points)) * [[1], [1], [2], [2]]
+
+
+def _quadrotor_points(rng, points):
+    X = rng.uniform(-2.0, 2.0, (12, points))
+    X[4] = rng.uniform(-1.2, 1.2, points)  # pitch away from gimbal lock (+-pi/2)
+    return X
+
+
+# d xdot / d u of these plants names u in terms such as u * (0 / det M(x)) (the
+# derivative of a solved mass matrix), which do not depend on u: they used to be
+# refused as "not affine in u".
+DRAKE_EXAMPLES = [
+    pytest.param(AcrobotPlant, 4, 1, _acrobot_points, id="AcrobotPlant"),
+    pytest.param(QuadrotorPlant, 12, 4, _quadrotor_points, id="QuadrotorPlant"),
+]
+
+
+@pytest.mark.parametrize(("plant_class", "n", "m", "draw"), DRAKE_EXAMPLES)
+def test_from_drake_accepts_plants_whose_input_matrix_names_u_in_vanishing_terms(
+    plant_class, n, m, draw
+):
+    plant = plant_class()
+    C = np.eye(n)[: n // 2]
+    model = ControlAffineSystem.from_drake(plant, C)
+    assert (model.n, model.m, model.q) == (n, m, n // 2)
+    assert model.vectorized and model.name == plant_class.__name__
+    rng = np.random.default_rng(11)
+    _check_against_system(model, plant, draw(rng, 40), rng.uniform(-5.0, 5.0, (m, 40)))
+    # g holds no u: it is d xdot / d u at u = 0, and evaluates at a state alone.
+    assert all(
+        v.get_name().startswith("x") for e in model.g.expressions.flat for v in e.GetVariables()
+    )
+
+
+@pytest.mark.parametrize(("plant_class", "n", "m", "draw"), DRAKE_EXAMPLES)
+def test_from_drake_decides_affinity_numerically_when_expansion_is_skipped(
+    plant_class, n, m, draw, monkeypatch
+):
+    # With no entry small enough to expand, every entry naming u is compared at
+    # u = 0 and at random u: the same plants are accepted, with the same f + g u.
+    monkeypatch.setattr(drake_models, "EXPAND_MAX_CHARS", 0)
+    plant = plant_class()
+    model = ControlAffineSystem.from_drake(plant, np.eye(n)[:1])
+    rng = np.random.default_rng(12)
+    _check_against_system(model, plant, draw(rng, 20), rng.uniform(-5.0, 5.0, (m, 20)))
+
+
+def test_quadrotor_check_points_at_gimbal_lock_are_left_out():
+    # With seed 0 one of the 20 check points has a pitch within 0.5 degree of
+    # 90 degrees, where QuadrotorPlant's double EvalTimeDerivatives throws.
+    rng = np.random.default_rng(0)
+    X = rng.standard_normal((12, AFFINITY_POINTS))
+    assert np.any(np.abs(np.abs(X[4]) - np.pi / 2) < np.radians(0.5))
+    assert extract_drake_system(QuadrotorPlant(), seed=0).n == 12
+
+
+@TemplateSystem.define("_SineAndIdentity_")
+def _SineAndIdentity_(T):
+    class Impl(LeafSystem_[T]):
+        """x0' = sin(u) (not affine, row 0); x1' = u (sin^2 u + cos^2 u) - x0 (affine)."""
+
+        def _construct(self, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self.DeclareContinuousState(2)
+            self._u = self.DeclareVectorInputPort("u", 1)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, converter=converter)
+
+        def DoCalcTimeDerivatives(self, context, derivatives):
+            x = context.get_continuous_state_vector().CopyToVector()
+            u = self._u.Eval(context)[0]
+            one = pmath.sin(u) ** 2 + pmath.cos(u) ** 2  # 1, which Expand does not see
+            derivatives.get_mutable_vector().SetFromVector([pmath.sin(u), u * one - x[0]])
+
+    return Impl
+
+
+@TemplateSystem.define("_TrigIdentity_")
+def _TrigIdentity_(T):
+    class Impl(LeafSystem_[T]):
+        """x0' = x1, x1' = u (sin^2 u + cos^2 u) - x0: affine, but u survives Expand."""
+
+        def _construct(self, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self.DeclareContinuousState(2)
+            self._u = self.DeclareVectorInputPort("u", 1)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, converter=converter)
+
+        def DoCalcTimeDerivatives(self, context, derivatives):
+            x = context.get_continuous_state_vector().CopyToVector()
+            u = self._u.Eval(context)[0]
+            one = pmath.sin(u) ** 2 + pmath.cos(u) ** 2
+            derivatives.get_mutable_vector().SetFromVector([x[1], u * one - x[0]])
+
+    return Impl
+
+
+def test_from_drake_sin_u_is_refused_naming_its_row_the_tolerance_and_the_points():
+    with pytest.raises(
+        ModelError,
+        match=r"_SineAndIdentity_.*not affine in u: d xdot / d u depends on u in state "
+        r"rows \[0\] \(e\.g\. d xdot\[0\] / d u\[0\] = cos\(u\(0\)\) is 1 at u = 0 but "
+        r".*compared at u = 0 and at u for 20 random \(x, u\), standard normal, to a "
+        r"relative 1e-08\)",
+    ):
+        ControlAffineSystem.from_drake(_SineAndIdentity_[float](), C=[[1.0, 0.0]])
+    with pytest.raises(ModelError, match=r"state rows \[0\].*for 5 random \(x, u\)"):
+        ControlAffineSystem.from_drake(_SineAndIdentity_[float](), [[1.0, 0.0]], check_points=5)
+
+
+def test_from_drake_accepts_an_input_matrix_that_is_constant_only_numerically():
+    # d xdot[1] / d u = sin^2 u + cos^2 u + u (2 sin u cos u - 2 cos u sin u) keeps u
+    # after expansion; at u = 0 and at random u it is 1.
+    model = ControlAffineSystem.from_drake(_TrigIdentity_[float](), C=[[1.0, 0.0]])
+    X = np.random.default_rng(2).standard_normal((2, 10))
+    np.testing.assert_allclose(model.g_batch(X), np.broadcast_to([[[0.0]], [[1.0]]], (2, 1, 10)))
+    np.testing.assert_allclose(model.f_batch(X), [X[1], -X[0]], rtol=0, atol=0)
+
+
+@TemplateSystem.define("_DoubleFails_")
+def _DoubleFails_(T):
+    class Impl(LeafSystem_[T]):
+        """x' = -x + u symbolically; the double path always throws."""
+
+        def _construct(self, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self.DeclareContinuousState(1)
+            self._u = self.DeclareVectorInputPort("u", 1)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, converter=converter)
+
+        def DoCalcTimeDerivatives(self, context, derivatives):
+            if T is float:
+                raise RuntimeError("no double derivatives here")
+            x = context.get_continuous_state_vector().CopyToVector()
+            derivatives.get_mutable_vector().SetFromVector([-x[0] + self._u.Eval(context)[0]])
+
+    return Impl
+
+
+@pytest.mark.parametrize("points", [0, -3, 2.5, True])
+def test_check_points_must_be_a_positive_integer(points):
+    with pytest.raises(
+        ModelError, match=rf"PendulumPlant: check_points must be a positive integer; got {points!r}"
+    ):
+        ControlAffineSystem.from_drake(PendulumPlant(), [[1.0, 0.0]], check_points=points)
+    with pytest.raises(ModelError, match=r"cart_pole: check_points must be a positive integer"):
+        ControlAffineSystem.from_multibody(CART_POLE, check_points=points)
+
+
+def test_from_drake_refuses_a_system_whose_double_derivatives_always_fail():
+    with pytest.raises(
+        ModelError,
+        match=r"EvalTimeDerivatives failed at all 20 random \(x, u\).*no double derivatives here",
+    ):
+        ControlAffineSystem.from_drake(_DoubleFails_[float](), C=[[1.0]])
+
+
+def test_drake_models_sits_below_model_in_the_import_graph():
+    # No circle, lazy imports included: model builds on drake_models' DrakeDynamics.
+    from .test_import_graph import GRAPH
+
+    assert "model" not in GRAPH["drake_models"]
+    assert "drake_models" in GRAPH["model"]
 
 
 @TemplateSystem.define("_TwoFaced_")
