@@ -44,6 +44,7 @@ LAYERS = {
         "guard",
         "provenance",
         "learning",
+        "progress",
         "sweep",
         "model_error",
     },
