@@ -22,7 +22,7 @@ __version__ = "0.1.0"
 
 #: Public name -> the module that defines it.
 _EXPORTS = {
-    "Variant": "ofrl_drake.ablation",
+    "Variant": "ofrl_drake.ablation_grid",
     "ablate": "ofrl_drake.ablation",
     "PolynomialBasis": "ofrl_drake.basis",
     "ClosedLoop": "ofrl_drake.diagram",

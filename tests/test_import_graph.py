@@ -46,6 +46,7 @@ LAYERS = {
         "learning",
         "progress",
         "sweep",
+        "sweep_store",
         "model_error",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
@@ -53,6 +54,8 @@ LAYERS = {
     3: {  # studies and what presents them
         "simulation",
         "ablation",
+        "ablation_grid",
+        "ablation_tasks",
         "ablation_metrics",
         "ablation_report",
         "optimal",
