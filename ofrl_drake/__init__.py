@@ -23,7 +23,7 @@ import importlib
 
 #: Public name -> the module that defines it.
 _EXPORTS = {
-    "Variant": "ofrl_drake.ablation",
+    "Variant": "ofrl_drake.ablation_grid",
     "ablate": "ofrl_drake.ablation",
     "PolynomialBasis": "ofrl_drake.basis",
     "ClosedLoop": "ofrl_drake.diagram",

@@ -407,7 +407,7 @@ def _dask_client(
 
     from distributed import Client, LocalCluster
 
-    from ofrl_drake.ablation import AblationError
+    from ofrl_drake.ablation_grid import AblationError
 
     if scheduler:
         try:
@@ -483,9 +483,9 @@ def _run_sweep(args: argparse.Namespace, sweep: Any, table: Path) -> list[dict] 
 
 
 def _cmd_ablate(args: argparse.Namespace) -> int:
-    from ofrl_drake.ablation import (
+    from ofrl_drake.ablation import ablate
+    from ofrl_drake.ablation_grid import (
         AblationError,
-        ablate,
         default_variants,
         initial_state_label,
         load_variants,

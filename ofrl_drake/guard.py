@@ -13,9 +13,9 @@ end ``AdvanceTo`` early when
 * the wall time since :meth:`RunGuard.start` exceeds ``max_wall_time``
   (status ``timeout``).
 
-The same monitor draws the optional :class:`ProgressBar`, so a run with the
-bar on and a run with it off take the same steps and give the same numbers, bit
-for bit. A condition is seen only after the step that produced it (the monitor
+The same monitor draws the optional :class:`~ofrl_drake.progress.ProgressBar`,
+so a run with the bar on and a run with it off take the same steps and give the
+same numbers, bit for bit. A condition is seen only after the step that produced it (the monitor
 does not localize it), which is all a guard needs.
 """
 
@@ -23,19 +23,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 from numba import njit
 from pydrake.systems.framework import Context, Diagram, EventStatus, System
 
 from ofrl_drake._jit import JIT
+from ofrl_drake.progress import ProgressBar
 
 __all__ = [
     "STATUS_DIVERGED",
     "STATUS_OK",
     "STATUS_TIMEOUT",
-    "ProgressBar",
     "RunGuard",
     "StopReport",
 ]
@@ -92,41 +92,6 @@ class StopReport:
 
 def _json_number(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
-
-
-class ProgressBar:
-    """A one-line progress bar of simulated time, redrawn at each new percent.
-
-    Parameters
-    ----------
-    duration : float
-        The horizon (100 %).
-    stream : file object
-        Where to draw (``sys.stderr`` in ``simulate``).
-    """
-
-    def __init__(self, duration: float, stream: IO[str]) -> None:
-        self.duration = duration
-        self.stream = stream
-        self._start = time.perf_counter()
-        self._shown = -1
-
-    def update(self, t: float) -> None:
-        """Redraw if ``t`` reached a new whole percent of the horizon."""
-        percent = int(100 * min(max(t / self.duration, 0.0), 1.0))
-        if percent == self._shown:
-            return
-        self._shown = percent
-        width = 30
-        done = round(width * percent / 100)
-        elapsed = time.perf_counter() - self._start
-        self.stream.write(f"\r[{'#' * done}{'.' * (width - done)}] {percent:3d}%  {elapsed:6.1f} s")
-        self.stream.flush()
-
-    def close(self) -> None:
-        """End the line."""
-        self.stream.write("\n")
-        self.stream.flush()
 
 
 @njit(**JIT)

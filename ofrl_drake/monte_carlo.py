@@ -10,11 +10,13 @@ Each run is scored like an ablation row: ``status``, ``regulated``
 (:func:`~ofrl_drake.ablation_metrics.regulation`, with the scenario's
 ``simulation.regulation_tolerance``), ``|x(T) - x*|``, the rms
 estimation error, ``J(T)`` and its ratio to ``J*`` of the nominal problem (the
-model, noise-free, from ``x0``; solved once). With ``out``, rows are appended
-to ``montecarlo.csv`` and fsynced as runs finish, ``montecarlo.json`` records
-what defines the sweep so that ``resume`` refuses another one by name, and
-``runs/`` keeps each run's trajectories for the envelope figure
-(:func:`write_montecarlo_report`).
+model, noise-free, from ``x0``; solved once). The runs are tasks of the sweep
+engine (:mod:`ofrl_drake.sweep`), serial or on Dask. With ``out``, rows are
+appended to ``montecarlo.csv`` and fsynced as runs finish, ``montecarlo.json``
+records what defines the sweep so that ``resume`` refuses another one by name,
+and ``runs/`` keeps each run's trajectories for the envelope figure
+(:func:`write_montecarlo_report`); the folder is a
+:class:`~ofrl_drake.sweep_store.SweepStore`, as an ablation's is.
 """
 
 from __future__ import annotations
@@ -23,30 +25,23 @@ import dataclasses
 import json
 import math
 import os
-import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
-from ofrl_drake.atomic import atomic_file, atomic_write_text, check_output_folder
+from ofrl_drake.atomic import atomic_file, atomic_write_text
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig
-from ofrl_drake.sweep import (
-    DaskEngine,
-    Progress,
-    RowWriter,
-    SerialEngine,
-    TableError,
-    first_difference,
-    read_table,
-)
+from ofrl_drake.sweep import execute
+from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
 __all__ = [
     "CSV_COLUMNS",
+    "FILES",
     "MonteCarloError",
     "montecarlo",
     "montecarlo_table",
@@ -68,13 +63,22 @@ CSV_COLUMNS = (
     "optimality_ratio",
     "wall_time",
 )
-_TEXT = ("seed", "perturbation", "status", "regulated")
-CSV_NAME = "montecarlo.csv"
-PLAN_NAME = "montecarlo.json"
 
 
 class MonteCarloError(OfrlError):
     """A Monte Carlo sweep asked for with bad input (runs, spread, output, resume)."""
+
+
+#: What a Monte Carlo sweep keeps in its ``--out`` folder (a :mod:`~ofrl_drake.sweep_store`).
+FILES = SweepFiles(
+    table="montecarlo.csv",
+    plan="montecarlo.json",
+    columns=CSV_COLUMNS,
+    text=("seed", "perturbation", "status", "regulated"),
+    command="montecarlo",
+    kind="Monte Carlo table",
+    error=MonteCarloError,
+)
 
 
 def _bodies(scenario: Scenario) -> list[str]:
@@ -141,10 +145,7 @@ def _one_run(scenario: Scenario, seed: int, k: int, mass_spread: float) -> dict[
 def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dict]:
     """The rows of a ``montecarlo.csv`` (``seed``, ``perturbation``, ``status``,
     ``regulated`` as text, the rest as floats)."""
-    try:
-        return read_table(path, CSV_COLUMNS, _TEXT, repair=repair, kind="Monte Carlo table")
-    except TableError as err:
-        raise MonteCarloError(str(err)) from None
+    return FILES.read(path, repair=repair)
 
 
 def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[str, Any]:
@@ -157,28 +158,10 @@ def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[
     }
 
 
-def _open(out: Path, plan: dict[str, Any], resume: bool) -> list[dict]:
-    """Check or write ``montecarlo.json``; the rows already done (with ``resume``)."""
-    table = out / CSV_NAME
-    if table.exists() and not resume:
-        raise MonteCarloError(
-            f"--out: {table} exists; pass --resume to complete it, or choose another --out."
-        )
-    check_output_folder(out, marker=PLAN_NAME, command="montecarlo", error=MonteCarloError)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / PLAN_NAME
-    new = json.loads(json.dumps(plan))
-    if resume and path.is_file():
-        old = json.loads(path.read_text())
-        where = first_difference(old, new)
-        if where is not None:
-            raise MonteCarloError(
-                f"--resume: the folder's sweep differs in {where}; resume with the sweep's own "
-                "arguments, or choose another --out."
-            )
-    else:
-        atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
-    return read_montecarlo_rows(table, repair=True) if table.exists() else []
+def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
+    """Why a ``--resume`` with plan ``new`` cannot continue the sweep of plan ``old``."""
+    where = first_difference(old, new)
+    return None if where is None else f"the folder's sweep differs in {where}"
 
 
 def montecarlo(
@@ -238,10 +221,11 @@ def montecarlo(
         raise MonteCarloError(f"--mass-spread: must be in [0, 1); got {mass_spread}.")
     if mass_spread > 0:
         _bodies(scenario)  # refuse a truth without bodies before any run
-    out_dir = None if out is None else Path(out)
+    store = None if out is None else SweepStore(FILES, Path(out))
     done: list[dict] = []
-    if out_dir is not None:
-        done = _open(out_dir, _plan(scenario, runs, seed, mass_spread), resume)
+    if store is not None:
+        plan = _plan(scenario, runs, seed, mass_spread)
+        done = store.open(plan, resume=resume, mismatch=_resume_mismatch)
     if optimal_cost is None:
         from ofrl_drake.optimal import optimal_control
 
@@ -249,36 +233,34 @@ def montecarlo(
         optimal_cost = solved.cost if solved.converged else math.nan
     finished = {r["seed"]: r for r in done}
     todo = [k for k in range(runs) if str(seed + k) not in finished]
-    engine = SerialEngine() if client is None else DaskEngine(client)
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = Progress(runs, runs - len(todo), show)
-    writer = None if out_dir is None else RowWriter(out_dir / CSV_NAME, CSV_COLUMNS, _TEXT)
-    if out_dir is not None:
-        (out_dir / "runs").mkdir(exist_ok=True)
+
+    def submit(engine: Any) -> dict[Any, int]:
+        return {engine.submit(_one_run, scenario, seed, k, mass_spread): k for k in todo}
+
+    def finish(k: int, value: Any, err: BaseException | None) -> list[dict]:
+        if err is not None:  # the task guards itself; a worker lost is recorded too
+            raise MonteCarloError(f"a Monte Carlo task failed: {err}")
+        row = value["row"]
+        row["optimal_cost"] = float(optimal_cost)
+        row["optimality_ratio"] = (
+            row["cost"] / optimal_cost
+            if math.isfinite(row["cost"]) and math.isfinite(optimal_cost) and optimal_cost > 0
+            else math.nan
+        )
+        if store is not None:
+            if value["logs"]:
+                store.save_run(f"seed_{row['seed']}.npz", value["logs"])
+            store.write(row)
+        finished[row["seed"]] = row
+        return [row]
+
+    if store is not None:
+        store.start()
     try:
-        for k in todo:
-            engine.submit(_one_run, scenario, seed, k, mass_spread)
-        for _, value, err in engine.completed():
-            if err is not None:  # the task guards itself; a worker lost is recorded too
-                raise MonteCarloError(f"a Monte Carlo task failed: {err}")
-            row = value["row"]
-            row["optimal_cost"] = float(optimal_cost)
-            row["optimality_ratio"] = (
-                row["cost"] / optimal_cost
-                if math.isfinite(row["cost"]) and math.isfinite(optimal_cost) and optimal_cost > 0
-                else math.nan
-            )
-            if out_dir is not None and value["logs"]:
-                with atomic_file(out_dir / "runs" / f"seed_{row['seed']}.npz", "wb") as fh:
-                    np.savez(fh, **value["logs"])
-            if writer is not None:
-                writer.write(row)
-            finished[row["seed"]] = row
-            bar.advance()
+        execute(submit, finish, client=client, total=runs, done=runs - len(todo), progress=progress)
     finally:
-        bar.close()
-        if writer is not None:
-            writer.close()
+        if store is not None:
+            store.close()
     return [finished[str(seed + k)] for k in range(runs)]
 
 
@@ -328,10 +310,9 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     atomic_write_text(out / "montecarlo.md", "\n".join(text) + "\n")
     logs = []
     for r in rows:
-        path = out / "runs" / f"seed_{r['seed']}.npz"
-        if path.is_file():
-            with np.load(path) as data:
-                logs.append((data["t"], data["x"]))
+        arrays = load_arrays(out / "runs" / f"seed_{r['seed']}.npz")
+        if arrays is not None:
+            logs.append((arrays["t"], arrays["x"]))
     if not logs:
         return
     n = logs[0][1].shape[1]

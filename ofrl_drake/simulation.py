@@ -19,8 +19,9 @@ from pydrake.systems.framework import System
 from ofrl_drake.atomic import atomic_file
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
-from ofrl_drake.guard import STATUS_OK, ProgressBar, RunGuard, StopReport
+from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.observer_certificate import certificate_of
+from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
 from ofrl_drake.scenario import Scenario, abort_box, load_scenario
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report

@@ -12,15 +12,12 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
-from ofrl_drake.ablation import (
-    CSV_COLUMNS,
+from ofrl_drake.ablation import CSV_COLUMNS, ablate, read_rows
+from ofrl_drake.ablation_grid import (
     AblationError,
     Variant,
-    ablate,
     default_variants,
     initial_state_label,
-    read_rows,
-    run_variant,
     sample_initial_states,
 )
 from ofrl_drake.ablation_metrics import (
@@ -29,6 +26,7 @@ from ofrl_drake.ablation_metrics import (
     settling_time,
     time_outside_box,
 )
+from ofrl_drake.ablation_tasks import run_variant
 from ofrl_drake.cli import main
 from ofrl_drake.variants import VARIANT_FACTORIES
 
@@ -313,7 +311,7 @@ def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path
     from distributed import LocalCluster
 
     from ofrl_drake import load_scenario
-    from ofrl_drake.ablation import load_variants
+    from ofrl_drake.ablation_grid import load_variants
 
     scenario_file, variants_file = short_files
     out = tmp_path / "dask"

@@ -18,7 +18,8 @@ from pydrake.systems.controllers import LinearQuadraticRegulator
 from pydrake.systems.primitives import Linearize
 
 from ofrl_drake import load_scenario
-from ofrl_drake.ablation import Variant, ablate
+from ofrl_drake.ablation import ablate
+from ofrl_drake.ablation_grid import Variant
 from ofrl_drake.animation import FRAMES_PER_SECOND, frame_samples
 from ofrl_drake.plants import resolve_system
 

@@ -305,7 +305,7 @@ def test_a_long_name_and_too_many_samples_are_refused(tmp_path):
 # --------------------------------------------------------------- sweeps
 def test_a_cut_short_plan_and_a_failing_table_write_are_named(tmp_path, monkeypatch):
     from ofrl_drake.errors import OfrlError
-    from ofrl_drake.sweep import RowWriter
+    from ofrl_drake.sweep_store import RowWriter
 
     scenario = _short(tmp_path)
     variants = tmp_path / "variants.yaml"

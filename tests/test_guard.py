@@ -13,7 +13,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ofrl_drake import simulate
 from ofrl_drake.errors import ScenarioError
-from ofrl_drake.guard import STATUS_DIVERGED, STATUS_OK, STATUS_TIMEOUT, ProgressBar, RunGuard
+from ofrl_drake.guard import STATUS_DIVERGED, STATUS_OK, STATUS_TIMEOUT, RunGuard
 from ofrl_drake.scenario import ABORT_BOX_FACTOR, BoxConfig, abort_box, validate_scenario
 from ofrl_drake.simulation import TRAJECTORY_KEYS
 
@@ -67,17 +67,6 @@ def test_progress_on_and_off_give_identical_arrays(paper_scenario, paper_design,
         np.testing.assert_array_equal(getattr(shown, key), getattr(quiet, key), err_msg=key)
     assert shown.integrator["num_steps"] == quiet.integrator["num_steps"]
     assert shown.status == quiet.status == STATUS_OK
-
-
-def test_progress_bar_draws_each_percent_once():
-    stream = io.StringIO()
-    bar = ProgressBar(2.0, stream)
-    for t in np.linspace(0.0, 2.0, 1001):
-        bar.update(t)
-    bar.close()
-    frames = stream.getvalue().split("\r")[1:]
-    assert len(frames) == 101
-    assert frames[-1].startswith("[" + "#" * 30 + "] 100%")
 
 
 def test_leaving_the_abort_box_stops_the_run_with_its_logs(paper_scenario, paper_design):

@@ -44,7 +44,9 @@ LAYERS = {
         "guard",
         "provenance",
         "learning",
+        "progress",
         "sweep",
+        "sweep_store",
         "model_error",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
@@ -52,6 +54,8 @@ LAYERS = {
     3: {  # studies and what presents them
         "simulation",
         "ablation",
+        "ablation_grid",
+        "ablation_tasks",
         "ablation_metrics",
         "ablation_report",
         "optimal",

@@ -239,6 +239,20 @@ def test_montecarlo_statuses_resume_and_refusals(real, tmp_path):
         montecarlo(short, 0)
 
 
+def test_montecarlo_resume_refuses_a_cut_short_or_missing_plan_before_any_run(real, tmp_path):
+    """The folder is the ablation's store: its refusals come before J* and any run."""
+    from ofrl_drake.monte_carlo import CSV_COLUMNS
+
+    (tmp_path / "montecarlo.csv").write_text(",".join(CSV_COLUMNS) + "\n")
+    (tmp_path / "montecarlo.json").write_text('{"scenario": "cart')
+    with pytest.raises(MonteCarloError, match=r"montecarlo\.json is not valid JSON \(cut short"):
+        montecarlo(real, 2, out=tmp_path, resume=True, optimal_cost=1.0)
+    (tmp_path / "montecarlo.json").unlink()
+    with pytest.raises(MonteCarloError, match=r"montecarlo\.json is missing; it records the sweep"):
+        montecarlo(real, 2, out=tmp_path, resume=True, optimal_cost=1.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["montecarlo.csv"]
+
+
 def test_montecarlo_perturbs_every_body_mass_by_the_spread(real):
     from ofrl_drake.monte_carlo import run_for
 

@@ -1,0 +1,223 @@
+"""What an ablation sweeps over: the variants and the initial states.
+
+A :class:`Variant` is one choice per slot (see :mod:`ofrl_drake.variants`) for
+the slots it names; the others keep the scenario's. :func:`default_variants`
+is the baseline and every single-slot swap; :func:`load_variants` reads a
+YAML file of them.
+
+Initial states are given as true states ``x0``; the estimate starts at
+``xhat0 = x0 + (scenario.xhat0 - scenario.x0)``, the scenario's own initial
+estimation error. :func:`sample_initial_states` draws ``x0`` in the part of the
+observer box where both ``x0`` and that ``xhat0`` lie in the box, so the
+observer certificate applies from ``t = 0``. Each state is labelled by
+:func:`initial_state_label`, the ``initial_state`` column of the table.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.scenario import Scenario, variant_choices
+
+__all__ = [
+    "AblationError",
+    "Variant",
+    "default_variants",
+    "initial_state_label",
+    "initial_states_by_label",
+    "load_variants",
+    "sample_initial_states",
+    "variant_list",
+]
+
+
+class AblationError(OfrlError):
+    """A sweep was asked for with bad input (variants, initial states, output)."""
+
+
+# ---------------------------------------------------------------- variants
+@dataclass(frozen=True)
+class Variant:
+    """A named set of slot choices; slots it does not name keep the scenario's.
+
+    Attributes
+    ----------
+    name : str
+        The label in the table (``baseline``, ``observer=true_state``, ...).
+    choices : dict of str to str
+        Slot -> choice, e.g. ``{"observer": "true_state"}``.
+    """
+
+    name: str
+    choices: dict[str, str] = field(default_factory=dict)
+
+    def full_choices(self, scenario: Scenario) -> dict[str, str]:
+        """Every slot's choice: the scenario's, overridden by this variant's."""
+        return {**variant_choices(scenario), **self.choices}
+
+
+def _check_choices(name: str, choices: Any) -> dict[str, str]:
+    from ofrl_drake.variants import VARIANT_FACTORIES
+
+    if not isinstance(choices, Mapping):
+        raise AblationError(
+            f"variants.{name}: expected a mapping of slot: choice; got {choices!r}."
+        )
+    for slot, choice in choices.items():
+        if slot not in VARIANT_FACTORIES:
+            raise AblationError(
+                f"variants.{name}.{slot}: unknown slot; slots are {sorted(VARIANT_FACTORIES)}."
+            )
+        if choice not in VARIANT_FACTORIES[slot]:
+            raise AblationError(
+                f"variants.{name}.{slot}: unknown choice {choice!r}; choose one of "
+                f"{sorted(VARIANT_FACTORIES[slot])}."
+            )
+    return {str(k): str(v) for k, v in choices.items()}
+
+
+def default_variants(scenario: Scenario) -> list[Variant]:
+    """The baseline (the scenario's own choices) and every single-slot swap.
+
+    For the paper's scenario: ``baseline`` plus ``observer=linear_luenberger``,
+    ``observer=drake_luenberger``, ``observer=true_state``, ``controller=lqr``,
+    ``controller=frozen_critic``, ``points=uniform``, ``points=around_estimate``
+    and ``gamma=constant``. Choices that need scenario values
+    (:data:`~ofrl_drake.variants.NEEDS_PARAMETERS`, e.g. ``controller=constant``)
+    are left out.
+    """
+    from ofrl_drake.variants import NEEDS_PARAMETERS, VARIANT_FACTORIES
+
+    base = variant_choices(scenario)
+    out = [Variant("baseline", {})]
+    for slot, options in VARIANT_FACTORIES.items():
+        for choice in options:
+            if choice != base[slot] and (slot, choice) not in NEEDS_PARAMETERS:
+                out.append(Variant(f"{slot}={choice}", {slot: choice}))
+    return out
+
+
+def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
+    """Read variants from YAML: a mapping ``name: {slot: choice, ...}``.
+
+    Example::
+
+        baseline: {}
+        full_state: {observer: true_state}
+        lqr_full_state: {observer: true_state, controller: lqr}
+
+    Raises
+    ------
+    AblationError
+        If the file is missing, not a mapping, or names an unknown slot or choice.
+    """
+    from pydrake.common.yaml import yaml_load
+
+    path = Path(path)
+    if not path.is_file():
+        raise AblationError(f"{path}: no such variants file.")
+    try:
+        data = yaml_load(filename=str(path))
+    except Exception as err:
+        raise AblationError(f"{path}: not valid YAML: {err}".replace("\n", " ")) from None
+    if not isinstance(data, Mapping) or not data:
+        raise AblationError(
+            f"{path}: expected a mapping of variant name -> {{slot: choice}}; got {data!r}."
+        )
+    try:
+        return [Variant(str(name), _check_choices(str(name), c or {})) for name, c in data.items()]
+    except AblationError as err:
+        raise AblationError(f"{path}: {err}") from None
+
+
+def variant_list(scenario: Scenario, variants: Any) -> list[Variant]:
+    """The variants of a sweep: ``variants`` (a sequence, or a mapping ``name ->
+    {slot: choice}``), or :func:`default_variants` if None.
+
+    Raises
+    ------
+    AblationError
+        If there is none, or two share a name.
+    """
+    if variants is None:
+        return default_variants(scenario)
+    if isinstance(variants, Mapping):
+        variants = [Variant(str(k), dict(v or {})) for k, v in variants.items()]
+    out = list(variants)
+    names = [v.name for v in out]
+    if not out or len(set(names)) != len(names):
+        raise AblationError(f"variants: need at least one, with distinct names; got {names}.")
+    return out
+
+
+# ---------------------------------------------------------- initial states
+def initial_state_label(x0: Sequence[float]) -> str:
+    """The ``initial_state`` column: ``x0`` as a JSON list, e.g. ``[-1.0, 1.0]``."""
+    return json.dumps([float(v) for v in x0])
+
+
+def sample_initial_states(scenario: Scenario, count: int, seed: int) -> np.ndarray:
+    """The scenario's ``x0`` followed by ``count`` states drawn from ``seed``.
+
+    Draws are uniform in the sub-box of the observer box where both ``x0`` and
+    ``xhat0 = x0 + (scenario.xhat0 - scenario.x0)`` stay in the box, rounded to
+    six decimals so their labels are short and exact.
+
+    Returns
+    -------
+    ndarray, shape (count + 1, n)
+
+    Raises
+    ------
+    AblationError
+        If ``count < 0`` or the initial estimation error is wider than the box.
+    """
+    if int(count) != count or count < 0:
+        raise AblationError(f"--initial-states: must be an integer >= 0; got {count!r}.")
+    x0 = np.asarray(scenario.x0, dtype=float)
+    offset = np.asarray(scenario.xhat0, dtype=float) - x0
+    lower = np.asarray(scenario.observer.box.lower, dtype=float)
+    upper = np.asarray(scenario.observer.box.upper, dtype=float)
+    lo = np.maximum(lower, lower - offset)
+    hi = np.minimum(upper, upper - offset)
+    if np.any(lo >= hi):
+        i = int(np.argmax(lo >= hi))
+        raise AblationError(
+            f"initial states: xhat0 - x0 = {offset.tolist()} is as wide as the observer box "
+            f"in axis {i}; no x0 keeps both x0 and xhat0 inside it."
+        )
+    rng = np.random.default_rng(seed)
+    draws = np.round(lo + (hi - lo) * rng.random((int(count), x0.size)), 6)
+    return np.vstack([x0[None, :], draws])
+
+
+def initial_states_by_label(
+    scenario: Scenario, initial_states: Sequence[Sequence[float]] | np.ndarray | None
+) -> dict[str, np.ndarray]:
+    """``initial_states`` (default: the scenario's ``x0``) keyed by their labels, in order.
+
+    Raises
+    ------
+    AblationError
+        If a state is not ``n`` finite numbers, or two states are the same.
+    """
+    if initial_states is None:
+        initial_states = [scenario.x0]
+    states = np.atleast_2d(np.asarray(initial_states, dtype=float))
+    n = len(scenario.x0)
+    if states.ndim != 2 or states.shape[1] != n or not np.all(np.isfinite(states)):
+        raise AblationError(
+            f"initial states: expected finite rows of {n} numbers; got shape {states.shape}."
+        )
+    labels = [initial_state_label(x) for x in states]
+    if len(set(labels)) != len(labels):
+        raise AblationError(f"initial states: repeated states in {labels}.")
+    return dict(zip(labels, states, strict=True))

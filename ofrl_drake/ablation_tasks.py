@@ -1,0 +1,211 @@
+"""The tasks of an ablation: one variant from one initial state, and ``J*`` from one state.
+
+Each task runs inside a worker (:mod:`ofrl_drake.sweep`) and never raises. It
+carries only picklable data (the :class:`~ofrl_drake.scenario.Scenario`
+dataclass, the :class:`~ofrl_drake.ablation_grid.Variant`, the initial state)
+and builds its Drake diagram where it runs. :func:`run_variant` simulates one
+variant and measures the run (:mod:`ofrl_drake.ablation_metrics`);
+:func:`solve_optimal_task` solves ``J*`` (:mod:`ofrl_drake.optimal`),
+warm-started from a run with the learned controller. An error becomes the
+task's status, on one line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ofrl_drake.ablation_grid import Variant, initial_state_label
+from ofrl_drake.ablation_metrics import run_metrics
+from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
+from ofrl_drake.scenario import Scenario, VariantConfig, variant_choices
+
+__all__ = [
+    "METRICS",
+    "RunOutcome",
+    "failed_optimum",
+    "one_line",
+    "run_variant",
+    "solve_optimal_task",
+]
+
+#: The trajectory metrics of a run (NaN if it failed or was stopped).
+METRICS = (
+    "cost",
+    "final_state_norm",
+    "settling_time",
+    "rms_estimation_error",
+    "min_learning_condition",
+    "time_outside_box",
+    "initial_policy_cost",
+    "final_policy_cost",
+)
+
+
+def _scenario_for(
+    scenario: Scenario, variant: Variant, x0: Sequence[float], duration: float | None
+) -> Scenario:
+    """The scenario of one run: the variant's choices, from ``x0``, over ``duration``."""
+    x0 = np.asarray(x0, dtype=float)
+    offset = np.asarray(scenario.xhat0, dtype=float) - np.asarray(scenario.x0, dtype=float)
+    choices = variant.full_choices(scenario)
+    simulation = scenario.simulation
+    if duration is not None:
+        simulation = dataclasses.replace(simulation, duration=float(duration))
+    return dataclasses.replace(
+        scenario,
+        x0=x0.tolist(),
+        xhat0=(x0 + offset).tolist(),
+        variant=VariantConfig(**choices),
+        simulation=simulation,
+    )
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What one run returns from its worker: metrics, status and trajectories.
+
+    Attributes
+    ----------
+    variant, initial_state : str
+        The row's key.
+    metrics : dict of str to float
+        The trajectory metrics (:func:`~ofrl_drake.ablation_metrics.run_metrics`);
+        NaN if the run failed.
+    status : str
+        ``"ok"`` or the error, on one line.
+    wall_time : float
+        Seconds to build, simulate and measure.
+    learned : bool
+        True if the variant uses the learned controller (a J* warm start).
+    logs : dict of str to ndarray
+        ``t, x, xhat, u, cost`` (empty if the run failed).
+    regulated : bool
+        The run's verdict (:func:`~ofrl_drake.ablation_metrics.regulation`).
+    """
+
+    variant: str
+    initial_state: str
+    metrics: dict[str, float]
+    status: str
+    wall_time: float
+    learned: bool
+    logs: dict[str, np.ndarray] = field(default_factory=dict)
+    regulated: bool = False
+
+    def warm_start(self) -> Trajectory | None:
+        """The run as a :class:`~ofrl_drake.optimal.Trajectory`, if it reached its horizon."""
+        if not self.logs or self.status.startswith(("diverged", "timeout")):
+            return None
+        return Trajectory(
+            t=self.logs["t"], x=self.logs["x"], u=self.logs["u"], cost=self.logs["cost"]
+        )
+
+
+def one_line(err: BaseException) -> str:
+    """An error as a status: its type and message on one line."""
+    return f"{type(err).__name__}: {' '.join(str(err).split())}"
+
+
+def run_variant(
+    scenario: Scenario, variant: Variant, x0: Sequence[float], duration: float | None = None
+) -> RunOutcome:
+    """Build and simulate one variant from ``x0``; never raises.
+
+    Runs inside a worker: the Drake diagram is built here from the scenario
+    data. Any exception becomes the outcome's ``status``.
+    """
+    from ofrl_drake.diagram import build_closed_loop
+    from ofrl_drake.simulation import simulate
+
+    label = initial_state_label(x0)
+    learned = variant.full_choices(scenario)["controller"] == "learned"
+    start = time.perf_counter()
+    regulated = False
+    try:
+        s = _scenario_for(scenario, variant, x0, duration)
+        loop = build_closed_loop(s)
+        result = simulate(s, loop=loop, progress=False)
+        box = (np.asarray(s.observer.box.lower), np.asarray(s.observer.box.upper))
+        metrics = {**run_metrics(result, box), **_policy_costs(loop, result, s)}
+        regulated = bool(result.regulated)
+        status = "ok"
+        if result.status != "ok":
+            # Stopped by the guard: the metrics of a truncated run are not comparable.
+            status = f"{result.status}: {result.stop.reason}"
+            metrics = dict.fromkeys(METRICS, math.nan)
+        elif not (np.all(np.isfinite(result.x)) and np.all(np.isfinite(result.cost))):
+            status = "diverged: non-finite state or cost"
+        logs = {k: np.asarray(getattr(result, k)) for k in ("t", "x", "xhat", "u", "cost")}
+    except Exception as err:
+        metrics = dict.fromkeys(METRICS, math.nan)
+        status = one_line(err)
+        logs = {}
+    return RunOutcome(
+        variant=variant.name,
+        initial_state=label,
+        metrics=metrics,
+        status=status,
+        wall_time=time.perf_counter() - start,
+        learned=learned,
+        logs=logs,
+        regulated=regulated,
+    )
+
+
+def _policy_costs(loop: Any, result: Any, scenario: Scenario) -> dict[str, float]:
+    """The policy in force at 0 and at the run's end, each fed the true state from x0.
+
+    What learning buys, apart from the observer: the critic frozen at
+    ``W_pi(0)`` and ``W_pi(T)``, over the scenario's horizon
+    (:func:`ofrl_drake.learning_curve.evaluate_policy`). NaN for a controller
+    that does not act on the critic (``lqr``, ``constant``).
+    """
+    from ofrl_drake.learning_curve import evaluate_policy
+
+    if variant_choices(scenario)["controller"] not in ("learned", "frozen_critic"):
+        return {"initial_policy_cost": math.nan, "final_policy_cost": math.nan}
+    return {
+        "initial_policy_cost": evaluate_policy(loop, result.W_policy[0]).cost,
+        "final_policy_cost": evaluate_policy(loop, result.W_policy[-1]).cost,
+    }
+
+
+def solve_optimal_task(
+    scenario: Scenario,
+    x0: Sequence[float],
+    warm: RunOutcome | Trajectory | None,
+    duration: float | None = None,
+    mesh: Mesh | None = None,
+    solver: str | None = None,
+) -> OptimalControlResult:
+    """``J*`` from ``x0``, warm-started from a run; never raises."""
+    if duration is not None:
+        scenario = dataclasses.replace(
+            scenario,
+            simulation=dataclasses.replace(scenario.simulation, duration=float(duration)),
+        )
+    warm_start = warm.warm_start() if isinstance(warm, RunOutcome) else warm
+    try:
+        return optimal_control(scenario, x0, warm_start=warm_start, mesh=mesh, solver=solver)
+    except Exception as err:
+        return failed_optimum(x0, scenario.simulation.duration, one_line(err))
+
+
+def failed_optimum(x0: Sequence[float], duration: float, status: str) -> OptimalControlResult:
+    """A ``J*`` that is not available (NaN, not converged), with why in its ``status``."""
+    return OptimalControlResult(
+        x0=tuple(float(v) for v in x0),
+        cost=math.nan,
+        converged=False,
+        status=status,
+        duration=float(duration),
+        solver="",
+        solve_time=0.0,
+    )

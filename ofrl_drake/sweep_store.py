@@ -1,0 +1,326 @@
+"""A sweep's folder: its plan, its table of rows streamed as runs finish, its runs' arrays.
+
+Shared by :func:`ofrl_drake.ablation.ablate` and
+:func:`ofrl_drake.monte_carlo.montecarlo`; :class:`SweepFiles` names what
+differs between them (file names, columns, the command, the exception).
+
+* The plan (``ablation.json``, ``montecarlo.json``) records what defines the
+  sweep, written whole (:func:`~ofrl_drake.atomic.atomic_write_text`). A
+  ``resume`` compares it with the new sweep's and refuses another sweep by name.
+* The table (``ablation.csv``, ``montecarlo.csv``) gets one line per finished
+  row, flushed and fsynced (:class:`RowWriter`), so a killed sweep loses no
+  finished row. Numbers are written with ``repr`` (``nan``, ``inf``), so they
+  read back exactly (:func:`read_table`). A ``resume`` drops a torn last line
+  and, with ``retry_failed``, the rows whose status is not ``ok``.
+* ``runs/`` holds each run's trajectories, one ``.npz`` file per run, written whole.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ofrl_drake.atomic import atomic_file, atomic_write_text, check_output_folder, ensure_parent
+from ofrl_drake.errors import OfrlError
+
+__all__ = [
+    "RowWriter",
+    "SweepFiles",
+    "SweepStore",
+    "TableError",
+    "first_difference",
+    "format_row",
+    "load_arrays",
+    "read_table",
+]
+
+
+class TableError(OfrlError):
+    """A CSV table that is not the one expected (header or a malformed row)."""
+
+
+def format_row(row: Mapping[str, Any], columns: Sequence[str], text: Sequence[str]) -> str:
+    """One CSV line: ``text`` columns as they are, the others as ``repr(float)``."""
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerow(
+        [row[c] if c in text else repr(float(row[c])) for c in columns]
+    )
+    return buffer.getvalue()
+
+
+def read_table(
+    path: str | os.PathLike[str],
+    columns: Sequence[str],
+    text: Sequence[str],
+    *,
+    repair: bool = False,
+    kind: str = "table",
+) -> list[dict[str, Any]]:
+    """The rows of a CSV table with header ``columns``, numbers as floats.
+
+    ``repair`` truncates the file after its last complete line (a sweep killed
+    while writing can leave a torn one).
+
+    Raises
+    ------
+    TableError
+        If the header is not ``columns`` or a row is malformed.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    if not data.endswith(b"\n"):
+        data = data[: data.rfind(b"\n") + 1]
+        if repair:
+            with open(path, "r+b") as fh:
+                fh.truncate(len(data))
+    if not data and repair:
+        return []  # killed before the header was complete; the writer adds it
+    lines = list(csv.reader(io.StringIO(data.decode())))
+    columns = tuple(columns)
+    if not lines or tuple(lines[0]) != columns:
+        raise TableError(f"{path}: not an {kind}; expected the header {columns}.")
+    rows = []
+    for i, values in enumerate(lines[1:], start=2):
+        try:
+            rows.append(
+                {c: (v if c in text else float(v)) for c, v in zip(columns, values, strict=True)}
+            )
+        except ValueError:
+            raise TableError(f"{path}: line {i} is malformed: {values}.") from None
+    return rows
+
+
+class RowWriter:
+    """Appends rows to a CSV file, each flushed and fsynced before returning."""
+
+    def __init__(self, path: Path, columns: Sequence[str], text: Sequence[str]) -> None:
+        self.path = path
+        self.columns = tuple(columns)
+        self.text = tuple(text)
+        fresh = not path.exists() or path.stat().st_size == 0
+        self._fh = open(path, "a", encoding="utf-8", newline="")
+        if fresh:
+            self._write(",".join(self.columns) + "\n")
+
+    def _write(self, line: str) -> None:
+        try:
+            self._fh.write(line)
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+        except OSError as err:
+            problem = (err.strerror or type(err).__name__).lower()
+            raise TableError(
+                f"{problem} writing {self.path}; the rows written before are kept: free the "
+                "problem and rerun with --resume."
+            ) from None
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        """Append ``row`` (every column) and make it durable."""
+        self._write(format_row(row, self.columns, self.text))
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def first_difference(old: Any, new: Any, path: str = "") -> str | None:
+    """The key path of the first difference between two JSON-like values, or None."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            where = f"{path}.{key}" if path else str(key)
+            if key not in old or key not in new:
+                return where
+            found = first_difference(old[key], new[key], where)
+            if found is not None:
+                return found
+        return None
+    return None if old == new else (path or "value")
+
+
+def load_arrays(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The arrays of one ``runs/*.npz`` file, or None if there is none."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
+@dataclass(frozen=True)
+class SweepFiles:
+    """What one kind of sweep keeps in its folder, and how its errors are named.
+
+    Attributes
+    ----------
+    table : str
+        File name of the CSV table, e.g. ``ablation.csv``.
+    plan : str
+        File name of the plan (what defines the sweep), e.g. ``ablation.json``.
+    columns : tuple of str
+        The table's header, in order.
+    text : tuple of str
+        The columns kept as text; the others are floats.
+    command : str
+        The ``ofrl-drake`` command that writes such folders, e.g. ``ablate``.
+    kind : str
+        The table in messages, e.g. ``ablation table``.
+    error : type
+        The exception raised for bad input (an :class:`~ofrl_drake.errors.OfrlError`).
+    """
+
+    table: str
+    plan: str
+    columns: tuple[str, ...]
+    text: tuple[str, ...]
+    command: str
+    kind: str
+    error: type[OfrlError]
+
+    def read(self, path: str | os.PathLike[str], *, repair: bool = False) -> list[dict[str, Any]]:
+        """The rows of a table of this kind (:func:`read_table`), errors as :attr:`error`."""
+        try:
+            return read_table(path, self.columns, self.text, repair=repair, kind=self.kind)
+        except TableError as err:
+            raise self.error(str(err)) from None
+
+
+class SweepStore:
+    """The folder of one sweep: plan, streamed table and ``runs/``.
+
+    Parameters
+    ----------
+    files : SweepFiles
+        The kind of sweep.
+    folder : Path
+        The ``--out`` folder (created if absent).
+
+    Examples
+    --------
+    >>> store = SweepStore(files, Path("out"))                          # doctest: +SKIP
+    >>> done = store.open(plan, resume=True, mismatch=why_not)          # doctest: +SKIP
+    >>> store.start(); store.write(row); store.close()                  # doctest: +SKIP
+    """
+
+    def __init__(self, files: SweepFiles, folder: Path) -> None:
+        self.files = files
+        self.folder = folder
+        self._writer: RowWriter | None = None
+
+    @property
+    def table(self) -> Path:
+        """The table's path."""
+        return self.folder / self.files.table
+
+    @property
+    def runs(self) -> Path:
+        """The folder of the runs' arrays."""
+        return self.folder / "runs"
+
+    def open(
+        self,
+        plan: Mapping[str, Any],
+        *,
+        resume: bool,
+        mismatch: Callable[[Mapping[str, Any], Mapping[str, Any]], str | None],
+        retry_failed: bool = False,
+    ) -> list[dict[str, Any]]:
+        """Check the folder, check or write the plan; return the rows already done.
+
+        Parameters
+        ----------
+        plan : mapping
+            What defines this sweep (JSON-ready), compared with the folder's
+            on ``resume`` and written otherwise.
+        resume : bool
+            Complete the table in the folder instead of refusing it.
+        mismatch : callable
+            ``mismatch(old_plan, new_plan)``: why the folder's sweep cannot
+            be continued by this one (one clause), or None if it can.
+        retry_failed : bool
+            Drop the rows whose status is not ``ok`` from the table (rewritten
+            whole) so that their runs are done again.
+
+        Raises
+        ------
+        OfrlError
+            (:attr:`SweepFiles.error`) For a folder another command wrote, a
+            table without its plan, a table without ``resume``, a plan cut
+            short, or a ``resume`` of another sweep (named by ``mismatch``).
+        """
+        files, error = self.files, self.files.error
+        table, plan_path = self.table, self.folder / files.plan
+        if table.exists() and not plan_path.exists():
+            raise error(
+                f"--out: {plan_path} is missing; it records the sweep that "
+                f"{files.table} belongs to, so it cannot be resumed. Restore it, or move "
+                f"{files.table} away to start a new sweep in {self.folder}."
+            )
+        check_output_folder(self.folder, marker=files.plan, command=files.command, error=error)
+        ensure_parent(plan_path)
+        if table.exists() and not resume:
+            raise error(f"{table} exists; pass --resume to complete it, or choose another --out.")
+        self._check_or_write_plan(plan, resume, mismatch)
+        if not table.exists():
+            return []
+        rows = files.read(table, repair=True)
+        if retry_failed:
+            kept = [r for r in rows if r["status"] == "ok"]
+            if len(kept) < len(rows):
+                text = ",".join(files.columns) + "\n"
+                text += "".join(format_row(r, files.columns, files.text) for r in kept)
+                atomic_write_text(table, text)
+            rows = kept
+        return rows
+
+    def _check_or_write_plan(
+        self,
+        plan: Mapping[str, Any],
+        resume: bool,
+        mismatch: Callable[[Mapping[str, Any], Mapping[str, Any]], str | None],
+    ) -> None:
+        path = self.folder / self.files.plan
+        if resume and path.is_file():
+            try:
+                old = json.loads(path.read_text())
+            except (ValueError, UnicodeDecodeError):
+                raise self.files.error(
+                    f"--resume: {path} is not valid JSON (cut short?); it records the sweep that "
+                    f"{self.files.table} belongs to. Restore it, or move the folder away and "
+                    "start again."
+                ) from None
+            why = mismatch(old, json.loads(json.dumps(plan)))
+            if why is not None:
+                raise self.files.error(
+                    f"--resume: {why}; resume with the sweep's own arguments, or choose another "
+                    "--out."
+                )
+            return
+        atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
+
+    def start(self) -> None:
+        """Open the table for appending (with its header if it is new)."""
+        self._writer = RowWriter(self.table, self.files.columns, self.files.text)
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        """Append ``row`` to the table and make it durable (after :meth:`start`)."""
+        if self._writer is None:
+            raise RuntimeError("SweepStore.write: call start() first.")
+        self._writer.write(row)
+
+    def save_run(self, name: str, arrays: Mapping[str, Any]) -> None:
+        """Write ``runs/<name>`` (an ``.npz`` file of ``arrays``) whole or not at all."""
+        with atomic_file(self.runs / name, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    def close(self) -> None:
+        """Close the table."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None

@@ -1,0 +1,165 @@
+"""The sweep engine and the sweep's folder, shared by ablate and montecarlo (no Drake)."""
+
+import io
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from ofrl_drake.errors import OfrlError
+from ofrl_drake.sweep import Engine, execute
+from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
+
+
+class _SweepError(OfrlError):
+    pass
+
+
+FILES = SweepFiles(
+    table="t.csv",
+    plan="t.json",
+    columns=("name", "value", "status"),
+    text=("name", "status"),
+    command="test",
+    kind="example table",
+    error=_SweepError,
+)
+
+
+def _never_different(old, new):
+    return None
+
+
+def _seed_differs(old, new):
+    return None if old["seed"] == new["seed"] else f"seed {old['seed']} != {new['seed']}"
+
+
+# ------------------------------------------------------------------ engine
+def _twice(x):
+    return 2 * x
+
+
+def _fails(x):
+    raise ValueError(f"no {x}")
+
+
+def test_the_serial_engine_runs_in_order_and_passes_results_on():
+    engine = Engine()
+    first = engine.submit(_twice, 3)
+    second = engine.submit(_twice, engine.ref(first))
+    broken = engine.submit(_fails, 1)
+    done = list(engine.completed())
+    assert [(h, v) for h, v, _ in done] == [(first, 6), (second, 12), (broken, None)]
+    assert isinstance(done[2][2], ValueError) and str(done[2][2]) == "no 1"
+
+
+def test_execute_counts_rows_not_tasks(monkeypatch):
+    stream = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", stream)
+    seen = []
+
+    def submit(engine):
+        return {engine.submit(_twice, k): k for k in range(3)}
+
+    def finish(task, value, err):  # task 0 completes no row, task 2 completes two
+        seen.append((task, value, err))
+        return [None] * task
+
+    execute(submit, finish, client=None, total=4, done=1, progress=True)
+    assert seen == [(0, 0, None), (1, 2, None), (2, 4, None)]
+    labels = [f.split("] ")[1].split("  ")[0] for f in stream.getvalue().split("\r")[1:]]
+    assert labels == ["1/4 runs", "2/4 runs", "3/4 runs", "4/4 runs"]
+
+
+def test_execute_stops_when_the_sweep_raises_and_ends_the_bar_line(monkeypatch):
+    stream = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", stream)
+
+    def finish(task, value, err):
+        raise _SweepError("stop here")
+
+    with pytest.raises(_SweepError, match="stop here"):
+        execute(
+            lambda e: {e.submit(_twice, 1): 0}, finish, client=None, total=1, done=0, progress=True
+        )
+    assert stream.getvalue().endswith("\n")
+
+
+# ------------------------------------------------------------------- store
+def test_a_new_folder_gets_its_plan_and_a_streamed_table(tmp_path):
+    store = SweepStore(FILES, tmp_path / "out")
+    assert store.open({"seed": 1}, resume=False, mismatch=_never_different) == []
+    assert json.loads((tmp_path / "out" / "t.json").read_text()) == {"seed": 1}
+    store.start()
+    store.write({"name": "a", "value": math.nan, "status": "ok"})
+    store.write({"name": "b, c", "value": 0.1, "status": "timeout: 3 s"})
+    store.save_run("a.npz", {"t": np.arange(3.0)})
+    store.close()
+    text = (tmp_path / "out" / "t.csv").read_text()
+    assert text == 'name,value,status\na,nan,ok\n"b, c",0.1,timeout: 3 s\n'
+    rows = FILES.read(tmp_path / "out" / "t.csv")
+    assert rows[1] == {"name": "b, c", "value": 0.1, "status": "timeout: 3 s"}
+    np.testing.assert_array_equal(load_arrays(tmp_path / "out" / "runs" / "a.npz")["t"], [0, 1, 2])
+    assert load_arrays(tmp_path / "out" / "runs" / "b.npz") is None
+
+
+def _filled(tmp_path):
+    out = tmp_path / "out"
+    store = SweepStore(FILES, out)
+    store.open({"seed": 1}, resume=False, mismatch=_seed_differs)
+    store.start()
+    store.write({"name": "a", "value": 1.0, "status": "ok"})
+    store.write({"name": "b", "value": 2.0, "status": "diverged: x left"})
+    store.close()
+    return out
+
+
+def test_resume_keeps_rows_drops_a_torn_line_and_retries_failed_ones(tmp_path):
+    out = _filled(tmp_path)
+    table = out / "t.csv"
+    table.write_text(table.read_text() + "c,3.")  # killed while writing
+    with pytest.raises(_SweepError, match=r"t\.csv exists; pass --resume to complete it"):
+        SweepStore(FILES, out).open({"seed": 1}, resume=False, mismatch=_seed_differs)
+    rows = SweepStore(FILES, out).open({"seed": 1}, resume=True, mismatch=_seed_differs)
+    assert [r["name"] for r in rows] == ["a", "b"]
+    assert table.read_text().endswith("diverged: x left\n")
+    store = SweepStore(FILES, out)
+    rows = store.open({"seed": 1}, resume=True, mismatch=_seed_differs, retry_failed=True)
+    assert [r["name"] for r in rows] == ["a"]
+    assert table.read_text() == "name,value,status\na,1.0,ok\n"
+
+
+def test_resume_refuses_another_sweep_a_cut_short_plan_and_a_missing_one(tmp_path):
+    out = _filled(tmp_path)
+    with pytest.raises(
+        _SweepError, match=r"^--resume: seed 1 != 2; resume with the sweep's own arguments"
+    ):
+        SweepStore(FILES, out).open({"seed": 2}, resume=True, mismatch=_seed_differs)
+    (out / "t.json").write_text('{"se')
+    with pytest.raises(_SweepError, match=r"t\.json is not valid JSON \(cut short\?\)"):
+        SweepStore(FILES, out).open({"seed": 1}, resume=True, mismatch=_seed_differs)
+    (out / "t.json").unlink()
+    with pytest.raises(_SweepError, match=r"t\.json is missing; it records the sweep that t\.csv"):
+        SweepStore(FILES, out).open({"seed": 1}, resume=True, mismatch=_seed_differs)
+
+
+def test_a_folder_of_another_command_is_refused(tmp_path):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    with pytest.raises(_SweepError, match=r"not written by ofrl-drake test \(no t\.json\)"):
+        SweepStore(FILES, tmp_path / "mine").open({}, resume=False, mismatch=_never_different)
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
+
+
+def test_a_table_of_another_kind_is_named(tmp_path):
+    (tmp_path / "t.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(_SweepError, match=r"t\.csv: not an example table; expected the header"):
+        FILES.read(tmp_path / "t.csv")
+
+
+def test_first_difference_names_the_key_path():
+    assert first_difference({"a": {"b": 1, "c": 2}}, {"a": {"b": 1, "c": 3}}) == "a.c"
+    assert first_difference({"a": 1}, {"a": 1, "z": 0}) == "z"
+    assert first_difference({"a": [1]}, {"a": [1]}) is None
