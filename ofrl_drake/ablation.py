@@ -14,7 +14,7 @@ worker; nothing of Drake is pickled. Without a client the same tasks run one
 after another in this process. ``J*`` is one task per initial state, warm-started
 from the first run of a variant with the learned controller from that state.
 Workers import ``ofrl_drake`` themselves, so a choice added with
-:func:`~ofrl_drake.variants.register_variant` must be registered in the workers
+:func:`~ofrl_drake.slots.register_variant` must be registered in the workers
 too (e.g. in a module they import), not only in the driver.
 
 Streaming and resume
@@ -159,7 +159,7 @@ class Variant:
 
 
 def _check_choices(name: str, choices: Any) -> dict[str, str]:
-    from ofrl_drake.variants import VARIANT_FACTORIES
+    from ofrl_drake.slots import VARIANT_FACTORIES
 
     if not isinstance(choices, Mapping):
         raise AblationError(
@@ -185,10 +185,10 @@ def default_variants(scenario: Scenario) -> list[Variant]:
     ``observer=drake_luenberger``, ``observer=true_state``, ``controller=lqr``,
     ``controller=frozen_critic``, ``points=uniform``, ``points=around_estimate``
     and ``gamma=constant``. Choices that need scenario values
-    (:data:`~ofrl_drake.variants.NEEDS_PARAMETERS`, e.g. ``controller=constant``)
+    (:data:`~ofrl_drake.slots.NEEDS_PARAMETERS`, e.g. ``controller=constant``)
     are left out.
     """
-    from ofrl_drake.variants import NEEDS_PARAMETERS, VARIANT_FACTORIES
+    from ofrl_drake.slots import NEEDS_PARAMETERS, VARIANT_FACTORIES
 
     base = variant_choices(scenario)
     out = [Variant("baseline", {})]
