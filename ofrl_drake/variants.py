@@ -46,6 +46,7 @@ The plant, observer, controller and running cost are C++ symbolic blocks when
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -87,6 +88,7 @@ from ofrl_drake.systems.baselines import (
 )
 
 if TYPE_CHECKING:  # annotations only: the registry imports this module
+    from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.design import ObserverDesign
     from ofrl_drake.model import ControlAffineSystem
     from ofrl_drake.scenario import Scenario
@@ -96,6 +98,7 @@ __all__ = [
     "around_estimate",
     "constant_controller",
     "constant_gamma",
+    "controller_block",
     "design_for",
     "drake_luenberger",
     "frozen_critic",
@@ -108,8 +111,10 @@ __all__ = [
     "linear_observer_design",
     "lqr",
     "plant",
+    "plant_block",
     "policy",
     "running_cost",
+    "running_cost_block",
     "three_gain",
     "true_state",
     "uniform",
@@ -117,18 +122,24 @@ __all__ = [
 
 
 # ------------------------------------------------------------------- plant
+def plant_block(system: ControlAffineSystem, x0: Sequence[float], symbolic: bool) -> System:
+    """``system`` simulated from its ``f`` and ``g``: C++ symbolic if ``symbolic``, else Python."""
+    block = SymbolicPlant if symbolic else ControlAffinePlant
+    return block(system, initial_state=x0)
+
+
 def plant(parts: ClosedLoopParts) -> System:
     """The plant simulated: the model, or the scenario's truth.
 
     A multibody truth runs as its own ``MultibodyPlant`` in C++
     (:class:`~ofrl_drake.systems.DrakePlant`, body masses scaled through the
-    Context); another truth as the model does, from its ``f`` and ``g``.
+    Context); another truth as the model does, from its ``f`` and ``g``
+    (symbolic when they trace).
     """
     s = parts.scenario
     truth = parts.truth
     if truth is None:
-        block = SymbolicPlant if parts.symbolic else ControlAffinePlant
-        return block(parts.system, initial_state=s.x0)
+        return plant_block(parts.system, s.x0, parts.symbolic)
     from ofrl_drake.plants import multibody_body_names
     from ofrl_drake.systems.drake_plant import DrakePlant
 
@@ -137,8 +148,8 @@ def plant(parts: ClosedLoopParts) -> System:
     try:
         truth.symbolic()
     except ModelError:
-        return ControlAffinePlant(truth, initial_state=s.x0)
-    return SymbolicPlant(truth, initial_state=s.x0)
+        return plant_block(truth, s.x0, symbolic=False)
+    return plant_block(truth, s.x0, symbolic=True)
 
 
 # ---------------------------------------------------------------- observer
@@ -296,10 +307,23 @@ def true_state(parts: ClosedLoopParts) -> System:
 
 
 # -------------------------------------------------------------- controller
+def controller_block(
+    system: ControlAffineSystem,
+    basis: PolynomialBasis,
+    r: np.ndarray,
+    input_bound: float,
+    symbolic: bool,
+) -> System:
+    """The saturated policy of the weights at its ``policy_weights`` input."""
+    block = SymbolicController if symbolic else SaturatedController
+    return block(system, basis, r, input_bound)
+
+
 def learned_controller(parts: ClosedLoopParts) -> System:
     """The saturated policy of the policy weights."""
-    block = SymbolicController if parts.symbolic else SaturatedController
-    return block(parts.system, parts.basis, parts.r, parts.scenario.input_bound)
+    return controller_block(
+        parts.system, parts.basis, parts.r, parts.scenario.input_bound, parts.symbolic
+    )
 
 
 def lqr(parts: ClosedLoopParts) -> System:
@@ -413,7 +437,12 @@ def constant_gamma(parts: ClosedLoopParts) -> System:
 
 
 # ------------------------------------------------------------ running cost
-def running_cost(parts: ClosedLoopParts) -> System:
+def running_cost_block(Q: np.ndarray, r: np.ndarray, input_bound: float, symbolic: bool) -> System:
     """The integral of ``x^T Q x`` plus the saturated input cost."""
-    block = SymbolicRunningCost if parts.symbolic else RunningCost
-    return block(parts.Q, parts.r, parts.scenario.input_bound)
+    block = SymbolicRunningCost if symbolic else RunningCost
+    return block(Q, r, input_bound)
+
+
+def running_cost(parts: ClosedLoopParts) -> System:
+    """The running cost of the scenario's ``Q``, ``R`` and input bound."""
+    return running_cost_block(parts.Q, parts.r, parts.scenario.input_bound, parts.symbolic)
