@@ -27,7 +27,7 @@ imports neither.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -134,7 +134,7 @@ class Choice:
     """
 
     blocks: dict[str, BlockFactory]
-    design: DesignFactory | None = field(default=None)
+    design: DesignFactory | None = None
 
     def __call__(self, parts: ClosedLoopParts) -> dict[str, System]:
         return {block: build(parts) for block, build in self.blocks.items()}
@@ -315,7 +315,7 @@ def slot_blocks(
                     f"variant.{owner[block]} builds too; choose one of them."
                 )
             blocks[block] = system
-            owner[block] = f"{slot} ({choices[slot]!r})"
+            owner[block] = f"{slot} ({choice!r})"
     for block, build in FIXED_BLOCKS.items():
         if block not in blocks and block not in swapped:
             blocks[block] = build(parts)
@@ -325,12 +325,18 @@ def slot_blocks(
 def _blocks_of(
     slot: str, choice: str, factory: Factory, parts: ClosedLoopParts
 ) -> dict[str, System]:
-    """The blocks a plain factory returns, which must include its slot's own block."""
+    """The blocks a plain factory returns: its slot's own, and fixed blocks it replaces."""
     built = factory(parts)
     own = SLOT_BLOCKS[slot]
     if not isinstance(built, Mapping) or own not in built:
         raise SwapError(
             f"variant.{slot}: {choice!r} must return a mapping with its {own!r} block, "
             f"{{'{own}': System}}, plus any of {sorted(FIXED_BLOCKS)} it replaces; got {built!r}."
+        )
+    stray = sorted(set(built) - {own, *FIXED_BLOCKS})
+    if stray:
+        raise SwapError(
+            f"variant.{slot}: {choice!r} returns a {stray[0]!r} block; a choice builds its "
+            f"{own!r} block and may replace {sorted(FIXED_BLOCKS)}, no other."
         )
     return dict(built)

@@ -215,12 +215,21 @@ def test_a_choice_may_replace_a_fixed_block(paper_scenario, registry):
     assert build_closed_loop(both, critic=given).critic is given
 
 
-def test_a_factory_must_build_its_slots_block(paper_scenario, registry):
+def test_a_factory_must_build_its_slots_block_and_no_other_slots(paper_scenario, registry):
     register_variant("points", "nowhere", lambda parts: {})
     with pytest.raises(
         SwapError, match=r"variant.points: 'nowhere' must return a mapping with its 'bellman' block"
     ):
         build_closed_loop(_short(paper_scenario, points="nowhere"))
+    register_variant(
+        "observer",
+        "greedy",
+        lambda parts: {"observer": FullStateObserver(2), "gamma": GammaGain(np.eye(3), 0.0, 0.0)},
+    )
+    with pytest.raises(
+        SwapError, match=r"variant.observer: 'greedy' returns a 'gamma' block; a choice builds"
+    ):
+        build_closed_loop(_short(paper_scenario, observer="greedy"))
 
 
 def test_register_variant_refuses_bad_entries(registry):
