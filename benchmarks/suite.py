@@ -117,7 +117,7 @@ class Settings:
 
 # ------------------------------------------------------------------ helpers
 def _design(scenario: Scenario) -> Any:
-    from ofrl_drake.diagram import design_for
+    from ofrl_drake.variants import design_for
 
     return design_for(scenario)
 

@@ -1,7 +1,7 @@
 """Ablation sweeps: every variant from every initial state, against the optimum.
 
 A sweep runs each :class:`~ofrl_drake.ablation_grid.Variant` (one choice per
-slot, see :mod:`ofrl_drake.variants`) from each initial state
+slot, see :mod:`ofrl_drake.slots`) from each initial state
 (:mod:`ofrl_drake.ablation_grid`), measures the run
 (:mod:`ofrl_drake.ablation_metrics`) and divides its cost by the optimal cost
 ``J*`` from the same initial state (:mod:`ofrl_drake.optimal`). This module
@@ -15,7 +15,7 @@ same tasks run one after another in this process (:mod:`ofrl_drake.sweep`).
 ``J*`` is one task per initial state, warm-started from the first run of a
 variant with the learned controller from that state. Workers import
 ``ofrl_drake`` themselves, so a choice added with
-:func:`~ofrl_drake.variants.register_variant` must be registered in the workers
+:func:`~ofrl_drake.slots.register_variant` must be registered in the workers
 too (e.g. in a module they import), not only in the driver.
 
 Streaming and resume

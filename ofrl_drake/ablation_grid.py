@@ -1,6 +1,6 @@
 """What an ablation sweeps over: the variants and the initial states.
 
-A :class:`Variant` is one choice per slot (see :mod:`ofrl_drake.variants`) for
+A :class:`Variant` is one choice per slot (see :mod:`ofrl_drake.slots`) for
 the slots it names; the others keep the scenario's. :func:`default_variants`
 is the baseline and every single-slot swap; :func:`load_variants` reads a
 YAML file of them.
@@ -65,7 +65,7 @@ class Variant:
 
 
 def _check_choices(name: str, choices: Any) -> dict[str, str]:
-    from ofrl_drake.variants import VARIANT_FACTORIES
+    from ofrl_drake.slots import VARIANT_FACTORIES
 
     if not isinstance(choices, Mapping):
         raise AblationError(
@@ -91,10 +91,10 @@ def default_variants(scenario: Scenario) -> list[Variant]:
     ``observer=drake_luenberger``, ``observer=true_state``, ``controller=lqr``,
     ``controller=frozen_critic``, ``points=uniform``, ``points=around_estimate``
     and ``gamma=constant``. Choices that need scenario values
-    (:data:`~ofrl_drake.variants.NEEDS_PARAMETERS`, e.g. ``controller=constant``)
+    (:data:`~ofrl_drake.slots.NEEDS_PARAMETERS`, e.g. ``controller=constant``)
     are left out.
     """
-    from ofrl_drake.variants import NEEDS_PARAMETERS, VARIANT_FACTORIES
+    from ofrl_drake.slots import NEEDS_PARAMETERS, VARIANT_FACTORIES
 
     base = variant_choices(scenario)
     out = [Variant("baseline", {})]

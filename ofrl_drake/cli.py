@@ -342,9 +342,9 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _cmd_design_observer(args: argparse.Namespace) -> int:
-    from ofrl_drake.diagram import design_for
     from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.variants import design_for
 
     scenario = load_scenario(args.scenario)
     check_writable(Path(args.out))  # fail before the work, not after
@@ -374,9 +374,9 @@ def _verify(design: object, system: object) -> object:
 
 
 def _cmd_verify_observer(args: argparse.Namespace) -> int:
-    from ofrl_drake.diagram import design_for
     from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.variants import design_for
     from ofrl_drake.verification import verify_observer
 
     scenario = load_scenario(args.scenario)

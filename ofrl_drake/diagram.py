@@ -39,7 +39,6 @@ from ofrl_drake.learning import (
     rho_metric,
 )
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.observer import ObserverGains
 from ofrl_drake.plants import resolve_system, resolve_truth
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import (
@@ -48,21 +47,12 @@ from ofrl_drake.scenario import (
     validate_scenario,
     variant_choices,
 )
-from ofrl_drake.systems import (
-    BellmanExtrapolator,
-    ControlAffinePlant,
-    CriticWeights,
-    GammaGain,
-    PolicyGate,
-    PolicyPassThrough,
-    RunningCost,
-    SaturatedController,
-    ScheduledThreeGainObserver,
-    SymbolicController,
-    SymbolicObserver,
-    SymbolicPlant,
-    SymbolicRunningCost,
-    ThreeGainObserver,
+from ofrl_drake.slots import (
+    SLOTS,
+    VARIANT_FACTORIES,
+    ClosedLoopParts,
+    chosen_design,
+    slot_blocks,
 )
 from ofrl_drake.systems.world import MeasuredPlant, SampledController
 
@@ -70,29 +60,14 @@ __all__ = [
     "LOGGED",
     "OPTIONAL_LOGGED",
     "SIGNALS",
-    "SLOTS",
     "ClosedLoop",
-    "ClosedLoopParts",
     "CriticSettings",
     "build_closed_loop",
     "critic_settings",
-    "design_for",
     "drake_plant",
     "extrapolation_points",
     "symbolic_blocks",
 ]
-
-#: The block slots of the closed loop, in build order.
-SLOTS = (
-    "plant",
-    "observer",
-    "controller",
-    "critic",
-    "policy",
-    "gamma",
-    "bellman",
-    "running_cost",
-)
 
 #: Signal name -> the slot whose output port of that name provides it.
 SIGNALS = {
@@ -157,21 +132,6 @@ class CriticSettings:
     linearization: tuple[np.ndarray, np.ndarray] | None
 
 
-@dataclass(frozen=True)
-class ClosedLoopParts:
-    """What a block factory may need to build a replacement block."""
-
-    scenario: Scenario
-    system: ControlAffineSystem
-    basis: PolynomialBasis
-    features: PointFeatures
-    design: Any
-    Q: np.ndarray
-    r: np.ndarray
-    critic: CriticSettings | None = None
-    truth: ControlAffineSystem | None = None
-
-
 @dataclass
 class ClosedLoop:
     """A built closed loop: the diagram and handles to its named blocks."""
@@ -227,40 +187,6 @@ def extrapolation_points(scenario: Scenario) -> np.ndarray:
     if p.kind == "grid":
         return grid_points(p.lower, p.upper, p.counts)
     return uniform_points(p.lower, p.upper, p.number, p.seed)
-
-
-def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> Any:
-    """The observer design of ``scenario``: certified by LMI unless gains are pinned.
-
-    Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
-    certificate, which reports honestly whether they satisfy the LMI.
-    """
-    from ofrl_drake.design import ObserverDesign, design_observer
-
-    system = system or resolve_system(scenario)
-    o = scenario.observer
-    box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
-    if o.L is not None:
-        return ObserverDesign.from_gains(
-            system,
-            box,
-            scenario.input_bound,
-            o.alpha,
-            L=np.asarray(o.L, float),
-            H=np.asarray(o.H, float),
-            K=np.asarray(o.K, float),
-            jacobian_method=o.jacobian_method,
-            formulation=o.formulation,
-        )
-    return design_observer(
-        system,
-        box,
-        scenario.input_bound,
-        o.alpha,
-        jacobian_method=o.jacobian_method,
-        solver=o.solver,
-        formulation=o.formulation,
-    )
 
 
 def _linearization(system: ControlAffineSystem) -> tuple[np.ndarray, np.ndarray] | None:
@@ -407,30 +333,6 @@ def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
     return True
 
 
-def _plant_block(parts: ClosedLoopParts, symbolic: bool) -> System:
-    """The plant simulated: the model, or the scenario's truth.
-
-    A multibody truth runs as its own ``MultibodyPlant`` in C++
-    (:class:`~ofrl_drake.systems.DrakePlant`, body masses scaled through the
-    Context); another truth as the model does, from its ``f`` and ``g``.
-    """
-    s = parts.scenario
-    truth = parts.truth
-    if truth is None:
-        block = SymbolicPlant if symbolic else ControlAffinePlant
-        return block(parts.system, initial_state=s.x0)
-    from ofrl_drake.plants import multibody_body_names
-    from ofrl_drake.systems.drake_plant import DrakePlant
-
-    if multibody_body_names(truth) is not None:
-        return DrakePlant(truth, initial_state=s.x0, body_mass_scale=s.truth.body_mass_scale)
-    try:
-        truth.symbolic()
-    except ModelError:
-        return ControlAffinePlant(truth, initial_state=s.x0)
-    return SymbolicPlant(truth, initial_state=s.x0)
-
-
 def _real_world(slot: str, block: System, scenario: Scenario) -> System:
     """``block`` as the scenario's sensors and actuators see it.
 
@@ -446,56 +348,6 @@ def _real_world(slot: str, block: System, scenario: Scenario) -> System:
     if slot == "controller" and act is not None and act.period > 0:
         return SampledController(block, act.period)
     return block
-
-
-def _default_block(slot: str, parts: ClosedLoopParts, symbolic: bool) -> System:
-    s, c, gains = parts.scenario, parts.scenario.critic, parts.critic.gains
-    if slot == "plant":
-        return _plant_block(parts, symbolic)
-    if slot == "observer":
-        o = s.observer
-        if o.schedule_period > 0:
-            width = np.asarray(o.box.upper, float) - np.asarray(o.box.lower, float)
-            half = np.asarray(o.schedule_half_width or 0.5 * width, float)
-            return ScheduledThreeGainObserver(
-                parts.system,
-                parts.design,
-                period=o.schedule_period,
-                half_width=half,
-                input_bound=s.input_bound,
-                alpha=o.alpha,
-                design_options={
-                    "jacobian_method": o.jacobian_method,
-                    "solver": o.solver,
-                    "formulation": o.formulation,
-                },
-                initial_state=s.xhat0,
-            )
-        gains = ObserverGains.from_design(parts.system, parts.design)
-        block = SymbolicObserver if symbolic else ThreeGainObserver
-        return block(parts.system, gains, initial_state=s.xhat0, design=parts.design)
-    if slot == "controller":
-        block = SymbolicController if symbolic else SaturatedController
-        return block(parts.system, parts.basis, parts.r, s.input_bound)
-    if slot == "critic":  # Python whatever ``symbolic`` (see ofrl_drake.systems.symbolic)
-        return CriticWeights(c.W0, gains.kc)
-    if slot == "policy":
-        if parts.critic.law == "paper":
-            return PolicyPassThrough(parts.basis.size)
-        A, B = parts.critic.linearization
-        return PolicyGate(
-            c.W0, gains.policy_period, A, B, parts.Q, parts.r, parts.basis, parts.features.points
-        )
-    if slot == "gamma":
-        return GammaGain(np.asarray(gains.Gamma0, float), gains.kc, gains.beta, gains.gamma_bound)
-    if slot == "bellman":
-        return BellmanExtrapolator(
-            parts.features, parts.r, s.input_bound, gains.nu, parts.critic.metric
-        )
-    if slot == "running_cost":
-        block = SymbolicRunningCost if symbolic else RunningCost
-        return block(parts.Q, parts.r, s.input_bound)
-    raise AssertionError(slot)  # pragma: no cover
 
 
 def _after_run(blocks: dict[str, System]) -> set[str]:
@@ -528,45 +380,68 @@ def build_closed_loop(
     *,
     design: Any = None,
     log_period: float | None = None,
-    **swaps: Swap,
+    **swaps: Swap | str,
 ) -> ClosedLoop:
     """Build the closed-loop ``Diagram`` of ``scenario``.
+
+    Every block comes from the slot registry (:mod:`ofrl_drake.slots`): the
+    scenario's ``variant`` choices, and the fixed blocks, unless swapped here.
 
     Parameters
     ----------
     scenario : Scenario
         A validated scenario (see :func:`ofrl_drake.load_scenario`).
     design : ObserverDesign, optional
-        Observer design to use; by default :func:`design_for` computes it. Not
-        computed at all when the ``observer`` slot is swapped.
+        Observer design to use; by default the chosen observer's own
+        (:func:`~ofrl_drake.variants.design_for` for ``three_gain``). Not
+        computed at all when the ``observer`` block is swapped.
     log_period : float, optional
         Logging period in seconds; defaults to ``scenario.simulation.log_period``.
-    **swaps : System or callable
-        Replace a slot (one of :data:`SLOTS`) with another block that has the
-        same port names, or with a factory ``f(parts) -> System`` called with
-        the :class:`ClosedLoopParts`. Swaps apply on top of the scenario's
-        ``variant`` choices (:mod:`ofrl_drake.variants`).
+    **swaps : System, callable or str
+        A block (one of :data:`~ofrl_drake.slots.SLOTS`) replaced by another
+        with the same port names, or by a factory ``f(parts) -> System``
+        called with the :class:`~ofrl_drake.slots.ClosedLoopParts`; or a
+        slot's choice by name, as in the scenario's ``variant`` section
+        (``observer="kalman"``, ``points="uniform"``), which it overrides.
 
     Returns
     -------
     ClosedLoop
         The diagram, its blocks by slot name (``loop.observer`` ...) and its
         loggers by key (:data:`LOGGED`, but for the keys computed after the
-        run; :meth:`ClosedLoop.logs` returns them all).
+        run; :meth:`ClosedLoop.logs` returns them all). Its scenario
+        (``loop.parts.scenario``) holds the choices given by name.
 
     Raises
     ------
     SwapError
-        If a swap names an unknown slot or its block's ports do not fit.
+        If a swap names an unknown block or slot, or its block's ports do not fit.
+    ScenarioError
+        If the scenario, or a choice given by name, is not valid.
 
     Examples
     --------
     >>> loop = build_closed_loop(scenario)                       # doctest: +SKIP
     >>> loop = build_closed_loop(scenario, critic=CriticWeights(W0, kc=0.0))  # doctest: +SKIP
+    >>> loop = build_closed_loop(scenario, observer="kalman")     # doctest: +SKIP
     """
-    unknown = sorted(set(swaps) - set(SLOTS))
-    if unknown:
-        raise SwapError(f"{unknown[0]}: unknown slot; swap one of {list(SLOTS)}.")
+    named = {key: value for key, value in swaps.items() if isinstance(value, str)}
+    for key in sorted(named):
+        if key not in VARIANT_FACTORIES:
+            raise SwapError(
+                f"{key}: no choices by name; name a choice of one of {sorted(VARIANT_FACTORIES)}, "
+                "or swap a block with a System or a factory."
+            )
+    for key in sorted(set(swaps) - set(named) - set(SLOTS)):
+        hint = ""
+        if key in VARIANT_FACTORIES:
+            hint = f" ({key!r} is chosen by name, one of {sorted(VARIANT_FACTORIES[key])})"
+        raise SwapError(f"{key}: unknown slot; swap one of {list(SLOTS)}{hint}.")
+    given = {key: value for key, value in swaps.items() if key not in named and value is not None}
+    if named:
+        scenario = dataclasses.replace(
+            scenario, variant=dataclasses.replace(scenario.variant, **named)
+        )
     validate_scenario(scenario)
     system = resolve_system(scenario)
     basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
@@ -574,28 +449,25 @@ def build_closed_loop(
     r = np.asarray(scenario.cost.R, dtype=float)
     features = point_features(system, basis, extrapolation_points(scenario), Q)
     choices = variant_choices(scenario)
-    if design is None and "observer" not in swaps:
-        if choices["observer"] == "three_gain":
-            design = design_for(scenario, system)
-        elif choices["observer"] == "linear_luenberger":
-            from ofrl_drake.variants import linear_observer_design
-
-            # Designed here, not inside the variant, so its certificate is reported.
-            design = linear_observer_design(scenario, system)
+    swapped = set(given)
+    if design is None:
+        make_design = chosen_design(choices, swapped)
+        if make_design is not None:
+            design = make_design(scenario, system)
     critic = critic_settings(scenario, system, basis, features, r)
     truth = resolve_truth(scenario)
-    parts = ClosedLoopParts(scenario, system, basis, features, design, Q, r, critic, truth)
-    from ofrl_drake.variants import variant_blocks
-
-    swaps = {**variant_blocks(choices, parts), **swaps}
+    symbolic = symbolic_blocks(scenario, system)
+    parts = ClosedLoopParts(
+        scenario, system, basis, features, design, Q, r, critic, truth, symbolic
+    )
+    built = slot_blocks(choices, parts, swapped)
 
     builder = DiagramBuilder()
     blocks: dict[str, System] = {}
-    symbolic = symbolic_blocks(scenario, system)
     for slot in SLOTS:
-        swap = swaps.get(slot)
+        swap = given.get(slot)
         if swap is None:
-            block = _default_block(slot, parts, symbolic)
+            block = built[slot]
         elif isinstance(swap, System):
             block = swap
         elif callable(swap):

@@ -33,14 +33,7 @@ from ofrl_drake.learning import (
 )
 from ofrl_drake.scenario import Scenario, abort_box
 from ofrl_drake.simulation import SimulationResult, simulator_config
-from ofrl_drake.systems import (
-    ControlAffinePlant,
-    RunningCost,
-    SaturatedController,
-    SymbolicController,
-    SymbolicPlant,
-    SymbolicRunningCost,
-)
+from ofrl_drake.variants import controller_block, plant_block, running_cost_block
 
 __all__ = [
     "DEFAULT_CHECKPOINTS",
@@ -106,18 +99,11 @@ def evaluate_policy(
     horizon = float(scenario.simulation.duration if duration is None else duration)
     symbolic = symbolic_blocks(scenario, system)
     builder = DiagramBuilder()
-    if symbolic:
-        plant = builder.AddSystem(SymbolicPlant(system, initial_state=start))
-        controller = builder.AddSystem(
-            SymbolicController(system, parts.basis, parts.r, scenario.input_bound)
-        )
-        cost = builder.AddSystem(SymbolicRunningCost(parts.Q, parts.r, scenario.input_bound))
-    else:
-        plant = builder.AddSystem(ControlAffinePlant(system, initial_state=start))
-        controller = builder.AddSystem(
-            SaturatedController(system, parts.basis, parts.r, scenario.input_bound)
-        )
-        cost = builder.AddSystem(RunningCost(parts.Q, parts.r, scenario.input_bound))
+    plant = builder.AddSystem(plant_block(system, start, symbolic))
+    controller = builder.AddSystem(
+        controller_block(system, parts.basis, parts.r, scenario.input_bound, symbolic)
+    )
+    cost = builder.AddSystem(running_cost_block(parts.Q, parts.r, scenario.input_bound, symbolic))
     weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))
     builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("estimated_state"))
     builder.Connect(weights.get_output_port(), controller.GetInputPort("policy_weights"))

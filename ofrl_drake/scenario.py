@@ -198,11 +198,12 @@ class SimulationConfig:
 
 @dataclass
 class VariantConfig:
-    """One choice per ablation slot (see :mod:`ofrl_drake.variants`); all optional.
+    """One choice per slot of the registry (:mod:`ofrl_drake.slots`); all optional.
 
-    ``points`` defaults to the scenario's ``points.kind``. ``constant_input``
-    is the input the ``constant`` controller holds (m entries, each within
-    ``input_bound``).
+    The defaults are the registry's :data:`~ofrl_drake.slots.BASELINE`, but
+    ``points``, which defaults to the scenario's ``points.kind``.
+    ``constant_input`` is the input the ``constant`` controller holds (m
+    entries, each within ``input_bound``).
     """
 
     observer: str = field(default="three_gain", metadata=_OPTIONAL)
@@ -595,7 +596,7 @@ def validate_scenario(scenario: Scenario) -> None:
             "pinned; remove observer.L/H/K or set schedule_period: 0."
         )
 
-    from ofrl_drake.variants import VARIANT_FACTORIES
+    from ofrl_drake.slots import VARIANT_FACTORIES
 
     for slot, choice in variant_choices(scenario).items():
         if choice not in VARIANT_FACTORIES[slot]:

@@ -1,21 +1,15 @@
-"""Slot choices for ablations: which block fills each part of the closed loop.
+"""The block factories of the slot registry: every block of the closed loop is built here.
 
-A :class:`~ofrl_drake.scenario.VariantConfig` names one choice per slot::
-
-    observer:   three_gain | linear_luenberger | drake_luenberger | kalman | true_state
-    controller: learned | lqr | frozen_critic | constant
-    points:     grid | uniform | around_estimate
-    gamma:      least_squares | constant
-
-Each choice is a factory ``f(parts) -> {block_slot: System}`` registered in
-:data:`VARIANT_FACTORIES`; :func:`~ofrl_drake.build_closed_loop` applies them
-before explicit swaps. The baseline (``three_gain``, ``learned``, the
-scenario's own ``points.kind``, ``least_squares``) builds the default blocks.
+:mod:`ofrl_drake.slots` says which factory builds which block for which
+choice; each factory takes the :class:`~ofrl_drake.slots.ClosedLoopParts` and
+returns one Drake ``System``, and each block class is built by one function.
 
 What each choice builds:
 
 ``observer``
-    ``three_gain``: the certified three-gain observer (default).
+    ``three_gain``: the certified three-gain observer (default; re-designed
+    along the run when ``observer.schedule_period > 0``), its design from
+    :func:`design_for`.
     ``linear_luenberger``: the same observer with ``H = K = 0``, its ``L``
     certified by the same LMI (:func:`linear_observer_design`);
     under the ``polytopic`` formulation, whose designs have ``H = K = 0``
@@ -31,22 +25,29 @@ What each choice builds:
     ``learned``: the saturated policy of the learned critic (default).
     ``lqr``: Drake's LQR on the linearization with the scenario's ``Q`` and
     ``R``, clipped at ``lambda_bar``; the critic and Gamma still learn and log.
-    ``frozen_critic``: ``W`` fixed at ``W(0)``.
+    ``frozen_critic``: the learned controller with ``W`` fixed at ``W(0)``
+    (it replaces the critic block).
     ``constant``: the input held at ``variant.constant_input``, ignoring the
     estimate; the critic and Gamma still learn and log.
-``points``
+``points`` (the ``bellman`` block)
     ``grid`` (``points.counts``) and ``uniform`` (``points.number`` and
     ``points.seed``) in the box ``points.lower .. points.upper``, whatever
     ``points.kind`` says; ``around_estimate``: the scenario's points, as offsets
     from the centre of their box, moving with ``xhat``.
 ``gamma``
     ``least_squares``: Gamma with forgetting (default); ``constant``: Gamma(0).
+
+The fixed blocks, which no slot chooses: the plant (the model, or the
+scenario's ``truth``), the critic learning at ``kc``, the policy (the gate of
+``policy_iteration``, a pass-through under ``paper``) and the running cost.
+The plant, observer, controller and running cost are C++ symbolic blocks when
+``parts.symbolic`` (:func:`ofrl_drake.diagram.symbolic_blocks`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydrake.systems.framework import System
@@ -57,11 +58,27 @@ from ofrl_drake.baselines import (
     luenberger_poles,
     point_offsets,
 )
-from ofrl_drake.bellman import point_features
-from ofrl_drake.errors import ScenarioError
+from ofrl_drake.bellman import PointFeatures, point_features
+from ofrl_drake.errors import ModelError, ScenarioError
 from ofrl_drake.observer import ObserverGains
+from ofrl_drake.plants import resolve_system
 from ofrl_drake.points import grid_points, uniform_points
-from ofrl_drake.systems import BellmanExtrapolator, CriticWeights, GammaGain, ThreeGainObserver
+from ofrl_drake.systems import (
+    BellmanExtrapolator,
+    ControlAffinePlant,
+    CriticWeights,
+    GammaGain,
+    PolicyGate,
+    PolicyPassThrough,
+    RunningCost,
+    SaturatedController,
+    ScheduledThreeGainObserver,
+    SymbolicController,
+    SymbolicObserver,
+    SymbolicPlant,
+    SymbolicRunningCost,
+    ThreeGainObserver,
+)
 from ofrl_drake.systems.baselines import (
     ConstantController,
     FullStateObserver,
@@ -70,45 +87,114 @@ from ofrl_drake.systems.baselines import (
     SaturatedLqrController,
 )
 
-if TYPE_CHECKING:  # annotations only: the wiring imports run diagram -> variants
+if TYPE_CHECKING:  # annotations only: the registry imports this module
+    from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.design import ObserverDesign
-    from ofrl_drake.diagram import ClosedLoopParts
     from ofrl_drake.model import ControlAffineSystem
     from ofrl_drake.scenario import Scenario
+    from ofrl_drake.slots import ClosedLoopParts
 
 __all__ = [
-    "BASELINE",
-    "NEEDS_PARAMETERS",
-    "VARIANT_FACTORIES",
+    "around_estimate",
+    "constant_controller",
+    "constant_gamma",
+    "controller_block",
+    "design_for",
+    "drake_luenberger",
+    "frozen_critic",
+    "grid",
+    "kalman",
+    "learned_controller",
+    "learning_critic",
+    "least_squares_gamma",
+    "linear_luenberger",
     "linear_observer_design",
-    "register_variant",
-    "variant_blocks",
+    "lqr",
+    "plant",
+    "plant_block",
+    "policy",
+    "running_cost",
+    "running_cost_block",
+    "three_gain",
+    "true_state",
+    "uniform",
 ]
 
-Factory = Callable[["ClosedLoopParts"], dict[str, System]]
 
-#: The paper's method: every slot at its default.
-BASELINE = {
-    "observer": "three_gain",
-    "controller": "learned",
-    "points": "grid",
-    "gamma": "least_squares",
-}
+# ------------------------------------------------------------------- plant
+def plant_block(system: ControlAffineSystem, x0: Sequence[float], symbolic: bool) -> System:
+    """``system`` simulated from its ``f`` and ``g``: C++ symbolic if ``symbolic``, else Python."""
+    block = SymbolicPlant if symbolic else ControlAffinePlant
+    return block(system, initial_state=x0)
 
 
-def _default(_parts: ClosedLoopParts) -> dict[str, System]:
-    return {}
+def plant(parts: ClosedLoopParts) -> System:
+    """The plant simulated: the model, or the scenario's truth.
+
+    A multibody truth runs as its own ``MultibodyPlant`` in C++
+    (:class:`~ofrl_drake.systems.DrakePlant`, body masses scaled through the
+    Context); another truth as the model does, from its ``f`` and ``g``
+    (symbolic when they trace).
+    """
+    s = parts.scenario
+    truth = parts.truth
+    if truth is None:
+        return plant_block(parts.system, s.x0, parts.symbolic)
+    from ofrl_drake.plants import multibody_body_names
+    from ofrl_drake.systems.drake_plant import DrakePlant
+
+    if multibody_body_names(truth) is not None:
+        return DrakePlant(truth, initial_state=s.x0, body_mass_scale=s.truth.body_mass_scale)
+    try:
+        truth.symbolic()
+    except ModelError:
+        return plant_block(truth, s.x0, symbolic=False)
+    return plant_block(truth, s.x0, symbolic=True)
 
 
 # ---------------------------------------------------------------- observer
+def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> Any:
+    """The observer design of ``scenario``: certified by LMI unless gains are pinned.
+
+    Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
+    certificate, which reports honestly whether they satisfy the LMI.
+    """
+    from ofrl_drake.design import ObserverDesign, design_observer
+
+    system = system or resolve_system(scenario)
+    o = scenario.observer
+    box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    if o.L is not None:
+        return ObserverDesign.from_gains(
+            system,
+            box,
+            scenario.input_bound,
+            o.alpha,
+            L=np.asarray(o.L, float),
+            H=np.asarray(o.H, float),
+            K=np.asarray(o.K, float),
+            jacobian_method=o.jacobian_method,
+            formulation=o.formulation,
+        )
+    return design_observer(
+        system,
+        box,
+        scenario.input_bound,
+        o.alpha,
+        jacobian_method=o.jacobian_method,
+        solver=o.solver,
+        formulation=o.formulation,
+    )
+
+
 def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> ObserverDesign:
     """The scenario's observer design with ``H = K = 0`` and ``L`` from the same LMI.
 
     Same box, input bound, decay rate, Jacobian method, solver and
-    formulation as :func:`ofrl_drake.diagram.design_for`, with
-    ``injection_gains=False``. The ``polytopic`` formulation has ``H = K = 0``
-    already, so there it returns the three-gain design itself; under ``paper``
-    it is a linear Luenberger gain certified by (lmi2).
+    formulation as :func:`design_for`, with ``injection_gains=False``. The
+    ``polytopic`` formulation has ``H = K = 0`` already, so there it returns
+    the three-gain design itself; under ``paper`` it is a linear Luenberger
+    gain certified by (lmi2).
 
     Returns
     -------
@@ -134,31 +220,56 @@ def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> O
     )
 
 
-def _linear_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
-    design = parts.design or linear_observer_design(parts.scenario, parts.system)
-    gains = ObserverGains.from_design(parts.system, design)
-    return {
-        "observer": ThreeGainObserver(
-            parts.system, gains, initial_state=parts.scenario.xhat0, design=design
+def _gain_observer(parts: ClosedLoopParts, symbolic: bool) -> System:
+    """The three-gain observer with the gains of ``parts.design``."""
+    gains = ObserverGains.from_design(parts.system, parts.design)
+    block = SymbolicObserver if symbolic else ThreeGainObserver
+    return block(parts.system, gains, initial_state=parts.scenario.xhat0, design=parts.design)
+
+
+def three_gain(parts: ClosedLoopParts) -> System:
+    """The certified three-gain observer of ``parts.design`` (scheduled if the scenario says)."""
+    s = parts.scenario
+    o = s.observer
+    if o.schedule_period > 0:
+        width = np.asarray(o.box.upper, float) - np.asarray(o.box.lower, float)
+        half = np.asarray(o.schedule_half_width or 0.5 * width, float)
+        return ScheduledThreeGainObserver(
+            parts.system,
+            parts.design,
+            period=o.schedule_period,
+            half_width=half,
+            input_bound=s.input_bound,
+            alpha=o.alpha,
+            design_options={
+                "jacobian_method": o.jacobian_method,
+                "solver": o.solver,
+                "formulation": o.formulation,
+            },
+            initial_state=s.xhat0,
         )
-    }
+    return _gain_observer(parts, parts.symbolic)
 
 
-def _drake_luenberger(parts: ClosedLoopParts) -> dict[str, System]:
+def linear_luenberger(parts: ClosedLoopParts) -> System:
+    """The three-gain observer with ``H = K = 0`` (:func:`linear_observer_design`), in Python."""
+    return _gain_observer(parts, symbolic=False)
+
+
+def drake_luenberger(parts: ClosedLoopParts) -> System:
+    """Drake's Luenberger observer on the linearization, poles from ``observer.alpha``."""
     linearization = linearize_at_origin(parts.system)
     poles = luenberger_poles(parts.scenario.observer.alpha, parts.system.n)
     gain = luenberger_gain(linearization.A(), linearization.C(), poles)
-    return {
-        "observer": LinearizedLuenbergerObserver(
-            linearization,
-            gain,
-            initial_state=parts.scenario.xhat0,
-            alpha=parts.scenario.observer.alpha,
-        )
-    }
+    return LinearizedLuenbergerObserver(
+        linearization,
+        gain,
+        initial_state=parts.scenario.xhat0,
+        alpha=parts.scenario.observer.alpha,
+    )
 
 
-def _kalman(parts: ClosedLoopParts) -> dict[str, System]:
+def kalman(parts: ClosedLoopParts) -> System:
     """Drake's steady-state Kalman filter on the linearization at the target.
 
     ``V = diag(noise_std^2)`` from ``measurement``, floored at ``(1e-3 w_j)^2``
@@ -187,122 +298,151 @@ def _kalman(parts: ClosedLoopParts) -> dict[str, System]:
         noise = np.asarray(s.measurement.noise_std, dtype=float)
     V = np.diag(np.maximum(noise, 1e-3 * widths) ** 2)
     gain = SteadyStateKalmanFilter(A, C, W, V)
-    return {"observer": LinearizedLuenbergerObserver(linearization, gain, initial_state=s.xhat0)}
+    return LinearizedLuenbergerObserver(linearization, gain, initial_state=s.xhat0)
 
 
-def _true_state(parts: ClosedLoopParts) -> dict[str, System]:
-    return {"observer": FullStateObserver(parts.system.n)}
+def true_state(parts: ClosedLoopParts) -> System:
+    """Full-state feedback: ``xhat = x``."""
+    return FullStateObserver(parts.system.n)
 
 
 # -------------------------------------------------------------- controller
-def _lqr(parts: ClosedLoopParts) -> dict[str, System]:
-    linearization = linearize_at_origin(parts.system)
-    return {
-        "controller": SaturatedLqrController(
-            linearization, parts.Q, np.diag(parts.r), parts.scenario.input_bound
-        )
-    }
+def controller_block(
+    system: ControlAffineSystem,
+    basis: PolynomialBasis,
+    r: np.ndarray,
+    input_bound: float,
+    symbolic: bool,
+) -> System:
+    """The saturated policy of the weights at its ``policy_weights`` input."""
+    block = SymbolicController if symbolic else SaturatedController
+    return block(system, basis, r, input_bound)
 
 
-def _constant(parts: ClosedLoopParts) -> dict[str, System]:
-    return {"controller": ConstantController(parts.scenario.variant.constant_input)}
-
-
-def _frozen_critic(parts: ClosedLoopParts) -> dict[str, System]:
-    return {"critic": CriticWeights(parts.scenario.critic.W0, kc=0.0)}
-
-
-# ------------------------------------------------------------------ points
-def _bellman_at(parts: ClosedLoopParts, points: np.ndarray) -> BellmanExtrapolator:
-    s = parts.scenario
-    features = point_features(parts.system, parts.basis, points, parts.Q)
-    return BellmanExtrapolator(
-        features, parts.r, s.input_bound, parts.critic.gains.nu, parts.critic.metric
+def learned_controller(parts: ClosedLoopParts) -> System:
+    """The saturated policy of the policy weights."""
+    return controller_block(
+        parts.system, parts.basis, parts.r, parts.scenario.input_bound, parts.symbolic
     )
 
 
-def _grid(parts: ClosedLoopParts) -> dict[str, System]:
+def lqr(parts: ClosedLoopParts) -> System:
+    """Drake's LQR on the linearization at the origin, clipped at the input bound."""
+    linearization = linearize_at_origin(parts.system)
+    return SaturatedLqrController(
+        linearization, parts.Q, np.diag(parts.r), parts.scenario.input_bound
+    )
+
+
+def constant_controller(parts: ClosedLoopParts) -> System:
+    """The input held at ``variant.constant_input``."""
+    return ConstantController(parts.scenario.variant.constant_input)
+
+
+# ------------------------------------------------------------------ critic
+def _critic(parts: ClosedLoopParts, kc: float) -> System:
+    return CriticWeights(parts.scenario.critic.W0, kc)
+
+
+def learning_critic(parts: ClosedLoopParts) -> System:
+    """The critic ``W`` from ``critic.W0``, learning at the gain ``kc`` in force."""
+    return _critic(parts, parts.critic.gains.kc)
+
+
+def frozen_critic(parts: ClosedLoopParts) -> System:
+    """The critic held at ``critic.W0`` (``kc = 0``)."""
+    return _critic(parts, 0.0)
+
+
+def policy(parts: ClosedLoopParts) -> System:
+    """The policy gate of ``policy_iteration``; a pass-through under ``critic.law: paper``."""
+    if parts.critic.law == "paper":
+        return PolicyPassThrough(parts.basis.size)
+    A, B = parts.critic.linearization
+    return PolicyGate(
+        parts.scenario.critic.W0,
+        parts.critic.gains.policy_period,
+        A,
+        B,
+        parts.Q,
+        parts.r,
+        parts.basis,
+        parts.features.points,
+    )
+
+
+# ------------------------------------------------------------------ points
+def _bellman(parts: ClosedLoopParts, features: PointFeatures) -> System:
+    """The Bellman extrapolation at the points of ``features``."""
+    gains = parts.critic.gains
+    return BellmanExtrapolator(
+        features, parts.r, parts.scenario.input_bound, gains.nu, parts.critic.metric
+    )
+
+
+def grid(parts: ClosedLoopParts) -> System:
+    """The Bellman block at the grid ``points.counts`` in the points' box."""
     p = parts.scenario.points
     if p.kind == "grid":
-        return {}  # the default block already uses the grid
+        return _bellman(parts, parts.features)
     if len(p.counts) != parts.system.n:
         raise ScenarioError(
             f"variant.points: 'grid' needs points.counts with {parts.system.n} positive "
             f"integers; got {p.counts}."
         )
-    return {"bellman": _bellman_at(parts, grid_points(p.lower, p.upper, p.counts))}
+    points = grid_points(p.lower, p.upper, p.counts)
+    return _bellman(parts, point_features(parts.system, parts.basis, points, parts.Q))
 
 
-def _uniform(parts: ClosedLoopParts) -> dict[str, System]:
+def uniform(parts: ClosedLoopParts) -> System:
+    """The Bellman block at ``points.number`` uniform draws (``points.seed``) in the box."""
     p = parts.scenario.points
     if p.kind == "uniform":
-        return {}  # the default block already uses these points
-    return {"bellman": _bellman_at(parts, uniform_points(p.lower, p.upper, p.number, p.seed))}
+        return _bellman(parts, parts.features)
+    points = uniform_points(p.lower, p.upper, p.number, p.seed)
+    return _bellman(parts, point_features(parts.system, parts.basis, points, parts.Q))
 
 
-def _around_estimate(parts: ClosedLoopParts) -> dict[str, System]:
+def around_estimate(parts: ClosedLoopParts) -> System:
+    """The scenario's points as offsets from their box's centre, moving with ``xhat``."""
     s, p = parts.scenario, parts.scenario.points
     offsets = point_offsets(parts.features.points, np.asarray(p.lower), np.asarray(p.upper))
-    return {
-        "bellman": MovingBellmanExtrapolator(
-            parts.system,
-            parts.basis,
-            offsets,
-            parts.Q,
-            parts.r,
-            s.input_bound,
-            parts.critic.gains.nu,
-            parts.critic.metric,
-        )
-    }
+    return MovingBellmanExtrapolator(
+        parts.system,
+        parts.basis,
+        offsets,
+        parts.Q,
+        parts.r,
+        s.input_bound,
+        parts.critic.gains.nu,
+        parts.critic.metric,
+    )
 
 
 # ------------------------------------------------------------------- gamma
-def _constant_gamma(parts: ClosedLoopParts) -> dict[str, System]:
-    return {"gamma": GammaGain(np.asarray(parts.critic.gains.Gamma0, float), kc=0.0, beta=0.0)}
+def _gamma(parts: ClosedLoopParts, *, learning: bool) -> System:
+    gains = parts.critic.gains
+    kc, beta, bound = (gains.kc, gains.beta, gains.gamma_bound) if learning else (0.0, 0.0, None)
+    return GammaGain(np.asarray(gains.Gamma0, float), kc, beta, bound)
 
 
-VARIANT_FACTORIES: dict[str, dict[str, Factory]] = {
-    "observer": {
-        "three_gain": _default,
-        "linear_luenberger": _linear_luenberger,
-        "drake_luenberger": _drake_luenberger,
-        "kalman": _kalman,
-        "true_state": _true_state,
-    },
-    "controller": {
-        "learned": _default,
-        "lqr": _lqr,
-        "frozen_critic": _frozen_critic,
-        "constant": _constant,
-    },
-    "points": {"grid": _grid, "uniform": _uniform, "around_estimate": _around_estimate},
-    "gamma": {"least_squares": _default, "constant": _constant_gamma},
-}
+def least_squares_gamma(parts: ClosedLoopParts) -> System:
+    """Gamma with forgetting at the gains in force."""
+    return _gamma(parts, learning=True)
 
 
-#: (slot, choice) pairs that need values from the scenario (``variant.constant_input``);
-#: :func:`~ofrl_drake.ablation.default_variants` leaves them out.
-NEEDS_PARAMETERS = {("controller", "constant")}
+def constant_gamma(parts: ClosedLoopParts) -> System:
+    """Gamma held at ``Gamma(0)``."""
+    return _gamma(parts, learning=False)
 
 
-def register_variant(slot: str, choice: str, factory: Factory) -> None:
-    """Add a choice for ``slot``; ``factory(parts)`` returns the blocks it replaces."""
-    if slot not in VARIANT_FACTORIES:
-        raise ScenarioError(f"variant.{slot}: unknown slot; slots are {sorted(VARIANT_FACTORIES)}.")
-    VARIANT_FACTORIES[slot][choice] = factory
+# ------------------------------------------------------------ running cost
+def running_cost_block(Q: np.ndarray, r: np.ndarray, input_bound: float, symbolic: bool) -> System:
+    """The integral of ``x^T Q x`` plus the saturated input cost."""
+    block = SymbolicRunningCost if symbolic else RunningCost
+    return block(Q, r, input_bound)
 
 
-def variant_blocks(choices: dict[str, str], parts: ClosedLoopParts) -> dict[str, System]:
-    """Blocks replaced by the chosen variants, keyed by block slot."""
-    blocks: dict[str, System] = {}
-    for slot, choice in choices.items():
-        try:
-            factory = VARIANT_FACTORIES[slot][choice]
-        except KeyError:
-            options = sorted(VARIANT_FACTORIES.get(slot, {}))
-            raise ScenarioError(
-                f"variant.{slot}: unknown choice {choice!r}; choose one of {options}."
-            ) from None
-        blocks.update(factory(parts))
-    return blocks
+def running_cost(parts: ClosedLoopParts) -> System:
+    """The running cost of the scenario's ``Q``, ``R`` and input bound."""
+    return running_cost_block(parts.Q, parts.r, parts.scenario.input_bound, parts.symbolic)

@@ -29,7 +29,7 @@ def mimo_scenario():
 
 @pytest.fixture(scope="session")
 def paper_design(paper_scenario):
-    from ofrl_drake.diagram import design_for
+    from ofrl_drake.variants import design_for
 
     return design_for(paper_scenario)
 

@@ -28,7 +28,7 @@ from ofrl_drake.ablation_metrics import (
 )
 from ofrl_drake.ablation_tasks import run_variant
 from ofrl_drake.cli import main
-from ofrl_drake.variants import VARIANT_FACTORIES
+from ofrl_drake.slots import VARIANT_FACTORIES
 
 from .conftest import PAPER_SCENARIO, ROOT
 

@@ -123,8 +123,8 @@ def test_the_constant_controller_needs_its_input_within_the_bound(paper_scenario
 
 
 def test_the_sound_design_converges_there_at_its_certified_rate(equilibria):
-    from ofrl_drake.diagram import design_for
     from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.variants import design_for
     from tests.conftest import ROOT
 
     scenario = load_scenario(ROOT / "diagrams" / "two_state_sound.yaml")

@@ -109,8 +109,9 @@ def test_drake_plant_in_the_closed_loop_of_the_cart_pole_scenario():
     from pathlib import Path
 
     from ofrl_drake import build_closed_loop, load_scenario, simulate
-    from ofrl_drake.diagram import design_for, drake_plant
+    from ofrl_drake.diagram import drake_plant
     from ofrl_drake.plants import resolve_system
+    from ofrl_drake.variants import design_for
 
     path = Path(__file__).resolve().parents[1] / "diagrams" / "cart_pole.yaml"
     base = load_scenario(path)

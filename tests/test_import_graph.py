@@ -2,7 +2,9 @@
 
 Parsed with ``ast`` from the sources (imports inside functions included; those
 under ``if TYPE_CHECKING:`` are annotations only and are skipped), so the test
-needs no import side effects.
+needs no import side effects. ``from package import name`` imports the
+package (its ``__init__`` runs and is read for ``name``), and the submodule
+too when ``name`` is one.
 """
 
 import ast
@@ -50,7 +52,7 @@ LAYERS = {
         "model_error",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
-    2: {"variants", "scenario", "diagram"},  # wiring
+    2: {"variants", "slots", "scenario", "diagram"},  # wiring
     3: {  # studies and what presents them
         "simulation",
         "ablation",
@@ -104,6 +106,28 @@ def _resolve(target: str, modules: set[str]) -> str:
     return name
 
 
+def imports_of(tree: ast.AST, modules: set[str]) -> set[str]:
+    """The ofrl_drake modules that the source ``tree`` imports at run time."""
+    skipped = _type_checking_nodes(tree)
+    targets: set[str] = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == "ofrl_drake" or node.module.startswith("ofrl_drake."):
+                base = _resolve(node.module, modules)
+                targets.add(base)  # its __init__ runs, and is read for the names
+                for alias in node.names:  # "from pkg import submodule" imports that too
+                    sub = f"{node.module}.{alias.name}".removeprefix("ofrl_drake.")
+                    if sub in modules:
+                        targets.add(sub)
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("ofrl_drake"):
+                    targets.add(_resolve(alias.name, modules))
+    return targets
+
+
 def import_graph() -> dict[str, set[str]]:
     """Module -> the ofrl_drake modules it imports at run time."""
     files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
@@ -111,29 +135,54 @@ def import_graph() -> dict[str, set[str]]:
     graph: dict[str, set[str]] = {}
     for module, path in files.items():
         tree = ast.parse(path.read_text(), filename=str(path))
-        skipped = _type_checking_nodes(tree)
-        targets: set[str] = set()
-        for node in ast.walk(tree):
-            if id(node) in skipped:
-                continue
-            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                if node.module == "ofrl_drake" or node.module.startswith("ofrl_drake."):
-                    base = node.module
-                    for alias in node.names:  # "from pkg import submodule"
-                        sub = f"{base}.{alias.name}"
-                        hit = _resolve(sub, modules)
-                        targets.add(
-                            hit
-                            if hit == sub.removeprefix("ofrl_drake.")
-                            else _resolve(base, modules)
-                        )
-            elif isinstance(node, ast.Import):
-                for alias in node.names:
-                    if alias.name.startswith("ofrl_drake"):
-                        targets.add(_resolve(alias.name, modules))
-        targets.discard(module)
-        graph[module] = targets
+        graph[module] = imports_of(tree, modules) - {module}
     return graph
+
+
+def circles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
+    """The import circles of ``graph``: its strongly connected components of two or more.
+
+    Tarjan's algorithm, iterative (no recursion limit on long chains).
+    """
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: set[frozenset[str]] = set()
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.get(root, ()))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[node])
+            if low[node] == index[node]:
+                component = set()
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.add(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.add(frozenset(component))
+    return found
 
 
 GRAPH = import_graph()
@@ -153,6 +202,47 @@ def test_imports_only_go_down_the_layers(module):
     )
 
 
+#: Import circles tolerated: none. Nothing may be added to it.
+KNOWN_CIRCLES: set[frozenset[str]] = set()
+
+
+def test_the_package_has_no_import_circle():
+    """No strongly connected component of the module graph (lazy imports included)."""
+    found = circles(GRAPH)
+    new = sorted(" <-> ".join(sorted(c)) for c in found - KNOWN_CIRCLES)
+    gone = sorted(" <-> ".join(sorted(c)) for c in KNOWN_CIRCLES - found)
+    assert not new, f"import circles: {'; '.join(new)}"
+    assert not gone, f"no longer circles, remove them from KNOWN_CIRCLES: {'; '.join(gone)}"
+
+
+def test_circles_finds_every_strongly_connected_component():
+    graph = {
+        "a": {"b"},
+        "b": {"c"},
+        "c": {"a", "d"},
+        "d": {"e"},
+        "e": {"d"},
+        "f": {"a"},
+        "g": set(),
+    }
+    assert circles(graph) == {frozenset("abc"), frozenset("de")}
+    chain = {str(i): {str(i + 1)} for i in range(5000)} | {"5000": {"0"}}
+    assert circles(chain) == {frozenset(chain)}  # no recursion limit
+    assert circles({"a": {"b"}, "b": set()}) == set()
+
+
+def test_from_a_package_import_reads_the_package():
+    modules = {"examples", "examples.two_state", "systems", "systems.world", ""}
+    targets = imports_of(ast.parse("from ofrl_drake.examples import two_state"), modules)
+    assert targets == {"examples", "examples.two_state"}
+    targets = imports_of(ast.parse("from ofrl_drake.systems.world import MeasuredPlant"), modules)
+    assert targets == {"systems.world"}
+    lazy = "def f():\n    from ofrl_drake.examples import make_system\n"
+    assert imports_of(ast.parse(lazy), modules) == {"examples"}
+    hidden = "if TYPE_CHECKING:\n    from ofrl_drake.systems import world\n"
+    assert imports_of(ast.parse(hidden), modules) == set()
+
+
 def _import_order(modules: set[str]) -> list[str]:
     """``modules`` ordered so that each imports only those before it; fails on a cycle."""
     edges = {m: GRAPH[m] & modules for m in modules}
@@ -166,10 +256,11 @@ def _import_order(modules: set[str]) -> list[str]:
     return order
 
 
-def test_the_wiring_has_no_import_cycle():
-    """scenario -> variants and diagram -> scenario, variants: no way back."""
+def test_the_wiring_runs_one_way():
+    """variants (the factories) -> slots (the registry) -> scenario -> diagram."""
     order = _import_order({m for m in GRAPH if _layer(m) == 2})
-    assert order.index("variants") < order.index("scenario") < order.index("diagram")
+    assert order.index("variants") < order.index("slots") < order.index("scenario")
+    assert order.index("scenario") < order.index("diagram")
 
 
 def test_the_design_package_has_no_import_cycle():
@@ -183,8 +274,9 @@ def test_the_design_package_has_no_import_cycle():
 
 def test_the_graph_sees_the_imports_it_must_see():
     """The parser finds function-local imports and skips TYPE_CHECKING ones."""
-    assert "variants" in GRAPH["scenario"]  # imported inside validate_scenario
+    assert "slots" in GRAPH["scenario"]  # imported inside validate_scenario
     assert "design" in GRAPH["systems.scheduled_observer"]  # inside _resolve
-    assert "diagram" not in GRAPH["variants"]  # only under TYPE_CHECKING
+    assert "slots" not in GRAPH["variants"]  # only under TYPE_CHECKING
+    assert "diagram" not in GRAPH["slots"] and "scenario" not in GRAPH["slots"]
     assert "observer_certificate" in GRAPH["simulation"]
     assert "examples.two_state" in GRAPH["examples.coupled_two_state"]

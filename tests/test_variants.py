@@ -1,4 +1,5 @@
-"""Slot choices: every variant builds and simulates, and each baseline block is right."""
+"""Slot choices: the registry is the one source, every variant builds and simulates, and each
+baseline block is right."""
 
 import dataclasses
 
@@ -8,6 +9,7 @@ import scipy.linalg
 from scipy.integrate import solve_ivp
 
 from ofrl_drake import ScenarioError, build_closed_loop, load_scenario, simulate
+from ofrl_drake.ablation import Variant, default_variants, load_variants, run_variant
 from ofrl_drake.baselines import (
     linearize_at_origin,
     luenberger_gain,
@@ -18,19 +20,28 @@ from ofrl_drake.baselines import (
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import extrapolate, point_features
 from ofrl_drake.diagram import LOGGED
-from ofrl_drake.errors import ModelError
+from ofrl_drake.errors import ModelError, SwapError
 from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.points import grid_points, uniform_points
-from ofrl_drake.scenario import VariantConfig
-from ofrl_drake.systems import BellmanExtrapolator, ThreeGainObserver
+from ofrl_drake.scenario import VariantConfig, validate_scenario, variant_choices
+from ofrl_drake.slots import (
+    BASELINE,
+    FIXED_BLOCKS,
+    NEEDS_PARAMETERS,
+    SLOT_BLOCKS,
+    SLOTS,
+    VARIANT_FACTORIES,
+    Choice,
+    register_variant,
+)
+from ofrl_drake.systems import BellmanExtrapolator, CriticWeights, GammaGain, ThreeGainObserver
 from ofrl_drake.systems.baselines import (
     FullStateObserver,
     LinearizedLuenbergerObserver,
     MovingBellmanExtrapolator,
     SaturatedLqrController,
 )
-from ofrl_drake.variants import NEEDS_PARAMETERS, VARIANT_FACTORIES
 
 from .conftest import PAPER_SCENARIO
 
@@ -61,6 +72,202 @@ def _sub_context(loop, name, context):
 @pytest.fixture(scope="module")
 def baseline_short(paper_scenario):
     return simulate(_short(paper_scenario), progress=False)
+
+
+@pytest.fixture
+def registry(monkeypatch):
+    """The registry, restored after the test: what a test registers does not leak."""
+    for slot, options in VARIANT_FACTORIES.items():
+        monkeypatch.setitem(VARIANT_FACTORIES, slot, dict(options))
+    monkeypatch.setattr("ofrl_drake.slots.FIXED_BLOCKS", dict(FIXED_BLOCKS))
+    return VARIANT_FACTORIES
+
+
+def _held_at(scenario, value):
+    return dataclasses.replace(
+        scenario, variant=dataclasses.replace(scenario.variant, constant_input=[value])
+    )
+
+
+# ----------------------------------------------------------------- the registry
+def test_the_registry_covers_every_block_once():
+    """Each block is one slot's own or a fixed one; the slots are the scenario's keys."""
+    own = list(SLOT_BLOCKS.values())
+    assert len(set(own)) == len(own) and not set(own) & set(FIXED_BLOCKS)
+    assert set(own) | set(FIXED_BLOCKS) == set(SLOTS)
+    assert set(SLOT_BLOCKS) == set(VARIANT_FACTORIES) == set(BASELINE)
+    fields = {f.name for f in dataclasses.fields(VariantConfig)} - {"constant_input"}
+    assert set(VARIANT_FACTORIES) == fields
+
+
+def test_the_defaults_are_registry_entries(paper_scenario):
+    defaults = VariantConfig()
+    for slot, choice in BASELINE.items():
+        assert choice in VARIANT_FACTORIES[slot], slot
+        if slot != "points":  # the scenario's points.kind, see below
+            assert getattr(defaults, slot) == choice
+    assert defaults.points == ""
+    for kind in ("grid", "uniform"):
+        assert kind in VARIANT_FACTORIES["points"]
+    assert variant_choices(paper_scenario) == BASELINE
+
+
+def test_the_default_build_is_the_registry_entries(paper_scenario, registry):
+    """Replacing a default entry, or a fixed block's factory, changes the default loop."""
+    registry["observer"]["three_gain"] = Choice(
+        {"observer": lambda parts: FullStateObserver(parts.system.n)}
+    )
+    frozen = CriticWeights(paper_scenario.critic.W0, kc=0.0)
+    import ofrl_drake.slots as slots
+
+    slots.FIXED_BLOCKS["critic"] = lambda parts: frozen
+    loop = build_closed_loop(_short(paper_scenario))
+    assert isinstance(loop.observer, FullStateObserver)
+    assert loop.critic is frozen
+    assert loop.design is None  # the replaced entry needs no design, so none is computed
+
+
+@pytest.mark.parametrize(
+    ("slot", "choice"),
+    [(slot, choice) for slot, options in VARIANT_FACTORIES.items() for choice in options],
+)
+def test_every_choice_the_validator_accepts_builds_its_block(paper_scenario, slot, choice):
+    scenario = _held_at(_short(paper_scenario, **{slot: choice}), 0.5)
+    validate_scenario(scenario)
+    loop = build_closed_loop(scenario)
+    block = SLOT_BLOCKS[slot]
+    expected = VARIANT_FACTORIES[slot][choice](loop.parts)
+    assert set(expected) >= {block}
+    for name, system in expected.items():
+        assert type(loop.blocks[name]) is type(system), name
+    others = set(SLOTS) - set(expected)
+    untouched = build_closed_loop(_held_at(_short(paper_scenario), 0.5), design=loop.design)
+    for name in others:
+        assert type(loop.blocks[name]) is type(untouched.blocks[name]), name
+
+
+def test_the_validator_accepts_exactly_the_registry(paper_scenario, registry):
+    scenario = _short(paper_scenario, observer="particle_filter")
+    with pytest.raises(ScenarioError, match=r"variant.observer: unknown choice 'particle_filter'"):
+        validate_scenario(scenario)
+    register_variant(
+        "observer", "particle_filter", lambda parts: {"observer": FullStateObserver(2)}
+    )
+    validate_scenario(scenario)
+    del registry["observer"]["kalman"]
+    with pytest.raises(ScenarioError, match=r"unknown choice 'kalman'; choose one of \["):
+        validate_scenario(_short(paper_scenario, observer="kalman"))
+
+
+def test_a_registered_variant_works_from_a_scenario_file_and_a_swap(registry, tmp_path):
+    register_variant(
+        "observer", "measured_state", lambda parts: {"observer": FullStateObserver(parts.system.n)}
+    )
+    path = tmp_path / "mine.yaml"
+    path.write_text(PAPER_SCENARIO.read_text() + "variant:\n  observer: measured_state\n")
+    scenario = load_scenario(path)
+    assert isinstance(build_closed_loop(scenario).observer, FullStateObserver)
+    plain = load_scenario(PAPER_SCENARIO)
+    loop = build_closed_loop(plain, observer="measured_state")
+    assert isinstance(loop.observer, FullStateObserver)
+    assert loop.parts.scenario.variant.observer == "measured_state"
+    r = simulate(_short(plain, 0.5), observer="measured_state", progress=False)
+    np.testing.assert_array_equal(r.xhat, r.x)
+
+
+def test_a_registered_variant_works_in_an_ablation(paper_scenario, registry, tmp_path):
+    register_variant(
+        "observer", "measured_state", lambda parts: {"observer": FullStateObserver(parts.system.n)}
+    )
+    names = [v.name for v in default_variants(paper_scenario)]
+    assert "observer=measured_state" in names
+    path = tmp_path / "variants.yaml"
+    path.write_text("mine:\n  observer: measured_state\n  gamma: constant\n")
+    (variant,) = load_variants(path)
+    assert variant == Variant("mine", {"observer": "measured_state", "gamma": "constant"})
+    outcome = run_variant(paper_scenario, variant, paper_scenario.x0, duration=0.5)
+    assert outcome.status == "ok"
+    np.testing.assert_array_equal(outcome.logs["xhat"], outcome.logs["x"])
+
+
+def test_a_choice_may_replace_a_fixed_block(paper_scenario, registry):
+    """frozen_critic replaces the critic; a second choice replacing it too is refused."""
+    loop = build_closed_loop(_short(paper_scenario, controller="frozen_critic"))
+    assert isinstance(loop.critic, CriticWeights) and loop.critic.kc == 0.0
+    assert type(loop.controller) is type(build_closed_loop(_short(paper_scenario)).controller)
+    register_variant(
+        "gamma",
+        "frozen_too",
+        lambda parts: {
+            "gamma": GammaGain(np.eye(3), 0.0, 0.0),
+            "critic": CriticWeights(parts.scenario.critic.W0, 0.0),
+        },
+    )
+    both = _short(paper_scenario, controller="frozen_critic", gamma="frozen_too")
+    with pytest.raises(
+        SwapError,
+        match=r"variant.gamma: 'frozen_too' builds the critic block, which "
+        r"variant.controller \('frozen_critic'\) builds too",
+    ):
+        build_closed_loop(both)
+    # An explicit swap of the critic wins over both choices.
+    given = CriticWeights(paper_scenario.critic.W0, 0.5)
+    assert build_closed_loop(both, critic=given).critic is given
+
+
+def test_a_factory_must_build_its_slots_block_and_no_other_slots(paper_scenario, registry):
+    register_variant("points", "nowhere", lambda parts: {})
+    with pytest.raises(
+        SwapError, match=r"variant.points: 'nowhere' must return a mapping with its 'bellman' block"
+    ):
+        build_closed_loop(_short(paper_scenario, points="nowhere"))
+    register_variant(
+        "observer",
+        "greedy",
+        lambda parts: {"observer": FullStateObserver(2), "gamma": GammaGain(np.eye(3), 0.0, 0.0)},
+    )
+    with pytest.raises(
+        SwapError, match=r"variant.observer: 'greedy' returns a 'gamma' block; a choice builds"
+    ):
+        build_closed_loop(_short(paper_scenario, observer="greedy"))
+
+
+def test_register_variant_refuses_bad_entries(registry):
+    with pytest.raises(ScenarioError, match=r"variant.critic: unknown slot; slots are \["):
+        register_variant("critic", "x", lambda parts: {})
+    with pytest.raises(ScenarioError, match=r"variant.observer: a choice needs a non-empty name"):
+        register_variant("observer", "", lambda parts: {})
+    with pytest.raises(ScenarioError, match=r"variant.observer.x: the factory must be callable"):
+        register_variant("observer", "x", 42)
+    with pytest.raises(
+        ScenarioError,
+        match=r"variant.points.x: a Choice builds its 'bellman' block and may replace "
+        r"\['critic', 'plant', 'policy', 'running_cost'\]; got blocks \['observer'\]",
+    ):
+        register_variant("points", "x", Choice({"observer": lambda parts: None}))
+
+
+def test_choices_by_name_are_swaps_in_the_same_vocabulary(paper_scenario):
+    by_name = build_closed_loop(_short(paper_scenario), points="uniform", gamma="constant")
+    in_file = build_closed_loop(_short(paper_scenario, points="uniform", gamma="constant"))
+    np.testing.assert_array_equal(by_name.bellman.features.points, in_file.bellman.features.points)
+    assert by_name.parts.scenario == in_file.parts.scenario
+    with pytest.raises(
+        SwapError,
+        match=r"points: unknown slot; swap one of \[.*\] \('points' "
+        r"is chosen by name, one of \['around_estimate', 'grid', 'uniform'\]\)",
+    ):
+        build_closed_loop(paper_scenario, points=by_name.bellman)
+    with pytest.raises(SwapError, match=r"bellman: no choices by name; name a choice of one of"):
+        build_closed_loop(paper_scenario, bellman="uniform")
+    with pytest.raises(ScenarioError, match=r"variant.gamma: unknown choice 'adaptive'"):
+        build_closed_loop(paper_scenario, gamma="adaptive")
+
+
+def test_the_observer_design_is_computed_only_for_a_built_observer(paper_scenario):
+    swapped = build_closed_loop(_short(paper_scenario), observer=FullStateObserver(2))
+    assert swapped.design is None
+    assert build_closed_loop(_short(paper_scenario, observer="kalman")).design is None
 
 
 def test_every_documented_choice_is_registered():

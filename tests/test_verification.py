@@ -8,11 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ofrl_drake.design import ObserverDesign
-from ofrl_drake.diagram import design_for
 from ofrl_drake.examples import make_system
 from ofrl_drake.observer import ObserverGains, observer_rhs, observer_rhs_batch
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import load_scenario
+from ofrl_drake.variants import design_for
 from ofrl_drake.verification import (
     VerificationError,
     error_jacobians,

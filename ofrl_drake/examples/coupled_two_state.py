@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ofrl_drake.examples import two_state as base
+from ofrl_drake.examples.two_state import f as paper_drift
 from ofrl_drake.model import ControlAffineSystem
 
 
 def f(x: np.ndarray) -> np.ndarray:
     """Two copies of the paper's drift plus the coupling in rows 1 and 3."""
-    a = base.f(x[0:2])
-    b = base.f(x[2:4])
+    a = paper_drift(x[0:2])
+    b = paper_drift(x[2:4])
     coupling = 0.1 * (x[2] - x[0])
     return np.array([a[0] + coupling, a[1], b[0] - coupling, b[1]])
 
