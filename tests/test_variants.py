@@ -9,7 +9,8 @@ import scipy.linalg
 from scipy.integrate import solve_ivp
 
 from ofrl_drake import ScenarioError, build_closed_loop, load_scenario, simulate
-from ofrl_drake.ablation import Variant, default_variants, load_variants, run_variant
+from ofrl_drake.ablation_grid import Variant, default_variants, load_variants
+from ofrl_drake.ablation_tasks import run_variant
 from ofrl_drake.baselines import (
     linearize_at_origin,
     luenberger_gain,
