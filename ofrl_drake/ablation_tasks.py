@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -207,7 +207,7 @@ def solve_optimal_task(
         return failed_optimum(x0, scenario.simulation.duration, one_line(err))
 
 
-def failed_optimum(x0: Sequence[float], duration: float, status: str) -> OptimalControlResult:
+def failed_optimum(x0: Iterable[float], duration: float, status: str) -> OptimalControlResult:
     """A ``J*`` that is not available (NaN, not converged), with why in its ``status``."""
     return OptimalControlResult(
         x0=tuple(float(v) for v in x0),

@@ -107,18 +107,19 @@ def evaluate_policy(
     symbolic = symbolic_blocks(scenario, system)
     builder = DiagramBuilder()
     if symbolic:
-        plant = builder.AddSystem(SymbolicPlant(system, initial_state=start))
+        # systems.*: initial_state is array_like (its docstring); its hint says Sequence[float]
+        plant = builder.AddSystem(SymbolicPlant(system, initial_state=start))  # type: ignore[arg-type]
         controller = builder.AddSystem(
             SymbolicController(system, parts.basis, parts.r, scenario.input_bound)
         )
         cost = builder.AddSystem(SymbolicRunningCost(parts.Q, parts.r, scenario.input_bound))
     else:
-        plant = builder.AddSystem(ControlAffinePlant(system, initial_state=start))
+        plant = builder.AddSystem(ControlAffinePlant(system, initial_state=start))  # type: ignore[arg-type]
         controller = builder.AddSystem(
             SaturatedController(system, parts.basis, parts.r, scenario.input_bound)
         )
         cost = builder.AddSystem(RunningCost(parts.Q, parts.r, scenario.input_bound))
-    weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))
+    weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))  # type: ignore[arg-type]  # pydrake array stub
     builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("estimated_state"))
     builder.Connect(weights.get_output_port(), controller.GetInputPort("policy_weights"))
     builder.Connect(controller.GetOutputPort("u"), plant.GetInputPort("u"))
@@ -132,7 +133,7 @@ def evaluate_policy(
     left: list[float] = []
 
     def watch(root) -> EventStatus:
-        x = state_port.Eval(plant.GetMyContextFromRoot(root))
+        x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(root)))
         if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
             left.append(root.get_time())
             return EventStatus.ReachedTermination(diagram, "left the abort box")
@@ -146,11 +147,11 @@ def evaluate_policy(
         left.append(simulator.get_context().get_time())
         return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
     context = simulator.get_context()
-    x = state_port.Eval(plant.GetMyContextFromRoot(context))
+    x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(context)))
     if left:
         status = f"diverged: left the abort box at t = {left[0]:.6g}"
         return PolicyRun(float("nan"), float(np.linalg.norm(x)), status)
-    J = cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context))[0]
+    J = np.asarray(cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context)))[0]
     return PolicyRun(float(J), float(np.linalg.norm(x)), "ok")
 
 
@@ -345,8 +346,8 @@ def lqr_weights(loop: ClosedLoop) -> np.ndarray | None:
         return None
     A, B = critic.linearization
     try:
-        _, P = LinearQuadraticRegulator(A, B, loop.parts.Q, np.diag(loop.parts.r))
-        return value_weights(loop.parts.basis, P)
+        _, P = LinearQuadraticRegulator(A, B, loop.parts.Q, np.diag(loop.parts.r))  # type: ignore[arg-type]  # pydrake array stub
+        return value_weights(loop.parts.basis, P)  # type: ignore[arg-type]  # pydrake array stub
     except (ModelError, RuntimeError):
         return None
 
