@@ -18,6 +18,7 @@ LAYERS = {
         "errors",
         "_jit",
         "checks",
+        "contracts",
         "atomic",
         "model",
         "plants",
