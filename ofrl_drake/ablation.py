@@ -328,8 +328,8 @@ class _Sweep:
                 tasks[handle] = ("run", (variant.name, label))
                 if i == 0 and label not in self.optimum:
                     warm = engine.ref(handle) if learned else self._saved_warm_start(label)
-                    args = (self.scenario, tuple(x0), warm, self.duration, self.mesh, self.solver)
-                    tasks[engine.submit(solve_optimal_task, *args)] = ("optimal", label)
+                    solve = (self.scenario, tuple(x0), warm, self.duration, self.mesh, self.solver)
+                    tasks[engine.submit(solve_optimal_task, *solve)] = ("optimal", label)
         return tasks
 
     def _saved_warm_start(self, label: str) -> Trajectory | None:

@@ -118,7 +118,7 @@ def plot_optimality_ratio(rows: Sequence[Mapping[str, Any]], variants: Sequence[
         if d.size:
             ax.plot(d, np.full(d.size, pos), "o", ms=4, alpha=0.7, color="C1")
         else:
-            ax.text(1.0, pos, "  no J/J*", va="center", fontsize=8, color="0.4")
+            ax.text(1.0, float(pos), "  no J/J*", va="center", fontsize=8, color="0.4")
     ax.axvline(1.0, color="0.3", lw=1, ls="--")
     ax.set_yticks(positions, list(variants))
     ax.invert_yaxis()
@@ -172,9 +172,9 @@ def plot_trajectories(
     axes[n].set_xlim(0.0, horizon or 1.0)
     simulated = [(t, x) for name, t, x in curves if name != "optimal (J*)"]
     floors = [numerical_floor(t, np.linalg.norm(x, axis=1)) for t, x in simulated]
-    floors = [f for f in floors if f is not None]
+    known = [f for f in floors if f is not None]
     # The sawtooth every settled run ends in is the integrator's error, not behaviour.
-    shade_numerical_floor(axes[n], max(floors) if floors else None, accuracy)
+    shade_numerical_floor(axes[n], max(known) if known else None, accuracy)
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.set_xlabel(r"time $t$ [s]")

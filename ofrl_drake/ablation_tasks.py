@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +24,7 @@ import numpy as np
 from ofrl_drake.ablation_grid import Variant, initial_state_label
 from ofrl_drake.ablation_metrics import run_metrics
 from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
-from ofrl_drake.scenario import Scenario, VariantConfig, variant_choices
+from ofrl_drake.scenario import Scenario, variant_choices
 
 __all__ = [
     "METRICS",
@@ -51,8 +51,11 @@ METRICS = (
 def _scenario_for(
     scenario: Scenario, variant: Variant, x0: Sequence[float], duration: float | None
 ) -> Scenario:
-    """The scenario of one run: the variant's choices, from ``x0``, over ``duration``."""
-    x0 = np.asarray(x0, dtype=float)
+    """The scenario of one run: the variant's choices, from ``x0``, over ``duration``.
+
+    The rest of the scenario's ``variant`` (``constant_input``) is kept.
+    """
+    start = np.asarray(x0, dtype=float)
     offset = np.asarray(scenario.xhat0, dtype=float) - np.asarray(scenario.x0, dtype=float)
     choices = variant.full_choices(scenario)
     simulation = scenario.simulation
@@ -60,9 +63,15 @@ def _scenario_for(
         simulation = dataclasses.replace(simulation, duration=float(duration))
     return dataclasses.replace(
         scenario,
-        x0=x0.tolist(),
-        xhat0=(x0 + offset).tolist(),
-        variant=VariantConfig(**choices),
+        x0=start.tolist(),
+        xhat0=(start + offset).tolist(),
+        variant=dataclasses.replace(
+            scenario.variant,
+            observer=choices["observer"],
+            controller=choices["controller"],
+            points=choices["points"],
+            gamma=choices["gamma"],
+        ),
         simulation=simulation,
     )
 
@@ -136,7 +145,7 @@ def run_variant(
         metrics = {**run_metrics(result, box), **_policy_costs(loop, result, s)}
         regulated = bool(result.regulated)
         status = "ok"
-        if result.status != "ok":
+        if result.stop is not None and result.status != "ok":
             # Stopped by the guard: the metrics of a truncated run are not comparable.
             status = f"{result.status}: {result.stop.reason}"
             metrics = dict.fromkeys(METRICS, math.nan)
@@ -198,7 +207,7 @@ def solve_optimal_task(
         return failed_optimum(x0, scenario.simulation.duration, one_line(err))
 
 
-def failed_optimum(x0: Sequence[float], duration: float, status: str) -> OptimalControlResult:
+def failed_optimum(x0: Iterable[float], duration: float, status: str) -> OptimalControlResult:
     """A ``J*`` that is not available (NaN, not converged), with why in its ``status``."""
     return OptimalControlResult(
         x0=tuple(float(v) for v in x0),

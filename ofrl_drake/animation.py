@@ -77,9 +77,9 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=0.0)
     text = str(model)
     if "://" in text:
-        Parser(plant).AddModels(url=text)
+        Parser(plant).AddModels(url=text)  # type: ignore[call-arg]  # pydrake stub lacks url=
     else:
-        Parser(plant).AddModels(file_name=text)
+        Parser(plant).AddModels(file_name=Path(text))
     plant.Finalize()
     if scene_graph.model_inspector().NumGeometriesWithRole(Role.kIllustration) == 0:
         return None
@@ -178,7 +178,7 @@ def _frame_camera(meshcat: Any, centres: np.ndarray, sizes: np.ndarray) -> None:
         half_w = max(half_w, ASPECT * half_h)
         half_h = max(half_h, half_w / ASPECT)
         meshcat.Set2dRenderMode(
-            X_WC=RigidTransform([0.0, lower[1] - 1.0, 0.0]),
+            X_WC=RigidTransform([0.0, lower[1] - 1.0, 0.0]),  # type: ignore[call-overload]  # pydrake array stub
             xmin=centre[0] - half_w,
             xmax=centre[0] + half_w,
             ymin=centre[2] - half_h,

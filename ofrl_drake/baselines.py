@@ -53,7 +53,7 @@ def symbolic_plant(system: ControlAffineSystem) -> SymbolicVectorSystem:
     u = MakeVectorVariable(system.m, "u")
     # numpy's object loops flag "invalid value" on Drake symbolic values; harmless.
     with np.errstate(invalid="ignore"):
-        dynamics = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u
+        dynamics = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u  # type: ignore[arg-type]  # pydrake array stub
         output = system.output_matrix @ x
     return SymbolicVectorSystem(state=x, input=u, dynamics=dynamics, output=output)
 
@@ -86,7 +86,7 @@ def linearize_at_origin(system: ControlAffineSystem, *, tol: float = 1e-9) -> Li
         )
     plant = symbolic_plant(system)
     context = plant.CreateDefaultContext()
-    context.SetContinuousState(np.zeros(system.n))
+    context.SetContinuousState(np.zeros(system.n))  # type: ignore[arg-type]  # pydrake array stub
     plant.get_input_port().FixValue(context, np.zeros(system.m))
     return Linearize(plant, context, equilibrium_check_tolerance=tol)
 

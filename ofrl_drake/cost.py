@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 from numba import njit, vectorize
-from pydrake.symbolic import log
+from pydrake.symbolic import Expression, log
 from pydrake.symbolic import max as symbolic_max
 from pydrake.symbolic import min as symbolic_min
 
@@ -179,7 +179,7 @@ def stage_cost_rate(
     return total + input_bound * input_bound * cost, worst
 
 
-def input_cost(u: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray:
+def input_cost(u: np.ndarray, r: np.ndarray, input_bound: float) -> np.ndarray | np.float64:
     """``U(u)`` for an input with ``|u_k| <= lbar``.
 
     With ``v = u / lbar`` this is ``sum_k r_k lbar^2 (2 v_k atanh v_k + ln(1 - v_k^2))``,
@@ -237,7 +237,7 @@ def stage_cost_expression(
         total = np.asarray(x) @ Q @ np.asarray(x)
     edge = 1.0 - 1e-16
     for k, uk in enumerate(u):
-        v = symbolic_min(symbolic_max(uk / input_bound, -edge), edge)
+        v = symbolic_min(symbolic_max(uk / input_bound, Expression(-edge)), Expression(edge))
         per_input = (1.0 + v) * log(1.0 + v) + (1.0 - v) * log(1.0 - v)
         total = total + float(input_bound**2 * r[k]) * per_input
     return total

@@ -36,6 +36,7 @@ add the output matrix; this module does not import :mod:`ofrl_drake.model`
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -302,8 +303,8 @@ def extract_drake_system(
     u = MakeVectorVariable(m, "u")
     t = Variable("t")
     context.SetTime(Expression(t))
-    context.SetContinuousState([Expression(v) for v in x])
-    sym_port = symbolic.get_input_port(port.get_index())
+    context.SetContinuousState([Expression(v) for v in x])  # type: ignore[arg-type]  # pydrake array stub
+    sym_port = symbolic.get_input_port(int(port.get_index()))
     sym_port.FixValue(context, [Expression(v) for v in u])
     fixed: dict[str, np.ndarray] = {}
     for i in range(symbolic.num_input_ports()):
@@ -328,7 +329,7 @@ def extract_drake_system(
             "needs a time-invariant plant x' = f(x) + g(x) u."
         )
     try:
-        B = Jacobian(xdot, list(u))
+        B = Jacobian(xdot, list(u))  # type: ignore[call-overload]  # pydrake array stub
     except RuntimeError as err:
         raise ModelError(
             f"{label}: d xdot / d u cannot be taken symbolically ({err}); the "
@@ -347,7 +348,7 @@ def extract_drake_system(
     return DrakeDynamics(label, f, g, source)
 
 
-def _names_any(expression: Expression, variables: np.ndarray) -> bool:
+def _names_any(expression: Expression, variables: Collection[Variable]) -> bool:
     names = expression.GetVariables()
     return any(names.include(v) for v in variables)
 
@@ -355,8 +356,8 @@ def _names_any(expression: Expression, variables: np.ndarray) -> bool:
 def _input_matrix(
     label: str,
     B: np.ndarray,
-    x: np.ndarray,
-    u: np.ndarray,
+    x: Collection[Variable],
+    u: Collection[Variable],
     zero_u: dict[Variable, Expression],
     X: np.ndarray,
     U: np.ndarray,
@@ -429,10 +430,10 @@ def _check_against_double(
         system.GetInputPort(name).FixValue(context, value)
     fX, gX = f(X), g(X)
     bad_rows: set[int] = set()
-    worst = (0.0, -1, None)
+    worst: tuple[float, int, int | None] = (0.0, -1, None)
     refused: list[tuple[int, Exception]] = []
     for k in range(points):
-        context.SetContinuousState(X[:, k])
+        context.SetContinuousState(X[:, k])  # type: ignore[arg-type]  # pydrake array stub
         port.FixValue(context, U[:, k])
         try:
             xdot = system.EvalTimeDerivatives(context).CopyToVector()
@@ -440,18 +441,18 @@ def _check_against_double(
             refused.append((k, err))
             continue
         model = fX[:, k] + gX[:, :, k] @ U[:, k]
-        err = np.abs(xdot - model)
-        rows = np.flatnonzero(~(err <= AFFINITY_RTOL * (1.0 + np.abs(xdot))))
+        gap = np.abs(xdot - model)
+        rows = np.flatnonzero(~(gap <= AFFINITY_RTOL * (1.0 + np.abs(xdot))))
         bad_rows.update(int(i) for i in rows)
-        err = np.where(np.isnan(err), np.inf, err)  # a NaN row is the worst
-        if rows.size and (worst[1] < 0 or err[rows].max() > worst[0]):
-            worst = (float(err[rows].max()), k, int(rows[np.argmax(err[rows])]))
+        gap = np.where(np.isnan(gap), np.inf, gap)  # a NaN row is the worst
+        if rows.size and (worst[1] < 0 or gap[rows].max() > worst[0]):
+            worst = (float(gap[rows].max()), k, int(rows[np.argmax(gap[rows])]))
     if refused and len(refused) == points:
-        k, err = refused[0]
+        k, first = refused[0]
         raise ModelError(
             f"{label}: the system's own EvalTimeDerivatives failed at all {points} random "
             f"(x, u) of the check (e.g. at x = {X[:, k].tolist()}: "
-            f"{str(err).splitlines()[0]}); it must evaluate at standard normal states."
+            f"{str(first).splitlines()[0]}); it must evaluate at standard normal states."
         )
     if bad_rows:
         _, k, row = worst
@@ -488,14 +489,14 @@ def _load_plant(model: Any) -> tuple[Any, str | None, str]:
     parser = Parser(plant)
     try:
         if "://" in text:
-            parser.AddModels(url=text)
+            parser.AddModels(url=text)  # type: ignore[call-arg]  # pydrake stub lacks url=
         else:
             if not Path(text).is_file():
                 raise ModelError(
                     f"from_multibody: model file {text!r} does not exist; give an SDF, "
                     "URDF or MJCF file or a package:// URL."
                 )
-            parser.AddModels(file_name=text)
+            parser.AddModels(file_name=Path(text))
         plant.Finalize()
     except ModelError:
         raise
@@ -653,9 +654,13 @@ def _multibody_units(plant: Any) -> tuple[tuple[str, ...] | None, tuple[str, ...
         _EFFORT_UNITS.get(plant.get_joint_actuator(JointActuatorIndex(k)).joint().type_name())
         for k in range(plant.num_actuators())
     ]
-    units = positions + velocities
-    state = None if None in units else tuple(units)
-    return state, (None if None in efforts else tuple(efforts))
+    return _known(positions + velocities), _known(efforts)
+
+
+def _known(units: list[str | None]) -> tuple[str, ...] | None:
+    """``units`` as a tuple, or None if one of them is unknown (None)."""
+    known = tuple(unit for unit in units if unit is not None)
+    return known if len(known) == len(units) else None
 
 
 def _multibody_equations(

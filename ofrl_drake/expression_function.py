@@ -23,7 +23,7 @@ conventions for ``f`` and ``g``:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -59,7 +59,7 @@ class ExpressionFunction:
         variable outside ``variables``.
     """
 
-    def __init__(self, expressions: Any, variables: Sequence[Variable]) -> None:
+    def __init__(self, expressions: Any, variables: Iterable[Variable]) -> None:
         exprs = np.asarray(expressions, dtype=object)
         self.expressions = np.vectorize(as_expression, otypes=[object])(exprs).reshape(exprs.shape)
         self.variables = tuple(variables)
@@ -101,7 +101,7 @@ class ExpressionFunction:
     def _autodiff(self, x: np.ndarray) -> np.ndarray:
         if self._jacobian is None:
             flat = self.expressions.ravel()
-            J = Jacobian(flat, list(self.variables)) if flat.size else np.zeros((0, 0))
+            J = Jacobian(flat, list(self.variables)) if flat.size else np.zeros((0, 0))  # type: ignore[call-overload]  # pydrake array stub
             self._jacobian = ExpressionEvaluator(J, self.variables)
         value = np.array([v.value() for v in x])
         dx = np.stack([np.asarray(v.derivatives(), dtype=float) for v in x])

@@ -169,7 +169,8 @@ class RunGuard:
 
     def states(self, root_context: Context) -> tuple[np.ndarray, np.ndarray]:
         """x and xhat in ``root_context``."""
-        if root_context is not self._root:  # the monitor sees one context at every step
+        # the monitor sees one context at every step
+        if root_context is not self._root or self._subcontexts is None:
             self._root = root_context
             self._subcontexts = (
                 self.plant.GetMyContextFromRoot(root_context),
@@ -184,7 +185,8 @@ class RunGuard:
         """``(status, reason)`` of the run at ``root_context``; ``("ok", "")`` if it may go on."""
         state = root_context.get_continuous_state_vector().CopyToVector()
         x, xhat = self.states(root_context)
-        if _all_inside(state, x, xhat, self._lower, self._upper):  # one compiled call per step
+        # one compiled call per step
+        if _all_inside(state, x, xhat, self._lower, self._upper):  # type: ignore[arg-type]  # pydrake array stub
             return self._check_wall_time(root_context)
         t = root_context.get_time()
         if not np.all(np.isfinite(state)):

@@ -104,7 +104,7 @@ def evaluate_policy(
         controller_block(system, parts.basis, parts.r, scenario.input_bound, symbolic)
     )
     cost = builder.AddSystem(running_cost_block(parts.Q, parts.r, scenario.input_bound, symbolic))
-    weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))
+    weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))  # type: ignore[arg-type]  # pydrake array stub
     builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("estimated_state"))
     builder.Connect(weights.get_output_port(), controller.GetInputPort("policy_weights"))
     builder.Connect(controller.GetOutputPort("u"), plant.GetInputPort("u"))
@@ -118,7 +118,7 @@ def evaluate_policy(
     left: list[float] = []
 
     def watch(root) -> EventStatus:
-        x = state_port.Eval(plant.GetMyContextFromRoot(root))
+        x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(root)))
         if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
             left.append(root.get_time())
             return EventStatus.ReachedTermination(diagram, "left the abort box")
@@ -132,11 +132,11 @@ def evaluate_policy(
         left.append(simulator.get_context().get_time())
         return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
     context = simulator.get_context()
-    x = state_port.Eval(plant.GetMyContextFromRoot(context))
+    x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(context)))
     if left:
         status = f"diverged: left the abort box at t = {left[0]:.6g}"
         return PolicyRun(float("nan"), float(np.linalg.norm(x)), status)
-    J = cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context))[0]
+    J = np.asarray(cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context)))[0]
     return PolicyRun(float(J), float(np.linalg.norm(x)), "ok")
 
 
@@ -331,8 +331,8 @@ def lqr_weights(loop: ClosedLoop) -> np.ndarray | None:
         return None
     A, B = critic.linearization
     try:
-        _, P = LinearQuadraticRegulator(A, B, loop.parts.Q, np.diag(loop.parts.r))
-        return value_weights(loop.parts.basis, P)
+        _, P = LinearQuadraticRegulator(A, B, loop.parts.Q, np.diag(loop.parts.r))  # type: ignore[arg-type]  # pydrake array stub
+        return value_weights(loop.parts.basis, P)  # type: ignore[arg-type]  # pydrake array stub
     except (ModelError, RuntimeError):
         return None
 

@@ -620,13 +620,13 @@ def thin_perturbation(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any 
         return float(np.linalg.norm(_collapse(Mf1 + Mug1, Mf2 + Mug2)[2]))
     H, K, C = inj
     eye = np.eye(n)
-    Df = np.linalg.norm(_collapse(Mf1, Mf2)[2])
-    Dg = np.linalg.norm(_collapse(Mug1, Mug2)[2])
+    Df = float(np.linalg.norm(_collapse(Mf1, Mf2)[2]))
+    Dg = float(np.linalg.norm(_collapse(Mug1, Mug2)[2]))
     out = 0.0
     if Df:
-        out += Df * np.linalg.norm(eye - H @ C, 2)
+        out += Df * float(np.linalg.norm(eye - H @ C, 2))
     if Dg:
-        out += Dg * np.linalg.norm(eye - K @ C, 2)
+        out += Dg * float(np.linalg.norm(eye - K @ C, 2))
     return float(out)
 
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.symbolic import Expression, MakeVectorVariable
 
 from ofrl_drake.drake_models import (
@@ -150,7 +151,7 @@ class ControlAffineSystem:
         self,
         f: ArrayFunction,
         g: ArrayFunction,
-        C: np.ndarray,
+        C: ArrayLike,
         *,
         name: str = "control_affine_system",
         source: Any = None,
@@ -292,7 +293,7 @@ class ControlAffineSystem:
                 f"({type(err).__name__}: {err}); write them with numpy functions "
                 "(np.cos, np.exp, **) and no branches."
             ) from err
-        return SymbolicDynamics(x, f, g)
+        return SymbolicDynamics(x, f, g)  # type: ignore[arg-type]  # pydrake array stub
 
     # ------------------------------------------------------------ from Drake
     @classmethod

@@ -130,7 +130,10 @@ def _one_run(scenario: Scenario, seed: int, k: int, mass_spread: float) -> dict[
     logs: dict[str, np.ndarray] = {}
     try:
         result = simulate(run, progress=False)
-        row["status"] = "ok" if result.status == "ok" else f"{result.status}: {result.stop.reason}"
+        stop = result.stop
+        row["status"] = (
+            "ok" if stop is None or result.status == "ok" else f"{result.status}: {stop.reason}"
+        )
         row["regulated"] = "true" if result.regulated else "false"
         row["final_state_norm"] = float(np.linalg.norm(result.x[-1]))
         row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)

@@ -17,7 +17,7 @@ C++ (:class:`~ofrl_drake.systems.SymbolicObserver`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numba import njit
@@ -26,6 +26,9 @@ from pydrake.symbolic import if_then_else
 from ofrl_drake._jit import JIT
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = [
     "ObserverGains",
@@ -114,12 +117,12 @@ class ObserverGains:
         )
 
     @classmethod
-    def from_design(cls, system: ControlAffineSystem, design: Any) -> ObserverGains:
+    def from_design(cls, system: ControlAffineSystem, design: ObserverDesign) -> ObserverGains:
         """Take L, H, K and the Jacobian bounds from an ``ObserverDesign``."""
         b = design.bounds
         return cls.from_arrays(system, design.L, design.H, design.K, b.Mf1, b.Mg1, b.Mg2)
 
-    def check_design(self, design: Any) -> None:
+    def check_design(self, design: ObserverDesign) -> None:
         """Raise :class:`ModelError` unless ``design`` has these L, H and K.
 
         An observer block that reports ``design`` as its certificate must run

@@ -1,10 +1,11 @@
 """What an observer block certifies: the one question ``simulate()`` asks it.
 
-Every observer block answers ``observer_certificate() -> ObserverCertificate``:
-the design (or local certificate) it runs, as reported in ``summary.json``,
-and the box on which it holds, which x and xhat are checked against. The
-simulation asks :func:`certificate_of` and never looks at the block's class; a
-block without the method (a user's own) certifies nothing.
+Every observer block answers ``observer_certificate() -> ObserverCertificate``
+(:class:`ofrl_drake.contracts.CertifiedObserver`): the design (or local
+certificate) it runs, as reported in ``summary.json``, and the box on which it
+holds, which x and xhat are checked against. The simulation asks
+:func:`certificate_of` and never looks at the block's class; a block without
+the method (a user's own) certifies nothing.
 
 Kinds:
 
@@ -22,10 +23,14 @@ Kinds:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from ofrl_drake.contracts import CertifiedObserver
 from ofrl_drake.errors import ModelError
 from ofrl_drake.jacobian_bounds import Box
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = ["KINDS", "ObserverCertificate", "certificate_of"]
 
@@ -75,7 +80,7 @@ class ObserverCertificate:
         )
 
     @classmethod
-    def of_design(cls, design: Any, block_name: str) -> ObserverCertificate:
+    def of_design(cls, design: ObserverDesign | None, block_name: str) -> ObserverCertificate:
         """The certificate of an observer block running ``design``'s gains.
 
         ``design`` is an ``ObserverDesign`` (kind ``"design"``, with its box) or
@@ -86,7 +91,7 @@ class ObserverCertificate:
         return cls("design", design=design.to_dict(), box=design.box)
 
 
-def certificate_of(block: Any) -> ObserverCertificate:
+def certificate_of(block: object) -> ObserverCertificate:
     """``block.observer_certificate()``, or "none" for a block without one.
 
     Raises
@@ -94,10 +99,9 @@ def certificate_of(block: Any) -> ObserverCertificate:
     ModelError
         If the method returns something other than an :class:`ObserverCertificate`.
     """
-    method = getattr(block, "observer_certificate", None)
-    if not callable(method):
+    if not isinstance(block, CertifiedObserver) or not callable(block.observer_certificate):
         return ObserverCertificate.none(type(block).__name__)
-    cert = method()
+    cert: object = block.observer_certificate()
     if not isinstance(cert, ObserverCertificate):
         raise ModelError(
             f"{type(block).__name__}.observer_certificate() must return an "

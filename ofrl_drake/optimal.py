@@ -60,6 +60,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.planning import DirectCollocation
 from pydrake.solvers import IpoptSolver, SnoptSolver, SolverOptions
 from pydrake.symbolic import MakeVectorVariable, log
@@ -247,7 +248,7 @@ def cost_augmented_plant(
     u = MakeVectorVariable(m, "u")
     # numpy's object loops flag "invalid value" on Drake symbolic values; harmless.
     with np.errstate(invalid="ignore"):
-        xdot = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u
+        xdot = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u  # type: ignore[arg-type]  # pydrake array stub
         running = x @ Q @ x
     for k in range(m):
         s = u[k] / input_bound
@@ -376,7 +377,7 @@ def solve_optimal_control(
         for i, h in enumerate(steps):
             prog.AddBoundingBoxConstraint(h, h, dircol.time_step(i))
         start_state = np.concatenate([x0, [0.0]])
-        prog.AddBoundingBoxConstraint(start_state, start_state, dircol.initial_state())
+        prog.AddBoundingBoxConstraint(start_state, start_state, dircol.initial_state())  # type: ignore[arg-type]  # pydrake array stub
         for k in range(steps.size + 1):
             prog.AddBoundingBoxConstraint(-u_max, u_max, dircol.input(k))
         dircol.AddFinalCost(dircol.final_state()[n])
@@ -422,7 +423,7 @@ def solve_optimal_control(
 
 def optimal_control(
     scenario: Scenario,
-    x0: np.ndarray | None = None,
+    x0: ArrayLike | None = None,
     *,
     warm_start: Trajectory | None = None,
     mesh: Mesh | None = None,

@@ -354,8 +354,8 @@ def resolve_system(scenario: Any) -> ControlAffineSystem:
     return system
 
 
-def multibody_body_names(system: ControlAffineSystem) -> list[str] | None:
-    """The body names of a model built from a multibody plant; None for any other model."""
+def multibody_body_names(system: ControlAffineSystem | None) -> list[str] | None:
+    """The body names of a model built from a multibody plant; None for any other (or None)."""
     from ofrl_drake.drake_models import MultibodySource
 
     source = getattr(system, "source", None)
@@ -385,6 +385,7 @@ def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
     truth = getattr(scenario, "truth", None)
     if truth is None:
         return None
+    system: ControlAffineSystem | None
     if not truth.system and truth.plant is None:
         system = resolve_system(scenario)
     else:

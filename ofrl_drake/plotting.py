@@ -24,11 +24,15 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+
+if TYPE_CHECKING:  # matplotlib >= 3.10 names the rc keys; the annotation only
+    from matplotlib.typing import RcKeyType
 
 __all__ = [
     "numerical_floor",
@@ -47,7 +51,7 @@ __all__ = [
     "transient_end",
 ]
 
-_STYLE = {
+_STYLE: dict[RcKeyType, Any] = {
     "figure.figsize": (6.0, 3.4),
     "axes.grid": True,
     "grid.alpha": 0.3,

@@ -5,13 +5,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ofrl_drake.errors import ModelError
 
 __all__ = ["grid_points", "uniform_points"]
 
 
-def _check_box(lower: Sequence[float], upper: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def _check_box(lower: ArrayLike, upper: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     lo = np.asarray(lower, dtype=float)
     hi = np.asarray(upper, dtype=float)
     if lo.shape != hi.shape or lo.ndim != 1:
@@ -27,9 +28,7 @@ def _check_box(lower: Sequence[float], upper: Sequence[float]) -> tuple[np.ndarr
     return lo, hi
 
 
-def grid_points(
-    lower: Sequence[float], upper: Sequence[float], counts: Sequence[int]
-) -> np.ndarray:
+def grid_points(lower: ArrayLike, upper: ArrayLike, counts: Sequence[int]) -> np.ndarray:
     """A tensor grid: ``linspace(lower_j, upper_j, counts_j)`` in each axis.
 
     The paper's 100 points are ``grid_points([-1, -1], [1, 1], [10, 10])``.
@@ -46,9 +45,7 @@ def grid_points(
     return np.stack([m.ravel() for m in mesh], axis=0)
 
 
-def uniform_points(
-    lower: Sequence[float], upper: Sequence[float], number: int, seed: int
-) -> np.ndarray:
+def uniform_points(lower: ArrayLike, upper: ArrayLike, number: int, seed: int) -> np.ndarray:
     """``number`` points drawn uniformly in the box from ``numpy`` generator ``seed``."""
     lo, hi = _check_box(lower, upper)
     if int(number) < 1:

@@ -46,10 +46,10 @@ The plant, observer, controller and running cost are C++ symbolic blocks when
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import System
 
 from ofrl_drake.baselines import (
@@ -122,7 +122,7 @@ __all__ = [
 
 
 # ------------------------------------------------------------------- plant
-def plant_block(system: ControlAffineSystem, x0: Sequence[float], symbolic: bool) -> System:
+def plant_block(system: ControlAffineSystem, x0: ArrayLike, symbolic: bool) -> System:
     """``system`` simulated from its ``f`` and ``g``: C++ symbolic if ``symbolic``, else Python."""
     block = SymbolicPlant if symbolic else ControlAffinePlant
     return block(system, initial_state=x0)

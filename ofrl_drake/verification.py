@@ -41,7 +41,7 @@ import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -51,6 +51,9 @@ from ofrl_drake.jacobian_bounds import Box, symbolic_jacobians
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_batch
 from ofrl_drake.sector import input_vertices
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = [
     "DEFAULT_SAMPLES",
@@ -263,7 +266,7 @@ def _jacobian_function(
     n, m = system.n, system.m
     try:
         x, Jf, Jg = symbolic_jacobians(system)
-        evaluator = ExpressionEvaluator(np.concatenate([Jf.ravel(), Jg.ravel()]), x)
+        evaluator = ExpressionEvaluator(np.concatenate([Jf.ravel(), Jg.ravel()]), tuple(x))
     except OfrlError:
         evaluator = None
     if evaluator is not None:
@@ -308,7 +311,9 @@ def plant_jacobians(system: ControlAffineSystem, X: Any) -> tuple[np.ndarray, np
 
 
 # --------------------------------------------------------------------- rates
-def _design_numbers(design: Any, system: ControlAffineSystem) -> tuple[Any, ...]:
+def _design_numbers(
+    design: ObserverDesign, system: ControlAffineSystem
+) -> tuple[np.ndarray, ObserverGains, Box, float, float]:
     try:
         P = np.asarray(design.P, dtype=float)
         gains = ObserverGains.from_design(system, design)
@@ -332,7 +337,9 @@ def _design_numbers(design: Any, system: ControlAffineSystem) -> tuple[Any, ...]
     return P, gains, box, alpha, input_bound
 
 
-def error_rates(design: Any, system: ControlAffineSystem, X: Any, Xhat: Any, U: Any) -> np.ndarray:
+def error_rates(
+    design: ObserverDesign, system: ControlAffineSystem, X: Any, Xhat: Any, U: Any
+) -> np.ndarray:
     """``r = 2 e^T P e' / e^T P e`` under the true dynamics, one per column.
 
     Parameters
@@ -368,7 +375,9 @@ def _rates(
         return 2.0 * np.einsum("iN,iN->N", PE, xdot - xhatdot) / np.einsum("iN,iN->N", PE, E)
 
 
-def error_jacobians(design: Any, system: ControlAffineSystem, X: Any, U: Any) -> np.ndarray:
+def error_jacobians(
+    design: ObserverDesign, system: ControlAffineSystem, X: Any, U: Any
+) -> np.ndarray:
     """``A = de'/de`` at ``e = 0`` (``xhat = x``), one per column: shape ``(N, n, n)``.
 
     See the module docstring for the formula; ``Df``, ``Dg`` from ``f`` and ``g``.
@@ -415,7 +424,7 @@ def _limit_from_jacobians(A: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def small_error_rates(
-    design: Any, system: ControlAffineSystem, X: Any, U: Any
+    design: ObserverDesign, system: ControlAffineSystem, X: Any, U: Any
 ) -> tuple[np.ndarray, np.ndarray]:
     """The small-error limit of ``r`` at each column, and its worst direction.
 
@@ -458,6 +467,11 @@ class _Best:
     xhat: np.ndarray | None = None
     u: np.ndarray | None = None
     direction: np.ndarray | None = None
+
+
+def _found(point: np.ndarray | None) -> np.ndarray:
+    """A point of :class:`_Best`, NaN where no sample had a finite rate."""
+    return np.full(1, math.nan) if point is None else point
 
 
 def _chunks(N: int, per_point: int) -> list[slice]:
@@ -509,7 +523,7 @@ MAX_SAMPLES = 10_000_000
 
 
 def verify_observer(
-    design: Any,
+    design: ObserverDesign,
     system: ControlAffineSystem,
     *,
     samples: int = DEFAULT_SAMPLES,
@@ -558,9 +572,9 @@ def verify_observer(
     >>> verify_observer(sound, system, samples=2000).falsified
     False
     """
-    for name, value, least in (("samples", samples, 1), ("starts", starts, 0)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
-            raise VerificationError(f"{name} must be an integer >= {least}; got {value!r}.")
+    for name, given, least in (("samples", samples, 1), ("starts", starts, 0)):
+        if isinstance(given, bool) or not isinstance(given, int | np.integer) or given < least:
+            raise VerificationError(f"{name} must be an integer >= {least}; got {given!r}.")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise VerificationError(f"seed must be an integer >= 0; got {seed!r}.")
     if samples > MAX_SAMPLES:
@@ -661,9 +675,9 @@ def verify_observer(
     return VerificationReport(
         alpha=alpha,
         worst_rate=best.rate,
-        x=best.x,
-        xhat=best.xhat,
-        u=best.u,
+        x=_found(best.x),
+        xhat=_found(best.xhat),
+        u=_found(best.u),
         direction=best.direction,
         kind="small_error_limit" if best is limit else "finite_error",
         worst_small_error_rate=limit.rate,

@@ -250,6 +250,17 @@ def test_a_failing_variant_is_recorded_and_the_others_finish(paper_scenario, tmp
     assert sorted(map(_key, on_disk)) == sorted(map(_key, rows))
 
 
+def test_a_run_keeps_the_scenario_s_constant_input(paper_scenario):
+    """The run's scenario takes the variant's slot choices and keeps the rest of ``variant``."""
+    variant = dataclasses.replace(
+        paper_scenario.variant, controller="constant", constant_input=[0.5]
+    )
+    scenario = dataclasses.replace(paper_scenario, variant=variant)
+    outcome = run_variant(scenario, Variant("baseline"), [-1.0, 1.0], duration=0.2)
+    assert outcome.status == "ok", outcome.status
+    np.testing.assert_array_equal(outcome.logs["u"][:, 0], 0.5)
+
+
 def test_a_run_the_guard_stops_is_recorded_with_its_status(paper_scenario):
     simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3)
     scenario = dataclasses.replace(paper_scenario, simulation=simulation)

@@ -20,6 +20,7 @@ LAYERS = {
         "errors",
         "_jit",
         "checks",
+        "contracts",
         "atomic",
         "model",
         "plants",

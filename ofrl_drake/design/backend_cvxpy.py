@@ -73,6 +73,8 @@ class CvxpyBackend(SdpBackend):
         eye = np.eye(n)
         P = cp.Variable((n, n), symmetric=True, name="P")
         R = cp.Variable((n, q), name="R") if problem.L is None else P @ problem.L
+        H: Any  # a cp.Variable to solve for, or the pinned gains (ndarray)
+        K: Any
         if problem.HK is None:
             H = cp.Variable((n, q), name="H")
             K = cp.Variable((n, q), name="K")

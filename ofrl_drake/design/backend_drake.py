@@ -182,7 +182,7 @@ def _drake_program(problem: LmiProblem) -> tuple[MathematicalProgram, np.ndarray
             if name in ("t", "s"):
                 cost[pos] = 1.0
             pos += k
-        prog.AddLinearCost(cost, 0.0, z)
+        prog.AddLinearCost(cost, 0.0, z)  # type: ignore[arg-type]  # pydrake array stub
     return prog, z, layout
 
 

@@ -201,16 +201,17 @@ class PolytopicFormulation(Formulation):
         n, q = C.shape[1], C.shape[0]
         if HK is None:
             HK = (np.zeros((n, q)), np.zeros((n, q)))
+        H, K = HK
         us = input_vertices(input_bound, bounds.m)
         try:
-            total = sum(corner_count(bounds, u, *HK, C) for u in us)
+            total = sum(corner_count(bounds, u, H, K, C) for u in us)
             if total > MAX_CORNERS:
                 raise LmiError(
                     f"{total} corner matrices over {len(us)} input vertices, more than "
                     f"MAX_CORNERS = {MAX_CORNERS}; tighten the Jacobian bounds, use a "
                     "smaller box or formulation='paper'."
                 )
-            stacks = [corner_matrices(bounds, u, *HK, C) for u in us]
+            stacks = [corner_matrices(bounds, u, H, K, C) for u in us]
         except LmiError as err:
             raise DesignError(f"formulation='polytopic': {err}") from err
         corners = np.unique(np.concatenate(stacks), axis=0)

@@ -156,7 +156,7 @@ def _finish(
             formulation=problem.formulation,
         )
 
-    if sol.infeasible or sol.P is None:
+    if sol.infeasible or sol.P is None or sol.R is None or sol.H is None or sol.K is None:
         raise fail(f"solver status {sol.status}", inaccurate=not sol.infeasible)
     numbers = [sol.P, sol.R, sol.H, sol.K]
     if not all(np.all(np.isfinite(a)) for a in numbers):

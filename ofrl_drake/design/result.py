@@ -110,7 +110,11 @@ class ObserverDesign:
         formulation = get_formulation(self.formulation, self.sector)
         object.__setattr__(self, "_cert", formulation.certificate(self))
 
-    def _numbers(self) -> tuple[Any, ...]:
+    def _numbers(
+        self,
+    ) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, JacobianBounds, float, float
+    ]:
         """The arguments of the :mod:`ofrl_drake.lmi` certificates (also the formulations')."""
         return (
             self.P,
