@@ -43,6 +43,7 @@ from pydrake.systems.framework import InputPort, PortDataType, System
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
 from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.multibody_bounds import MultibodyStructure, multibody_structure
 
 __all__ = [
     "AFFINITY_POINTS",
@@ -97,6 +98,10 @@ class MultibodySource:
         plant was given; re-parse it next to a ``SceneGraph`` to draw the model.
     position_names, velocity_names, actuator_names : tuple of str
         Names of the entries of ``q``, ``v`` and ``u``, in order.
+    structure : MultibodyStructure or None
+        ``qdot``, ``M``, ``tau`` and ``B`` as symbolic parts (see
+        :func:`ofrl_drake.multibody_bounds.multibody_structure`), for certified
+        Jacobian bounds.
     """
 
     plant: Any
@@ -104,6 +109,7 @@ class MultibodySource:
     position_names: tuple[str, ...] = ()
     velocity_names: tuple[str, ...] = ()
     actuator_names: tuple[str, ...] = ()
+    structure: MultibodyStructure | None = None
 
 
 # ------------------------------------------------------------- Drake systems
@@ -485,6 +491,7 @@ def from_multibody(
         tuple(plant.GetPositionNames(False)),
         tuple(plant.GetVelocityNames(False)),
         tuple(plant.GetActuatorNames(False)),
+        multibody_structure(plant),
     )
     _check_multibody(label, plant, f, g, nq + nv, nu, check_points, seed)
     return ControlAffineSystem(f, g, C, name=label, source=source)

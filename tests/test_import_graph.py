@@ -33,6 +33,8 @@ LAYERS = {
         "observer",
         "observer_certificate",
         "interval",
+        "interval_linalg",
+        "multibody_bounds",
         "jacobian_bounds",
         "lmi",
         "design",
