@@ -61,6 +61,30 @@ def interval_matmul(A: Interval, X: Interval) -> Interval:
     return total
 
 
+def _gauss_seidel(G: Interval, rhs: Interval, start: Interval, sweeps: int) -> Interval:
+    """Interval Gauss-Seidel sweeps on ``G y = rhs`` from the enclosure ``start``.
+
+    Row ``i``: ``y_i in (rhs_i - sum_{j != i} G_ij y_j) / G_ii``, intersected with
+    the current ``y_i``; every solution inside ``start`` stays inside.
+    """
+    k = np.shape(G.lo)[0]
+    y_lo = [np.array(start.lo[i]) for i in range(k)]
+    y_hi = [np.array(start.hi[i]) for i in range(k)]
+    for _ in range(sweeps):
+        for i in range(k):
+            s = rhs[i]
+            for j in range(k):
+                if j != i:
+                    s = s - G[i, j][None] * Interval(y_lo[j], y_hi[j])
+            new = s / G[i, i][None]
+            lo_i = np.maximum(y_lo[i], new.lo)
+            hi_i = np.minimum(y_hi[i], new.hi)
+            keep = lo_i <= hi_i  # an empty intersection cannot hold a solution; stay safe
+            y_lo[i] = np.where(keep, lo_i, y_lo[i])
+            y_hi[i] = np.where(keep, hi_i, y_hi[i])
+    return Interval(np.stack(y_lo), np.stack(y_hi))
+
+
 def _point(a: np.ndarray) -> Interval:
     return Interval(a, a)
 
@@ -126,7 +150,8 @@ class IntervalLinearSystem:
                 f"and hi {hi.shape}."
             )
         self._k = k
-        self._C = _inverse(0.5 * lo + 0.5 * hi)
+        with np.errstate(all="ignore"):
+            self._C = _inverse(0.5 * lo + 0.5 * hi)
         self._G = interval_matmul(_point(self._C), A)
         eye = np.eye(k).reshape((k, k) + (1,) * (lo.ndim - 2))
         E = _point(np.broadcast_to(eye, lo.shape)) - self._G
@@ -152,7 +177,6 @@ class IntervalLinearSystem:
             Shape ``(k, r, *S)``: for every ``A`` in ``[A]`` and ``b`` in ``[b]``,
             ``A^-1 b`` lies inside; the whole line where ``beta >= 1``.
         """
-        k = self._k
         b_lo, b_hi = np.asarray(b.lo, dtype=float), np.asarray(b.hi, dtype=float)
         with np.errstate(all="ignore"):
             b_mid = 0.5 * b_lo + 0.5 * b_hi
@@ -165,22 +189,13 @@ class IntervalLinearSystem:
         radius = (_point(z_mag) / (1.0 - _point(np.broadcast_to(self.beta, z_mag.shape[1:])))).hi
         ok = self._ok & np.isfinite(radius)
         radius = np.where(ok, radius, np.inf)
-        e_lo = [np.broadcast_to(-radius, z_mag.shape).copy() for _ in range(k)]
-        e_hi = [np.broadcast_to(radius, z_mag.shape).copy() for _ in range(k)]
-        G = self._G
-        for _ in range(self.sweeps):
-            for i in range(k):
-                s = z[i]
-                for j in range(k):
-                    if j != i:
-                        s = s - G[i, j][None] * Interval(e_lo[j], e_hi[j])
-                new = s / G[i, i][None]
-                lo_i = np.maximum(e_lo[i], new.lo)
-                hi_i = np.minimum(e_hi[i], new.hi)
-                keep = lo_i <= hi_i  # an empty intersection cannot hold a solution; stay safe
-                e_lo[i] = np.where(keep, lo_i, e_lo[i])
-                e_hi[i] = np.where(keep, hi_i, e_hi[i])
-        x = _point(x_t) + Interval(np.stack(e_lo), np.stack(e_hi))
+        e = _gauss_seidel(
+            self._G,
+            z,
+            Interval(np.broadcast_to(-radius, z.lo.shape), np.broadcast_to(radius, z.lo.shape)),
+            self.sweeps,
+        )
+        x = _point(x_t) + e
         whole = ~np.broadcast_to(ok, x_t.shape)
         return Interval(np.where(whole, -np.inf, x.lo), np.where(whole, np.inf, x.hi))
 
