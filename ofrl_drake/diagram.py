@@ -233,13 +233,19 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
     """The observer design of ``scenario``: certified by LMI unless gains are pinned.
 
     Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
-    certificate, which reports honestly whether they satisfy the LMI.
+    certificate, which reports honestly whether they satisfy the LMI. The
+    Jacobian bounds' refinement stops after ``simulation.max_wall_time``
+    (``--max-wall``) seconds, with the sound bounds reached so far.
     """
     from ofrl_drake.design import ObserverDesign, design_observer
+    from ofrl_drake.jacobian_bounds import jacobian_bounds
 
     system = system or resolve_system(scenario)
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    bounds = jacobian_bounds(
+        system, box, o.jacobian_method, max_wall_time=scenario.simulation.max_wall_time
+    )
     if o.L is not None:
         return ObserverDesign.from_gains(
             system,
@@ -249,7 +255,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
             L=np.asarray(o.L, float),
             H=np.asarray(o.H, float),
             K=np.asarray(o.K, float),
-            jacobian_method=o.jacobian_method,
+            bounds=bounds,
             formulation=o.formulation,
         )
     return design_observer(
@@ -257,7 +263,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
         box,
         scenario.input_bound,
         o.alpha,
-        jacobian_method=o.jacobian_method,
+        bounds=bounds,
         solver=o.solver,
         formulation=o.formulation,
     )

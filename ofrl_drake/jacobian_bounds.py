@@ -823,11 +823,7 @@ def _check_structure(
     system: ControlAffineSystem, structure: MultibodyStructure, box: Box, seed: int
 ) -> None:
     """The structure must give the system's own ``f`` and ``g`` (at points of the box)."""
-    rng = np.random.default_rng(seed)
-    X = np.concatenate(
-        [box.center[:, None], _random_points(box, _STRUCTURE_POINTS, int(rng.integers(2**31)))],
-        axis=1,
-    )
+    X = np.concatenate([box.center[:, None], _random_points(box, _STRUCTURE_POINTS, seed)], axis=1)
     f, g = structure.dynamics(X)
     for name, mine, theirs in (("f", f, system.f_batch(X)), ("g", g, system.g_batch(X))):
         err = np.abs(mine - theirs)

@@ -256,3 +256,14 @@ def test_certify_stopped_by_the_clock_is_sound(upright):
                       max_boxes=10**6, deadline=time.monotonic() + 0.5)  # fmt: skip
     assert stopped.stop == "max_wall_time" and not stopped.converged
     assert np.all(stopped.lo <= full.lo) and np.all(full.hi <= stopped.hi)
+
+
+def test_the_benchmark_script_runs_and_reports_ratios(capsys):
+    from benchmarks.multibody_bounds import main
+
+    assert main(["--plants", "cart_pole", "--methods", "certified", "--timeout", "120"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| cart_pole | certified"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[5] == "True"  # converged
+    assert 1.0 <= float(cells[6]) <= 1.0 + 2 * MULTIBODY_RTOL + 1e-6  # max width ratio
