@@ -267,3 +267,31 @@ def test_the_benchmark_script_runs_and_reports_ratios(capsys):
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[5] == "True"  # converged
     assert 1.0 <= float(cells[6]) <= 1.0 + 2 * MULTIBODY_RTOL + 1e-6  # max width ratio
+
+
+def test_the_design_gives_the_bounds_the_runs_wall_time(monkeypatch):
+    """--max-wall sets simulation.max_wall_time, which bounds the bounds' refinement."""
+    import dataclasses
+
+    import ofrl_drake.jacobian_bounds as jb
+    from ofrl_drake.diagram import design_for
+    from ofrl_drake.scenario import load_scenario
+
+    seen = []
+
+    class Stop(Exception):
+        """Raised by the spy: the test stops before the LMI."""
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("max_wall_time"))
+        raise Stop
+
+    monkeypatch.setattr(jb, "jacobian_bounds", spy)
+    scenario = load_scenario(ROOT / "diagrams" / "cart_pole.yaml")
+    timed = dataclasses.replace(
+        scenario, simulation=dataclasses.replace(scenario.simulation, max_wall_time=7.5)
+    )
+    for s, expected in ((scenario, None), (timed, 7.5)):
+        with pytest.raises(Stop):
+            design_for(s)
+        assert seen[-1] == expected
