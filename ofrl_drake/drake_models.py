@@ -46,6 +46,7 @@ from pydrake.systems.framework import InputPort, PortDataType, System
 
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
+from ofrl_drake.multibody_bounds import MultibodyStructure, multibody_structure
 
 __all__ = [
     "AFFINITY_POINTS",
@@ -110,6 +111,10 @@ class MultibodySource:
         plant was given; re-parse it next to a ``SceneGraph`` to draw the model.
     position_names, velocity_names, actuator_names : tuple of str
         Names of the entries of ``q``, ``v`` and ``u``, in order.
+    structure : MultibodyStructure or None
+        ``qdot``, ``M``, ``tau`` and ``B`` as symbolic parts (see
+        :func:`ofrl_drake.multibody_bounds.multibody_structure`), for certified
+        Jacobian bounds.
     """
 
     plant: Any
@@ -117,6 +122,7 @@ class MultibodySource:
     position_names: tuple[str, ...] = ()
     velocity_names: tuple[str, ...] = ()
     actuator_names: tuple[str, ...] = ()
+    structure: MultibodyStructure | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -623,6 +629,7 @@ def extract_multibody(
         tuple(plant.GetPositionNames(False)),
         tuple(plant.GetVelocityNames(False)),
         tuple(plant.GetActuatorNames(False)),
+        multibody_structure(plant),
     )
     _check_multibody(label, plant, f, g, nq + nv, nu, check_points, seed)
     positions = np.hstack([np.eye(nq), np.zeros((nq, nv))])

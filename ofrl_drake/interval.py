@@ -189,6 +189,35 @@ class Interval:
     __radd__ = __add__
     __rmul__ = __mul__
 
+    def __neg__(self) -> Interval:
+        """``[-hi, -lo]`` (exact)."""
+        return Interval(-np.asarray(self.hi), -np.asarray(self.lo))
+
+    def __sub__(self, other: Interval | float) -> Interval:
+        """Outward-rounded difference."""
+        return self + (-_as_interval(other))
+
+    def __rsub__(self, other: Interval | float) -> Interval:
+        return _as_interval(other) + (-self)
+
+    def __truediv__(self, other: Interval | float) -> Interval:
+        """Outward-rounded quotient (the whole line where the divisor holds 0)."""
+        with np.errstate(all="ignore"):
+            return _i_div(self, _as_interval(other))
+
+    def __getitem__(self, index: Any) -> Interval:
+        """The intervals ``lo[index]``, ``hi[index]``."""
+        return Interval(np.asarray(self.lo)[index], np.asarray(self.hi)[index])
+
+    def reshape(self, shape: tuple[int, ...]) -> Interval:
+        """Both ends reshaped to ``shape``."""
+        return Interval(np.reshape(self.lo, shape), np.reshape(self.hi, shape))
+
+    @property
+    def mag(self) -> np.ndarray:
+        """``max(|lo|, |hi|)``, the largest magnitude in each interval (exact)."""
+        return np.maximum(np.abs(self.lo), np.abs(self.hi))
+
 
 def _as_interval(v: Interval | float) -> Interval:
     if isinstance(v, Interval):
@@ -613,6 +642,11 @@ class ExpressionEvaluator:
     def variables_used(self) -> list[tuple[int, ...]]:
         """For each expression (flattened), the indices of the variables it uses."""
         return [tuple(sorted(self._uses[i])) for i in self._outputs]
+
+    @property
+    def node_count(self) -> int:
+        """Nodes of the merged expression graph: one array per node per evaluation."""
+        return len(self._nodes)
 
     @property
     def supports_intervals(self) -> bool:

@@ -17,16 +17,28 @@ Two methods:
     all at once (:class:`ofrl_drake.interval.ExpressionEvaluator`), and take the
     element-wise min and max. Fast and tight, but only an inner estimate.
 ``"certified"``
-    Guaranteed enclosures: interval arithmetic on each Jacobian entry, with a
-    branch and bound that bisects the widest (relevant) side of the boxes whose
-    enclosure is more than ``tol`` wider than the best known inner estimate.
-    Each box is enclosed by the intersection of the natural interval extension
-    and the mean-value form ``h(c) + grad h(X) (X - c)``, whose overestimation
-    shrinks quadratically with the box width.
+    Guaranteed enclosures, refined by a branch and bound that bisects the boxes
+    whose enclosure reaches more than the tolerance beyond the best known inner
+    estimate. Two enclosures, chosen by asking the system:
+
+    * a multibody model (``system.multibody_structure()`` is not None, as for
+      :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody`) is enclosed
+      from its structure ``x' = [qdot; M(q)^-1 (tau(q, v) + B u)]``: interval
+      values of the small expressions ``M``, ``tau`` and their derivatives and
+      interval linear solves with ``[M]``, never a symbolic inverse
+      (:mod:`ofrl_drake.multibody_bounds`; all entries refined together);
+    * any other model: interval arithmetic on each symbolic Jacobian entry of
+      ``f`` and ``g``, the intersection of the natural interval extension and
+      the mean-value form ``h(c) + grad h(X) (X - c)``, whose overestimation
+      shrinks quadratically with the box width.
+
+    An enclosure that is still infinite when the budget (``max_boxes``,
+    ``max_wall_time``) runs out raises :class:`UncertifiedBoundsError`.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -41,6 +53,7 @@ from ofrl_drake.interval import (
     UnsupportedExpressionError,
 )
 from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure, certify
 
 __all__ = [
     "BoundsError",
@@ -48,11 +61,20 @@ __all__ = [
     "Box",
     "BoxError",
     "JacobianBounds",
+    "UncertifiedBoundsError",
     "jacobian_bounds",
     "symbolic_jacobians",
 ]
 
 METHODS = ("sampled", "certified")
+#: Default ``rtol`` of certified bounds for multibody models: each end may lie
+#: 10% of the entry's sampled width beyond the sampled bound, so the certified
+#: widths are at most 1.2 times the sampled ones (plus ``tol``).
+MULTIBODY_RTOL = 0.1
+#: Points (plus the centre) at which a multibody structure is compared with ``f`` and ``g``.
+_STRUCTURE_POINTS = 16
+#: Relative tolerance of that comparison: ``|a - b| <= rtol (1 + |b|)``.
+STRUCTURE_RTOL = 1e-8
 _POINT_BUDGET = 100_000
 _CHUNK = 20_000
 #: Branch and bound: the most boxes for which every used side is halved at once.
@@ -65,6 +87,10 @@ class BoxError(OfrlError):
 
 class BoundsError(OfrlError):
     """Jacobian bounds cannot be computed as asked (bad method or parameters)."""
+
+
+class UncertifiedBoundsError(BoundsError):
+    """A certified bound is still infinite when the refinement's budget runs out."""
 
 
 # ------------------------------------------------------------------------ Box
@@ -565,8 +591,15 @@ def _certify_entry(
     inner_hi: float,
     tol: float,
     max_boxes: int,
+    rtol: float = 0.0,
+    deadline: float | None = None,
 ) -> tuple[float, float, bool]:
     """Branch and bound for one entry; returns ``(lo, hi, converged)``.
+
+    A box is settled when its enclosure reaches at most
+    ``max(tol, rtol * (inner_hi - inner_lo))`` beyond the inner estimate; the
+    refinement stops unconverged after ``max_boxes`` boxes or at ``deadline``
+    (a ``time.monotonic()``).
 
     Each step encloses all open boxes in one evaluation, whose cost is mostly
     per call up to a few hundred boxes. So while the next batch stays within
@@ -590,7 +623,8 @@ def _certify_entry(
             inner_lo = min(inner_lo, float(upper_c.min()))
         if lower_c.size:
             inner_hi = max(inner_hi, float(lower_c.max()))
-        active = (enc.lo < inner_lo - tol) | (enc.hi > inner_hi + tol)
+        slack = max(tol, rtol * (inner_hi - inner_lo))
+        active = (enc.lo < inner_lo - slack) | (enc.hi > inner_hi + slack)
         done = ~active
         if done.any():
             settled_lo = min(settled_lo, float(enc.lo[done].min()))
@@ -599,7 +633,8 @@ def _certify_entry(
         if not n_active:
             return settled_lo, settled_hi, True
         children = 2**used.size if n_active * 2**used.size <= _BATCH else 2
-        if evaluated + children * n_active > max_boxes:
+        late = deadline is not None and time.monotonic() > deadline
+        if late or evaluated + children * n_active > max_boxes:
             settled_lo = min(settled_lo, float(enc.lo[active].min()))
             settled_hi = max(settled_hi, float(enc.hi[active].max()))
             return settled_lo, settled_hi, False
@@ -620,7 +655,9 @@ def jacobian_bounds(
     n_random: int = 10_000,
     seed: int = 0,
     tol: float = 1e-3,
+    rtol: float | None = None,
     max_boxes: int = 200_000,
+    max_wall_time: float | None = None,
 ) -> JacobianBounds:
     """Element-wise bounds of the Jacobians of ``f`` and ``g`` over ``box``.
 
@@ -634,8 +671,10 @@ def jacobian_bounds(
     method : {"sampled", "certified"}
         ``"sampled"``: min and max over a grid plus random points (an inner
         estimate). ``"certified"``: guaranteed interval enclosures, refined by
-        branch and bound until each is within ``tol`` of the best known inner
-        estimate (the samples plus the centres of the boxes visited).
+        branch and bound until each is within the tolerance of the best known
+        inner estimate (the samples plus the centres of the boxes visited);
+        multibody models are enclosed through their mass-matrix structure
+        (module docstring).
     grid : int, optional
         Points per axis of the grid (the corners are included). Each Jacobian
         entry is gridded over the ``d`` states it depends on only. Default: the
@@ -646,10 +685,19 @@ def jacobian_bounds(
         Seed of the random points.
     tol : float
         Certified only: absolute tolerance, in the units of the Jacobian entry.
+    rtol : float, optional
+        Certified only: relative tolerance; an entry's enclosure may reach
+        ``max(tol, rtol * w)`` beyond each end of its inner estimate of width
+        ``w``. Default: :data:`MULTIBODY_RTOL` for multibody models, 0 (``tol``
+        alone) for the others.
     max_boxes : int
-        Certified only: the most boxes evaluated per Jacobian entry. When it is
-        reached, the (still guaranteed) enclosure is returned as it is, and
+        Certified only: the most boxes evaluated per Jacobian entry (for a
+        multibody model, for all entries together). When it is reached, the
+        (still guaranteed) enclosure is returned as it is, and
         ``excess.converged`` is False.
+    max_wall_time : float, optional
+        Certified only: seconds after which no further boxes are refined; the
+        enclosure reached is returned, as for ``max_boxes``. Default: no limit.
 
     Returns
     -------
@@ -662,6 +710,9 @@ def jacobian_bounds(
     BoundsError
         For an unknown method or bad parameters, if ``f``/``g`` cannot be
         differentiated symbolically, or a Jacobian entry is not finite.
+    UncertifiedBoundsError
+        If a certified bound is still infinite when ``max_boxes`` or
+        ``max_wall_time`` runs out (the message names the entry and the box).
     BoxError
         If ``box`` is malformed or not ``n``-dimensional.
     UnsupportedExpressionError
@@ -674,6 +725,7 @@ def jacobian_bounds(
     >>> b.Mf1[0].tolist(), b.Mf2[0].tolist()
     ([-1.0, 1.0], [-1.0, 1.0])
     """
+    start = time.monotonic()
     if method not in METHODS:
         raise BoundsError(
             f"method must be one of {METHODS}; got {method!r}. Use 'sampled' for "
@@ -687,8 +739,15 @@ def jacobian_bounds(
         raise BoundsError(f"n_random must be a non-negative integer; got {n_random!r}.")
     if not (np.isfinite(tol) and tol > 0):
         raise BoundsError(f"tol must be a positive number; got {tol!r}.")
+    if rtol is not None and not (np.isfinite(rtol) and rtol >= 0):
+        raise BoundsError(f"rtol must be a number >= 0; got {rtol!r}.")
     if int(max_boxes) != max_boxes or max_boxes < 1:
         raise BoundsError(f"max_boxes must be a positive integer; got {max_boxes!r}.")
+    if max_wall_time is not None and not (np.isfinite(max_wall_time) and max_wall_time > 0):
+        raise BoundsError(
+            f"max_wall_time must be a positive number of seconds; got {max_wall_time!r}."
+        )
+    deadline = None if max_wall_time is None else start + float(max_wall_time)
 
     x, Jf, Jg = symbolic_jacobians(system)
     entries = np.concatenate([Jf.ravel(), Jg.ravel()])
@@ -702,17 +761,53 @@ def jacobian_bounds(
         (Mf1, Mg1), (Mf2, Mg2) = split(s_lo), split(s_hi)
         return JacobianBounds("sampled", box, Mf1, Mf2, Mg1, Mg2)
 
-    c_lo = np.empty_like(s_lo)
-    c_hi = np.empty_like(s_hi)
-    converged = True
-    for e, expr in enumerate(entries):
-        encloser = _EntryEncloser(expr, x)
-        try:
-            lo, hi, ok = _certify_entry(encloser, box, s_lo[e], s_hi[e], float(tol), int(max_boxes))
-        except IntervalDomainError as err:
-            raise BoundsError(f"{names[e]}: {err}") from err
-        c_lo[e], c_hi[e] = lo, hi
-        converged = converged and ok
+    structure = system.multibody_structure()
+    if structure is not None:
+        _check_structure(system, structure, box, seed)
+        result = certify(
+            MultibodyJacobianEncloser(structure),
+            box.lower,
+            box.upper,
+            s_lo,
+            s_hi,
+            tol=float(tol),
+            rtol=MULTIBODY_RTOL if rtol is None else float(rtol),
+            max_boxes=int(max_boxes),
+            deadline=deadline,
+        )
+        c_lo, c_hi, converged = np.array(result.lo), np.array(result.hi), result.converged
+        budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
+    else:
+        c_lo = np.empty_like(s_lo)
+        c_hi = np.empty_like(s_hi)
+        converged = True
+        for e, expr in enumerate(entries):
+            encloser = _EntryEncloser(expr, x)
+            try:
+                lo, hi, ok = _certify_entry(
+                    encloser,
+                    box,
+                    s_lo[e],
+                    s_hi[e],
+                    float(tol),
+                    int(max_boxes),
+                    0.0 if rtol is None else float(rtol),
+                    deadline,
+                )
+            except IntervalDomainError as err:
+                raise BoundsError(f"{names[e]}: {err}") from err
+            c_lo[e], c_hi[e] = lo, hi
+            converged = converged and ok
+        budget = "max_boxes or max_wall_time reached"
+    infinite = np.flatnonzero(~(np.isfinite(c_lo) & np.isfinite(c_hi)))
+    if infinite.size:
+        e = int(infinite[0])
+        raise UncertifiedBoundsError(
+            f"the certified bound of {names[e]} over {box!r} is [{c_lo[e]:g}, {c_hi[e]:g}]: "
+            f"not finite ({budget}); {infinite.size} entries are. Allow more boxes or "
+            "wall time (max_boxes, max_wall_time, --max-wall), shrink the box, or use "
+            "jacobian_method 'sampled' (not guaranteed)."
+        )
     (Mf1, Mg1), (Mf2, Mg2) = split(c_lo), split(c_hi)
     (sMf1, sMg1), (sMf2, sMg2) = split(s_lo), split(s_hi)
     ex = [sMf1 - Mf1, Mf2 - sMf2, sMg1 - Mg1, Mg2 - sMg2]
@@ -722,3 +817,22 @@ def jacobian_bounds(
         converged=converged,
     )
     return JacobianBounds("certified", box, Mf1, Mf2, Mg1, Mg2, excess)
+
+
+def _check_structure(
+    system: ControlAffineSystem, structure: MultibodyStructure, box: Box, seed: int
+) -> None:
+    """The structure must give the system's own ``f`` and ``g`` (at points of the box)."""
+    X = np.concatenate([box.center[:, None], _random_points(box, _STRUCTURE_POINTS, seed)], axis=1)
+    f, g = structure.dynamics(X)
+    for name, mine, theirs in (("f", f, system.f_batch(X)), ("g", g, system.g_batch(X))):
+        err = np.abs(mine - theirs)
+        bad = ~(err <= STRUCTURE_RTOL * (1.0 + np.abs(theirs)))
+        if bad.any():
+            p = int(np.argwhere(bad)[0][-1])
+            raise BoundsError(
+                f"{system.name}: the multibody structure (M, tau, B) gives a {name} that "
+                f"differs from the system's own by {err.max():.3g} at x = {X[:, p].tolist()}; "
+                "multibody_structure() must describe this system's f and g (a shifted "
+                "system shifts its structure)."
+            )

@@ -295,6 +295,15 @@ class ControlAffineSystem:
             ) from err
         return SymbolicDynamics(x, f, g)  # type: ignore[arg-type]  # pydrake array stub
 
+    def multibody_structure(self) -> Any:
+        """The ``M(q)``, ``tau(q, v)``, ``B`` structure of a multibody model, else None.
+
+        A :class:`~ofrl_drake.multibody_bounds.MultibodyStructure` for models
+        built by :meth:`from_multibody` (shifted along with the model), which
+        certified Jacobian bounds use instead of ``f`` and ``g``.
+        """
+        return getattr(self.source, "structure", None)
+
     # ------------------------------------------------------------ from Drake
     @classmethod
     def from_drake(
@@ -542,6 +551,11 @@ class ShiftedSystem(ControlAffineSystem):
     def _shifted_g(self, z: Any) -> Any:
         z = np.asarray(z)
         return self.base.g(z + self._column(self.x_eq, z))
+
+    def multibody_structure(self) -> Any:
+        """The base model's multibody structure seen from ``(x*, u*)``, or None."""
+        structure = self.base.multibody_structure()
+        return None if structure is None else structure.shifted(self.x_eq, self.u_eq)
 
     def to_original_state(self, z: np.ndarray) -> np.ndarray:
         """``x = z + x*`` for ``z`` of shape ``(n,)`` or ``(..., n)`` (time first)."""

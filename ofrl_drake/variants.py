@@ -153,17 +153,35 @@ def plant(parts: ClosedLoopParts) -> System:
 
 
 # ---------------------------------------------------------------- observer
+def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> Any:
+    """The Jacobian bounds of ``system`` over the observer box, by the scenario's method.
+
+    Their refinement stops after ``simulation.max_wall_time`` (``--max-wall``)
+    seconds, with the sound bounds reached so far.
+    """
+    from ofrl_drake.jacobian_bounds import jacobian_bounds
+
+    o = scenario.observer
+    box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    return jacobian_bounds(
+        system, box, o.jacobian_method, max_wall_time=scenario.simulation.max_wall_time
+    )
+
+
 def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> Any:
     """The observer design of ``scenario``: certified by LMI unless gains are pinned.
 
     Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
-    certificate, which reports honestly whether they satisfy the LMI.
+    certificate, which reports honestly whether they satisfy the LMI. The
+    Jacobian bounds' refinement stops after ``simulation.max_wall_time``
+    (``--max-wall``) seconds, with the sound bounds reached so far.
     """
     from ofrl_drake.design import ObserverDesign, design_observer
 
     system = system or resolve_system(scenario)
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    bounds = scenario_bounds(scenario, system)
     if o.L is not None:
         return ObserverDesign.from_gains(
             system,
@@ -173,7 +191,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
             L=np.asarray(o.L, float),
             H=np.asarray(o.H, float),
             K=np.asarray(o.K, float),
-            jacobian_method=o.jacobian_method,
+            bounds=bounds,
             formulation=o.formulation,
         )
     return design_observer(
@@ -181,7 +199,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
         box,
         scenario.input_bound,
         o.alpha,
-        jacobian_method=o.jacobian_method,
+        bounds=bounds,
         solver=o.solver,
         formulation=o.formulation,
     )
@@ -213,7 +231,7 @@ def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> O
         (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)),
         scenario.input_bound,
         o.alpha,
-        jacobian_method=o.jacobian_method,
+        bounds=scenario_bounds(scenario, system),
         solver=o.solver,
         formulation=o.formulation,
         injection_gains=False,

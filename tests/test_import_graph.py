@@ -37,6 +37,8 @@ LAYERS = {
         "observer",
         "observer_certificate",
         "interval",
+        "interval_linalg",
+        "multibody_bounds",
         "jacobian_bounds",
         "lmi",
         "design",  # the subpackage; inside it, see test_the_design_package_has_no_import_cycle

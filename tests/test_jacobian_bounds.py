@@ -13,6 +13,7 @@ from ofrl_drake.jacobian_bounds import (
     Box,
     BoxError,
     JacobianBounds,
+    UncertifiedBoundsError,
     jacobian_bounds,
     symbolic_jacobians,
 )
@@ -253,3 +254,45 @@ def test_non_symbolic_dynamics_are_reported():
     )
     with pytest.raises(BoundsError, match=r"must accept pydrake\.symbolic\.Expression"):
         jacobian_bounds(system, BOX2)
+
+
+# ------------------------------------------------ tolerances and budgets
+def test_rtol_loosens_the_tolerance_relative_to_the_sampled_width(two_state, two_state_bounds):
+    sampled, tight = two_state_bounds
+    loose = jacobian_bounds(two_state, BOX2, "certified", tol=1e-6, rtol=0.25)
+    assert loose.excess.converged and loose.contains(sampled) and loose.contains(tight)
+    widths = [(b.Mf2 - b.Mf1)[1, 0] for b in (sampled, tight, loose)]
+    # d f2 / d x1 spans 2 * 4 * _PEAK: each end may now be 0.25 of that beyond.
+    assert widths[2] > widths[1] + 1e-2
+    assert widths[2] <= widths[0] * 1.5 + 1e-9
+    with pytest.raises(BoundsError, match=r"rtol must be a number >= 0; got -0\.1"):
+        jacobian_bounds(two_state, BOX2, "certified", rtol=-0.1)
+
+
+def test_max_wall_time_stops_the_refinement_with_sound_bounds(coupled):
+    s4 = jacobian_bounds(coupled, BOX4, "sampled")
+    rushed = jacobian_bounds(coupled, BOX4, "certified", tol=1e-9, max_wall_time=1e-6)
+    assert not rushed.excess.converged
+    assert rushed.contains(s4)
+    with pytest.raises(BoundsError, match=r"max_wall_time must be a positive number.*got 0"):
+        jacobian_bounds(coupled, BOX4, "certified", max_wall_time=0)
+
+
+def test_an_entry_still_infinite_when_the_budget_runs_out_is_named():
+    # x1^2 - x1 + 1 >= 3/4, but its natural enclosure on [-1, 2] holds 0, so the
+    # first box encloses d f1 / d x1 = -(2 x1 - 1) / (x1^2 - x1 + 1)^2 by the whole line.
+    system = ControlAffineSystem(
+        f=lambda x: np.array([1 / (x[0] ** 2 - x[0] + 1), -x[1]]),
+        g=lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        C=[[1.0, 0.0]],
+    )
+    box = ([-1.0, -1.0], [2.0, 1.0])
+    with pytest.raises(
+        UncertifiedBoundsError,
+        match=r"certified bound of d f\[0\] / d x\[0\] over Box\(lower=\[-1\.0, -1\.0\], "
+        r"upper=\[2\.0, 1\.0\]\) is \[-inf, inf\]: not finite",
+    ):
+        jacobian_bounds(system, box, "certified", max_boxes=1)
+    assert issubclass(UncertifiedBoundsError, BoundsError)
+    enough = jacobian_bounds(system, box, "certified", tol=1e-2)
+    assert enough.excess.converged and np.isfinite(enough.Mf1).all()
