@@ -170,10 +170,10 @@ def _solve(
     z = np.concatenate([prog.NewContinuousVariables(k, name) for name, k in layout.names])
     N = layout.size
     F0 = _psd_blocks(problem, layout, layout.unpack(np.zeros(N)), max_gain)
-    Fi = [
-        [B - B0 for B, B0 in zip(_psd_blocks(problem, layout, layout.unpack(e), max_gain), F0)]
-        for e in np.eye(N)
-    ]
+    Fi = []
+    for e in np.eye(N):
+        blocks = _psd_blocks(problem, layout, layout.unpack(e), max_gain)
+        Fi.append([B - B0 for B, B0 in zip(blocks, F0, strict=True)])
     for j, B0 in enumerate(F0):
         used = [i for i in range(N) if np.any(Fi[i][j])]
         prog.AddLinearMatrixInequalityConstraint([B0] + [Fi[i][j] for i in used], z[used])

@@ -480,7 +480,8 @@ def structured_certificate(
     >>> import numpy as np
     >>> Z = np.zeros((1, 1, 1))
     >>> prob = structured_lmi([[1.0]], ([[-2.0]], [[0.0]], Z, Z), 1.0, 0.5, margin=0.0)
-    >>> [(u.tolist(), round(v, 6)) for u, v in structured_certificate(prob, [[1.0]], [[1.0]], [[1.0]])]
+    >>> cert = structured_certificate(prob, [[1.0]], [[1.0]], [[1.0]])
+    >>> [(u.tolist(), round(v, 6)) for u, v in cert]
     [([-1.0], -0.381966)]
     """
     P, L, tau = _numbers(problem, P, L, tau)
