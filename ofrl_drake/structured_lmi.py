@@ -55,7 +55,7 @@ matrix of size ``n + r`` per input vertex (``r = k`` signals for ``"entry"``,
 the number of uncertain rows for ``"row"``) instead of ``2**k`` matrices of
 size ``n``, and affine in ``(P, R, tau)`` jointly.
 
-``"row"`` is ``"entry"`` with the multipliers tied (``tau_l = tau_i s_i w_l``
+``"row"`` is ``"entry"`` with the multipliers tied (``tau_l = tau_i s_i / w_l``
 reproduces it through the Schur complement), so ``"entry"`` certifies at least
 every rate ``"row"`` does, with a larger LMI. Both may certify less than the
 polytopic LMI: the S-procedure is lossless for one signal (``k = 1``) but not
