@@ -2,7 +2,7 @@
 
 Run ``python -m benchmarks.structured_certificate [--quick] [--out FILE.json]``;
 it prints Markdown tables (docs/structured_certificate.md quotes them) and can
-write every number to JSON. Three sections:
+write every number to JSON. Four sections:
 
 * ``scenarios``: the shipped diagrams/*.yaml: uncertain entries, LMI blocks,
   the largest certified decay rate of each formulation (bisection), and design
@@ -12,6 +12,8 @@ write every number to JSON. Three sections:
   solve), peak memory, LMI blocks and sizes, ``||L||``, ``cond(P)`` at a fixed
   rate, the largest certified rate, and the soundness re-checks. The
   polytopic formulation runs only while its corners stay within a budget;
+* ``robustness``: the largest scale of the synthetic plants' uncertain terms
+  each formulation certifies at a fixed rate (conservatism, measured);
 * ``scheduling``: how many state variables the uncertain Jacobian entries
   depend on, against ``k``, and how many vertices the convex hull of the
   sampled Jacobian image has (what vertices over scheduling variables would
@@ -47,6 +49,7 @@ __all__ = [
     "FORMULATIONS",
     "max_rate",
     "peak_memory",
+    "robustness",
     "scaling",
     "scenarios",
     "scheduling",
@@ -66,6 +69,7 @@ SCALING = {
 }
 QUICK_SCALING = {2: (2,), 4: (4, 8), 6: (4, 8), 8: (8, 16, 24)}
 FORMULATIONS = ("polytopic", "entry", "row")
+SECTIONS = ("scenarios", "scaling", "robustness", "scheduling")
 #: The synthetic plants' input bound and the rate every formulation is timed at.
 SYNTHETIC_INPUT_BOUND = 1.0
 SYNTHETIC_ALPHA = 0.5
@@ -80,27 +84,29 @@ def synthetic_system(
     State ``x = [a; b]`` with ``p = n / 2`` unmeasured ``a_i`` and measured
     ``b_i`` (``C = [0 I]``):
 
-        a_i' = -a_i + b_i,
-        b_i' = -a_i - b_i + 0.5 (b_{i-1} - 2 b_i + b_{i+1}) + sum_j c_ij sin(x_j) + g_i(x) u,
+        a_i' = -a_i + b_i + (sine terms),
+        b_i' = -a_i - b_i + 0.5 (b_{i-1} - 2 b_i + b_{i+1}) + (sine terms) + g_i(x) u,
 
-    with ``c_ij sin(x_j)`` for ``k`` pairs ``(b_i, x_j)`` drawn with ``seed``
-    (``|c_ij|`` in ``[0.5, 1.5] * scale``, random sign), and ``g_i = 1``
-    except ``1 + 0.2 sin(x_j)`` at the first pair. On the box ``|x_j| <=
-    half_width`` each such Jacobian entry is ``A_ij + c_ij cos(x_j)``, an
-    interval (of both signs of ``cos`` when ``half_width > pi / 2``); every
-    other entry is constant. As in the paper's two-state plant, the unmeasured
-    ``a_i`` decay at rate 1 by themselves and enter the measured rows through
-    uncertain entries, which bounds the certifiable rate. The pairs are a
-    prefix of one permutation, so a larger ``k`` adds entries to a smaller one's.
+    with ``c_ij sin(x_j)`` added to row ``i`` for ``k`` entries ``(i, j)`` drawn
+    with ``seed`` among all ``n**2`` (``|c_ij|`` in ``[0.5, 1.5] * scale``,
+    random sign), and ``g_i = 1`` on the ``b`` rows, plus ``0.2 sin(x_j)`` at
+    the first drawn entry. On the box ``|x_j| <= half_width`` each drawn
+    Jacobian entry is ``A_ij + c_ij cos(x_j)``, an interval (of both signs of
+    ``cos`` when ``half_width > pi / 2``); every other entry is constant. As in
+    the paper's two-state plant, unmeasured states enter the measured rows
+    through uncertain entries, and uncertain entries of the unmeasured rows
+    are out of reach of output injection, so the certifiable rate is bounded
+    and the formulations' conservatism shows. The entries are a prefix of one
+    permutation, so a larger ``k`` adds entries to a smaller one's.
 
     Parameters
     ----------
     n : int
         Even state dimension, at least 2.
     k : int
-        Uncertain entries, at most ``n**2 / 2``.
+        Uncertain entries, at most ``n**2``.
     seed : int
-        Chooses the pairs and the signs and sizes of ``c_ij``.
+        Chooses the entries and the signs and sizes of ``c_ij``.
     scale : float
         Multiplies every ``c_ij``.
     half_width : float
@@ -114,9 +120,9 @@ def synthetic_system(
     if n < 2 or n % 2:
         raise ValueError(f"n must be even and >= 2; got {n}.")
     p = n // 2
-    candidates = [(p + i, j) for i in range(p) for j in range(n)]
+    candidates = [(i, j) for i in range(n) for j in range(n)]
     if not 0 <= k <= len(candidates):
-        raise ValueError(f"k must be in [0, {len(candidates)}] for n = {n}; got {k}.")
+        raise ValueError(f"k must be in [0, {n * n}] for n = {n}; got {k}.")
     rng = np.random.default_rng(seed)
     chain = np.zeros((p, p))
     for i in range(p - 1):
@@ -304,11 +310,19 @@ def _recheck(d: Any, formulation: str, bounds: JacobianBounds, b: float, k: int)
 
 
 def scaling(
-    quick: bool = False, max_poly_k: int = 10, rate_corner_budget: int = 768
+    quick: bool = False,
+    max_poly_k: int = 10,
+    rate_corner_budget: int = 768,
+    cases: dict[int, tuple[int, ...]] | None = None,
 ) -> list[dict[str, Any]]:
-    """Synthetic plants: cost and numbers of each formulation against ``(n, k)``."""
+    """Synthetic plants: cost and numbers of each formulation against ``(n, k)``.
+
+    ``cases`` (``{n: (k, ...)}``) replaces the default :data:`SCALING` (or
+    :data:`QUICK_SCALING` with ``quick``).
+    """
     rows = []
-    cases = QUICK_SCALING if quick else SCALING
+    if cases is None:
+        cases = QUICK_SCALING if quick else SCALING
     b, alpha = SYNTHETIC_INPUT_BOUND, SYNTHETIC_ALPHA
     for n, ks in cases.items():
         for k in ks:
@@ -339,6 +353,55 @@ def scaling(
                     row.update({"max_rate": lo, "not_certified": hi, "attempts": attempts})
                 rows.append(row)
                 print(f"  scaling: n={n} k={k} {formulation} done", file=sys.stderr, flush=True)
+    return rows
+
+
+ROBUSTNESS = ((4, 8), (6, 8), (8, 8))
+QUICK_ROBUSTNESS = ((4, 8),)
+
+
+def robustness(quick: bool = False, scale_max: float = 8.0, tol: float = 0.05) -> list[dict]:
+    """The largest ``scale`` of the uncertain terms each formulation certifies at alpha = 0.5.
+
+    Bisection on ``scale`` of :func:`synthetic_system` (certified Jacobian
+    bounds recomputed at each step): a direct measure of conservatism, since
+    on these plants the rate is either capped near 1 by the plant's structure
+    or unbounded (high gain), whatever the formulation.
+    """
+    rows = []
+    for n, k in QUICK_ROBUSTNESS if quick else ROBUSTNESS:
+        for formulation in FORMULATIONS:
+
+            def certified(
+                scale: float, formulation: str = formulation, n: int = n, k: int = k
+            ) -> bool:
+                system, box = synthetic_system(n, k, scale=scale)
+                bounds = jacobian_bounds(system, box, "certified")
+                design = _designer(formulation, system, box, bounds, SYNTHETIC_INPUT_BOUND)
+                try:
+                    design(SYNTHETIC_ALPHA)
+                except ObserverDesignInfeasible:
+                    return False
+                return True
+
+            start = time.perf_counter()
+            lo, hi = 0.0, scale_max
+            if certified(hi):
+                lo = hi
+            while hi - lo > tol:
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if certified(mid) else (lo, mid)
+            rows.append(
+                {
+                    "n": n,
+                    "k": k,
+                    "formulation": formulation,
+                    "max_scale": lo,
+                    "tol": tol,
+                    "wall_time": time.perf_counter() - start,
+                }
+            )
+            print(f"  robustness: n={n} k={k} {formulation} done", file=sys.stderr, flush=True)
     return rows
 
 
@@ -495,6 +558,21 @@ def format_report(results: dict[str, Any]) -> str:
                 f"{r['block_size']} | {time_cells}| {_rate(r)} | {check} |"
             )
         out.append("")
+    if results.get("robustness"):
+        out += [
+            f"### Largest uncertainty scale certified at alpha = {SYNTHETIC_ALPHA}",
+            "",
+            "| n | k | polytopic | entry | row |",
+            "|---|---|---|---|---|",
+        ]
+        table: dict[tuple[int, int], dict[str, str]] = {}
+        for r in results["robustness"]:
+            cell = f"{r['max_scale']:.3g} ({r['wall_time']:.0f} s)"
+            table.setdefault((r["n"], r["k"]), {})[r["formulation"]] = cell
+        for (n, k), cells in table.items():
+            values = " | ".join(cells.get(f, "-") for f in FORMULATIONS)
+            out.append(f"| {n} | {k} | {values} |")
+        out.append("")
     if results.get("scheduling"):
         out += [
             "### Scheduling variables",
@@ -521,8 +599,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--sections",
         nargs="+",
-        default=["scenarios", "scaling", "scheduling"],
-        choices=["scenarios", "scaling", "scheduling"],
+        default=list(SECTIONS),
+        choices=SECTIONS,
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        metavar="N:K",
+        help="scaling: run these (n, k) cases instead of the default list",
     )
     parser.add_argument(
         "--max-poly-k",
@@ -536,7 +620,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "scenarios" in args.sections:
         results["scenarios"] = scenarios(args.quick)
     if "scaling" in args.sections:
-        results["scaling"] = scaling(args.quick, args.max_poly_k)
+        cases: dict[int, tuple[int, ...]] | None = None
+        if args.only:
+            cases = {}
+            for item in args.only:
+                n, k = (int(v) for v in item.split(":"))
+                cases[n] = (*cases.get(n, ()), k)
+        results["scaling"] = scaling(args.quick, args.max_poly_k, cases=cases)
+    if "robustness" in args.sections:
+        results["robustness"] = robustness(args.quick)
     if "scheduling" in args.sections:
         results["scheduling"] = scheduling()
     results["wall_time"] = time.perf_counter() - start
