@@ -487,7 +487,8 @@ def design_structured(
         raise fail(
             f"solver status {sol.status}, but its solution fails the numpy certificate with "
             f"max eigenvalue {design.max_eigenvalue:.3g}: the solver was not accurate enough, "
-            "which proves nothing about feasibility; try a larger margin or solver='clarabel'",
+            "which proves nothing about feasibility; try a larger margin"
+            + (" or solver='clarabel'" if solver != "clarabel" else ""),
             ObserverDesignInaccurate,
         )
     if max_gain is not None and design.gain_norm > max_gain * (1 + 1e-6):
