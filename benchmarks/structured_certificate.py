@@ -71,7 +71,7 @@ SCALING = {
     8: (2, 4, 6, 8, 10, 12, 16, 20, 24),
     12: (12, 24, 36),
 }
-QUICK_SCALING = {2: (2,), 4: (4, 8), 6: (4, 8), 8: (8, 16, 24)}
+QUICK_SCALING = {2: (2,), 4: (4, 8), 6: (6,), 8: (16, 24)}
 FORMULATIONS = ("polytopic", "entry", "row")
 SECTIONS = ("scenarios", "scaling", "robustness", "scheduling")
 #: The synthetic plants' input bound and the rate every formulation is timed at.

@@ -431,3 +431,15 @@ def test_design_errors_name_the_problem():
         design_structured(C, bounds, 3.0, 0.5, L=[1.0, np.nan])
     with pytest.raises(ObserverDesignInfeasible, match=r"a larger max_gain"):
         design_structured(C, bounds, 3.0, 0.5, max_gain=1.0)
+
+
+def test_the_scaling_benchmark_reports_both_formulations():
+    from benchmarks.structured_certificate import format_report, scaling
+
+    rows = scaling(cases={2: (2,)})
+    assert [r["formulation"] for r in rows] == ["polytopic", "entry", "row"]
+    assert all(r["feasible"] and r["k"] == 2 for r in rows)
+    assert [(r["blocks"], r["block_size"]) for r in rows] == [(12, 2), (3, 4), (3, 4)]
+    assert rows[1]["polytopic_recheck"] < 0 and rows[1]["delta_exhaustive"]
+    table = format_report({"scaling": rows})
+    assert table.count("\n| 2 | 2 |") == 3
