@@ -274,8 +274,8 @@ def test_the_design_gives_the_bounds_the_runs_wall_time(monkeypatch):
     import dataclasses
 
     import ofrl_drake.jacobian_bounds as jb
-    from ofrl_drake.variants import design_for
     from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.variants import design_for
 
     seen = []
 
