@@ -46,7 +46,6 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import load_scenario
 from ofrl_drake.sector import input_vertices
-from ofrl_drake.structured_design import design_structured
 from ofrl_drake.structured_lmi import structured_lmi
 
 __all__ = [
@@ -202,8 +201,9 @@ def _designer(
 ) -> Callable[[float], Any]:
     if formulation == "polytopic":
         return lambda alpha: design_observer(system, box, input_bound, alpha, bounds=bounds)
-    return lambda alpha: design_structured(
-        system.output_matrix, bounds, input_bound, alpha, grouping=formulation
+    name = "structured" if formulation == "entry" else "structured_row"
+    return lambda alpha: design_observer(
+        system, box, input_bound, alpha, bounds=bounds, formulation=name
     )
 
 
@@ -318,7 +318,7 @@ def _recheck(d: Any, formulation: str, bounds: JacobianBounds, b: float, k: int)
         "delta_exhaustive": all(c.exhaustive for c in checks),
     }
     if k <= 12:
-        cert = decay_certificate(d.P, d.L, d.H, d.K, d.problem.C, bounds, b, d.alpha)
+        cert = decay_certificate(d.P, d.L, d.H, d.K, d.C, bounds, b, d.alpha)
         out["polytopic_recheck"] = max(v for _, v in cert)
     return out
 

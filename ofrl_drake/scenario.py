@@ -136,10 +136,15 @@ class PointsConfig:
 class ObserverConfig:
     """Observer design: decay rate ``alpha`` and the box of the Jacobian bounds.
 
-    Optional: ``formulation``: ``polytopic`` (default; a sound decay
-    certificate over every corner of the Jacobian bounds, with H = K = 0) or
-    ``paper`` (the paper's (lmi2) with the sign-correct sector, which does not
-    imply decay for every nonlinear plant; see docs/theory.md);
+    Optional: ``formulation``, any key of
+    :data:`ofrl_drake.design.FORMULATIONS`: ``polytopic`` (default; a sound
+    decay certificate over every corner of the Jacobian bounds, with H = K =
+    0), ``structured`` (the same claim as one S-procedure LMI of size n + k per
+    input vertex, one multiplier per uncertain entry, for plants with too many
+    uncertain entries for the corners; ``structured_row``: one per row; see
+    docs/structured_certificate.md) or ``paper`` (the paper's (lmi2) with the
+    sign-correct sector, which does not imply decay for every nonlinear
+    plant; see docs/theory.md);
     ``L``, ``H``, ``K`` pin the gains (all three or none);
     ``jacobian_method`` (``sampled`` or ``certified``), ``solver``;
     ``schedule_period`` > 0 re-solves the LMI every that many seconds over the

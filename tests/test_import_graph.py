@@ -43,7 +43,6 @@ LAYERS = {
         "lmi",
         "structured_lmi",
         "design",  # the subpackage; inside it, see test_the_design_package_has_no_import_cycle
-        "structured_design",
         "baselines",
         "verification",
         "unobservable",

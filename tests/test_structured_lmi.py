@@ -9,16 +9,22 @@ Jacobian box (k <= 12) and by the falsifier on the true dynamics.
 
 import doctest
 import itertools
+import json
 
 import numpy as np
 import pytest
 
 from benchmarks.structured_certificate import max_rate, synthetic_system, uncertain_entries
-from ofrl_drake import lmi, structured_design, structured_lmi
-from ofrl_drake.design import DesignError, ObserverDesignInfeasible, design_observer
+from ofrl_drake import lmi, structured_lmi
+from ofrl_drake.design import (
+    FORMULATIONS,
+    DesignError,
+    ObserverDesign,
+    ObserverDesignInfeasible,
+    design_observer,
+)
 from ofrl_drake.jacobian_bounds import jacobian_bounds
 from ofrl_drake.lmi import LmiError, corner_matrices, decay_certificate, thin_perturbation
-from ofrl_drake.structured_design import design_structured
 from ofrl_drake.structured_lmi import (
     delta_check,
     structured_certificate,
@@ -238,13 +244,20 @@ def test_numpy_errors_name_the_problem():
         problem.models[0].matrices(np.zeros((1, 3)))
 
 
-@pytest.mark.parametrize("module", [structured_lmi, structured_design])
-def test_docstring_examples_run(module):
-    result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
+def test_docstring_examples_run():
+    result = doctest.testmod(structured_lmi, optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0 and result.failed == 0
 
 
 # -------------------------------------------------- designs (Drake, Clarabel)
+def _structured(system, bounds, input_bound, alpha, *, grouping="entry", **kwargs):
+    """``design_observer`` with the structured formulation of ``grouping`` on ``bounds``."""
+    formulation = "structured" if grouping == "entry" else "structured_row"
+    return design_observer(
+        system, bounds.box, input_bound, alpha, bounds=bounds, formulation=formulation, **kwargs
+    )
+
+
 def _scenario(name):
     from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
@@ -264,7 +277,7 @@ def _assert_sound(design, bounds):
         design.L,
         design.H,
         design.K,
-        design.problem.C,
+        design.C,
         bounds,
         design.input_bound,
         design.alpha,
@@ -288,9 +301,7 @@ def test_shipped_scenarios_get_sound_structured_designs(
     name, alpha, entry_sizes, row_sizes, grouping
 ):
     scenario, system, box, bounds = _scenario(name)
-    design = design_structured(
-        system.output_matrix, bounds, scenario.input_bound, alpha, grouping=grouping
-    )
+    design = _structured(system, bounds, scenario.input_bound, alpha, grouping=grouping)
     _assert_sound(design, bounds)
     assert design.lmi_sizes == (entry_sizes if grouping == "entry" else row_sizes)
     # The polytopic design at the same rate exists too (the structured claim implies it).
@@ -301,15 +312,13 @@ def test_two_state_rate_one_is_not_certified():
     # No quadratic V certifies alpha >= 1 on the two-state example (docs/paper_notes.md),
     # and the structured LMI implies the polytopic one.
     scenario, system, _, bounds = _scenario("two_state_paper")
-    with pytest.raises(
-        ObserverDesignInfeasible, match=r"formulation=structured \(entry\), alpha=1"
-    ):
-        design_structured(system.output_matrix, bounds, scenario.input_bound, 1.0)
+    with pytest.raises(ObserverDesignInfeasible, match=r"formulation=structured, alpha=1"):
+        _structured(system, bounds, scenario.input_bound, 1.0)
 
 
 def test_the_falsifier_finds_no_counterexample():
     scenario, system, _, bounds = _scenario("two_state_paper")
-    design = design_structured(system.output_matrix, bounds, scenario.input_bound, 0.9)
+    design = _structured(system, bounds, scenario.input_bound, 0.9)
     report = verify_observer(design, system, samples=2000, seed=3)
     assert not report.falsified
 
@@ -320,16 +329,18 @@ def test_synthetic_designs_are_sound_at_every_vertex(n, k):
     bounds = jacobian_bounds(system, box, "certified")
     assert uncertain_entries(bounds, 1.0) == [k, k, k]  # u = -1, 0, +1
     for grouping in ("entry", "row"):
-        design = design_structured(system.output_matrix, bounds, 1.0, 0.5, grouping=grouping)
+        design = _structured(system, bounds, 1.0, 0.5, grouping=grouping)
         _assert_sound(design, bounds)
-        sizes = n + (k if grouping == "entry" else np.unique(design.problem.models[0].rows).size)
+        sizes = n + (
+            k if grouping == "entry" else np.unique(design.structured_lmi().models[0].rows).size
+        )
         assert design.lmi_sizes == [sizes] * 3
 
 
 def test_synthetic_design_survives_the_falsifier():
     system, box = synthetic_system(4, 8)
     bounds = jacobian_bounds(system, box, "certified")
-    design = design_structured(system.output_matrix, bounds, 1.0, 0.5)
+    design = _structured(system, bounds, 1.0, 0.5)
     report = verify_observer(design, system, samples=1000, seed=0, starts=4)
     assert not report.falsified
 
@@ -337,8 +348,8 @@ def test_synthetic_design_survives_the_falsifier():
 def test_many_uncertain_entries_make_one_lmi_per_input_vertex():
     system, box = synthetic_system(8, 24, scale=0.5)
     bounds = jacobian_bounds(system, box, "certified")
-    entry = design_structured(system.output_matrix, bounds, 1.0, 0.5)
-    row = design_structured(system.output_matrix, bounds, 1.0, 0.5, grouping="row")
+    entry = _structured(system, bounds, 1.0, 0.5)
+    row = _structured(system, bounds, 1.0, 0.5, grouping="row")
     assert entry.lmi_sizes == [8 + 24] * 3 and row.lmi_sizes == [8 + 8] * 3  # all 8 rows
     for design in (entry, row):
         assert design.is_certified
@@ -367,7 +378,7 @@ def test_one_uncertain_entry_loses_nothing():
         return design_observer(system, box, 1.0, a, bounds=bounds)
 
     def entry(a):
-        return design_structured(system.output_matrix, bounds, 1.0, a)
+        return _structured(system, bounds, 1.0, a)
 
     top_poly, top_entry = max_rate(poly, 8.0, 0.002), max_rate(entry, 8.0, 0.002)
     assert top_poly[1] is not None and top_poly[0] == pytest.approx(1.0, abs=0.005)
@@ -380,10 +391,10 @@ def test_row_feasible_implies_entry_feasible():
     both = 0
     for alpha in (0.5, 1.5, 3.0):
         try:
-            design_structured(system.output_matrix, bounds, 1.0, alpha, grouping="row")
+            _structured(system, bounds, 1.0, alpha, grouping="row")
         except ObserverDesignInfeasible:
             continue
-        design_structured(system.output_matrix, bounds, 1.0, alpha, grouping="entry")
+        _structured(system, bounds, 1.0, alpha, grouping="entry")
         both += 1
     assert both >= 1
 
@@ -391,46 +402,90 @@ def test_row_feasible_implies_entry_feasible():
 def test_pinned_gains():
     system, box = synthetic_system(4, 6)
     bounds = jacobian_bounds(system, box, "certified")
-    free = design_structured(system.output_matrix, bounds, 1.0, 0.5)
-    pinned = design_structured(system.output_matrix, bounds, 1.0, 0.5, L=free.L)
+    free = _structured(system, bounds, 1.0, 0.5)
+    zero = np.zeros((4, 2))
+    pinned = ObserverDesign.from_gains(
+        system, box, 1.0, 0.5, free.L, zero, zero, bounds=bounds, formulation="structured"
+    )
     np.testing.assert_array_equal(pinned.L, free.L)
     assert pinned.objective == "min_condition" and pinned.is_certified
     # Injection gains pinned: the F rows carry I - H C and I - K C; still sound.
     rng = np.random.default_rng(0)
     H, K = (0.05 * rng.normal(size=(4, 2)) for _ in range(2))
-    inj = design_structured(system.output_matrix, bounds, 1.0, 0.5, H=H, K=K)
+    inj = ObserverDesign.from_gains(
+        system, box, 1.0, 0.5, free.L, H, K, bounds=bounds, formulation="structured"
+    )
     np.testing.assert_array_equal(inj.H, H)
     _assert_sound(inj, bounds)
 
 
-def test_to_dict_is_json_ready():
-    import json
-
+@pytest.mark.parametrize("backend", ["drake", "cvxpy"])
+def test_json_round_trip_rechecks_the_multipliers(tmp_path, backend):
     scenario, system, _, bounds = _scenario("pendulum_upright")
-    design = design_structured(system.output_matrix, bounds, scenario.input_bound, 2.0)
-    data = json.loads(json.dumps(design.to_dict()))
-    assert data["formulation"] == "structured_entry" and data["is_certified"] is True
-    assert data["uncertain_entries"] == 1 and data["lmi_sizes"] == [3]
+    design = _structured(system, bounds, scenario.input_bound, 2.0, backend=backend)
+    design.to_json(tmp_path / "d.json")
+    data = json.loads((tmp_path / "d.json").read_text())
+    assert data["formulation"] == "structured" and data["is_certified"] is True
+    assert data["is_decay_certified"] is True and design.lmi_sizes == [3]
     assert len(data["tau"]) == 1 and data["tau"][0][0] > 0
+    loaded = ObserverDesign.from_json(tmp_path / "d.json")
+    assert loaded.is_decay_certified and loaded.lmi_sizes == [3]
+    assert loaded.max_eigenvalue == pytest.approx(design.max_eigenvalue, rel=1e-12)
+    # The certificate is recomputed from the stored multipliers, not trusted:
+    # multipliers far off make it fail, and none at all are refused by name.
+    data["tau"] = [[1e6 * t for t in taus] for taus in data["tau"]]
+    assert not ObserverDesign.from_dict(data).is_decay_certified
+    del data["tau"]
+    with pytest.raises(DesignError, match=r"formulation='structured' needs the S-procedure"):
+        ObserverDesign.from_dict(data)
+
+
+def test_both_backends_agree():
+    scenario, system, _, bounds = _scenario("cart_pole")
+    drake = _structured(system, bounds, scenario.input_bound, 2.0)
+    cvx = _structured(system, bounds, scenario.input_bound, 2.0, backend="cvxpy")
+    assert cvx.backend == "cvxpy" and cvx.is_decay_certified
+    assert cvx.gain_norm == pytest.approx(drake.gain_norm, rel=1e-3)
 
 
 def test_design_errors_name_the_problem():
-    _, system, _, bounds = _scenario("two_state_paper")
-    C = system.output_matrix
-    with pytest.raises(DesignError, match=r"solver must be one of \('clarabel', 'scs'\); got 'mos"):
-        design_structured(C, bounds, 3.0, 0.5, solver="mosek")
-    with pytest.raises(DesignError, match=r"objective must be one of .*; got 'fast'"):
-        design_structured(C, bounds, 3.0, 0.5, objective="fast")
-    with pytest.raises(DesignError, match=r"bounds must be a JacobianBounds; got tuple"):
-        design_structured(C, TWO_STATE, 3.0, 0.5)
-    with pytest.raises(DesignError, match=r"C has 3 columns but the bounds are for n = 2"):
-        design_structured(np.ones((1, 3)), bounds, 3.0, 0.5)
-    with pytest.raises(DesignError, match=r"grouping must be one of"):
-        design_structured(C, bounds, 3.0, 0.5, grouping="col")
-    with pytest.raises(DesignError, match=r"L must be a finite \(2, 1\) array"):
-        design_structured(C, bounds, 3.0, 0.5, L=[1.0, np.nan])
+    _, system, box, bounds = _scenario("two_state_paper")
+    assert {"structured", "structured_row"} <= set(FORMULATIONS)
+    with pytest.raises(DesignError, match=r"formulation must be one of .*'structured'.*got 'x'"):
+        design_observer(system, box, 3.0, 0.5, bounds=bounds, formulation="x")
+    with pytest.raises(DesignError, match=r"sector='paper' applies to formulation='paper' only"):
+        _structured(system, bounds, 3.0, 0.5, sector="paper")
+    with pytest.raises(DesignError, match=r"needs the S-procedure multipliers tau"):
+        ObserverDesign.from_gains(
+            system,
+            box,
+            3.0,
+            0.5,
+            [1.0, 1.0],
+            [0.0, 0.0],
+            [0.0, 0.0],
+            P=np.eye(2),
+            bounds=bounds,
+            formulation="structured",
+        )
     with pytest.raises(ObserverDesignInfeasible, match=r"a larger max_gain"):
-        design_structured(C, bounds, 3.0, 0.5, max_gain=1.0)
+        _structured(system, bounds, 3.0, 0.5, max_gain=1.0)
+
+
+def test_past_max_corners_is_decay_certified():
+    # n = 8 with 24 uncertain entries: 3 * 2^24 corners, far beyond MAX_CORNERS, so the
+    # polytopic formulation refuses; the structured one is certified and says so.
+    system, box = synthetic_system(8, 24, scale=0.5)
+    bounds = jacobian_bounds(system, box, "certified")
+    with pytest.raises(DesignError, match=r"more than MAX_CORNERS = 65536"):
+        design_observer(system, box, 1.0, 0.5, bounds=bounds)
+    design = _structured(system, bounds, 1.0, 0.5)
+    assert design.is_certified and design.is_decay_certified
+    assert design.to_dict()["decay_certificate"] is None
+    checks = design.delta_check(samples=300)
+    assert not any(c.exhaustive for c in checks) and max(c.worst for c in checks) < 0
+    report = verify_observer(design, system, samples=300, seed=0, starts=2)
+    assert not report.falsified
 
 
 def test_the_scaling_benchmark_reports_both_formulations():

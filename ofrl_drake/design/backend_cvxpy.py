@@ -6,7 +6,9 @@ formulation's LMI ``<= -margin I`` at every vertex or corner
 (:meth:`ofrl_drake.design.formulations.Formulation.cvxpy_blocks`, written in
 cvxpy expressions directly, independently of the numpy assembly the Drake
 backend uses, so agreement of the two backends is a check of both);
-``min ||R||_2`` (``+ ||[H K]||_F`` when ``H, K`` are free) by default.
+``min ||R||_2`` (``+ ||[H K]||_F`` when ``H, K`` are free) by default. The
+structured formulations' multipliers ``tau`` are cvxpy variables too, one
+vector per structured LMI.
 Solvers: Clarabel and SCS, both shipped with cvxpy. cvxpy is imported on the
 first solve, so the Drake backend does not pay its import time.
 """
@@ -80,8 +82,10 @@ class CvxpyBackend(SdpBackend):
             K = cp.Variable((n, q), name="K")
         else:
             H, K = problem.HK
+        tau = [cp.Variable(r, name=f"tau{i}") for i, r in enumerate(problem.multiplier_counts)]
         constraints = [P - eye >> 0]
-        for block in FORMULATIONS[problem.formulation].cvxpy_blocks(problem, P, R, H, K):
+        form = FORMULATIONS[problem.formulation]
+        for block in form.cvxpy_blocks(problem, P, R, H, K, tau if tau else None):
             constraints.append(block >> 0)
         if problem.max_gain is not None:
             constraints.append(cp.sigma_max(R) <= float(problem.max_gain))
@@ -115,4 +119,5 @@ class CvxpyBackend(SdpBackend):
             Kv = np.asarray(K.value, dtype=float)
         else:
             Hv, Kv = problem.HK
-        return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed)
+        tau_v = [np.asarray(t.value, dtype=float).ravel() for t in tau] if tau else None
+        return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed, tau_v)

@@ -73,10 +73,11 @@ def _drake_solver(name: str) -> Any:
 class _Layout:
     """Where each unknown sits in the decision vector ``z`` of the Drake program.
 
-    ``z = [vech(P), vec(R), vec(H), vec(K), t, s]``, each part present only
-    when it is a variable: ``R`` unless ``L`` is pinned, ``H, K`` unless
-    pinned, ``t`` for ``min_gain``, ``s`` for ``min_gain`` with free ``H, K``
-    and for ``min_condition``.
+    ``z = [vech(P), vec(R), tau, vec(H), vec(K), t, s]``, each part present
+    only when it is a variable: ``R`` unless ``L`` is pinned, ``tau`` (the
+    S-procedure multipliers of every structured LMI, concatenated) for a
+    structured formulation, ``H, K`` unless pinned, ``t`` for ``min_gain``,
+    ``s`` for ``min_gain`` with free ``H, K`` and for ``min_condition``.
     """
 
     problem: LmiProblem
@@ -89,6 +90,8 @@ class _Layout:
         names = [("P", n * (n + 1) // 2)]
         if problem.L is None:
             names.append(("R", n * q))
+        if problem.structured is not None:
+            names.append(("tau", sum(problem.multiplier_counts)))
         if problem.HK is None:
             names += [("H", n * q), ("K", n * q)]
         if problem.objective == "min_gain":
@@ -105,7 +108,7 @@ class _Layout:
         return sum(k for _, k in self.names)
 
     def unpack(self, z: np.ndarray) -> dict[str, Any]:
-        """``P, R, H, K`` (and ``t, s`` if present) from ``z``; affine in ``z``."""
+        """``P, R, H, K`` (and ``tau``, ``t, s`` if present) from ``z``; affine in ``z``."""
         n, q, p = self.problem.n, self.problem.q, self.problem
         parts: dict[str, Any] = {}
         pos = 0
@@ -123,6 +126,9 @@ class _Layout:
             out["K"] = parts["K"].reshape(n, q)
         else:
             out["H"], out["K"] = p.HK
+        out["tau"] = None
+        if "tau" in parts:
+            out["tau"] = np.split(parts["tau"], np.cumsum(p.multiplier_counts)[:-1])
         for name in ("t", "s"):
             if name in parts:
                 out[name] = float(parts[name][0])
@@ -139,7 +145,7 @@ def _psd_blocks(problem: LmiProblem, v: dict[str, Any]) -> list[np.ndarray]:
     P, R, H, K = v["P"], v["R"], v["H"], v["K"]
     eye = np.eye(n)
     blocks = [P - eye]
-    blocks += FORMULATIONS[problem.formulation].lmi_blocks(problem, P, R, H, K)
+    blocks += FORMULATIONS[problem.formulation].lmi_blocks(problem, P, R, H, K, v["tau"])
     if problem.max_gain is not None:
         g = float(problem.max_gain)
         blocks.append(np.block([[g * eye, R], [R.T, g * np.eye(q)]]))
@@ -224,4 +230,4 @@ class DrakeBackend(SdpBackend):
         if infeasible:
             return SdpSolution(None, None, None, None, status, True, elapsed)
         v = layout.unpack(np.asarray(result.GetSolution(z), dtype=float))
-        return SdpSolution(v["P"], v["R"], v["H"], v["K"], status, False, elapsed)
+        return SdpSolution(v["P"], v["R"], v["H"], v["K"], status, False, elapsed, v["tau"])

@@ -58,6 +58,12 @@ from ofrl_drake.lmi import (
     vertex_data,
 )
 from ofrl_drake.sector import input_vertices
+from ofrl_drake.structured_lmi import (
+    StructuredLmi,
+    structured_certificate,
+    structured_lmi,
+    structured_lmi_blocks,
+)
 
 if TYPE_CHECKING:
     from ofrl_drake.design.result import ObserverDesign
@@ -67,6 +73,7 @@ __all__ = [
     "Formulation",
     "PaperFormulation",
     "PolytopicFormulation",
+    "StructuredFormulation",
     "get_formulation",
 ]
 
@@ -133,17 +140,27 @@ class Formulation(ABC):
 
     @abstractmethod
     def lmi_blocks(
-        self, problem: LmiProblem, P: np.ndarray, R: np.ndarray, H: np.ndarray, K: np.ndarray
+        self,
+        problem: LmiProblem,
+        P: np.ndarray,
+        R: np.ndarray,
+        H: np.ndarray,
+        K: np.ndarray,
+        tau: list[np.ndarray] | None = None,
     ) -> list[np.ndarray]:
         """The matrices ``-LMI - margin I`` that must be positive semidefinite, in numpy.
 
-        Built from :mod:`ofrl_drake.lmi`'s assembly and affine in ``P, R, H,
-        K``, so the Drake backend reads its coefficient matrices off them.
+        Built from :mod:`ofrl_drake.lmi`'s (or :mod:`ofrl_drake.structured_lmi`'s)
+        assembly and affine in ``P, R, H, K`` (and the multipliers ``tau`` of a
+        structured formulation, one array per model), so the Drake backend
+        reads its coefficient matrices off them.
         """
 
     @abstractmethod
-    def cvxpy_blocks(self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any) -> list[Any]:
-        """The same matrices as cvxpy expressions, for cvxpy variables ``P, R`` (``H, K``).
+    def cvxpy_blocks(
+        self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any, tau: list[Any] | None = None
+    ) -> list[Any]:
+        """The same matrices as cvxpy expressions, for cvxpy variables ``P, R`` (``H, K``, ``tau``).
 
         Written in cvxpy expressions directly, independently of the numpy
         assembly of :meth:`lmi_blocks`, so agreement of the two backends is a
@@ -218,13 +235,21 @@ class PolytopicFormulation(Formulation):
         return LmiProblem(self.name, C, [], corners, alpha, margin, objective, max_gain, L, HK)
 
     def lmi_blocks(
-        self, problem: LmiProblem, P: np.ndarray, R: np.ndarray, H: np.ndarray, K: np.ndarray
+        self,
+        problem: LmiProblem,
+        P: np.ndarray,
+        R: np.ndarray,
+        H: np.ndarray,
+        K: np.ndarray,
+        tau: list[np.ndarray] | None = None,
     ) -> list[np.ndarray]:
         """One block per corner, from :func:`ofrl_drake.lmi.polytopic_lmi`."""
         M = polytopic_lmi(P, R, problem.corners, problem.C, problem.alpha)
         return list(-M - problem.margin * np.eye(problem.n))
 
-    def cvxpy_blocks(self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any) -> list[Any]:
+    def cvxpy_blocks(
+        self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any, tau: list[Any] | None = None
+    ) -> list[Any]:
         """One block per corner."""
         C, eye = problem.C, np.eye(problem.n)
         blocks = []
@@ -276,7 +301,13 @@ class PaperFormulation(Formulation):
         )
 
     def lmi_blocks(
-        self, problem: LmiProblem, P: np.ndarray, R: np.ndarray, H: np.ndarray, K: np.ndarray
+        self,
+        problem: LmiProblem,
+        P: np.ndarray,
+        R: np.ndarray,
+        H: np.ndarray,
+        K: np.ndarray,
+        tau: list[np.ndarray] | None = None,
     ) -> list[np.ndarray]:
         """One ``2n x 2n`` block per input vertex, from :func:`ofrl_drake.lmi.lmi2_blocks`."""
         n, C = problem.n, problem.C
@@ -286,7 +317,9 @@ class PaperFormulation(Formulation):
             blocks.append(-M - problem.margin * np.eye(2 * n))
         return blocks
 
-    def cvxpy_blocks(self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any) -> list[Any]:
+    def cvxpy_blocks(
+        self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any, tau: list[Any] | None = None
+    ) -> list[Any]:
         """One ``2n x 2n`` block per input vertex."""
         import cvxpy as cp  # on first use: the Drake backend does not pay its import time
 
@@ -310,9 +343,174 @@ class PaperFormulation(Formulation):
         return is_certified(*design._numbers(), design.sector)
 
 
+class StructuredFormulation(Formulation):
+    """The polytopic claim as one norm-bounded S-procedure LMI per input vertex, ``H = K = 0``.
+
+    The Jacobian box is written ``A(delta) = A0 + sum_l delta_l w_l e_{i_l} F_l``,
+    ``|delta_l| <= 1`` (:mod:`ofrl_drake.structured_lmi`), and one LMI of size
+    ``n + r`` per distinct input vertex, affine in ``(P, R, tau)`` with ``r``
+    multipliers ``tau >= 0`` (one per uncertain entry for ``grouping="entry"``,
+    per uncertain row for ``"row"``), implies the polytopic LMI at every corner
+    at once. Its cost does not grow as ``2**k``; its re-check is
+    :func:`ofrl_drake.structured_lmi.structured_certificate` from ``P, L`` and
+    the design's ``tau``, which proves the same ``dV/dt <= -2 alpha V`` as the
+    polytopic decay certificate (docs/structured_certificate.md).
+
+    Parameters
+    ----------
+    name : str
+        Its registry key.
+    grouping : {"entry", "row"}
+        One multiplier per uncertain entry or per uncertain row.
+    """
+
+    def __init__(self, name: str, grouping: str) -> None:
+        self.name = name  # type: ignore[misc]  # per-instance registry key
+        self.grouping = grouping
+
+    def check_sector(self, sector: str) -> None:
+        """Only the sign-correct input sector."""
+        super().check_sector(sector)
+        if sector != "sign_correct":
+            raise DesignError(
+                f"sector={sector!r} applies to formulation='paper' only; the {self.name} "
+                "formulation always uses the sign-correct input sector."
+            )
+
+    def data(
+        self,
+        C: np.ndarray,
+        bounds: JacobianBounds,
+        input_bound: float,
+        alpha: float,
+        margin: float,
+        HK: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> StructuredLmi:
+        """The structured LMI data (:func:`ofrl_drake.structured_lmi.structured_lmi`).
+
+        Raises
+        ------
+        DesignError
+            For bounds that are not finite or are crossed.
+        """
+        H, K = (None, None) if HK is None else HK
+        try:
+            return structured_lmi(
+                C, bounds, input_bound, alpha, margin=margin, grouping=self.grouping, H=H, K=K
+            )
+        except LmiError as err:
+            raise DesignError(f"formulation={self.name!r}: {err}") from err
+
+    def problem(
+        self,
+        C: np.ndarray,
+        bounds: JacobianBounds,
+        input_bound: float,
+        alpha: float,
+        margin: float,
+        objective: str,
+        max_gain: float | None,
+        sector: str,
+        *,
+        L: np.ndarray | None = None,
+        HK: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> LmiProblem:
+        """The norm-bounded model at each distinct input vertex, ``H, K`` pinned (0 if None)."""
+        n, q = C.shape[1], C.shape[0]
+        if HK is None:
+            HK = (np.zeros((n, q)), np.zeros((n, q)))
+        data = self.data(C, bounds, input_bound, alpha, margin, HK)
+        return LmiProblem(
+            self.name,
+            C,
+            [],
+            np.zeros((0, n, n)),
+            alpha,
+            margin,
+            objective,
+            max_gain,
+            L,
+            HK,
+            structured=data,
+        )
+
+    def lmi_blocks(
+        self,
+        problem: LmiProblem,
+        P: np.ndarray,
+        R: np.ndarray,
+        H: np.ndarray,
+        K: np.ndarray,
+        tau: list[np.ndarray] | None = None,
+    ) -> list[np.ndarray]:
+        """One ``(n + r)`` block per model, from ``structured_lmi_blocks``."""
+        assert problem.structured is not None and tau is not None
+        return [
+            -M - problem.margin * np.eye(M.shape[0])
+            for M in structured_lmi_blocks(problem.structured, P, R, tau)
+        ]
+
+    def cvxpy_blocks(
+        self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any, tau: list[Any] | None = None
+    ) -> list[Any]:
+        """``cp.bmat([[S0 + sum tau_g D_g, P E], [E^T P, -diag(tau)]])`` per model."""
+        import cvxpy as cp
+
+        assert problem.structured is not None and tau is not None
+        data, C = problem.structured, problem.C
+        blocks = []
+        for model, t in zip(data.models, tau, strict=True):
+            E, D = model.signals(data.grouping)
+            S = model.A0.T @ P + P @ model.A0 - C.T @ R.T - R @ C + 2.0 * problem.alpha * P
+            S = S + sum(t[g] * D[g] for g in range(D.shape[0]))
+            M = cp.bmat([[S, P @ E], [E.T @ P, -cp.diag(t)]])
+            blocks.append(_sym(-M) - problem.margin * np.eye(problem.n + E.shape[1]))
+        return blocks
+
+    def design_data(self, design: ObserverDesign) -> StructuredLmi:
+        """The structured LMI data of ``design`` (its ``C``, bounds, rate, margin, ``H, K``)."""
+        return self.data(
+            design.C,
+            design.bounds,
+            design.input_bound,
+            design.alpha,
+            design.margin,
+            (np.asarray(design.H), np.asarray(design.K)),
+        )
+
+    def certificate(self, design: ObserverDesign) -> list[tuple[np.ndarray, float]]:
+        """:func:`~ofrl_drake.structured_lmi.structured_certificate` at ``design``'s ``P, L, tau``.
+
+        Raises
+        ------
+        DesignError
+            If the design's multipliers do not match the LMI (e.g. none stored).
+        """
+        data = self.design_data(design)
+        try:
+            return structured_certificate(data, design.P, design.L, list(design.tau))
+        except LmiError as err:
+            raise DesignError(
+                f"formulation={self.name!r} needs the S-procedure multipliers tau of the "
+                f"design: {err} Re-solve it (design_observer, or from_gains with P=None)."
+            ) from err
+
+    def is_certified(self, design: ObserverDesign) -> bool:
+        """True if ``P > 0`` and every structured certificate value is < 0."""
+        if not np.all(np.isfinite(design.P)) or np.linalg.eigvalsh(design.P)[0] <= 0:
+            return False
+        return all(ev < 0 for _, ev in design.certificate())
+
+
 #: The formulations by name; the first is the default.
 FORMULATIONS: dict[str, Formulation] = {
-    f.name: f for f in (PolytopicFormulation(), PaperFormulation())
+    f.name: f
+    for f in (
+        PolytopicFormulation(),
+        PaperFormulation(),
+        StructuredFormulation("structured", "entry"),
+        StructuredFormulation("structured_row", "row"),
+    )
 }
 
 

@@ -158,7 +158,9 @@ def _finish(
 
     if sol.infeasible or sol.P is None or sol.R is None or sol.H is None or sol.K is None:
         raise fail(f"solver status {sol.status}", inaccurate=not sol.infeasible)
-    numbers = [sol.P, sol.R, sol.H, sol.K]
+    if problem.structured is not None and sol.tau is None:
+        raise fail(f"solver status {sol.status}, no multipliers returned")
+    numbers = [sol.P, sol.R, sol.H, sol.K, *(sol.tau or [])]
     if not all(np.all(np.isfinite(a)) for a in numbers):
         raise fail(
             f"solver status {sol.status}, non-finite solution", kind=ObserverDesignInaccurate
@@ -192,6 +194,7 @@ def _finish(
         objective=problem.objective,
         margin=problem.margin,
         formulation=problem.formulation,
+        tau=tuple(sol.tau or ()),
     )
     if not design.is_certified:
         raise fail(

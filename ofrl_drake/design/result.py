@@ -16,6 +16,7 @@ from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds
 from ofrl_drake.lmi import LmiError, decay_certificate
 from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.structured_lmi import DeltaCheck, StructuredLmi, delta_check
 
 __all__ = ["ObserverDesign"]
 
@@ -39,10 +40,15 @@ class ObserverDesign:
 
     * :meth:`certificate`: the check of the formulation that was solved:
       the (lmi2) eigenvalues at the ``3**m`` input vertices for ``"paper"``,
-      the decay certificate for ``"polytopic"``; :attr:`is_certified`.
+      the decay certificate for ``"polytopic"``, the S-procedure LMI at each
+      distinct input vertex from ``P, L`` and the multipliers :attr:`tau` for
+      ``"structured"`` (:func:`ofrl_drake.structured_lmi.structured_certificate`);
+      :attr:`is_certified`.
     * :meth:`decay_certificate`: the sound polytopic check of ``dV/dt <= -2
       alpha V`` (:func:`ofrl_drake.lmi.decay_certificate`), whatever the
-      formulation; :attr:`is_decay_certified`.
+      formulation; :attr:`is_decay_certified` (which, for a structured
+      design, is its structured certificate: it proves the same claim and
+      needs no corner enumeration, so it also works past ``MAX_CORNERS``).
 
     Attributes
     ----------
@@ -76,7 +82,11 @@ class ObserverDesign:
     margin : float
         The strict margin asked of the solver.
     formulation : str
-        ``"polytopic"`` (default) or ``"paper"``.
+        A key of :data:`~ofrl_drake.design.FORMULATIONS`: ``"polytopic"``
+        (default), ``"paper"``, ``"structured"`` or ``"structured_row"``.
+    tau : tuple of ndarray
+        The S-procedure multipliers of each structured LMI (one array per
+        distinct input vertex); empty for the other formulations.
     """
 
     P: np.ndarray
@@ -97,6 +107,7 @@ class ObserverDesign:
     objective: str = "min_gain"
     margin: float = DEFAULT_MARGIN
     formulation: str = "polytopic"
+    tau: tuple[np.ndarray, ...] = ()
     _cert: list = field(default_factory=list, init=False, repr=False)
     _decay: list = field(default_factory=list, init=False, repr=False)
 
@@ -107,6 +118,7 @@ class ObserverDesign:
         object.__setattr__(self, "alpha", float(self.alpha))
         object.__setattr__(self, "input_bound", float(self.input_bound))
         object.__setattr__(self, "solve_time", float(self.solve_time))
+        object.__setattr__(self, "tau", tuple(_array(np.ravel(t)) for t in self.tau))
         formulation = get_formulation(self.formulation, self.sector)
         object.__setattr__(self, "_cert", formulation.certificate(self))
 
@@ -170,8 +182,13 @@ class ObserverDesign:
     def is_decay_certified(self) -> bool:
         """True if ``P > 0`` and every :meth:`decay_certificate` value is < 0.
 
-        False also when the corner enumeration is too large to check.
+        For a structured design, its structured certificate (:attr:`is_certified`),
+        which proves the same ``dV/dt <= -2 alpha V`` on the same box without
+        enumerating corners. For the others, False also when the corner
+        enumeration is too large to check.
         """
+        if self.is_structured:
+            return self.is_certified
         try:
             cert = self.decay_certificate()
         except LmiError:
@@ -179,6 +196,40 @@ class ObserverDesign:
         if not np.all(np.isfinite(self.P)) or np.linalg.eigvalsh(self.P)[0] <= 0:
             return False
         return all(ev < 0 for _, ev in cert)
+
+    @property
+    def is_structured(self) -> bool:
+        """True for a structured (S-procedure) formulation."""
+        return self.formulation.startswith("structured")
+
+    def structured_lmi(self) -> StructuredLmi:
+        """The structured LMI data of this design (rebuilt from its bounds and numbers).
+
+        Raises
+        ------
+        DesignError
+            If the design is not structured.
+        """
+        formulation = get_formulation(self.formulation, self.sector)
+        if not self.is_structured:
+            raise DesignError(
+                f"structured_lmi() needs a structured design; this one is "
+                f"formulation={self.formulation!r}."
+            )
+        return formulation.design_data(self)  # type: ignore[attr-defined]
+
+    @property
+    def lmi_sizes(self) -> list[int]:
+        """Size ``n + r`` of each structured LMI (one per distinct input vertex)."""
+        return self.structured_lmi().sizes
+
+    def delta_check(self, *, samples: int = 2000, seed: int = 0) -> list[DeltaCheck]:
+        """The multiplier-free re-check (:func:`ofrl_drake.structured_lmi.delta_check`).
+
+        Exhaustive over the ``delta`` box (a proof) up to ``2**12`` vertices per
+        input vertex, sampled beyond. Structured designs only.
+        """
+        return delta_check(self.structured_lmi(), self.P, self.L, samples=samples, seed=seed)
 
     @property
     def bounds_are_guaranteed(self) -> bool:
@@ -211,7 +262,8 @@ class ObserverDesign:
         ``certificate``; None if the corner enumeration is too large),
         ``is_decay_certified``; and also ``R, C, status, backend, sector,
         objective, margin, jacobian_method, condition_number, gain_norm,
-        is_certified``.
+        is_certified``; ``tau`` (a list of lists, one per structured LMI) for a
+        structured design.
         """
         try:
             decay: list[dict[str, Any]] | None = _cert_list(self.decay_certificate())
@@ -244,7 +296,7 @@ class ObserverDesign:
             "condition_number": self.condition_number,
             "gain_norm": self.gain_norm,
             "is_certified": self.is_certified,
-        }
+        } | ({"tau": [t.tolist() for t in self.tau]} if self.is_structured else {})
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
         """Write :meth:`to_dict` to ``path`` as JSON."""
@@ -320,6 +372,7 @@ class ObserverDesign:
             objective=data.get("objective", "min_gain"),
             margin=data.get("margin", DEFAULT_MARGIN),
             formulation=data.get("formulation", "paper"),
+            tau=tuple(np.asarray(t, dtype=float) for t in data.get("tau", ())),
         )
 
     @classmethod

@@ -35,6 +35,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from ofrl_drake.structured_lmi import StructuredLmi
+
 __all__ = ["DEFAULT_MARGIN", "OBJECTIVES", "LmiProblem", "SdpBackend", "SdpSolution"]
 
 OBJECTIVES = ("min_gain", "min_condition", "feasibility")
@@ -70,7 +72,12 @@ class LmiProblem:
         If given, ``L`` is pinned and ``R = P L``; else ``R`` is a variable.
     HK : tuple of (H, K) or None
         If given, ``H, K`` are pinned; else they are variables (``"paper"``
-        only: ``"polytopic"`` always pins them).
+        only: ``"polytopic"`` and ``"structured"`` always pin them).
+    structured : StructuredLmi or None
+        ``"structured"``: the norm-bounded model of the Jacobian box at each
+        distinct input vertex (:func:`ofrl_drake.structured_lmi.structured_lmi`);
+        its S-procedure multipliers ``tau`` are decision variables too
+        (``multiplier_counts`` of them per model). None otherwise.
     """
 
     formulation: str
@@ -83,6 +90,12 @@ class LmiProblem:
     max_gain: float | None
     L: np.ndarray | None = None
     HK: tuple[np.ndarray, np.ndarray] | None = None
+    structured: StructuredLmi | None = None
+
+    @property
+    def multiplier_counts(self) -> list[int]:
+        """How many S-procedure multipliers each structured LMI has (empty if none)."""
+        return [] if self.structured is None else self.structured.multiplier_counts
 
     @property
     def n(self) -> int:
@@ -109,6 +122,9 @@ class SdpSolution:
         True if the solver reported (primal) infeasibility.
     solve_time : float
         Wall-clock seconds spent in the backend (building and solving).
+    tau : list of ndarray or None
+        The S-procedure multipliers of each structured LMI (``"structured"``
+        formulations only; None otherwise or without a solution).
     """
 
     P: np.ndarray | None
@@ -118,6 +134,7 @@ class SdpSolution:
     status: str
     infeasible: bool
     solve_time: float
+    tau: list[np.ndarray] | None = None
 
 
 class SdpBackend(ABC):
