@@ -83,7 +83,7 @@ Supported kinds: ``Constant``, ``Var``, ``Add``, ``Mul``, ``Div``, ``Pow``,
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -583,7 +583,7 @@ class ExpressionEvaluator:
     True
     """
 
-    def __init__(self, expressions: Any, variables: Sequence[Variable]) -> None:
+    def __init__(self, expressions: Any, variables: Iterable[Variable]) -> None:
         exprs = np.asarray(expressions, dtype=object)
         self.shape: tuple[int, ...] = exprs.shape
         self.variables: tuple[Variable, ...] = tuple(variables)
@@ -609,7 +609,10 @@ class ExpressionEvaluator:
             if other.EqualTo(e):
                 return index
         kind = e.get_kind().name
-        _, raw_args = e.Unapply()
+        # Unapply returns (function, args), the args a float, a Variable or Expressions
+        # by kind; pydrake's stub types it as object.
+        raw_args: list[Any]
+        _, raw_args = e.Unapply()  # type: ignore[misc]  # pydrake stub: Unapply() -> object
         if kind not in _POINT_KINDS:
             raise UnsupportedExpressionError(
                 f"unsupported function {kind} in expression {key}; supported: "
@@ -851,8 +854,8 @@ class ExpressionEvaluator:
         if k == "Abs":
             return _i_abs(a[0])
         if k in ("Ceil", "Floor"):  # exact, and monotone
-            fn = np.ceil if k == "Ceil" else np.floor
-            return Interval(fn(a[0].lo), fn(a[0].hi))
+            rounding = np.ceil if k == "Ceil" else np.floor
+            return Interval(rounding(a[0].lo), rounding(a[0].hi))
         monotone = {
             "Exp": np.exp,
             "Atan": np.arctan,

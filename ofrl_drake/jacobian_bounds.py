@@ -410,7 +410,7 @@ def symbolic_jacobians(
     except ModelError as err:
         raise BoundsError(f"{err} They must be, to be differentiated.") from err
     x, fx, gx = model.x, model.f, model.g
-    Jf = Jacobian(fx, x)
+    Jf: np.ndarray = Jacobian(fx, x)  # type: ignore[assignment]  # pydrake array stub
     Jg = np.empty((n, n, m), dtype=object)
     for k in range(m):
         Jg[:, :, k] = Jacobian(gx[:, k], x)
@@ -811,8 +811,12 @@ def jacobian_bounds(
     (Mf1, Mg1), (Mf2, Mg2) = split(c_lo), split(c_hi)
     (sMf1, sMg1), (sMf2, sMg2) = split(s_lo), split(s_hi)
     ex = [sMf1 - Mf1, Mf2 - sMf2, sMg1 - Mg1, Mg2 - sMg2]
+    xMf1, xMf2, xMg1, xMg2 = (_frozen_array(a) for a in ex)
     excess = BoundsExcess(
-        *(_frozen_array(a) for a in ex),
+        xMf1,
+        xMf2,
+        xMg1,
+        xMg2,
         max=float(max(a.max() for a in ex)),
         converged=converged,
     )

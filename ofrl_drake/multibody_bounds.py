@@ -112,8 +112,9 @@ class MultibodyStructure:
     M: np.ndarray
     tau: np.ndarray
     B: np.ndarray
-    x_eq: np.ndarray = field(default=None)  # type: ignore[assignment]
-    u_eq: np.ndarray = field(default=None)  # type: ignore[assignment]
+    # None means zeros: __post_init__ stores the array.
+    x_eq: np.ndarray = field(default=None)  # type: ignore[arg-type]
+    u_eq: np.ndarray = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         nq, nv = len(self.q), len(self.v)
@@ -249,7 +250,7 @@ def multibody_structure(plant: Any) -> MultibodyStructure:
     # numpy's object loops flag "invalid value" on Drake expressions; harmless.
     with np.errstate(invalid="ignore"):
         tau = applied - bias
-    return MultibodyStructure(q, v, qdot, M, tau, B)
+    return MultibodyStructure(q, v, qdot, M, tau, B)  # type: ignore[arg-type]  # pydrake array stub
 
 
 # --------------------------------------------------------------- the encloser
@@ -301,7 +302,8 @@ class MultibodyJacobianEncloser:
         qdot = [as_expression(e) for e in s.qdot]
         dqdot = [[e.Differentiate(xj) for e in qdot] for xj in x]
         used: set[int] = set()
-        for u in ExpressionEvaluator([*base, *np.ravel(dqdot)], x).variables_used():
+        flat_dqdot = [e for row in dqdot for e in row]  # np.ravel(dqdot)
+        for u in ExpressionEvaluator([*base, *flat_dqdot], x).variables_used():
             used.update(u)
         self.used = np.array(sorted(used), dtype=int)
         U, L = self.used, len(used)
@@ -309,7 +311,7 @@ class MultibodyJacobianEncloser:
             alpha for order in range(4) for alpha in combinations_with_replacement(range(L), order)
         ]
         self._row = {alpha: i for i, alpha in enumerate(self._alphas)}
-        derivative = {(): base}
+        derivative: dict[tuple[int, ...], list[Expression]] = {(): base}
         for alpha in self._alphas[1:]:
             derivative[alpha] = [e.Differentiate(x[U[alpha[-1]]]) for e in derivative[alpha[:-1]]]
         low = [alpha for alpha in self._alphas if len(alpha) <= 2]
@@ -318,8 +320,8 @@ class MultibodyJacobianEncloser:
         self._low = ExpressionEvaluator(
             [
                 *(e for alpha in low for e in derivative[alpha]),
-                *np.ravel(dqdot),
-                *np.ravel(d2qdot),
+                *flat_dqdot,
+                *(e for rows in d2qdot for row in rows for e in row),  # np.ravel(d2qdot)
             ],
             x,
         )
@@ -534,13 +536,13 @@ class MultibodyJacobianEncloser:
             natural, at_c = J[:, :B], J[:, B:]
             if not self.used.size:  # constant Jacobians
                 return natural, at_c, np.zeros((self.n_entries, 0, B))
-            boxes = {
+            on_boxes = {
                 "system": first["system"].select(slice(0, B)),
                 "dM": [d[..., :B] for d in first["dM"]],
                 "aG": first["aG"][..., :B],
                 "d_aG": first["d_aG"][..., :B],
             }
-            H = self._hessians(T[..., :B], boxes, d2q)
+            H = self._hessians(T[..., :B], on_boxes, d2q)
             total = at_c
             for c in range(self.used.size):
                 total = total + H[:, c] * h[c][None]

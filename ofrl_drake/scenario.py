@@ -342,7 +342,7 @@ def _check_value(path: str, tp: Any, value: Any) -> None:
         if nullable:
             return
         raise ScenarioError(f"{path}: a value is required; got null.")
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         _check_mapping(path, tp, value)
         return
     origin = typing.get_origin(tp)
@@ -504,8 +504,8 @@ def validate_scenario(scenario: Scenario) -> None:
             f"{', '.join('critic.' + k for k in given)} or set critic.gains: manual."
         )
     if gains == "manual":
-        missing = [k for k in MANUAL_GAINS if getattr(c, k) is None]
-        if missing:
+        if c.kc is None or c.nu is None or c.beta is None or c.Gamma0 is None:
+            missing = [k for k in MANUAL_GAINS if getattr(c, k) is None]
             raise ScenarioError(
                 f"critic.{missing[0]}: missing; critic.gains: manual needs "
                 f"{', '.join('critic.' + k for k in MANUAL_GAINS)} (or set critic.gains: auto)."
@@ -690,8 +690,8 @@ def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
                 raise ScenarioError(
                     f"truth.body_mass_scale.{body}: must be a number > 0; got {scale}."
                 )
-        system = resolve_truth(scenario)
-        if (system.n, system.m, system.q) != (n, m, q):
+        system = resolve_truth(scenario)  # not None: the scenario has a truth
+        if system is not None and (system.n, system.m, system.q) != (n, m, q):
             raise ScenarioError(
                 f"truth: the truth has (n, m, q) = ({system.n}, {system.m}, {system.q}), the "
                 f"model ({n}, {m}, {q}); they must agree."
