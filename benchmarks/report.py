@@ -348,31 +348,37 @@ def _targets_table(checks: dict[str, dict[str, Any]]) -> str:
 
 
 def format_report(results: dict[str, Any]) -> str:
-    """Markdown: the machine, the runs, the profile, the scaling and sweep rows, the targets."""
-    out = [_machine_text(results), _runs_table(results)]
+    """Markdown, one ``###`` section per part the results hold: the machine and its
+    load, the runs, where an evaluation goes, the scaling rows, the sweep, the
+    blocks, the Bellman math, numba, the LMI and the targets."""
+    sections = [("Machine and load", _machine_text(results))]
+    runs = [_runs_table(results)]
     if "paper" in results:
-        out.append(_paper_text(results["paper"]))
+        runs.append(_paper_text(results["paper"]))
     if "overhead" in results:
-        out.append(_overhead_text(results["overhead"]))
+        runs.append(_overhead_text(results["overhead"]))
+    sections.append(("Runs", "\n\n".join(runs)))
     if "profile" in results:
-        out.append(_profile_table(results["profile"]))
+        sections.append(("Where an evaluation goes", _profile_table(results["profile"])))
     if results.get("scaling"):
-        out.append(_scaling_tables(results["scaling"]))
+        sections.append(("Scaling rows", _scaling_tables(results["scaling"])))
     if "sweep" in results:
-        out.append(_sweep_table(results["sweep"]))
+        sections.append(("Sweep throughput", _sweep_table(results["sweep"])))
     if results.get("blocks"):
-        out.append(_blocks_table(results["blocks"]))
+        sections.append(
+            ("The blocks: C++ symbolic against Python", _blocks_table(results["blocks"]))
+        )
     bellman = results.get("bellman", [])
     if bellman:
         parts = ", ".join(
             f"N = {r['N']}: {r['us_per_call']:.1f} us (fastest batch {r['us_per_call_min']:.1f})"
             for r in bellman
         )
-        out.append(f"Bellman math per call (both sums, median of batches): {parts}.")
+        sections.append(("Bellman math", f"Per call (both sums, median of batches): {parts}."))
     if "compile" in results:
-        out.append(_compile_text(results["compile"]))
+        sections.append(("numba: cost of the dependency", _compile_text(results["compile"])))
     if results.get("lmi_design"):
-        out.append(_lmi_table(results["lmi_design"]))
+        sections.append(("LMI design: Drake against cvxpy", _lmi_table(results["lmi_design"])))
     if results.get("targets"):
-        out.append(_targets_table(results["targets"]))
-    return "\n\n".join(out)
+        sections.append(("Targets", _targets_table(results["targets"])))
+    return "\n\n".join(f"### {title}\n\n{body}" for title, body in sections)

@@ -129,7 +129,11 @@ def _load_average() -> list[float] | None:
 
 
 def machine_info() -> dict[str, Any]:
-    """CPU model, core count, load average, the versions that matter and the commit run."""
+    """CPU model, core count, load average, the versions that matter and the commit run.
+
+    ``tree_clean`` is whether the working tree matched the commit, but for
+    ``benchmarks/RESULTS.md`` and ``benchmarks/results.json`` (None outside git).
+    """
     from importlib.metadata import PackageNotFoundError, version
 
     import numpy
@@ -140,7 +144,10 @@ def machine_info() -> dict[str, Any]:
     except PackageNotFoundError:
         drake = "unknown"
 
-    status = _git("status", "--porcelain")
+    # The run's own outputs do not count: a run rewrites them.
+    status = _git(
+        "status", "--porcelain", "--", ".", ":!benchmarks/RESULTS.md", ":!benchmarks/results.json"
+    )
     return {
         "cpu": _cpu_model(),
         "cpu_count": os.cpu_count(),

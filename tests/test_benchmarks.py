@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.__main__ import SECTIONS, main
+from benchmarks.__main__ import BEGIN, END, SECTIONS, main, write_markdown
 from benchmarks.cases import fused_loop, initial_state, precomputed_loop, with_duration
 from benchmarks.report import format_report
 
@@ -335,3 +335,15 @@ def test_runner_prints_and_writes_markdown_tables(tmp_path, capsys):
     assert "One derivative evaluation" in out
     assert "Load average (1, 5, 15 min) at the start" in out
     assert md.read_text().strip() == out.strip()
+
+
+def test_markdown_goes_between_the_markers_of_an_existing_file(tmp_path):
+    page = tmp_path / "RESULTS.md"
+    page.write_text(f"# Title\n\nprose\n\n{BEGIN}\nold tables\n{END}\n\nmore prose\n")
+    write_markdown(page, "| new | tables |")
+    assert page.read_text() == (
+        f"# Title\n\nprose\n\n{BEGIN}\n\n| new | tables |\n\n{END}\n\nmore prose\n"
+    )
+    plain = tmp_path / "plain.md"
+    write_markdown(plain, "| t |")
+    assert plain.read_text() == "| t |\n"
