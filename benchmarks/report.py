@@ -167,23 +167,26 @@ def _overhead_text(o: dict[str, Any]) -> str:
 
 def _profile_table(p: dict[str, Any]) -> str:
     lines = [
-        "| block | class | states | work us | with invalidation us | invalidation alone us |",
-        "|---|---|--:|--:|--:|--:|",
+        "| block | class | states | work us | work us, median batch | with invalidation us "
+        "| invalidation alone us |",
+        "|---|---|--:|--:|--:|--:|--:|",
     ]
     for b in sorted(p["blocks"], key=lambda b: -b["work_us"]):
         lines.append(
             f"| {b['slot']} | {b['block']} | {b['num_states']} | {b['work_us']:.1f} "
-            f"| {b['total_us']:.1f} | {b['invalidation_us']:.1f} |"
+            f"| {b['work_median_us']:.1f} | {b['total_us']:.1f} | {b['invalidation_us']:.1f} |"
         )
     return (
         "\n".join(lines)
-        + f"\n\nThe whole diagram: {p['diagram_us']:.1f} us per evaluation ({p['num_states']} "
-        f"states; setting the state alone {p['set_state_us']:.1f} us); the blocks' work adds "
-        f"up to {p['blocks_work_us']:.1f} us. A whole run: "
+        + f"\n\nFastest of {p['batches']} interleaved batches of {p['calls']} (median batch "
+        "beside). The whole diagram: "
+        f"{p['diagram_us']:.1f} us per evaluation (median batch {p['diagram_median_us']:.1f}; "
+        f"{p['num_states']} states; setting the state alone {p['set_state_us']:.1f} us); the "
+        f"blocks' work adds up to {p['blocks_work_us']:.1f} us. A whole run: "
         f"{p['advance_us_per_evaluation']:.1f} us of `AdvanceTo` per evaluation over "
         f"{p['num_derivative_evaluations']} evaluations, so "
-        f"{p['outside_evaluation_us']:.1f} us per evaluation go to the integrator, the "
-        "loggers and the run guard."
+        f"{p['outside_evaluation_us']:.1f} us per evaluation (over the median batch) go to the "
+        "integrator, the loggers and the run guard."
     )
 
 
