@@ -1,11 +1,13 @@
 """Scenario variants and the fused baseline that matches each one.
 
 Every benchmark case is a :class:`~ofrl_drake.scenario.Scenario` (the paper's,
-or a copy with more points, a larger basis, another integrator...) run two
+or a copy with more points, a larger basis, another integrator...) run three
 ways: through the Drake diagram with :func:`ofrl_drake.simulate`, and through
-the hand-written :class:`~benchmarks.fused_numpy.FusedClosedLoop` under
-``solve_ivp``. Accuracy is judged against a tight DOP853 solution of the fused
-equations.
+two hand-written right-hand sides under ``solve_ivp``: the stronger baseline
+:class:`~benchmarks.precomputed_numpy.PrecomputedClosedLoop` (everything that
+depends only on the points or the gains precomputed) and
+:class:`~benchmarks.fused_numpy.FusedClosedLoop`. Accuracy is judged against a
+tight DOP853 solution of the fused equations.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.fused_numpy import FusedClosedLoop
+from benchmarks.fused_numpy import SYSTEMS, FusedClosedLoop
+from benchmarks.precomputed_numpy import PrecomputedClosedLoop
 from ofrl_drake.diagram import extrapolation_points
 from ofrl_drake.scenario import Scenario
 
@@ -24,13 +27,16 @@ __all__ = [
     "REFERENCE_TOLERANCE",
     "Reference",
     "fused_loop",
+    "gains_resolved",
     "initial_state",
     "log_times",
+    "precomputed_loop",
     "reference",
     "with_basis",
     "with_duration",
     "with_grid",
     "with_integrator",
+    "with_point_count",
 ]
 
 #: rtol = atol of the DOP853 reference solution.
@@ -65,7 +71,9 @@ def with_grid(scenario: Scenario, counts: list[int]) -> Scenario:
 def with_basis(scenario: Scenario, degrees: list[int]) -> Scenario:
     """``scenario`` with basis degrees ``degrees``.
 
-    The new monomials start at zero weight and the same diagonal of Gamma(0).
+    The new monomials start at zero weight; a given ``Gamma0`` becomes its
+    mean diagonal times the identity (with ``critic.gains: auto`` the gains
+    are derived for the new basis as for any scenario).
     """
     from ofrl_drake.basis import PolynomialBasis
 
@@ -73,14 +81,30 @@ def with_basis(scenario: Scenario, degrees: list[int]) -> Scenario:
     new = PolynomialBasis(len(scenario.x0), degrees)
     weights = dict(zip(map(tuple, old.exponents.tolist()), scenario.critic.W0, strict=True))
     W0 = [float(weights.get(tuple(e), 0.0)) for e in new.exponents.tolist()]
-    gamma = float(np.mean(np.diag(np.asarray(scenario.critic.Gamma0, dtype=float))))
-    critic = dataclasses.replace(
-        scenario.critic,
-        basis_degrees=list(degrees),
-        W0=W0,
-        Gamma0=(gamma * np.eye(new.size)).tolist(),
-    )
+    critic = dataclasses.replace(scenario.critic, basis_degrees=list(degrees), W0=W0)
+    if scenario.critic.Gamma0 is not None:
+        gamma = float(np.mean(np.diag(np.asarray(scenario.critic.Gamma0, dtype=float))))
+        critic = dataclasses.replace(critic, Gamma0=(gamma * np.eye(new.size)).tolist())
     return dataclasses.replace(scenario, critic=critic)
+
+
+def with_point_count(scenario: Scenario, number: int) -> Scenario:
+    """``scenario`` with ``number`` uniformly drawn points (its own box and seed)."""
+    points = dataclasses.replace(scenario.points, kind="uniform", number=int(number))
+    return dataclasses.replace(scenario, points=points)
+
+
+def gains_resolved(scenario: Scenario) -> Scenario:
+    """``scenario`` with its learning gains written out (``critic.gains: manual``).
+
+    ``critic.gains: auto`` derives the gains from the horizon (the policy
+    period is a tenth of it, the forgetting factor five over that): resolved
+    at the scenario's own horizon first, a shortened benchmark run simulates
+    the start of the same loop instead of a different one.
+    """
+    from ofrl_drake.diagram import build_closed_loop
+
+    return build_closed_loop(scenario).resolved_scenario()
 
 
 def fused_loop(scenario: Scenario, design: Any) -> FusedClosedLoop:
@@ -105,8 +129,39 @@ def fused_loop(scenario: Scenario, design: Any) -> FusedClosedLoop:
     )
 
 
-def initial_state(scenario: Scenario, loop: FusedClosedLoop) -> np.ndarray:
-    """``z(0)`` of the fused loop for ``scenario``."""
+def precomputed_loop(scenario: Scenario, design: Any) -> PrecomputedClosedLoop:
+    """The stronger baseline's closed loop of ``scenario`` with the gains of ``design``.
+
+    ``f`` and ``g`` at the points come from the fused baseline's batch
+    functions (:data:`~benchmarks.fused_numpy.SYSTEMS`), not from
+    :mod:`ofrl_drake`.
+    """
+    b = design.bounds
+    f, g, _ = SYSTEMS[scenario.system]
+    X = extrapolation_points(scenario)
+    return PrecomputedClosedLoop(
+        system=scenario.system,
+        points=X,
+        f_points=f(X),
+        g_points=g(X),
+        degrees=list(scenario.critic.basis_degrees),
+        Q=np.asarray(scenario.cost.Q, dtype=float),
+        r=np.asarray(scenario.cost.R, dtype=float),
+        input_bound=scenario.input_bound,
+        kc=scenario.critic.kc,
+        nu=scenario.critic.nu,
+        beta=scenario.critic.beta,
+        L=np.asarray(design.L),
+        H=np.asarray(design.H),
+        K=np.asarray(design.K),
+        Mf1=np.asarray(b.Mf1),
+        Mg1=np.asarray(b.Mg1),
+        Mg2=np.asarray(b.Mg2),
+    )
+
+
+def initial_state(scenario: Scenario, loop: FusedClosedLoop | PrecomputedClosedLoop) -> np.ndarray:
+    """``z(0)`` of either baseline's loop for ``scenario``."""
     c = scenario.critic
     return loop.initial_state(
         np.asarray(scenario.x0, float),

@@ -1,9 +1,11 @@
 """The benchmark sections: each returns JSON-ready results.
 
 * :func:`paper_end_to_end` -- ``simulate()`` on the paper scenario, whole,
-  against the fused numpy right-hand side under LSODA;
+  against the two numpy right-hand sides under LSODA: the stronger baseline
+  (:mod:`benchmarks.precomputed_numpy`, the target's yardstick) and the fused
+  one (:mod:`benchmarks.fused_numpy`, the second column);
 * :func:`evaluation_overhead` -- one derivative evaluation of the diagram
-  against the fused right-hand side at the same state;
+  against both right-hand sides at the same state;
 * :func:`points_scaling`, :func:`basis_scaling`, :func:`state_dimension` --
   how the cost grows with N, L and n;
 * :func:`integrators` -- Drake integrators at two accuracies;
@@ -22,7 +24,7 @@ import dataclasses
 import functools
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,15 +33,18 @@ from benchmarks.cases import (
     Reference,
     fused_loop,
     initial_state,
+    precomputed_loop,
     reference,
     with_basis,
     with_grid,
     with_integrator,
 )
+from benchmarks.scaling import ScalingSettings
 from benchmarks.timing import Timing, interleaved, measure
 from ofrl_drake.scenario import Scenario
 
 __all__ = [
+    "BASELINES",
     "BASELINE_METHOD",
     "BASELINE_TOLERANCES",
     "Settings",
@@ -56,9 +61,13 @@ __all__ = [
     "timed",
 ]
 
-#: The baseline integrator and its tolerances (rtol, atol).
+#: The baselines' integrator and its tolerances (rtol, atol).
 BASELINE_METHOD = "LSODA"
 BASELINE_TOLERANCES = (1e-9, 1e-11)
+
+#: Result key -> how the baseline's loop is built: the stronger baseline
+#: first (the targets' yardstick), then the fused one (the second column).
+BASELINES = {"precomputed": precomputed_loop, "fused": fused_loop}
 
 
 @dataclass(frozen=True)
@@ -73,36 +82,47 @@ class Settings:
         Grid counts of the N-scaling cases.
     basis_degrees : tuple of tuple of int
         Basis degrees of the L-scaling cases.
-    integrator_cases : tuple of (str, float)
-        (scheme, accuracy) pairs.
+    integrator_cases : tuple of (str, float, float)
+        (scheme, accuracy, log period) of the integrator rows: the paper
+        scenario's own log period (0.02 s, about one explicit step, which
+        bounds every scheme to at least 1,500 steps) and a coarser one, so
+        that implicit schemes are not forced to short steps by the logging.
     overhead_batches, overhead_calls : int
         Interleaved batches, and derivative evaluations per batch, of the
         per-evaluation overhead measurement.
-    integrator_log_period : float
-        Log period of the integrator cases: coarser than the paper scenario's,
-        which is matched to the explicit step, so that implicit schemes are
-        not forced to short steps by the logging.
     lmi_cases : tuple of (str, str)
         (backend, solver) pairs.
     bellman_batches, bellman_calls : int
         Batches, and calls per batch, of the Bellman-math measurement (the
         calls shrink with N so that each batch does about the same work).
+    scaling : ScalingSettings
+        The cart-pole scaling rows (:mod:`benchmarks.scaling`).
+    sweep_counts : tuple of int
+        Numbers of initial states of the sweep measurement
+        (:mod:`benchmarks.sweep`).
+    sweep_repeats : int
+        Interleaved timed runs of each sweep case.
     """
 
     repeats: int = 5
     point_grids: tuple[tuple[int, ...], ...] = ((10, 10), (25, 40), (100, 100))
     basis_degrees: tuple[tuple[int, ...], ...] = ((2,), (2, 4))
-    integrator_cases: tuple[tuple[str, float], ...] = (
-        ("runge_kutta3", 1e-3),
-        ("runge_kutta3", 1e-5),
-        ("bogacki_shampine3", 1e-4),
-        ("runge_kutta5", 1e-3),
-        ("radau3", 1e-3),
-        ("radau3", 1e-4),
-        ("radau3", 1e-5),
-        ("implicit_euler", 1e-3),
+    integrator_cases: tuple[tuple[str, float, float], ...] = (
+        ("runge_kutta3", 1e-4, 0.02),
+        ("runge_kutta3", 1e-3, 0.02),
+        ("radau3", 1e-3, 0.02),
+        ("radau1", 1e-3, 0.02),
+        ("implicit_euler", 1e-3, 0.02),
+        ("velocity_implicit_euler", 1e-3, 0.02),
+        ("runge_kutta3", 1e-3, 0.1),
+        ("runge_kutta3", 1e-5, 0.1),
+        ("bogacki_shampine3", 1e-4, 0.1),
+        ("runge_kutta5", 1e-3, 0.1),
+        ("radau3", 1e-3, 0.1),
+        ("radau3", 1e-4, 0.1),
+        ("radau3", 1e-5, 0.1),
+        ("implicit_euler", 1e-3, 0.1),
     )
-    integrator_log_period: float = 0.1
     overhead_batches: int = 21
     overhead_calls: int = 500
     lmi_cases: tuple[tuple[str, str], ...] = (
@@ -113,6 +133,9 @@ class Settings:
     )
     bellman_batches: int = 21
     bellman_calls: int = 2000
+    scaling: ScalingSettings = field(default_factory=ScalingSettings)
+    sweep_counts: tuple[int, ...] = (1, 8)
+    sweep_repeats: int = 2
 
 
 # ------------------------------------------------------------------ helpers
@@ -128,10 +151,12 @@ def _ours(scenario: Scenario) -> Callable[[], Any]:
     return lambda: simulate(scenario, progress=False)
 
 
-def _solve_fused(scenario: Scenario, design: Any, times: np.ndarray | None = None) -> tuple:
-    """Build the fused loop (point features included) and integrate it: ``(loop, sol)``."""
+def _solve_baseline(
+    kind: str, scenario: Scenario, design: Any, times: np.ndarray | None = None
+) -> tuple:
+    """Build a baseline's loop (its point data included) and integrate it: ``(loop, sol)``."""
     rtol, atol = BASELINE_TOLERANCES
-    loop = fused_loop(scenario, design)
+    loop = BASELINES[kind](scenario, design)
     sol = loop.solve(
         initial_state(scenario, loop),
         scenario.simulation.duration,
@@ -143,9 +168,9 @@ def _solve_fused(scenario: Scenario, design: Any, times: np.ndarray | None = Non
     return loop, sol
 
 
-def _baseline(scenario: Scenario, design: Any, times: np.ndarray) -> Callable[[], Any]:
-    """The timed baseline run: :func:`_solve_fused` sampled at ``times``."""
-    return lambda: _solve_fused(scenario, design, times)
+def _baseline(kind: str, scenario: Scenario, design: Any, times: np.ndarray) -> Callable[[], Any]:
+    """The timed baseline run: :func:`_solve_baseline` sampled at ``times``."""
+    return lambda: _solve_baseline(kind, scenario, design, times)
 
 
 def _recording(run: Callable[[], Any], into: list[float]) -> Callable[[], Any]:
@@ -198,38 +223,49 @@ def _baseline_summary(timing: Timing, run: Any, ref: Reference, steps: int) -> d
     }
 
 
-def _baseline_steps(scenario: Scenario, design: Any) -> int:
+def _baseline_steps(kind: str, scenario: Scenario, design: Any) -> int:
     """LSODA's accepted steps (an untimed run without ``t_eval``)."""
-    _, sol = _solve_fused(scenario, design)
+    _, sol = _solve_baseline(kind, scenario, design)
     return int(sol.t.size - 1)
 
 
 def _compare(scenario: Scenario, repeats: int, *, baseline: bool = True) -> dict:
-    """Ours (whole ``simulate()``) and, optionally, the fused baseline, interleaved."""
+    """Ours (whole ``simulate()``) and, optionally, both baselines, interleaved.
+
+    ``ratio`` is ours over the stronger baseline (``precomputed``), medians of
+    the interleaved runs; ``ratio_fused`` the same over the fused baseline;
+    ``ratio_of_pairs`` and ``ratio_of_pairs_fused`` are the medians of the
+    per-repeat ratios, which a drift in machine load affects less.
+    """
     design = _design(scenario)
     ref = reference(scenario, design)
     advance: list[float] = []
     fns: dict[str, Callable[[], Any]] = {"ours": _recording(_ours(scenario), advance)}
     if baseline:
-        fns["baseline"] = _baseline(scenario, design, ref.times)
+        for kind in BASELINES:
+            fns[kind] = _baseline(kind, scenario, design, ref.times)
     timings, results = interleaved(fns, repeats)
     out = {"ours": _ours_summary(timings["ours"], advance[-repeats:], results["ours"], ref)}
     if baseline:
-        steps = _baseline_steps(scenario, design)
-        out["baseline"] = _baseline_summary(timings["baseline"], results["baseline"], ref, steps)
-        out["ratio"] = timings["ours"].median / timings["baseline"].median
-        pairs = [a / b for a, b in zip(timings["ours"].runs, timings["baseline"].runs, strict=True)]
-        out["ratio_of_pairs"] = float(np.median(pairs))
+        for kind in BASELINES:
+            steps = _baseline_steps(kind, scenario, design)
+            out[kind] = _baseline_summary(timings[kind], results[kind], ref, steps)
+            suffix = "" if kind == "precomputed" else f"_{kind}"
+            out[f"ratio{suffix}"] = timings["ours"].median / timings[kind].median
+            pairs = [a / b for a, b in zip(timings["ours"].runs, timings[kind].runs, strict=True)]
+            out[f"ratio_of_pairs{suffix}"] = float(np.median(pairs))
     return out
 
 
 # ----------------------------------------------------------------- sections
 def paper_end_to_end(scenario: Scenario, settings: Settings) -> dict:
-    """The paper scenario: whole ``simulate()`` against the fused baseline."""
+    """The paper scenario: whole ``simulate()`` against both baselines, interleaved."""
     out = _compare(scenario, settings.repeats)
     design_timing, _ = measure(lambda: _design(scenario), settings.repeats)
     out["design"] = design_timing.to_dict()
-    out["ratio_simulation_only"] = out["ours"]["advance"]["median"] / out["baseline"]["median"]
+    advance = out["ours"]["advance"]["median"]
+    out["ratio_simulation_only"] = advance / out["precomputed"]["median"]
+    out["ratio_simulation_only_fused"] = advance / out["fused"]["median"]
     return out
 
 
@@ -237,39 +273,50 @@ _STATE_SLOTS = ("plant", "observer", "critic", "gamma", "running_cost")
 
 
 def _diagram_state(loop: Any, context: Any, z: np.ndarray) -> np.ndarray:
-    """The diagram's continuous state for the fused state ``z = [x, xhat, W, Gamma, J]``.
+    """The diagram's continuous state for the fused state ``z = [x, xhat, W, vec(Gamma), J]``.
 
     The plant, observer and critic blocks write their own state (the symbolic
-    ones store an offset from the initial state); ``context`` is left at it.
+    ones store an offset from the initial state); Gamma's block holds its
+    upper triangle. ``context`` is left at the state.
     """
+    from ofrl_drake.bellman import pack_symmetric
+
     n, L = loop.parts.system.n, loop.parts.basis.size
-    parts = np.split(z, np.cumsum([n, n, L, L * L]))
+    x, xhat, W, Gamma, J = np.split(z, np.cumsum([n, n, L, L * L]))
     sub = {slot: loop.blocks[slot].GetMyMutableContextFromRoot(context) for slot in _STATE_SLOTS}
-    loop.plant.set_state(sub["plant"], parts[0])
-    loop.observer.set_estimated_state(sub["observer"], parts[1])
-    loop.critic.set_weights(sub["critic"], parts[2])
-    for slot, value in zip(_STATE_SLOTS[3:], parts[3:], strict=True):
-        sub[slot].SetContinuousState(value)
+    loop.plant.set_state(sub["plant"], x)
+    loop.observer.set_estimated_state(sub["observer"], xhat)
+    loop.critic.set_weights(sub["critic"], W)
+    sub["gamma"].SetContinuousState(pack_symmetric(Gamma.reshape(L, L)))
+    sub["running_cost"].SetContinuousState(J)
     return context.get_continuous_state_vector().CopyToVector()
 
 
 def _fused_layout(loop: Any, context: Any) -> np.ndarray:
     """The time derivatives of the diagram at ``context``, in the fused layout."""
-    blocks = [loop.blocks[slot] for slot in _STATE_SLOTS]
-    return np.concatenate(
-        [b.EvalTimeDerivatives(b.GetMyContextFromRoot(context)).CopyToVector() for b in blocks]
-    )
+    from ofrl_drake.bellman import unpack_symmetric
+
+    rates = {
+        slot: loop.blocks[slot]
+        .EvalTimeDerivatives(loop.blocks[slot].GetMyContextFromRoot(context))
+        .CopyToVector()
+        for slot in _STATE_SLOTS
+    }
+    rates["gamma"] = unpack_symmetric(rates["gamma"]).ravel()
+    return np.concatenate([rates[slot] for slot in _STATE_SLOTS])
 
 
 def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
-    """Microseconds per derivative evaluation: diagram versus fused right-hand side.
+    """Microseconds per derivative evaluation: the diagram against both right-hand sides.
 
     The diagram is evaluated as an integrator does it: the continuous state is
     set (invalidating every cached value), then the time derivatives are
-    computed. Two states alternate; both methods see the same states. Many
+    computed. Two states alternate; all three see the same states. Many
     short interleaved batches (``settings.overhead_batches`` of
     ``settings.overhead_calls`` calls each) keep bursts of load on a shared
     machine from landing on one method only; medians and minima are reported.
+    ``overhead_us`` is the diagram minus the stronger baseline's right-hand
+    side, ``overhead_us_fused`` minus the fused one.
     """
     calls = settings.overhead_calls
     from ofrl_drake.diagram import build_closed_loop
@@ -279,11 +326,11 @@ def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
     diagram = loop.diagram
     context = diagram.CreateDefaultContext()
     derivatives = diagram.AllocateTimeDerivatives()
-    fused = fused_loop(scenario, design)
-    f0 = initial_state(scenario, fused)
-    f1 = f0.copy()
-    f1[: 2 * len(scenario.x0)] *= 0.5  # another plant and observer state
-    fused_states = (f0, f1)
+    baselines = {kind: build(scenario, design) for kind, build in BASELINES.items()}
+    z0 = initial_state(scenario, baselines["fused"])
+    z1 = z0.copy()
+    z1[: 2 * len(scenario.x0)] *= 0.5  # another plant and observer state
+    fused_states = (z0, z1)
     states = tuple(_diagram_state(loop, context, z) for z in fused_states)
 
     def diagram_calls() -> None:
@@ -291,32 +338,39 @@ def evaluation_overhead(scenario: Scenario, settings: Settings) -> dict:
             context.SetContinuousState(states[k & 1])
             diagram.CalcTimeDerivatives(context, derivatives)
 
-    def fused_calls() -> None:
-        for k in range(calls):
-            fused.rhs(0.0, fused_states[k & 1])
+    def rhs_calls(rhs: Callable[[float, np.ndarray], np.ndarray]) -> Callable[[], None]:
+        def run() -> None:
+            for k in range(calls):
+                rhs(0.0, fused_states[k & 1])
 
-    timings, _ = interleaved(
-        {"diagram": diagram_calls, "fused": fused_calls}, settings.overhead_batches
-    )
+        return run
+
+    fns = {"diagram": diagram_calls}
+    fns.update({kind: rhs_calls(b.rhs) for kind, b in baselines.items()})
+    timings, _ = interleaved(fns, settings.overhead_batches)
     difference = 0.0
     for z, zf in zip(states, fused_states, strict=True):
         context.SetContinuousState(z)
         ours = _fused_layout(loop, context)
-        difference = max(difference, float(np.abs(ours - fused.rhs(0.0, zf)).max()))
-    diagram_us = 1e6 * timings["diagram"].median / calls
-    fused_us = 1e6 * timings["fused"].median / calls
-    return {
-        "diagram_us": diagram_us,
-        "diagram_min_us": 1e6 * timings["diagram"].min / calls,
-        "fused_us": fused_us,
-        "fused_min_us": 1e6 * timings["fused"].min / calls,
-        "overhead_us": diagram_us - fused_us,
-        "overhead_min_us": 1e6 * (timings["diagram"].min - timings["fused"].min) / calls,
-        "calls": calls,
-        "batches": settings.overhead_batches,
-        "num_states": int(states[0].size),
-        "max_derivative_difference": difference,
-    }
+        for b in baselines.values():
+            difference = max(difference, float(np.abs(ours - b.rhs(0.0, zf)).max()))
+    out: dict[str, Any] = {}
+    for key, timing in timings.items():
+        out[f"{key}_us"] = 1e6 * timing.median / calls
+        out[f"{key}_min_us"] = 1e6 * timing.min / calls
+    for kind in BASELINES:
+        suffix = "" if kind == "precomputed" else f"_{kind}"
+        out[f"overhead_us{suffix}"] = out["diagram_us"] - out[f"{kind}_us"]
+        out[f"overhead_min_us{suffix}"] = out["diagram_min_us"] - out[f"{kind}_min_us"]
+    out.update(
+        {
+            "calls": calls,
+            "batches": settings.overhead_batches,
+            "num_states": int(states[0].size),
+            "max_derivative_difference": difference,
+        }
+    )
+    return out
 
 
 def points_scaling(scenario: Scenario, settings: Settings) -> list[dict]:
@@ -394,15 +448,11 @@ def integrators(scenario: Scenario, settings: Settings) -> list[dict]:
     design = _design(scenario)
     ref = reference(scenario, design)
     rows = []
-    for scheme, accuracy in settings.integrator_cases:
-        case = with_integrator(scenario, scheme, accuracy, settings.integrator_log_period)
+    for scheme, accuracy, log_period in settings.integrator_cases:
+        case = with_integrator(scenario, scheme, accuracy, log_period)
         advance: list[float] = []
         timing, result = measure(_recording(_ours(case), advance), settings.repeats)
-        row = {
-            "integrator": scheme,
-            "accuracy": accuracy,
-            "log_period": settings.integrator_log_period,
-        }
+        row = {"integrator": scheme, "accuracy": accuracy, "log_period": log_period}
         row.update(_ours_summary(timing, advance[-settings.repeats :], result, ref))
         rows.append(row)
     return rows

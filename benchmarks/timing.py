@@ -108,8 +108,32 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def _git(*args: str) -> str | None:
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        done = subprocess.run(
+            ["git", *args], cwd=root, capture_output=True, text=True, check=True, timeout=10
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip()
+
+
+def _load_average() -> list[float] | None:
+    try:
+        return list(os.getloadavg())
+    except OSError:
+        return None
+
+
 def machine_info() -> dict[str, Any]:
-    """CPU model, core count, load average and the versions that matter."""
+    """CPU model, core count, load average, the versions that matter and the commit run.
+
+    ``tree_clean`` is whether the working tree matched the commit, but for
+    ``benchmarks/RESULTS.md`` and ``benchmarks/results.json`` (None outside git).
+    """
     from importlib.metadata import PackageNotFoundError, version
 
     import numpy
@@ -120,14 +144,16 @@ def machine_info() -> dict[str, Any]:
     except PackageNotFoundError:
         drake = "unknown"
 
-    try:
-        load = list(os.getloadavg())
-    except OSError:
-        load = None
+    # The run's own outputs do not count: a run rewrites them.
+    status = _git(
+        "status", "--porcelain", "--", ".", ":!benchmarks/RESULTS.md", ":!benchmarks/results.json"
+    )
     return {
         "cpu": _cpu_model(),
         "cpu_count": os.cpu_count(),
-        "load_average": load,
+        "load_average": _load_average(),
+        "commit": _git("rev-parse", "--short", "HEAD"),
+        "tree_clean": None if status is None else status == "",
         "python": platform.python_version(),
         "numpy": numpy.__version__,
         "scipy": scipy.__version__,
@@ -136,10 +162,11 @@ def machine_info() -> dict[str, Any]:
     }
 
 
-def speed_probe(calls: int = 20_000) -> dict[str, float]:
+def speed_probe(calls: int = 20_000) -> dict[str, Any]:
     """Microseconds of two fixed tiny workloads, to show how fast the machine
     ran at a given moment (a shared virtual machine drifts): a 3 x 3 numpy
-    product and a call of an empty Python function."""
+    product and a call of an empty Python function; and the load average
+    (1, 5 and 15 minutes) then."""
     import numpy as np
 
     A = np.arange(9.0).reshape(3, 3)
@@ -156,4 +183,8 @@ def speed_probe(calls: int = 20_000) -> dict[str, float]:
             times.append(time.perf_counter() - start)
         return 1e6 * min(times) / calls
 
-    return {"numpy_matmul_3x3_us": best(lambda: A @ A), "python_call_us": best(noop)}
+    return {
+        "numpy_matmul_3x3_us": best(lambda: A @ A),
+        "python_call_us": best(noop),
+        "load_average": _load_average(),
+    }

@@ -17,6 +17,11 @@ so that ``W' = -k_c Gamma critic_sum`` and
 ``Gamma' = beta Gamma - k_c Gamma gain_sum Gamma``. The learning condition
 (Assumption 2) is ``c = lambda_min(gain_sum)``.
 
+Gamma is symmetric, so the loop carries only its upper triangle, row by row:
+``L (L + 1) / 2`` numbers instead of ``L^2`` (:func:`pack_symmetric`,
+:func:`unpack_symmetric`); :func:`critic_rate` and :func:`gamma_rate` read
+and write that layout.
+
 Everything that does not depend on ``W`` is precomputed once per point set in
 :class:`PointFeatures`. The ``W``-dependent part is one compiled loop over
 the points (:func:`bellman_kernel`, numba ``@njit``) that accumulates both
@@ -32,6 +37,7 @@ these kernels to.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -58,7 +64,10 @@ __all__ = [
     "gamma_rate",
     "kernel_layout",
     "learning_condition",
+    "pack_symmetric",
+    "packed_size",
     "point_features",
+    "unpack_symmetric",
 ]
 
 
@@ -677,17 +686,71 @@ def learning_condition(gain_sum: np.ndarray) -> float:
     return float(_min_eigenvalue(np.ascontiguousarray(gain_sum, dtype=float)))
 
 
+def packed_size(size: int) -> int:
+    """``L (L + 1) / 2``: the numbers of a symmetric ``L x L`` matrix's upper triangle."""
+    return size * (size + 1) // 2
+
+
+def _packed_order(packed: int) -> int:
+    """``L`` with ``packed_size(L) == packed``; raises if there is none."""
+    size = (math.isqrt(8 * packed + 1) - 1) // 2
+    if packed_size(size) != packed:
+        raise ModelError(
+            f"a packed symmetric matrix has L (L + 1) / 2 entries; {packed} is not such a "
+            "number (pack it with ofrl_drake.bellman.pack_symmetric)."
+        )
+    return size
+
+
+def pack_symmetric(matrix: np.ndarray) -> np.ndarray:
+    """The upper triangle of symmetric ``(..., L, L)``, row by row: ``(..., L (L + 1) / 2)``.
+
+    Entry ``(a, b)``, ``a <= b``, lands at ``a L - a (a - 1) / 2 + b - a``
+    (``numpy.triu_indices`` order). Only the upper triangle is read.
+    """
+    M = np.asarray(matrix, dtype=float)
+    if M.ndim < 2 or M.shape[-1] != M.shape[-2]:
+        raise ModelError(f"pack_symmetric needs square matrices (..., L, L); got {M.shape}.")
+    rows, cols = np.triu_indices(M.shape[-1])
+    return M[..., rows, cols]
+
+
+def unpack_symmetric(packed: np.ndarray) -> np.ndarray:
+    """The symmetric matrices ``(..., L, L)`` of upper triangles ``(..., L (L + 1) / 2)``.
+
+    The inverse of :func:`pack_symmetric`.
+    """
+    v = np.asarray(packed, dtype=float)
+    if v.ndim < 1:
+        raise ModelError("unpack_symmetric needs a vector of L (L + 1) / 2 numbers; got a scalar.")
+    L = _packed_order(v.shape[-1])
+    rows, cols = np.triu_indices(L)
+    out = np.empty((*v.shape[:-1], L, L))
+    out[..., rows, cols] = v
+    out[..., cols, rows] = v
+    return out
+
+
+@njit(**JIT)
+def _packed_index(a: int, b: int, size: int) -> int:
+    """Where entry ``(a, b)`` of a symmetric ``size x size`` matrix sits in its packed form."""
+    if a > b:
+        a, b = b, a
+    return a * size - (a * (a - 1)) // 2 + b - a
+
+
 @njit(**JIT)
 def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.ndarray) -> None:
-    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma flattened row-major (L*L,).
+    """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma packed (L (L + 1) / 2,).
 
+    ``gamma`` is Gamma's upper triangle, row by row (:func:`pack_symmetric`).
     The readable form: :func:`ofrl_drake.update_laws.critic_rate`.
     """
     L = critic_sum.shape[0]
     for a in range(L):
         acc = 0.0
         for b in range(L):
-            acc += gamma[a * L + b] * critic_sum[b]
+            acc += gamma[_packed_index(a, b, L)] * critic_sum[b]
         out[a] = -kc * acc
 
 
@@ -695,17 +758,21 @@ def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.nd
 def gamma_rate(
     gamma: np.ndarray, gain_sum: np.ndarray, kc: float, beta: float, out: np.ndarray
 ) -> None:
-    """(gamma): ``out = beta G - k_c G S G`` with ``G`` the symmetric part of Gamma.
+    """(gamma): ``out = beta G - k_c G S G``, Gamma and its rate packed (L (L + 1) / 2,).
 
-    ``gamma`` and ``gain_sum`` (``S``) are flattened row-major (L*L,); so is
-    ``out``, which is exactly symmetric, so Gamma stays symmetric to round-off.
-    The readable form: :func:`ofrl_drake.update_laws.gamma_rate`.
+    ``gamma`` and ``out`` are upper triangles, row by row
+    (:func:`pack_symmetric`); ``gain_sum`` (``S``) is flattened row-major
+    (L*L,). Each entry of the rate is the mean of ``(G S G)_ab`` and
+    ``(G S G)_ba``, so it is the same number, to the bit, whichever triangle
+    it came from. The readable form: :func:`ofrl_drake.update_laws.gamma_rate`.
     """
-    L = int(np.sqrt(gamma.shape[0]) + 0.5)
+    L = int(np.sqrt(gain_sum.shape[0]) + 0.5)
     G = np.empty((L, L))
     for a in range(L):
-        for b in range(L):
-            G[a, b] = 0.5 * (gamma[a * L + b] + gamma[b * L + a])
+        for b in range(a, L):
+            value = gamma[_packed_index(a, b, L)]
+            G[a, b] = value
+            G[b, a] = value
     GS = np.empty((L, L))
     for a in range(L):
         for b in range(L):
@@ -720,6 +787,4 @@ def gamma_rate(
             for c in range(L):
                 acc1 += GS[a, c] * G[c, b]
                 acc2 += GS[b, c] * G[c, a]
-            value = beta * G[a, b] - kc * 0.5 * (acc1 + acc2)
-            out[a * L + b] = value
-            out[b * L + a] = value
+            out[_packed_index(b, a, L)] = beta * G[a, b] - kc * 0.5 * (acc1 + acc2)

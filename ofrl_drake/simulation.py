@@ -17,6 +17,7 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorC
 from pydrake.systems.framework import System
 
 from ofrl_drake.atomic import atomic_file
+from ofrl_drake.bellman import unpack_symmetric
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
@@ -503,7 +504,6 @@ def simulate(
         _flush_logs(loop, simulator.get_context())
 
     t, logs = loop.logs(simulator.get_context())
-    L = logs["W"].shape[1]
     integ = simulator.get_integrator()
     stats = {
         "scheme": scenario.simulation.integrator,
@@ -524,7 +524,7 @@ def simulate(
         xhat=logs["xhat"],
         W=logs["W"],
         W_policy=logs["W_policy"],
-        Gamma=logs["Gamma"].reshape(-1, L, L),
+        Gamma=unpack_symmetric(logs["Gamma"]),  # logged packed (GammaGain)
         u=logs["u"],
         learning_condition=logs["learning_condition"][:, 0],
         cost=logs["cost"][:, 0],

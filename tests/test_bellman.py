@@ -16,7 +16,9 @@ from ofrl_drake.bellman import (
     gamma_rate,
     kernel_layout,
     learning_condition,
+    pack_symmetric,
     point_features,
+    unpack_symmetric,
 )
 from ofrl_drake.cost import input_cost_from_D
 from ofrl_drake.errors import ModelError
@@ -265,15 +267,35 @@ def test_compiled_extrapolation_matches_the_readable_laws(name, law, seed):
 @pytest.mark.parametrize("L", [1, 3, 10])
 def test_compiled_rates_match_the_readable_laws(seed, L):
     rng = np.random.default_rng(seed)
-    Gamma = _random_spd(rng, L) + 1e-3 * rng.normal(size=(L, L))  # not quite symmetric
+    Gamma = _random_spd(rng, L)
     S, s = _random_spd(rng, L), rng.normal(size=L)
     kc, beta = rng.uniform(0.01, 2.0), rng.uniform(0.0, 1.0)
-    W_dot, Gamma_dot = np.empty(L), np.empty(L * L)
-    critic_rate(Gamma.ravel(), s, kc, W_dot)
-    gamma_rate(Gamma.ravel(), S.ravel(), kc, beta, Gamma_dot)
+    W_dot, Gamma_dot = np.empty(L), np.empty(L * (L + 1) // 2)  # Gamma packed
+    critic_rate(pack_symmetric(Gamma), s, kc, W_dot)
+    gamma_rate(pack_symmetric(Gamma), S.ravel(), kc, beta, Gamma_dot)
     _close(W_dot, laws.critic_rate(Gamma, s, kc))
-    _close(Gamma_dot.reshape(L, L), laws.gamma_rate(Gamma, S, kc, beta))
-    assert np.max(np.abs(Gamma_dot.reshape(L, L) - beta * Gamma)) > 1e-6  # S mattered
+    _close(unpack_symmetric(Gamma_dot), laws.gamma_rate(Gamma, S, kc, beta))
+    assert np.max(np.abs(unpack_symmetric(Gamma_dot) - beta * Gamma)) > 1e-6  # S mattered
+
+
+@pytest.mark.parametrize("L", [1, 2, 5])
+def test_packed_rates_read_only_the_upper_triangle_in_its_order(L):
+    """Entry (a, b), a <= b, of the packed Gamma is Gamma[a, b]: perturbing it moves
+    exactly the rates a perturbed symmetric Gamma moves."""
+    rng = np.random.default_rng(L)
+    Gamma, S, s = _random_spd(rng, L), _random_spd(rng, L), rng.normal(size=L)
+    rows, cols = np.triu_indices(L)
+    for k, (a, b) in enumerate(zip(rows, cols, strict=True)):
+        bumped = Gamma.copy()
+        bumped[a, b] += 0.5
+        bumped[b, a] = bumped[a, b]
+        packed = pack_symmetric(Gamma)
+        packed[k] += 0.5
+        W_dot, Gamma_dot = np.empty(L), np.empty(packed.size)
+        critic_rate(packed, s, 0.3, W_dot)
+        gamma_rate(packed, S.ravel(), 0.3, 0.2, Gamma_dot)
+        _close(W_dot, laws.critic_rate(bumped, s, 0.3))
+        _close(unpack_symmetric(Gamma_dot), laws.gamma_rate(bumped, S, 0.3, 0.2))
 
 
 def _block_derivative(block, state, inputs):
@@ -303,15 +325,15 @@ def test_blocks_follow_the_readable_update_rates(name, law, gamma_bound):
         W,
         [
             (critic.get_critic_sum_input_port(), sums.critic_sum),
-            (critic.get_gamma_input_port(), Gamma.ravel()),
+            (critic.get_gamma_input_port(), pack_symmetric(Gamma)),
         ],
     )
     gamma = GammaGain(Gamma0, gains.kc, gains.beta, gamma_bound)
     Gamma_dot = _block_derivative(
-        gamma, Gamma.ravel(), [(gamma.get_gain_sum_input_port(), sums.gain_sum.ravel())]
+        gamma, pack_symmetric(Gamma), [(gamma.get_gain_sum_input_port(), sums.gain_sum.ravel())]
     )
     _close(W_dot, expected.W_dot, rtol=1e-11)
-    _close(Gamma_dot.reshape(L, L), expected.Gamma_dot, rtol=1e-11)
+    _close(unpack_symmetric(Gamma_dot), expected.Gamma_dot, rtol=1e-11)
     if gamma_bound is None:
         assert expected.beta == gains.beta
     else:

@@ -1,7 +1,8 @@
-"""Smoke test of the benchmark runner: a tiny run, then the output format.
+"""Smoke test of the benchmark runner: a tiny run, then the output format; and the
+stronger baseline held to the fused one and to ``simulate()``.
 
 No timing is asserted; only that every section reports finite numbers under
-the documented keys.
+the documented keys, and that the baselines integrate the same loop.
 """
 
 import json
@@ -10,7 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.__main__ import SECTIONS, main
+from benchmarks.__main__ import BEGIN, END, SECTIONS, main, write_markdown
+from benchmarks.cases import fused_loop, initial_state, precomputed_loop, with_duration
 from benchmarks.report import format_report
 
 TIMING_KEYS = {"median", "min", "max", "runs"}
@@ -39,10 +41,57 @@ def _check_run(run):
 
 def _check_pair(row):
     _check_run(row["ours"])
-    _check_run(row["baseline"])
+    _check_run(row["precomputed"])
+    _check_run(row["fused"])
     assert set(row["ours"]["advance"]) == TIMING_KEYS
-    assert _finite(row["ratio"]) and row["ratio"] > 0
-    assert _finite(row["ratio_of_pairs"]) and row["ratio_of_pairs"] > 0
+    for key in ("ratio", "ratio_of_pairs", "ratio_fused", "ratio_of_pairs_fused"):
+        assert _finite(row[key]) and row[key] > 0, key
+
+
+@pytest.fixture(scope="module", params=["two_state_paper", "coupled_two_state"])
+def baselines(request):
+    from ofrl_drake import load_scenario
+    from ofrl_drake.diagram import design_for
+    from tests.conftest import ROOT
+
+    scenario = load_scenario(ROOT / "diagrams" / f"{request.param}.yaml")
+    design = design_for(scenario)
+    return scenario, design, precomputed_loop(scenario, design), fused_loop(scenario, design)
+
+
+def test_stronger_baseline_is_the_fused_right_hand_side(baselines):
+    """At random states (weights and Gamma far from a run's), to round-off."""
+    scenario, _, strong, fused = baselines
+    z0 = initial_state(scenario, fused)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        z = z0 + 0.5 * rng.normal(size=z0.size)
+        expected = fused.rhs(0.0, z)
+        np.testing.assert_allclose(strong.rhs(0.0, z), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_stronger_baseline_follows_simulate(paper_scenario, paper_design):
+    """LSODA (rtol 1e-9) on the stronger baseline and simulate() (Runge-Kutta 3 at
+    accuracy 1e-4) over the first 3 s of the paper scenario, at every logged time:
+    x within 1e-4 (measured 5e-6), xhat within 1e-4 (2e-5), W within 1e-7 (1.3e-8),
+    Gamma within 1e-6 (5e-8, entries up to 84) and J within 1e-4 (1e-5)."""
+    from ofrl_drake import simulate
+    from ofrl_drake.bellman import pack_symmetric
+
+    scenario = with_duration(paper_scenario, 3.0)
+    result = simulate(scenario, design=paper_design, progress=False)
+    loop = precomputed_loop(scenario, paper_design)
+    sol = loop.solve(initial_state(scenario, loop), 3.0, t_eval=result.t)
+    assert sol.success
+    n, L = loop.n, loop.size
+    x, xhat, W, Gamma, J = np.split(sol.y.T, np.cumsum([n, n, L, L * L]), axis=1)
+    np.testing.assert_allclose(x, result.x, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(xhat, result.xhat, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(W, result.W, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(
+        pack_symmetric(Gamma.reshape(-1, L, L)), pack_symmetric(result.Gamma), rtol=0, atol=1e-6
+    )
+    np.testing.assert_allclose(J[:, 0], result.cost, rtol=0, atol=1e-4)
 
 
 @pytest.fixture(scope="module")
@@ -65,42 +114,83 @@ def test_all_sections_and_metadata_are_written(results):
         "speed_probe",
         "paper",
         "overhead",
+        "profile",
         "bellman",
         "points",
         "basis",
         "state_dimension",
+        "scaling",
         "blocks",
         "integrators",
+        "sweep",
         "lmi_design",
         "targets",
     ):
         assert key in results, key
     assert results["settings"]["duration"] == pytest.approx(0.3)
     assert results["settings"]["repeats"] == 1
+    assert results["settings"]["baseline"]["kinds"] == ["precomputed", "fused"]
     assert results["machine"]["cpu_count"] >= 1
     for when in ("start", "end"):
-        assert all(_finite(v) and v > 0 for v in results["speed_probe"][when].values())
+        probe = results["speed_probe"][when]
+        assert _finite(probe["numpy_matmul_3x3_us"]) and probe["numpy_matmul_3x3_us"] > 0
+        assert _finite(probe["python_call_us"]) and probe["python_call_us"] > 0
+        assert len(probe["load_average"]) == 3
 
 
-def test_paper_section_compares_with_the_baseline(results):
+def test_paper_section_compares_with_both_baselines(results):
     paper = results["paper"]
     _check_pair(paper)
     assert _finite(paper["ratio_simulation_only"])
+    assert _finite(paper["ratio_simulation_only_fused"])
     assert set(paper["design"]) == TIMING_KEYS
-    assert paper["baseline"]["integrator"] == "scipy LSODA"
-    # Both runners integrate the same equations to the same W.
+    for kind in ("precomputed", "fused"):
+        assert paper[kind]["integrator"] == "scipy LSODA"
+        assert paper[kind]["W_max_error"] < 1e-6
+    # All three runners integrate the same equations to the same W.
     assert paper["ours"]["W_max_error"] < 1e-5
-    assert paper["baseline"]["W_max_error"] < 1e-6
+    np.testing.assert_allclose(
+        paper["ratio"], paper["ours"]["median"] / paper["precomputed"]["median"]
+    )
 
 
 def test_overhead_section_reports_microseconds(results):
     o = results["overhead"]
-    for key in ("diagram_us", "fused_us", "overhead_us", "max_derivative_difference"):
+    for key in (
+        "diagram_us",
+        "precomputed_us",
+        "fused_us",
+        "overhead_us",
+        "overhead_us_fused",
+        "max_derivative_difference",
+    ):
         assert _finite(o[key]), key
-    assert o["diagram_us"] > 0 and o["fused_us"] > 0
-    np.testing.assert_allclose(o["overhead_us"], o["diagram_us"] - o["fused_us"])
-    # The fused baseline is the same right-hand side as the diagram.
+    assert o["diagram_us"] > 0 and o["precomputed_us"] > 0 and o["fused_us"] > 0
+    np.testing.assert_allclose(o["overhead_us"], o["diagram_us"] - o["precomputed_us"])
+    np.testing.assert_allclose(o["overhead_us_fused"], o["diagram_us"] - o["fused_us"])
+    # Both baselines are the same right-hand side as the diagram.
     assert o["max_derivative_difference"] < 1e-9
+
+
+def test_profile_section_splits_an_evaluation_by_block(results):
+    p = results["profile"]
+    slots = [b["slot"] for b in p["blocks"]]
+    assert slots == [
+        "plant",
+        "observer",
+        "controller",
+        "critic",
+        "policy",
+        "gamma",
+        "bellman",
+        "running_cost",
+    ]
+    assert {b["slot"]: b["num_states"] for b in p["blocks"]}["gamma"] == 6  # packed, L = 3
+    for key in ("diagram_us", "set_state_us", "advance_us_per_evaluation"):
+        assert _finite(p[key]) and p[key] > 0, key
+    assert _finite(p["outside_evaluation_us"]) and _finite(p["blocks_work_us"])
+    assert p["num_states"] == 2 + 2 + 1 + 3 + 6 + 1  # plant, observer, controller, W, Gamma, J
+    assert "| bellman | BellmanExtrapolator |" in format_report(results)
 
 
 def test_bellman_section_reports_microseconds_per_call(results):
@@ -135,6 +225,47 @@ def test_scaling_sections(results):
     for section in ("points", "basis", "state_dimension"):
         for row in results[section]:
             _check_pair(row)
+
+
+def test_cart_pole_scaling_rows(results):
+    s = results["scaling"]
+    assert [r["N"] for r in s["points"]] == [100, 1000]
+    assert [(r["degrees"], r["L"]) for r in s["basis"]] == [([2], 10), ([2, 4], 45)]
+    assert [(r["n"], r["scenario"]) for r in s["state_dimension"]] == [
+        (2, "pendulum_upright"),
+        (4, "cart_pole"),
+        (6, "planar_quadrotor"),
+    ]
+    for rows in s.values():
+        assert rows[0]["seconds_per_simulated_second_growth"] == 1.0
+        for r in rows:
+            assert r["status"] == "ok"
+            for key in (
+                "seconds_per_simulated_second",
+                "evaluations_per_simulated_second",
+                "us_per_evaluation",
+                "seconds_per_simulated_second_growth",
+                "evaluations_growth",
+                "us_per_evaluation_growth",
+            ):
+                assert _finite(r[key]) and r[key] > 0, key
+            np.testing.assert_allclose(
+                r["seconds_per_simulated_second"], r["median"] / r["duration"]
+            )
+    assert "| 6 (planar_quadrotor, L = 21, N = 200) |" in format_report(results)
+
+
+def test_sweep_section_times_one_against_more_initial_states(results):
+    s = results["sweep"]
+    assert s["counts"] == [1, 2] and s["workers"] == 1
+    for mode in ("solved", "cached"):
+        for k, case in s[mode]["cases"].items():
+            assert case["statuses"] == ["ok"], (mode, k)
+            assert _finite(case["runs_per_second"]) and case["runs_per_second"] > 0
+            np.testing.assert_allclose(case["runs_per_second"], int(k) / case["median"])
+        for key in ("extra_state_seconds", "extra_state_over_simulation"):
+            assert _finite(s[mode][key]), key
+    assert "One extra initial state costs" in format_report(results)
 
 
 def test_blocks_section_times_both_block_kinds_on_every_scenario(results):
@@ -182,16 +313,37 @@ def test_targets_have_values_limits_and_verdicts(results):
         "bellman_us_N100",
         "points_ratio",
         "coupled_ratio",
+        "sweep_extra_state_over_simulation",
     } <= set(t)
     assert any(name.startswith("lmi_drake_over_cvxpy") for name in t)
     for check in t.values():
         assert _finite(check["value"]) and _finite(check["limit"])
         assert isinstance(check["met"], bool)
+    # Against the stronger baseline, with the fused one beside it.
+    assert t["paper_ratio"]["value"] == results["paper"]["ratio"]
+    assert t["paper_ratio"]["fused"] == results["paper"]["ratio_fused"]
+    assert t["coupled_ratio"]["fused"] > 0
 
 
-def test_runner_prints_markdown_tables(tmp_path, capsys):
-    assert main(["--quick", "--duration", "0.1", "--repeats", "1", "--only", "overhead"]) == 0
+def test_runner_prints_and_writes_markdown_tables(tmp_path, capsys):
+    md = tmp_path / "tables.md"
+    args = ["--quick", "--duration", "0.1", "--repeats", "1", "--only", "overhead"]
+    assert main([*args, "--markdown", str(md)]) == 0
     out = capsys.readouterr().out
-    assert "| target | value | limit | met |" in out
+    assert "| target | value (stronger baseline) | fused baseline | limit | met |" in out
     assert "overhead_us" in out
     assert "One derivative evaluation" in out
+    assert "Load average (1, 5, 15 min) at the start" in out
+    assert md.read_text().strip() == out.strip()
+
+
+def test_markdown_goes_between_the_markers_of_an_existing_file(tmp_path):
+    page = tmp_path / "RESULTS.md"
+    page.write_text(f"# Title\n\nprose\n\n{BEGIN}\nold tables\n{END}\n\nmore prose\n")
+    write_markdown(page, "| new | tables |")
+    assert page.read_text() == (
+        f"# Title\n\nprose\n\n{BEGIN}\n\n| new | tables |\n\n{END}\n\nmore prose\n"
+    )
+    plain = tmp_path / "plain.md"
+    write_markdown(plain, "| t |")
+    assert plain.read_text() == "| t |\n"

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from ofrl_drake import PolynomialBasis
-from ofrl_drake.bellman import Extrapolator, extrapolate, point_features
+from ofrl_drake.bellman import (
+    Extrapolator,
+    extrapolate,
+    pack_symmetric,
+    point_features,
+    unpack_symmetric,
+)
 from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
 from ofrl_drake.observer import ObserverGains
@@ -29,6 +35,7 @@ def test_block_structure(name):
     n, m, q = system.n, system.m, system.q
     basis = PolynomialBasis(n)
     L = basis.size
+    P = L * (L + 1) // 2  # Gamma's upper triangle
     features = point_features(
         system, basis, grid_points(-np.ones(n), np.ones(n), [3] * n), np.eye(n)
     )
@@ -40,8 +47,8 @@ def test_block_structure(name):
             ({"y": q, "u": m}, {"estimated_state": n}),
             n,
         ),
-        (CriticWeights(np.zeros(L), 0.01), ({"critic_sum": L, "gamma": L * L}, {"weights": L}), L),
-        (GammaGain(np.eye(L), 0.01, 0.2), ({"gain_sum": L * L}, {"gamma": L * L}), L * L),
+        (CriticWeights(np.zeros(L), 0.01), ({"critic_sum": L, "gamma": P}, {"weights": L}), L),
+        (GammaGain(np.eye(L), 0.01, 0.2), ({"gain_sum": L * L}, {"gamma": P}), P),
         (
             SaturatedController(system, basis, r, 3.0),
             ({"estimated_state": n, "policy_weights": L}, {"u": m}),
@@ -140,12 +147,29 @@ def test_critic_and_gamma_derivatives_closed_form(seed):
     s = rng.normal(size=3)
     W = rng.normal(size=3)
     kc, beta = 0.01, 0.2
-    dW = _derivatives(CriticWeights(np.zeros(3), kc), W, {"critic_sum": s, "gamma": Gamma.ravel()})
+    packed = pack_symmetric(Gamma)
+    dW = _derivatives(CriticWeights(np.zeros(3), kc), W, {"critic_sum": s, "gamma": packed})
     np.testing.assert_allclose(dW, -kc * Gamma @ s, rtol=1e-13)
-    dG = _derivatives(GammaGain(np.eye(3), kc, beta), Gamma.ravel(), {"gain_sum": S.ravel()})
+    dG = _derivatives(GammaGain(np.eye(3), kc, beta), packed, {"gain_sum": S.ravel()})
+    assert dG.shape == (6,)  # the upper triangle only
     expected = beta * Gamma - kc * Gamma @ S @ Gamma
-    np.testing.assert_allclose(dG.reshape(3, 3), expected, rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(dG.reshape(3, 3), dG.reshape(3, 3).T, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(unpack_symmetric(dG), expected, rtol=1e-12, atol=1e-14)
+
+
+def test_gamma_is_packed_as_its_upper_triangle_row_by_row():
+    G0 = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.25], [0.5, 0.25, 2.0]])
+    block = GammaGain(G0, 0.0, 0.0)
+    context = block.CreateDefaultContext()
+    packed = block.get_gamma_output_port().Eval(context)
+    np.testing.assert_array_equal(packed, [4.0, 1.0, 0.5, 3.0, 0.25, 2.0])
+    np.testing.assert_array_equal(unpack_symmetric(packed), G0)
+    np.testing.assert_array_equal(pack_symmetric(unpack_symmetric(packed)), packed)
+    # A batch of logged samples (T, L (L + 1) / 2) unpacks to (T, L, L).
+    assert unpack_symmetric(np.tile(packed, (5, 1))).shape == (5, 3, 3)
+    with pytest.raises(ModelError, match=r"L \(L \+ 1\) / 2 entries; 5 is not such a number"):
+        unpack_symmetric(np.ones(5))
+    with pytest.raises(ModelError, match=r"needs square matrices \(\.\.\., L, L\); got \(2, 3\)"):
+        pack_symmetric(np.ones((2, 3)))
 
 
 @pytest.mark.parametrize("x", GRID)
@@ -309,7 +333,7 @@ def test_controller_rejects_mismatched_basis_input_weights_and_bound():
 def test_frozen_blocks_are_allowed():
     """kc = 0 (frozen critic) and kc = beta = 0 (constant Gamma) are ablations, not errors."""
     assert CriticWeights(np.zeros(3), 0.0).num_continuous_states() == 3
-    assert GammaGain(np.eye(3), 0.0, 0.0).num_continuous_states() == 9
+    assert GammaGain(np.eye(3), 0.0, 0.0).num_continuous_states() == 6  # packed
 
 
 def test_running_cost_rejects_an_input_beyond_the_bound():
@@ -326,7 +350,9 @@ def test_critic_set_weights_and_derivative(kc):
     W0 = np.array([0.4, -0.2, 0.8, 1.5])
     block = CriticWeights(W0, kc)
     rng = np.random.default_rng(5)
-    inputs = {"critic_sum": rng.normal(size=4), "gamma": rng.normal(size=16)}
+    Gamma = rng.normal(size=(4, 4))
+    Gamma = Gamma + Gamma.T
+    inputs = {"critic_sum": rng.normal(size=4), "gamma": pack_symmetric(Gamma)}
     W = rng.normal(size=4)
     context = block.CreateDefaultContext()
     np.testing.assert_array_equal(block.get_weights_output_port().Eval(context), W0)
@@ -335,5 +361,5 @@ def test_critic_set_weights_and_derivative(kc):
     block.set_weights(context, W)
     np.testing.assert_array_equal(block.get_weights_output_port().Eval(context), W)
     rate = block.EvalTimeDerivatives(context).CopyToVector()
-    expected = -kc * inputs["gamma"].reshape(4, 4) @ inputs["critic_sum"]
+    expected = -kc * Gamma @ inputs["critic_sum"]
     np.testing.assert_allclose(rate, expected, rtol=1e-14, atol=1e-15)

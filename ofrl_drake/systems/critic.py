@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.bellman import critic_rate
+from ofrl_drake.bellman import critic_rate, packed_size
 from ofrl_drake.checks import finite_vector, positive_number
 
 __all__ = ["CriticWeights"]
@@ -54,7 +54,7 @@ class CriticWeights(LeafSystem):
         self._rate = np.empty(size)  # scratch for the derivative, copied out at once
         self._state_index = self.DeclareContinuousState(BasicVector(W0))
         self._critic_sum_port = self.DeclareVectorInputPort("critic_sum", size)
-        self._gamma_port = self.DeclareVectorInputPort("gamma", size * size)
+        self._gamma_port = self.DeclareVectorInputPort("gamma", packed_size(size))
         self._weights_port = self.DeclareStateOutputPort("weights", self._state_index)
 
     def get_critic_sum_input_port(self) -> InputPort:
@@ -62,7 +62,7 @@ class CriticWeights(LeafSystem):
         return self._critic_sum_port
 
     def get_gamma_input_port(self) -> InputPort:
-        """Gamma, flattened row-major (size L*L)."""
+        """Gamma's upper triangle, row by row (size L (L + 1) / 2; see ``GammaGain``)."""
         return self._gamma_port
 
     def get_weights_output_port(self) -> OutputPort:

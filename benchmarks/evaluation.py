@@ -1,0 +1,149 @@
+"""Where one derivative evaluation of the diagram goes, block by block.
+
+:func:`evaluation_profile` times, in interleaved batches:
+
+* the whole diagram as an integrator evaluates it (set the continuous state,
+  which invalidates every cached value, then ``CalcTimeDerivatives``), and
+  setting the state alone;
+* each block of the loop alone, in its own context with its inputs fixed at
+  the values they have in the diagram: for a block with state, setting its
+  state and computing its derivatives; for a block without, writing a new
+  value into its fixed first input and evaluating its first output. The
+  block's *work* is that minus the same invalidation alone;
+* one whole ``simulate()``, whose ``AdvanceTo`` time over its derivative
+  evaluations, minus the diagram's evaluation, is what the integrator, the
+  logging and the run guard cost per evaluation.
+
+The blocks' work does not add up to the diagram's evaluation exactly: inside
+the diagram the inputs come through Drake's cache rather than fixed values.
+Each number is given from the fastest of the interleaved batches (what the
+code costs; on a loaded machine a burst of load can land on one block's
+batch) and as the median of the batches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from benchmarks.timing import interleaved
+from ofrl_drake.scenario import Scenario
+
+__all__ = ["evaluation_profile"]
+
+
+def _block_batches(block: Any, root: Any, calls: int) -> tuple[Callable, Callable]:
+    """``(work, invalidation)``: two batches of ``calls`` on ``block`` alone."""
+    context = block.CreateDefaultContext()
+    mine = block.GetMyContextFromRoot(root)
+    ports = [block.get_input_port(i) for i in range(block.num_input_ports())]
+    values = [port.Eval(mine) for port in ports]
+    fixed = [port.FixValue(context, value) for port, value in zip(ports, values, strict=True)]
+    if context.num_continuous_states():
+        derivatives = block.AllocateTimeDerivatives()
+        x0 = context.get_continuous_state_vector().CopyToVector()
+        states = (x0, x0 + 1e-9)
+
+        def work() -> None:
+            for k in range(calls):
+                context.SetContinuousState(states[k & 1])
+                block.CalcTimeDerivatives(context, derivatives)
+
+        def invalidation() -> None:
+            for k in range(calls):
+                context.SetContinuousState(states[k & 1])
+
+        return work, invalidation
+    # A new value of the fixed first input, written in place (a new FixValue
+    # would allocate each time): asking for the mutable data invalidates what
+    # depends on it.
+    first = fixed[0]
+    output = block.get_output_port(0)
+    inputs = (values[0], values[0] + 1e-9)
+
+    def work() -> None:
+        for k in range(calls):
+            first.GetMutableData().get_mutable_value().SetFromVector(inputs[k & 1])
+            output.Eval(context)
+
+    def invalidation() -> None:
+        for k in range(calls):
+            first.GetMutableData().get_mutable_value().SetFromVector(inputs[k & 1])
+
+    return work, invalidation
+
+
+def evaluation_profile(scenario: Scenario, calls: int, batches: int) -> dict[str, Any]:
+    """Microseconds per evaluation: the diagram, each block alone, and the rest of a step.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    calls : int
+        Evaluations per batch.
+    batches : int
+        Interleaved batches; medians over them are reported.
+    """
+    from ofrl_drake.diagram import build_closed_loop, design_for
+    from ofrl_drake.simulation import simulate
+
+    design = design_for(scenario)
+    loop = build_closed_loop(scenario, design=design)
+    diagram = loop.diagram
+    root = diagram.CreateDefaultContext()
+    derivatives = diagram.AllocateTimeDerivatives()
+    x0 = root.get_continuous_state_vector().CopyToVector()
+    x1 = x0.copy()
+    x1[0] += 1e-3
+    states = (x0, x1)
+    diagram.CalcTimeDerivatives(root, derivatives)
+
+    def whole() -> None:
+        for k in range(calls):
+            root.SetContinuousState(states[k & 1])
+            diagram.CalcTimeDerivatives(root, derivatives)
+
+    def set_state() -> None:
+        for k in range(calls):
+            root.SetContinuousState(states[k & 1])
+
+    fns = {"diagram": whole, "set_state": set_state}
+    for slot, block in loop.blocks.items():
+        work, invalidation = _block_batches(block, root, calls)
+        fns[f"{slot}:work"] = work
+        fns[f"{slot}:invalidation"] = invalidation
+    timings, _ = interleaved(fns, batches)
+    fastest = {key: 1e6 * t.min / calls for key, t in timings.items()}
+    median = {key: 1e6 * t.median / calls for key, t in timings.items()}
+    blocks = []
+    for slot, block in loop.blocks.items():
+        work, invalidation = f"{slot}:work", f"{slot}:invalidation"
+        blocks.append(
+            {
+                "slot": slot,
+                "block": type(block).__name__,
+                "num_states": int(block.CreateDefaultContext().num_continuous_states()),
+                "work_us": fastest[work] - fastest[invalidation],
+                "work_median_us": median[work] - median[invalidation],
+                "total_us": fastest[work],
+                "invalidation_us": fastest[invalidation],
+            }
+        )
+    result = simulate(scenario, loop=loop, progress=False)
+    evals = int(result.integrator["num_derivative_evaluations"])
+    per_evaluation = 1e6 * result.wall_time / evals
+    return {
+        "diagram_us": fastest["diagram"],
+        "diagram_median_us": median["diagram"],
+        "set_state_us": fastest["set_state"],
+        "blocks": blocks,
+        "blocks_work_us": float(np.sum([b["work_us"] for b in blocks])),
+        "advance_us_per_evaluation": per_evaluation,
+        "outside_evaluation_us": per_evaluation - median["diagram"],
+        "num_derivative_evaluations": evals,
+        "num_states": int(x0.size),
+        "calls": calls,
+        "batches": batches,
+    }
