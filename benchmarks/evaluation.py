@@ -86,8 +86,9 @@ def evaluation_profile(scenario: Scenario, calls: int, batches: int) -> dict[str
     batches : int
         Interleaved batches; medians over them are reported.
     """
-    from ofrl_drake.diagram import build_closed_loop, design_for
+    from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.simulation import simulate
+    from ofrl_drake.variants import design_for
 
     design = design_for(scenario)
     loop = build_closed_loop(scenario, design=design)

@@ -58,7 +58,7 @@ def sweep_throughput(
         Seed of the initial states.
     """
     from ofrl_drake import ablate
-    from ofrl_drake.ablation import Variant, sample_initial_states
+    from ofrl_drake.ablation_grid import Variant, sample_initial_states
     from ofrl_drake.simulation import simulate
 
     counts = sorted(set(int(k) for k in counts))

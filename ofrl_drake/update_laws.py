@@ -245,9 +245,10 @@ def forgetting_factor(
 def gamma_rate(Gamma: np.ndarray, gain_sum: np.ndarray, kc: float, beta: float) -> np.ndarray:
     """(gamma): ``Gamma' = beta Gamma - k_c Gamma gain_sum Gamma``.
 
-    ``Gamma`` is taken as its symmetric part ``(Gamma + Gamma^T) / 2``, as
-    the compiled law does, so that round-off never makes it drift from
-    symmetry.
+    ``Gamma`` is taken as its symmetric part ``(Gamma + Gamma^T) / 2``, so
+    that round-off never makes it drift from symmetry; the compiled law
+    carries Gamma packed (its upper triangle, ``bellman.pack_symmetric``),
+    which is symmetric by construction.
 
     Parameters
     ----------

@@ -51,7 +51,7 @@ def _check_pair(row):
 @pytest.fixture(scope="module", params=["two_state_paper", "coupled_two_state"])
 def baselines(request):
     from ofrl_drake import load_scenario
-    from ofrl_drake.diagram import design_for
+    from ofrl_drake.variants import design_for
     from tests.conftest import ROOT
 
     scenario = load_scenario(ROOT / "diagrams" / f"{request.param}.yaml")
