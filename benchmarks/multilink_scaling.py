@@ -230,8 +230,9 @@ def row(name: str, *, poly_timeout: float | None = None) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``name, n, m, q, k, input_vertices, input_bound, alpha, box, bounds``
-        (``method, seconds, converged``) and, per formulation, ``blocks,
+        ``name, source, n, m, q, k, input_vertices, input_bound, alpha, box,
+        build_seconds`` (loading the model), ``bounds`` (``method, seconds,
+        converged``) and, per formulation, ``blocks,
         block_size`` and either ``not_run`` (why) or ``lmi_seconds, feasible,
         status`` (and when feasible ``solve_time, gain_norm,
         condition_number, decay_certified``).
@@ -239,7 +240,9 @@ def row(name: str, *, poly_timeout: float | None = None) -> dict[str, Any]:
     from ofrl_drake.jacobian_bounds import jacobian_bounds
     from ofrl_drake.lmi import MAX_CORNERS
 
+    start = time.perf_counter()
     plant = build(name)
+    build_seconds = time.perf_counter() - start
     start = time.perf_counter()
     bounds = jacobian_bounds(plant.system, plant.box, plant.jacobian_method)
     bounds_seconds = time.perf_counter() - start
@@ -256,6 +259,7 @@ def row(name: str, *, poly_timeout: float | None = None) -> dict[str, Any]:
         "input_bound": plant.input_bound,
         "alpha": plant.alpha,
         "box": {"lower": plant.box[0].tolist(), "upper": plant.box[1].tolist()},
+        "build_seconds": build_seconds,
         "bounds": {
             "method": bounds.method,
             "seconds": bounds_seconds,
@@ -297,12 +301,18 @@ def _fmt(value: Any, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
+def _status(status: str) -> str:
+    """The solver's own word: ``"kSolutionFound (AlmostSolved)"`` -> ``"AlmostSolved"``."""
+    inner = status.rpartition("(")[2].rstrip(")")
+    return inner or status
+
+
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """The Markdown table of :func:`row` results, one line per plant and formulation."""
     out = [
         "| plant | n | k | bounds (s) | converged | formulation | LMI blocks x size "
-        "| LMI (s) | alpha | \\|\\|L\\|\\| | cond(P) | decay-certified |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| LMI (s) | solver | alpha | \\|\\|L\\|\\| | cond(P) | decay-certified |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         b = r["bounds"]
@@ -314,15 +324,15 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
                 f"| {formulation} | {blocks} "
             )
             if "not_run" in e:
-                out.append(head + f"| {e['not_run']} | {r['alpha']:g} | - | - | - |")
+                out.append(head + f"| {e['not_run']} | - | {r['alpha']:g} | - | - | - |")
             elif not e["feasible"]:
                 out.append(
-                    head + f"| {e['lmi_seconds']:.3g} | {r['alpha']:g} | infeasible "
-                    f"({e['status']}) | - | False |"
+                    head + f"| {e['lmi_seconds']:.3g} | {_status(e['status'])} | {r['alpha']:g} "
+                    "| infeasible | - | False |"
                 )
             else:
                 out.append(
-                    head + f"| {e['lmi_seconds']:.3g} | {r['alpha']:g} "
+                    head + f"| {e['lmi_seconds']:.3g} | {_status(e['status'])} | {r['alpha']:g} "
                     f"| {_fmt(e['gain_norm'], '.4g')} | {_fmt(e['condition_number'], '.3g')} "
                     f"| {e['decay_certified']} |"
                 )
