@@ -59,8 +59,10 @@ __all__ = [
     "FORMULATIONS",
     "ROWS",
     "SYNTHETIC",
+    "Plant",
     "build",
     "format_table",
+    "machine",
     "main",
     "row",
 ]
