@@ -347,3 +347,24 @@ def test_markdown_goes_between_the_markers_of_an_existing_file(tmp_path):
     plain = tmp_path / "plain.md"
     write_markdown(plain, "| t |")
     assert plain.read_text() == "| t |\n"
+
+
+def test_multilink_scaling_row_on_the_pendulum():
+    from benchmarks.multilink_scaling import FORMULATIONS, format_table, row
+
+    r = row("pendulum_upright")
+    assert (r["name"], r["n"], r["m"], r["q"], r["k"]) == ("pendulum_upright", 2, 1, 1, 1)
+    assert r["input_vertices"] == 3
+    assert r["bounds"]["method"] == "certified" and r["bounds"]["converged"] is True
+    assert _finite(r["bounds"]["seconds"]) and r["bounds"]["seconds"] >= 0
+    # 3 input vertices x 2^1 corners of size n; g is constant, so one structured LMI of n + k.
+    assert (r["polytopic"]["blocks"], r["polytopic"]["block_size"]) == (6, 2)
+    assert (r["structured"]["blocks"], r["structured"]["block_size"]) == (1, 3)
+    for formulation in FORMULATIONS:
+        e = r[formulation]
+        assert "not_run" not in e
+        assert e["feasible"] is True and e["decay_certified"] is True, formulation
+        for key in ("lmi_seconds", "solve_time", "gain_norm", "condition_number"):
+            assert _finite(e[key]) and e[key] > 0, (formulation, key)
+    table = format_table([r])
+    assert "| pendulum_upright | 2 | 1 |" in table and "| structured | 1 x 3 |" in table
