@@ -74,7 +74,9 @@ class _StackedSums(LeafSystem):
     def _calc_sums(self, context, output) -> None:
         L = self._size
         value = output.get_mutable_value()
-        self.extrapolator_for(self.nu(context)).sums_into(
+        nu = context.get_numeric_parameter(self._nu_index).GetAtIndex(0)
+        e = self.extrapolator
+        (e if nu == e.nu else self.extrapolator_for(nu)).sums_into(
             self._weights_port.Eval(context),
             value[:L],
             value[L:].reshape(L, L),

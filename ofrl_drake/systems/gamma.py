@@ -141,10 +141,10 @@ class GammaGain(LeafSystem):
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         rate = self._rate
         gamma = context.get_continuous_state_vector().CopyToVector()
-        kc, beta, bound = context.get_numeric_parameter(self._gains_index).CopyToVector()
+        kc, beta, bound = context.get_numeric_parameter(self._gains_index).get_value().tolist()
         if bound < math.inf:  # tr(Gamma0^{-1} Gamma) / L, both symmetric
             reference = context.get_numeric_parameter(self._reference_index).get_value()
             ratio = float(reference @ gamma) / self._size
-            beta = bounded_forgetting(float(beta), ratio, float(bound))
-        gamma_rate(gamma, self._gain_sum_port.Eval(context), float(kc), float(beta), rate)
+            beta = bounded_forgetting(beta, ratio, bound)
+        gamma_rate(gamma, self._gain_sum_port.Eval(context), kc, beta, rate)
         derivatives.SetFromVector(rate)
