@@ -12,8 +12,16 @@ Engine
 ------
 With a Dask ``distributed.Client`` the runs are Dask tasks; without one the
 same tasks run one after another in this process (:mod:`ofrl_drake.sweep`).
-``J*`` is one task per initial state, warm-started from the first run of a
-variant with the learned controller from that state. Workers import
+A run task is one variant from its initial states still to do
+(:func:`~ofrl_drake.ablation_tasks.run_variant_states`): the variant's loop,
+its observer design (Jacobian bounds and LMI) included, is built once and
+re-run from each state by writing the context only. On a cluster a variant's
+states are split into as many tasks as it takes to keep every worker busy
+(one task per variant when there are at least as many variants as workers).
+``J*`` is one task per initial state, warm-started from the run from that
+state of the first variant with the learned controller; those variants' tasks
+go first, so in a serial sweep the rows come variant by variant, in the order
+:func:`ablate` returns them when the first variant has the learned controller. Workers import
 ``ofrl_drake`` themselves, so a choice added with
 :func:`~ofrl_drake.slots.register_variant` must be registered in the workers
 too (e.g. in a module they import), not only in the driver.
@@ -21,8 +29,8 @@ too (e.g. in a module they import), not only in the driver.
 Streaming and resume
 --------------------
 With ``out`` given, each row is appended to ``out/ablation.csv`` as soon as
-its run and its ``J*`` are known, then flushed and fsynced, so a killed sweep
-loses no finished row (:mod:`ofrl_drake.sweep_store`). ``resume=True`` reads
+its task and its ``J*`` are done, then flushed and fsynced, so a killed sweep
+loses no row of a finished task (:mod:`ofrl_drake.sweep_store`). ``resume=True`` reads
 the rows already there (dropping a torn last line) and runs only the missing
 (variant, initial state) pairs; ``out/ablation.json`` records what defines the
 sweep, so that a ``resume`` of another one is refused by name. Converged ``J*``
@@ -64,7 +72,7 @@ from ofrl_drake.ablation_tasks import (
     RunOutcome,
     failed_optimum,
     one_line,
-    run_variant,
+    run_variant_states,
     solve_optimal_task,
 )
 from ofrl_drake.optimal import Mesh, OptimalControlResult, OptimalCostCache, Trajectory
@@ -272,6 +280,7 @@ class _Sweep:
     solver: str | None
     store: SweepStore | None
     seed: int | None = None
+    workers: int = 1
     done: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict)
     optimum: dict[str, OptimalControlResult] = field(default_factory=dict)
     pending: dict[str, list[RunOutcome]] = field(default_factory=dict)
@@ -309,27 +318,48 @@ class _Sweep:
             self.store.close()
 
     def submit(self, engine: Any, todo: Sequence[tuple[str, str]]) -> dict[Any, tuple]:
-        """Submit the runs of ``todo`` and the missing optima; return handle -> task."""
-        tasks: dict[Any, tuple] = {}
-        for label, x0 in self.states.items():
-            mine = [self.variants[name] for name, lab in todo if lab == label]
-            if not mine:
-                continue
+        """Submit the runs of ``todo`` and the missing optima; return handle -> task.
+
+        One run task per variant, from its initial states of ``todo`` in order
+        (split into consecutive parts when a cluster has more workers than
+        there are variants to run). ``J*`` from a state is warm-started from
+        the run of the first variant (in order) with the learned controller
+        that runs from it, and submitted right after that task; without one,
+        from a saved run, right after the first task from that state.
+        """
+        labels = {name: [lab for n, lab in todo if n == name] for name in self.variants}
+        needed = [lab for lab in self.states if any(lab == b for _, b in todo)]
+        for label in needed:
             if self.cache is not None and label not in self.optimum:
-                cached = self.cache.get(self.horizon_scenario, x0)
+                cached = self.cache.get(self.horizon_scenario, self.states[label])
                 if cached is not None:
                     self.optimum[label] = cached
-            # A run with the learned controller first: it warm-starts J*.
-            learned = [v for v in mine if v.full_choices(self.scenario)["controller"] == "learned"]
-            order = learned[:1] + [v for v in mine if v not in learned[:1]]
-            for i, variant in enumerate(order):
-                args = (self.scenario, variant, tuple(x0), self.duration)
-                handle = engine.submit(run_variant, *args)
-                tasks[handle] = ("run", (variant.name, label))
-                if i == 0 and label not in self.optimum:
-                    warm = engine.ref(handle) if learned else self._saved_warm_start(label)
-                    solve = (self.scenario, tuple(x0), warm, self.duration, self.mesh, self.solver)
-                    tasks[engine.submit(solve_optimal_task, *solve)] = ("optimal", label)
+        warm_from: dict[str, str] = {}  # label -> the variant whose run warm-starts J*
+        for name, variant in self.variants.items():
+            if variant.full_choices(self.scenario)["controller"] == "learned":
+                for label in labels[name]:
+                    if label not in self.optimum:
+                        warm_from.setdefault(label, name)
+        first = [n for n in self.variants if n in warm_from.values()]
+        order = first + [n for n in self.variants if n not in first and labels[n]]
+        parts = -(-self.workers // max(1, len(order)))  # tasks per variant, ceil
+        tasks: dict[Any, tuple] = {}
+        solving: set[str] = set()
+        for name, mine in ((n, part) for n in order for part in _split(labels[n], parts)):
+            states = tuple(tuple(self.states[label]) for label in mine)
+            args = (self.scenario, self.variants[name], states, self.duration)
+            handle = engine.submit(run_variant_states, *args)
+            tasks[handle] = ("runs", (name, tuple(mine)))
+            for label in mine:
+                if label in self.optimum or label in solving:
+                    continue
+                if warm_from.get(label, name) != name:
+                    continue  # warm-started by another variant's runs
+                solving.add(label)
+                warm = engine.ref(handle) if label in warm_from else self._saved_warm_start(label)
+                x0 = tuple(self.states[label])
+                solve = (self.scenario, x0, warm, self.duration, self.mesh, self.solver)
+                tasks[engine.submit(solve_optimal_task, *solve)] = ("optimal", label)
         return tasks
 
     def _saved_warm_start(self, label: str) -> Trajectory | None:
@@ -356,15 +386,18 @@ class _Sweep:
                 self.cache.put(self.horizon_scenario, value)
             ready = self.pending.pop(key, [])
         else:
+            name, labels = key
             if err is not None or value is None:
                 nan = dict.fromkeys(METRICS, math.nan)
-                value = RunOutcome(key[0], key[1], nan, reason, 0.0, False)
-            if self.store is not None:
-                _save_run(self.store, value)
-            if value.initial_state not in self.optimum:
-                self.pending.setdefault(value.initial_state, []).append(value)
-                return []
-            ready = [value]
+                value = [RunOutcome(name, label, nan, reason, 0.0, False) for label in labels]
+            ready = []
+            for outcome in value:
+                if self.store is not None:
+                    _save_run(self.store, outcome)
+                if outcome.initial_state in self.optimum:
+                    ready.append(outcome)
+                else:
+                    self.pending.setdefault(outcome.initial_state, []).append(outcome)
         rows = []
         for outcome in ready:
             row = _row(outcome, self.optimum[outcome.initial_state])
@@ -373,6 +406,28 @@ class _Sweep:
                 self.store.write(row)
             rows.append(row)
         return rows
+
+
+def _split(items: Sequence[str], parts: int) -> list[list[str]]:
+    """``items`` in at most ``parts`` consecutive runs of nearly equal length."""
+    count = max(1, min(parts, len(items)))
+    size, extra = divmod(len(items), count)
+    out, start = [], 0
+    for k in range(count):
+        stop = start + size + (1 if k < extra else 0)
+        out.append(list(items[start:stop]))
+        start = stop
+    return [part for part in out if part]
+
+
+def _worker_threads(client: Any) -> int:
+    """How many tasks ``client``'s cluster runs at once (1 without a cluster)."""
+    if client is None:
+        return 1
+    try:
+        return max(1, int(sum(client.nthreads().values())))
+    except Exception:  # a client that cannot tell: one task per variant
+        return 1
 
 
 def ablate(
@@ -457,6 +512,7 @@ def ablate(
         solver=solver,
         store=None if out is None else SweepStore(FILES, Path(out)),
         seed=seed,
+        workers=_worker_threads(client),
     )
     sweep.open(resume, retry_failed)
     todo = [k for k in keys if k not in sweep.done]

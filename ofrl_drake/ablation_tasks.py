@@ -1,13 +1,17 @@
-"""The tasks of an ablation: one variant from one initial state, and ``J*`` from one state.
+"""The tasks of an ablation: one variant from many initial states, and ``J*`` from one state.
 
 Each task runs inside a worker (:mod:`ofrl_drake.sweep`) and never raises. It
 carries only picklable data (the :class:`~ofrl_drake.scenario.Scenario`
-dataclass, the :class:`~ofrl_drake.ablation_grid.Variant`, the initial state)
-and builds its Drake diagram where it runs. :func:`run_variant` simulates one
-variant and measures the run (:mod:`ofrl_drake.ablation_metrics`);
-:func:`solve_optimal_task` solves ``J*`` (:mod:`ofrl_drake.optimal`),
-warm-started from a run with the learned controller. An error becomes the
-task's status, on one line.
+dataclass, the :class:`~ofrl_drake.ablation_grid.Variant`, the initial states)
+and builds its Drake diagram where it runs. :func:`run_variant_states` builds
+one variant once (its observer design, Jacobian bounds and LMI included) and
+simulates it from each initial state, writing only the context
+(:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`), then measures
+each run (:mod:`ofrl_drake.ablation_metrics`); the runs are the same, bit for
+bit, as runs of a loop built for each state. :func:`solve_optimal_task`
+solves ``J*`` (:mod:`ofrl_drake.optimal`), warm-started from a run with the
+learned controller. An error becomes the status of the rows it concerns, on
+one line.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ __all__ = [
     "failed_optimum",
     "one_line",
     "run_variant",
+    "run_variant_states",
     "solve_optimal_task",
 ]
 
@@ -90,7 +95,8 @@ class RunOutcome:
     status : str
         ``"ok"`` or the error, on one line.
     wall_time : float
-        Seconds to build, simulate and measure.
+        Seconds to simulate and measure this run, plus its share of the
+        variant's build (built once for all the initial states of its task).
     learned : bool
         True if the variant uses the learned controller (a J* warm start).
     logs : dict of str to ndarray
@@ -122,27 +128,71 @@ def one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {' '.join(str(err).split())}"
 
 
+def run_variant_states(
+    scenario: Scenario,
+    variant: Variant,
+    states: Sequence[Sequence[float]],
+    duration: float | None = None,
+) -> list[RunOutcome]:
+    """Build one variant once and simulate it from each of ``states``; never raises.
+
+    Runs inside a worker: the Drake diagram, and the policy-evaluation
+    diagram of the policy costs, are built here from the scenario data, then
+    each run writes its initial state into a fresh context. An error in the
+    build is the status of every run; an error in a run, of that run.
+
+    Returns
+    -------
+    list of RunOutcome
+        One per initial state, in order.
+    """
+    from ofrl_drake.diagram import build_closed_loop
+    from ofrl_drake.learning_curve import PolicyEvaluator
+
+    if len(states) == 0:
+        return []
+    choices = variant.full_choices(scenario)
+    learned = choices["controller"] == "learned"
+    start = time.perf_counter()
+    try:
+        loop = build_closed_loop(_scenario_for(scenario, variant, states[0], duration))
+        acts_on_critic = choices["controller"] in ("learned", "frozen_critic")
+        evaluator = PolicyEvaluator(loop) if acts_on_critic else None
+    except Exception as err:
+        share = (time.perf_counter() - start) / len(states)
+        nan = dict.fromkeys(METRICS, math.nan)
+        return [
+            RunOutcome(variant.name, initial_state_label(x0), nan, one_line(err), share, learned)
+            for x0 in states
+        ]
+    share = (time.perf_counter() - start) / len(states)
+    return [
+        _run(loop, evaluator, _scenario_for(scenario, variant, x0, duration), variant, share)
+        for x0 in states
+    ]
+
+
 def run_variant(
     scenario: Scenario, variant: Variant, x0: Sequence[float], duration: float | None = None
 ) -> RunOutcome:
-    """Build and simulate one variant from ``x0``; never raises.
+    """Build and simulate one variant from ``x0``; never raises (:func:`run_variant_states`)."""
+    return run_variant_states(scenario, variant, [x0], duration)[0]
 
-    Runs inside a worker: the Drake diagram is built here from the scenario
-    data. Any exception becomes the outcome's ``status``.
-    """
-    from ofrl_drake.diagram import build_closed_loop
+
+def _run(
+    loop: Any, evaluator: Any, s: Scenario, variant: Variant, build_share: float
+) -> RunOutcome:
+    """Simulate the built ``loop`` from the initial values of ``s`` and measure the run."""
     from ofrl_drake.simulation import simulate
 
-    label = initial_state_label(x0)
-    learned = variant.full_choices(scenario)["controller"] == "learned"
+    label = initial_state_label(s.x0)
+    learned = variant_choices(s)["controller"] == "learned"
     start = time.perf_counter()
     regulated = False
     try:
-        s = _scenario_for(scenario, variant, x0, duration)
-        loop = build_closed_loop(s)
         result = simulate(s, loop=loop, progress=False)
         box = (np.asarray(s.observer.box.lower), np.asarray(s.observer.box.upper))
-        metrics = {**run_metrics(result, box), **_policy_costs(loop, result, s)}
+        metrics = {**run_metrics(result, box), **_policy_costs(evaluator, result, s)}
         regulated = bool(result.regulated)
         status = "ok"
         if result.stop is not None and result.status != "ok":
@@ -161,46 +211,57 @@ def run_variant(
         initial_state=label,
         metrics=metrics,
         status=status,
-        wall_time=time.perf_counter() - start,
+        wall_time=time.perf_counter() - start + build_share,
         learned=learned,
         logs=logs,
         regulated=regulated,
     )
 
 
-def _policy_costs(loop: Any, result: Any, scenario: Scenario) -> dict[str, float]:
+def _policy_costs(evaluator: Any, result: Any, scenario: Scenario) -> dict[str, float]:
     """The policy in force at 0 and at the run's end, each fed the true state from x0.
 
     What learning buys, apart from the observer: the critic frozen at
     ``W_pi(0)`` and ``W_pi(T)``, over the scenario's horizon
-    (:func:`ofrl_drake.learning_curve.evaluate_policy`). NaN for a controller
-    that does not act on the critic (``lqr``, ``constant``).
+    (:class:`ofrl_drake.learning_curve.PolicyEvaluator`, built once per
+    variant). NaN for a controller that does not act on the critic (``lqr``,
+    ``constant``): no ``evaluator``.
     """
-    from ofrl_drake.learning_curve import evaluate_policy
-
-    if variant_choices(scenario)["controller"] not in ("learned", "frozen_critic"):
+    if evaluator is None:
         return {"initial_policy_cost": math.nan, "final_policy_cost": math.nan}
+    x0 = np.asarray(scenario.x0, dtype=float)
     return {
-        "initial_policy_cost": evaluate_policy(loop, result.W_policy[0]).cost,
-        "final_policy_cost": evaluate_policy(loop, result.W_policy[-1]).cost,
+        "initial_policy_cost": evaluator(result.W_policy[0], x0=x0).cost,
+        "final_policy_cost": evaluator(result.W_policy[-1], x0=x0).cost,
     }
 
 
 def solve_optimal_task(
     scenario: Scenario,
     x0: Sequence[float],
-    warm: RunOutcome | Trajectory | None,
+    warm: RunOutcome | Sequence[RunOutcome] | Trajectory | None,
     duration: float | None = None,
     mesh: Mesh | None = None,
     solver: str | None = None,
 ) -> OptimalControlResult:
-    """``J*`` from ``x0``, warm-started from a run; never raises."""
+    """``J*`` from ``x0``, warm-started from a run; never raises.
+
+    ``warm`` is that run, or the runs of a :func:`run_variant_states` task
+    (the one from ``x0`` is used), or a trajectory, or None.
+    """
+    if isinstance(warm, (list, tuple)):
+        label = initial_state_label(x0)
+        warm = next((run for run in warm if run.initial_state == label), None)
     if duration is not None:
         scenario = dataclasses.replace(
             scenario,
             simulation=dataclasses.replace(scenario.simulation, duration=float(duration)),
         )
     warm_start = warm.warm_start() if isinstance(warm, RunOutcome) else warm
+    if not (warm_start is None or isinstance(warm_start, Trajectory)):
+        raise TypeError(
+            f"warm: expected runs, a run, a Trajectory or None; got {type(warm).__name__}"
+        )
     try:
         return optimal_control(scenario, x0, warm_start=warm_start, mesh=mesh, solver=solver)
     except Exception as err:

@@ -57,6 +57,7 @@ from ofrl_drake.slots import (
 from ofrl_drake.systems.world import MeasuredPlant, SampledController
 
 __all__ = [
+    "INITIAL_VALUES",
     "LOGGED",
     "OPTIONAL_LOGGED",
     "SIGNALS",
@@ -66,6 +67,7 @@ __all__ = [
     "critic_settings",
     "drake_plant",
     "extrapolation_points",
+    "initial_values",
     "symbolic_blocks",
 ]
 
@@ -109,6 +111,17 @@ LOGGED = {
 }
 
 
+#: Slot -> (setter, value): the initial value a run writes into each block's context,
+#: through the block's setter ``setter(context, value)``; values of :func:`initial_values`.
+INITIAL_VALUES = {
+    "plant": ("set_state", "x0"),
+    "observer": ("set_estimated_state", "xhat0"),
+    "critic": ("set_weights", "W0"),
+    "policy": ("set_policy_weights", "W0"),
+    "gamma": ("set_initial_gamma", "Gamma0"),
+}
+
+
 @dataclass(frozen=True)
 class CriticSettings:
     """The critic's learning law and gains in force (:func:`critic_settings`).
@@ -134,12 +147,26 @@ class CriticSettings:
 
 @dataclass
 class ClosedLoop:
-    """A built closed loop: the diagram and handles to its named blocks."""
+    """A built closed loop: the diagram and handles to its named blocks.
+
+    The loop holds no run: a run's initial values (x0, xhat0, W0, Gamma0) go
+    into a context (:meth:`set_initial_values`), and the learning gains are
+    numeric parameters of the critic, Gamma and Bellman blocks (``set_kc``,
+    ``set_beta``, ``set_gamma_bound``, ``set_nu``), so one built loop runs
+    from any initial state and at any gains.
+
+    Attributes
+    ----------
+    swapped : frozenset of str
+        The slots given to :func:`build_closed_loop` as a block or a factory:
+        they start from their own initial values unless a run asks for others.
+    """
 
     diagram: Diagram
     parts: ClosedLoopParts
     blocks: dict[str, System]
     loggers: dict[str, VectorLogSink] = field(default_factory=dict)
+    swapped: frozenset[str] = frozenset()
 
     def __getattr__(self, name: str) -> System:
         blocks = self.__dict__.get("blocks", {})
@@ -173,9 +200,88 @@ class ClosedLoop:
             t = np.asarray(log.sample_times())
             logs[key] = log.data().T.copy()
         if "learning_condition" not in logs:
-            condition = self.blocks["bellman"].learning_condition_of(logs["W_policy"])
+            bellman = self.blocks["bellman"]
+            condition = bellman.learning_condition_of(
+                logs["W_policy"], bellman.GetMyContextFromRoot(root_context)
+            )
             logs["learning_condition"] = condition[:, None]
         return t, logs
+
+    def initial_values(self, scenario: Scenario | None = None) -> dict[str, np.ndarray]:
+        """x0, xhat0, W0 and Gamma0 of a run of ``scenario`` (default: the loop's own).
+
+        See :func:`initial_values`; under ``critic.gains: auto`` Gamma0 is the
+        one derived when the loop was built.
+        """
+        return initial_values(scenario or self.parts.scenario, self.parts.critic)
+
+    def set_initial_values(self, root_context: Context, scenario: Scenario | None = None) -> None:
+        """Write the initial values of a run of ``scenario`` into ``root_context``.
+
+        Each block of :data:`INITIAL_VALUES` gets its value through its own
+        setter (``loop.plant.set_state(context, x0)`` ...). A block swapped in
+        (:attr:`swapped`) keeps its own initial value when the run's is the
+        loop's own (the scenario it was built from); a stateless block
+        (the full-state observer) has nothing to set.
+
+        Parameters
+        ----------
+        root_context : Context
+            A context of :attr:`diagram`.
+        scenario : Scenario, optional
+            The run's scenario (default: the loop's own,
+            ``loop.parts.scenario``); its ``x0``, ``xhat0``, ``critic.W0`` and,
+            under ``critic.gains: manual``, ``critic.Gamma0`` are written.
+
+        Raises
+        ------
+        SwapError
+            If a block without the setter would have to start from another
+            value than the loop's own.
+        """
+        values = self.initial_values(scenario)
+        own = self.initial_values() if scenario is not None else values
+        for slot, (name, key) in INITIAL_VALUES.items():
+            block = self.blocks[slot]
+            same = np.array_equal(values[key], own[key])
+            if slot in self.swapped and same:
+                continue  # a block given to build_closed_loop starts from its own values
+            setter = getattr(block, name, None)
+            if setter is None:
+                if same or _stateless(block):
+                    continue
+                raise SwapError(
+                    f"{slot}: the block {type(block).__name__} has no {name}(context, value), "
+                    f"so a run cannot start it from {key} = {values[key].tolist()}; give it "
+                    "one, or build a loop from the run's scenario."
+                )
+            setter(block.GetMyMutableContextFromRoot(root_context), values[key])
+
+
+def _stateless(block: System) -> bool:
+    return (
+        block.num_continuous_states() == 0
+        and block.num_discrete_state_groups() == 0
+        and block.num_abstract_states() == 0
+    )
+
+
+def initial_values(scenario: Scenario, critic: CriticSettings | None) -> dict[str, np.ndarray]:
+    """The initial values of a run of ``scenario``: ``x0``, ``xhat0``, ``W0`` and ``Gamma0``.
+
+    ``Gamma0`` is the scenario's under ``critic.gains: manual``, else the one
+    of ``critic`` (the gains in force, derived under ``auto``).
+    """
+    c = scenario.critic
+    gamma0 = c.Gamma0
+    if critic is not None and critic_gains_choice(c) != "manual":
+        gamma0 = critic.gains.Gamma0
+    return {
+        "x0": np.asarray(scenario.x0, dtype=float),
+        "xhat0": np.asarray(scenario.xhat0, dtype=float),
+        "W0": np.asarray(c.W0, dtype=float),
+        "Gamma0": np.asarray(gamma0, dtype=float),
+    }
 
 
 Swap = System | Callable[[ClosedLoopParts], System]
@@ -499,7 +605,9 @@ def build_closed_loop(
             loggers[key] = logger
     diagram = builder.Build()
     diagram.set_name(f"closed_loop_{scenario.name}")
-    return ClosedLoop(diagram=diagram, parts=parts, blocks=blocks, loggers=loggers)
+    return ClosedLoop(
+        diagram=diagram, parts=parts, blocks=blocks, loggers=loggers, swapped=frozenset(given)
+    )
 
 
 def _connect_by_name(builder: DiagramBuilder, blocks: dict[str, System]) -> None:

@@ -39,6 +39,7 @@ __all__ = [
     "DEFAULT_CHECKPOINTS",
     "LearningHealth",
     "LearningReport",
+    "PolicyEvaluator",
     "PolicyRun",
     "evaluate_policy",
     "learning_curve",
@@ -64,6 +65,108 @@ class PolicyRun:
     status: str
 
 
+class PolicyEvaluator:
+    """The policy-evaluation diagram of a loop, built once and run for any ``W`` and ``x0``.
+
+    A Drake diagram of the loop's plant model, its controller and running cost
+    (no observer, no learning): the saturated policy of weights ``W``, critic
+    frozen, the true state fed back, integrated with the scenario's integrator
+    settings. ``W`` is the value of a ``ConstantVectorSource`` (a numeric
+    parameter) and ``x0`` the plant's state, both written into the context of
+    each run, so evaluating many policies builds one diagram. Each run starts
+    from a fresh ``Simulator``: the same numbers as a diagram built for it.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop whose plant model, basis, cost and input bound are used.
+
+    Examples
+    --------
+    >>> evaluate = PolicyEvaluator(loop)                                 # doctest: +SKIP
+    >>> [evaluate(W).cost for W in result.W_policy[::100]]               # doctest: +SKIP
+    """
+
+    def __init__(self, loop: ClosedLoop) -> None:
+        self.loop = loop
+        parts = loop.parts
+        scenario: Scenario = parts.scenario
+        system = parts.system
+        symbolic = symbolic_blocks(scenario, system)
+        builder = DiagramBuilder()
+        self._plant = builder.AddSystem(plant_block(system, scenario.x0, symbolic))
+        controller = builder.AddSystem(
+            controller_block(system, parts.basis, parts.r, scenario.input_bound, symbolic)
+        )
+        self._cost = builder.AddSystem(
+            running_cost_block(parts.Q, parts.r, scenario.input_bound, symbolic)
+        )
+        self._weights = builder.AddSystem(ConstantVectorSource(np.zeros(parts.basis.size)))  # type: ignore[arg-type]  # pydrake array stub
+        plant, cost = self._plant, self._cost
+        builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("estimated_state"))
+        builder.Connect(self._weights.get_output_port(), controller.GetInputPort("policy_weights"))
+        builder.Connect(controller.GetOutputPort("u"), plant.GetInputPort("u"))
+        builder.Connect(plant.GetOutputPort("state"), cost.GetInputPort("state"))
+        builder.Connect(controller.GetOutputPort("u"), cost.GetInputPort("u"))
+        self.diagram = builder.Build()
+
+    def __call__(
+        self, W: np.ndarray, *, x0: np.ndarray | None = None, duration: float | None = None
+    ) -> PolicyRun:
+        """The cost of the policy of weights ``W`` from ``x0`` (default: the scenario's).
+
+        Parameters
+        ----------
+        W : ndarray, shape (L,)
+        x0 : ndarray, optional
+            Initial state (default: the scenario's).
+        duration : float, optional
+            Horizon (default: the scenario's).
+
+        Returns
+        -------
+        PolicyRun
+            Stopped as ``diverged`` when the state leaves the scenario's abort box.
+        """
+        scenario: Scenario = self.loop.parts.scenario
+        start = np.asarray(scenario.x0 if x0 is None else x0, dtype=float)
+        horizon = float(scenario.simulation.duration if duration is None else duration)
+        diagram, plant, cost = self.diagram, self._plant, self._cost
+        simulator = Simulator(diagram)
+        ApplySimulatorConfig(simulator_config(scenario), simulator)
+        root = simulator.get_mutable_context()
+        weights_context = self._weights.GetMyMutableContextFromRoot(root)
+        self._weights.get_mutable_source_value(weights_context).SetFromVector(  # type: ignore[attr-defined]  # AddSystem returns System
+            np.asarray(W, dtype=float)
+        )
+        plant.set_state(plant.GetMyMutableContextFromRoot(root), start)  # type: ignore[attr-defined]  # a plant block (PlantStateSetter)
+        lower, upper = abort_box(scenario)
+        state_port = plant.GetOutputPort("state")
+        left: list[float] = []
+
+        def watch(root) -> EventStatus:
+            x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(root)))
+            if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
+                left.append(root.get_time())
+                return EventStatus.ReachedTermination(diagram, "left the abort box")
+            return EventStatus.Succeeded()
+
+        simulator.set_monitor(watch)
+        simulator.Initialize()
+        try:
+            simulator.AdvanceTo(horizon)
+        except RuntimeError as err:  # an integrator that gives up: the policy diverged
+            left.append(simulator.get_context().get_time())
+            return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
+        context = simulator.get_context()
+        x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(context)))
+        if left:
+            status = f"diverged: left the abort box at t = {left[0]:.6g}"
+            return PolicyRun(float("nan"), float(np.linalg.norm(x)), status)
+        J = np.asarray(cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context)))[0]
+        return PolicyRun(float(J), float(np.linalg.norm(x)), "ok")
+
+
 def evaluate_policy(
     loop: ClosedLoop,
     W: np.ndarray,
@@ -73,10 +176,8 @@ def evaluate_policy(
 ) -> PolicyRun:
     """The cost of the saturated policy of weights ``W``, critic frozen, true state fed back.
 
-    A Drake diagram of the loop's plant model, its controller and running cost
-    (no observer, no learning), integrated with the scenario's integrator
-    settings. The run stops as ``diverged`` when the state leaves the
-    scenario's abort box.
+    One run of a :class:`PolicyEvaluator` of ``loop`` (build one to evaluate
+    many policies).
 
     Parameters
     ----------
@@ -92,52 +193,7 @@ def evaluate_policy(
     -------
     PolicyRun
     """
-    parts = loop.parts
-    scenario: Scenario = parts.scenario
-    system = parts.system
-    start = np.asarray(scenario.x0 if x0 is None else x0, dtype=float)
-    horizon = float(scenario.simulation.duration if duration is None else duration)
-    symbolic = symbolic_blocks(scenario, system)
-    builder = DiagramBuilder()
-    plant = builder.AddSystem(plant_block(system, start, symbolic))
-    controller = builder.AddSystem(
-        controller_block(system, parts.basis, parts.r, scenario.input_bound, symbolic)
-    )
-    cost = builder.AddSystem(running_cost_block(parts.Q, parts.r, scenario.input_bound, symbolic))
-    weights = builder.AddSystem(ConstantVectorSource(np.asarray(W, dtype=float)))  # type: ignore[arg-type]  # pydrake array stub
-    builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("estimated_state"))
-    builder.Connect(weights.get_output_port(), controller.GetInputPort("policy_weights"))
-    builder.Connect(controller.GetOutputPort("u"), plant.GetInputPort("u"))
-    builder.Connect(plant.GetOutputPort("state"), cost.GetInputPort("state"))
-    builder.Connect(controller.GetOutputPort("u"), cost.GetInputPort("u"))
-    diagram = builder.Build()
-    simulator = Simulator(diagram)
-    ApplySimulatorConfig(simulator_config(scenario), simulator)
-    lower, upper = abort_box(scenario)
-    state_port = plant.GetOutputPort("state")
-    left: list[float] = []
-
-    def watch(root) -> EventStatus:
-        x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(root)))
-        if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
-            left.append(root.get_time())
-            return EventStatus.ReachedTermination(diagram, "left the abort box")
-        return EventStatus.Succeeded()
-
-    simulator.set_monitor(watch)
-    simulator.Initialize()
-    try:
-        simulator.AdvanceTo(horizon)
-    except RuntimeError as err:  # an integrator that gives up: the policy diverged
-        left.append(simulator.get_context().get_time())
-        return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
-    context = simulator.get_context()
-    x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(context)))
-    if left:
-        status = f"diverged: left the abort box at t = {left[0]:.6g}"
-        return PolicyRun(float("nan"), float(np.linalg.norm(x)), status)
-    J = np.asarray(cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context)))[0]
-    return PolicyRun(float(J), float(np.linalg.norm(x)), "ok")
+    return PolicyEvaluator(loop)(W, x0=x0, duration=duration)
 
 
 def learning_curve(
@@ -146,6 +202,7 @@ def learning_curve(
     *,
     checkpoints: int = DEFAULT_CHECKPOINTS,
     optimal_cost: float | None = None,
+    evaluator: PolicyEvaluator | None = None,
 ) -> list[dict[str, Any]]:
     """The policy in force at ``checkpoints + 1`` times ``0, T/K, ..., T``, each evaluated alone.
 
@@ -158,6 +215,8 @@ def learning_curve(
         ``K >= 1``: the number of intervals between checkpoints.
     optimal_cost : float, optional
         ``J*`` of the scenario from ``x0``; then each entry has its ratio.
+    evaluator : PolicyEvaluator, optional
+        The loop's evaluator (built here if omitted): one diagram for every checkpoint.
 
     Returns
     -------
@@ -170,6 +229,7 @@ def learning_curve(
     if checkpoints < 1:
         raise ValueError(f"checkpoints must be >= 1; got {checkpoints}.")
     horizon = float(loop.parts.scenario.simulation.duration)
+    evaluate = PolicyEvaluator(loop) if evaluator is None else evaluator
     entries = []
     seen: set[int] = set()
     for t_k in np.linspace(0.0, horizon, checkpoints + 1):
@@ -179,7 +239,7 @@ def learning_curve(
         if i in seen:
             continue
         seen.add(i)
-        run = evaluate_policy(loop, result.W_policy[i])
+        run = evaluate(result.W_policy[i])
         ratio = (
             run.cost / optimal_cost
             if optimal_cost is not None and np.isfinite(optimal_cost) and np.isfinite(run.cost)
@@ -384,10 +444,13 @@ def learning_report(
     curve = None
     lqr_cost = None
     if checkpoints > 0:
-        curve = learning_curve(loop, result, checkpoints=checkpoints, optimal_cost=optimal_cost)
+        evaluate = PolicyEvaluator(loop)
+        curve = learning_curve(
+            loop, result, checkpoints=checkpoints, optimal_cost=optimal_cost, evaluator=evaluate
+        )
         W_lqr = lqr_weights(loop)
         if W_lqr is not None:
-            lqr_cost = evaluate_policy(loop, W_lqr).cost
+            lqr_cost = evaluate(W_lqr).cost
     return LearningReport(
         curve=curve,
         health=learning_health(loop, result),

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
-from pydrake.systems.framework import System
+from pydrake.systems.framework import Context, System
 
 from ofrl_drake.atomic import atomic_file
 from ofrl_drake.bellman import unpack_symmetric
@@ -24,11 +24,13 @@ from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.observer_certificate import certificate_of
 from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
-from ofrl_drake.scenario import Scenario, abort_box, load_scenario
+from ofrl_drake.scenario import Scenario, abort_box, critic_gains_choice, load_scenario
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
 __all__ = [
     "EXTRA_LOGS_FILE",
+    "RUN_CRITIC_VALUES",
+    "RUN_VALUES",
     "TRAJECTORY_KEYS",
     "SimulationResult",
     "simulate",
@@ -321,10 +323,35 @@ def _same(a: Any, b: Any) -> bool:
             return False
 
 
+#: Scenario fields a run writes into the context: ``simulate(scenario, loop=...)``
+#: accepts a scenario that differs from the loop's own in these only.
+RUN_VALUES = ("x0", "xhat0")
+#: ``critic`` fields a run writes into the context under ``critic.gains: manual``.
+RUN_CRITIC_VALUES = ("W0", "Gamma0")
+
+
+def _differing(built: Any, scenario: Any) -> list[str]:
+    """The fields of two scenarios that differ, by name."""
+    if dataclasses.is_dataclass(built) and type(built) is type(scenario):
+        return [
+            f.name
+            for f in dataclasses.fields(built)
+            if not _same(getattr(built, f.name), getattr(scenario, f.name))
+        ]
+    return [] if _same(built, scenario) else ["type"]
+
+
 def _check_loop_arguments(
     scenario: Scenario, loop: ClosedLoop, design: Any, swaps: dict[str, Any]
 ) -> None:
-    """Raise if ``simulate(scenario, loop=loop, ...)`` got arguments it would ignore."""
+    """Raise if ``simulate(scenario, loop=loop, ...)`` got arguments it would ignore.
+
+    The scenario may differ from the loop's own only in what a run writes
+    into the context (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`):
+    :data:`RUN_VALUES`, and :data:`RUN_CRITIC_VALUES` when both scenarios give
+    the critic's gains (``critic.gains: manual``; under ``auto`` they are
+    derived from ``W0``).
+    """
     if design is not None:
         raise SwapError(
             "design: simulate(..., loop=...) runs the loop as built, with the observer "
@@ -341,14 +368,18 @@ def _check_loop_arguments(
     built = loop.parts.scenario
     if built is scenario:
         return
-    if dataclasses.is_dataclass(built) and type(built) is type(scenario):
-        differing = [
-            f.name
-            for f in dataclasses.fields(built)
-            if not _same(getattr(built, f.name), getattr(scenario, f.name))
-        ]
-    else:
-        differing = [] if _same(built, scenario) else ["type"]
+    differing = []
+    for name in _differing(built, scenario):
+        if name in RUN_VALUES:
+            continue
+        if name == "critic":
+            fields = _differing(built.critic, scenario.critic)
+            manual = critic_gains_choice(built.critic) == "manual"
+            if manual and critic_gains_choice(scenario.critic) == "manual":
+                fields = [f for f in fields if f not in RUN_CRITIC_VALUES]
+            differing.extend(f"critic.{f}" for f in fields)
+            continue
+        differing.append(name)
     if differing:
         raise ScenarioError(
             f"scenario: the loop was built from a different scenario (it differs in "
@@ -403,6 +434,7 @@ def simulate(
     design: Any = None,
     progress: bool | None = None,
     loop: ClosedLoop | None = None,
+    parameters: Context | None = None,
     **swaps: Any,
 ) -> SimulationResult:
     """Build and simulate ``scenario``'s closed loop over its horizon.
@@ -428,9 +460,19 @@ def simulate(
         The bar is drawn by the guard, so the trajectories are the same, bit for
         bit, with and without it.
     loop : ClosedLoop, optional
-        An already-built loop to simulate; it must have been built from
-        ``scenario`` (or an equal one), and ``design`` and ``swaps`` must then
-        be omitted (give them to :func:`~ofrl_drake.build_closed_loop`).
+        An already-built loop to simulate, from a fresh context. It must have
+        been built from ``scenario`` but for the values a run writes into the
+        context: ``x0``, ``xhat0`` and, when the critic's gains are given
+        (``critic.gains: manual``), ``critic.W0`` and ``critic.Gamma0``
+        (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`). So one
+        built loop runs from many initial states. ``design`` and ``swaps``
+        must then be omitted (give them to :func:`~ofrl_drake.build_closed_loop`).
+    parameters : Context, optional
+        A context of ``loop.diagram`` whose parameters the run uses, e.g. the
+        learning gains set with the blocks' setters
+        (``loop.critic.set_kc(loop.critic.GetMyMutableContextFromRoot(context), kc)``,
+        ``set_beta``, ``set_gamma_bound``, ``set_nu``); only with ``loop``. The
+        state comes from the scenario; ``parameters`` is not modified.
     **swaps
         Block replacements, as for :func:`~ofrl_drake.build_closed_loop`.
         Not allowed with ``loop``.
@@ -447,7 +489,8 @@ def simulate(
     SwapError
         If ``loop`` is given together with ``design`` or a swap.
     ScenarioError
-        If ``loop`` was built from a scenario that differs from ``scenario``.
+        If ``loop`` was built from a scenario that differs from ``scenario``
+        in more than the values a run writes into the context.
     """
     if isinstance(scenario, (str, Path)):
         scenario = load_scenario(scenario)
@@ -457,12 +500,17 @@ def simulate(
             f"{type(scenario).__name__}. Load one with ofrl_drake.load_scenario(path)."
         )
     if loop is None:
+        if parameters is not None:
+            raise SwapError(
+                "parameters: a context of a built loop's diagram; pass loop= too (the loop "
+                "built with build_closed_loop(scenario) that the context belongs to)."
+            )
         loop = build_closed_loop(scenario, design=design, **swaps)
     else:
         _check_loop_arguments(scenario, loop, design, swaps)
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(simulator_config(scenario), simulator)
-    seeds = _initialize_context(loop, scenario, simulator.get_mutable_context())
+    seeds = _initialize_context(loop, scenario, simulator.get_mutable_context(), parameters)
     duration = scenario.simulation.duration
     show = sys.stderr.isatty() if progress is None else progress
     guard = RunGuard(
@@ -570,14 +618,20 @@ def simulate(
     return result
 
 
-def _initialize_context(loop: ClosedLoop, scenario: Scenario, context: Any) -> dict[str, int]:
-    """Seed the noise and let each block set what its default context cannot hold.
+def _initialize_context(
+    loop: ClosedLoop, scenario: Scenario, context: Any, parameters: Context | None = None
+) -> dict[str, int]:
+    """Seed the noise, set the parameters, the initial values and the holds.
 
     With measurement noise, ``SetRandomContext`` draws every ``RandomSource``'s
     seed from ``RandomGenerator(measurement.seed)``: the same seed gives the
-    same noise, bit for bit. Then each block in slot order may set its own
-    context (:func:`ofrl_drake.systems.world.initialize_context`): a multibody
-    truth's velocities and masses, a hold's first value.
+    same noise, bit for bit. ``parameters`` (a context of the diagram) gives
+    its parameters. Then, in slot order, each block sets what its default
+    context cannot hold (:func:`ofrl_drake.systems.world.initialize_context`:
+    a multibody truth's velocities and masses), the run's initial values are
+    written (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`), and
+    the holds start at their input's value
+    (:func:`ofrl_drake.systems.world.start_holds`).
 
     Returns
     -------
@@ -586,15 +640,20 @@ def _initialize_context(loop: ClosedLoop, scenario: Scenario, context: Any) -> d
     """
     from pydrake.common import RandomGenerator
 
-    from ofrl_drake.systems.world import initialize_context
+    from ofrl_drake.systems.world import initialize_context, start_holds
 
     seeds: dict[str, int] = {}
     meas = scenario.measurement
     if meas is not None and any(v > 0 for v in meas.noise_std):
         loop.diagram.SetRandomContext(context, RandomGenerator(int(meas.seed)))
         seeds["measurement"] = int(meas.seed)
+    if parameters is not None:
+        context.get_mutable_parameters().SetFrom(parameters.get_parameters())
     for block in loop.blocks.values():
         initialize_context(block, block.GetMyMutableContextFromRoot(context))
+    loop.set_initial_values(context, scenario)
+    for block in loop.blocks.values():
+        start_holds(block, block.GetMyMutableContextFromRoot(context))
     return seeds
 
 

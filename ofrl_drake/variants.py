@@ -123,9 +123,15 @@ __all__ = [
 
 # ------------------------------------------------------------------- plant
 def plant_block(system: ControlAffineSystem, x0: ArrayLike, symbolic: bool) -> System:
-    """``system`` simulated from its ``f`` and ``g``: C++ symbolic if ``symbolic``, else Python."""
-    block = SymbolicPlant if symbolic else ControlAffinePlant
-    return block(system, initial_state=x0)
+    """``system`` simulated from its ``f`` and ``g``: C++ symbolic if ``symbolic``, else Python.
+
+    ``x0`` is the Python block's default state; the symbolic block's is zero
+    (:class:`~ofrl_drake.systems.SymbolicPlant`). A run writes its own x(0)
+    either way (``set_state``).
+    """
+    if symbolic:
+        return SymbolicPlant(system)
+    return ControlAffinePlant(system, initial_state=x0)
 
 
 def plant(parts: ClosedLoopParts) -> System:
@@ -241,8 +247,11 @@ def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> O
 def _gain_observer(parts: ClosedLoopParts, symbolic: bool) -> System:
     """The three-gain observer with the gains of ``parts.design``."""
     gains = ObserverGains.from_design(parts.system, parts.design)
-    block = SymbolicObserver if symbolic else ThreeGainObserver
-    return block(parts.system, gains, initial_state=parts.scenario.xhat0, design=parts.design)
+    if symbolic:  # its default estimate is zero; a run writes xhat(0)
+        return SymbolicObserver(parts.system, gains, design=parts.design)
+    return ThreeGainObserver(
+        parts.system, gains, initial_state=parts.scenario.xhat0, design=parts.design
+    )
 
 
 def three_gain(parts: ClosedLoopParts) -> System:
@@ -279,12 +288,7 @@ def drake_luenberger(parts: ClosedLoopParts) -> System:
     linearization = linearize_at_origin(parts.system)
     poles = luenberger_poles(parts.scenario.observer.alpha, parts.system.n)
     gain = luenberger_gain(linearization.A(), linearization.C(), poles)
-    return LinearizedLuenbergerObserver(
-        linearization,
-        gain,
-        initial_state=parts.scenario.xhat0,
-        alpha=parts.scenario.observer.alpha,
-    )
+    return LinearizedLuenbergerObserver(linearization, gain, alpha=parts.scenario.observer.alpha)
 
 
 def kalman(parts: ClosedLoopParts) -> System:
@@ -316,7 +320,7 @@ def kalman(parts: ClosedLoopParts) -> System:
         noise = np.asarray(s.measurement.noise_std, dtype=float)
     V = np.diag(np.maximum(noise, 1e-3 * widths) ** 2)
     gain = SteadyStateKalmanFilter(A, C, W, V)
-    return LinearizedLuenbergerObserver(linearization, gain, initial_state=s.xhat0)
+    return LinearizedLuenbergerObserver(linearization, gain)
 
 
 def true_state(parts: ClosedLoopParts) -> System:

@@ -3,6 +3,7 @@
 import dataclasses
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -182,6 +183,54 @@ def test_csv_columns_are_exactly_the_issue_s():
     )
 
 
+# ------------------------------------------------ one build per variant
+def test_a_sweep_builds_and_designs_once_per_variant(paper_scenario, tmp_path, monkeypatch):
+    import ofrl_drake.design as design
+
+    calls = []
+    original = design.design_observer
+
+    def counted(*args, **kwargs):
+        calls.append(args[1])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(design, "design_observer", counted)
+    variants = [
+        Variant("baseline"),
+        Variant("lqr", {"controller": "lqr"}),
+        Variant("full_state", {"observer": "true_state"}),
+    ]
+    states = [[-1.0, 1.0], [-1.5, 0.5], [0.5, -0.5]]
+    rows = ablate(paper_scenario, variants, states, out=tmp_path, duration=1.0, progress=False)
+    assert len(rows) == 9 and {r["status"] for r in rows} == {"ok"}
+    # baseline and lqr design their three-gain observer once each; true_state has none.
+    assert len(calls) == 2
+    # Serially, the table is written variant by variant, in the order ablate() returns.
+    assert [_key(r) for r in read_rows(tmp_path / "ablation.csv")] == [_key(r) for r in rows]
+
+
+def test_one_build_runs_every_state_as_a_build_per_state(paper_scenario):
+    """run_variant_states re-runs one loop; run_variant builds one per state: same bits."""
+    from ofrl_drake.ablation_tasks import run_variant_states
+
+    states = [[-1.0, 1.0], [0.5, -0.5]]
+    for variant in (Variant("baseline"), Variant("kalman", {"observer": "kalman"})):
+        together = run_variant_states(paper_scenario, variant, states, 1.0)
+        for outcome, x0 in zip(together, states, strict=True):
+            alone = run_variant(paper_scenario, variant, x0, 1.0)
+            assert outcome.status == alone.status == "ok"
+            assert outcome.initial_state == alone.initial_state == initial_state_label(x0)
+            assert outcome.metrics == alone.metrics  # every metric, policy costs included
+            assert outcome.logs.keys() == alone.logs.keys()
+            for key in outcome.logs:
+                assert np.array_equal(outcome.logs[key], alone.logs[key]), key
+    broken = run_variant_states(paper_scenario, Variant("x", {"observer": "nonsense"}), states)
+    assert [o.status for o in broken] == [
+        "ScenarioError: variant.observer: unknown choice 'nonsense'; choose one of "
+        "['drake_luenberger', 'kalman', 'linear_luenberger', 'three_gain', 'true_state']."
+    ] * 2
+
+
 # ------------------------------------------------------- initial states
 def test_sampled_initial_states(paper_scenario):
     states = sample_initial_states(paper_scenario, 5, seed=3)
@@ -279,9 +328,9 @@ def test_resume_completes_a_table_with_a_torn_last_line(paper_scenario, tmp_path
     full = ablate(paper_scenario, variants, states, out=tmp_path / "a", duration=2.0)
     lines = (tmp_path / "a" / "ablation.csv").read_text().splitlines(keepends=True)
     assert len(lines) == 5
+    # A sweep killed while writing its third row: the folder as it was then.
     part = tmp_path / "b"
-    part.mkdir()
-    (tmp_path / "a" / "ablation.json").rename(part / "ablation.json")
+    shutil.copytree(tmp_path / "a", part)
     (part / "ablation.csv").write_text("".join(lines[:3]) + lines[3][:25])
     rows = ablate(paper_scenario, variants, states, out=part, resume=True, duration=2.0)
     text = (part / "ablation.csv").read_text()
@@ -289,6 +338,9 @@ def test_resume_completes_a_table_with_a_torn_last_line(paper_scenario, tmp_path
     on_disk = read_rows(part / "ablation.csv")
     assert len(on_disk) == 4 and len(set(map(_key, on_disk))) == 4
     for a, b in zip(sorted(rows, key=_key), sorted(full, key=_key), strict=True):
+        _same(a, b)
+    # The same table, row for row in the same order, as the uninterrupted sweep's.
+    for a, b in zip(on_disk, read_rows(tmp_path / "a" / "ablation.csv"), strict=True):
         _same(a, b)
     # The finished rows were kept, not re-run (repr: NaN columns compare equal).
     assert repr(on_disk[:2]) == repr(read_rows(tmp_path / "a" / "ablation.csv")[:2])

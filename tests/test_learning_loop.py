@@ -17,7 +17,12 @@ from hypothesis import strategies as st
 from ofrl_drake import build_closed_loop, load_scenario, simulate
 from ofrl_drake.examples import EXAMPLES, register
 from ofrl_drake.learning import value_matrix
-from ofrl_drake.learning_curve import evaluate_policy, learning_health, lqr_weights
+from ofrl_drake.learning_curve import (
+    PolicyEvaluator,
+    evaluate_policy,
+    learning_health,
+    lqr_weights,
+)
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.optimal import optimal_control
 from ofrl_drake.scenario import (
@@ -145,13 +150,32 @@ def _with_lqr_start(scenario, multiple):
 
 
 def _targets(scenario, W_lqr, W_learned, W_initial):
-    loop = build_closed_loop(scenario)
+    evaluate = PolicyEvaluator(build_closed_loop(scenario))  # one diagram, three policies
     J_star = optimal_control(scenario)
     assert J_star.converged, J_star.status
-    J_lqr = evaluate_policy(loop, W_lqr).cost
-    J_initial = evaluate_policy(loop, W_initial).cost
-    J_learned = evaluate_policy(loop, W_learned).cost
+    J_lqr = evaluate(W_lqr).cost
+    J_initial = evaluate(W_initial).cost
+    J_learned = evaluate(W_learned).cost
     return J_star.cost, J_lqr, J_initial, J_learned
+
+
+@pytest.mark.parametrize("blocks", ["symbolic", "python"])
+def test_one_policy_evaluator_runs_as_a_diagram_built_per_policy(blocks):
+    """W and x0 written into the context of each run: the numbers of a diagram built for it."""
+    scenario = load_scenario(PENDULUM)
+    scenario = dataclasses.replace(
+        scenario, simulation=dataclasses.replace(scenario.simulation, blocks=blocks, duration=2.0)
+    )
+    loop = build_closed_loop(scenario)
+    evaluate = PolicyEvaluator(loop)
+    W0 = np.asarray(scenario.critic.W0)
+    runs = [(W0, None), (3.0 * W0, [0.2, -0.3]), (W0, None)]
+    for W, x0 in runs:
+        reused = evaluate(W, x0=x0)
+        fresh = evaluate_policy(loop, W, x0=x0)  # a diagram of its own
+        assert reused == fresh and reused.status == "ok"
+    assert evaluate(W0).cost != evaluate(3.0 * W0).cost
+    assert evaluate(W0, duration=1.0).cost < evaluate(W0).cost
 
 
 CASES = {

@@ -104,7 +104,7 @@ def _measured_origin(noise_std, period, seed, duration=20.0):
     simulator = Simulator(diagram)
     context = simulator.get_mutable_context()
     diagram.SetRandomContext(context, RandomGenerator(seed))
-    plant.initialize_context(plant.GetMyMutableContextFromRoot(context))
+    plant.start_holds(plant.GetMyMutableContextFromRoot(context))
     simulator.AdvanceTo(duration)
     data = log.FindLog(simulator.get_context())
     return data.sample_times(), data.data()[0]
@@ -145,7 +145,7 @@ def test_y_is_piecewise_constant_on_the_sampling_grid():
     diagram = builder.Build()
     simulator = Simulator(diagram)
     context = simulator.get_mutable_context()
-    plant.initialize_context(plant.GetMyMutableContextFromRoot(context))
+    plant.start_holds(plant.GetMyMutableContextFromRoot(context))
     simulator.AdvanceTo(0.5)
     ctx = simulator.get_context()
     times = y_log.FindLog(ctx).sample_times()

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ofrl_drake import ScenarioError, SimulationResult, SwapError, build_closed_loop, simulate
 from ofrl_drake.simulation import EXTRA_LOGS_FILE, TRAJECTORY_KEYS
@@ -98,6 +98,202 @@ def test_loop_with_an_equal_scenario_runs(short_scenario, short_loop):
     as_arrays = dataclasses.replace(short_scenario, x0=np.asarray(short_scenario.x0))
     r = simulate(as_arrays, loop=short_loop, progress=False)
     assert r.t[-1] == pytest.approx(0.5, abs=1e-9)
+
+
+# ------------------------------------------------ initial values and parameters
+def _arrays(result):
+    """Every logged array of a run, by name."""
+    arrays = {k: np.asarray(getattr(result, k)) for k in TRAJECTORY_KEYS}
+    arrays.update({f"extra.{k}": np.asarray(v) for k, v in result.extra.items()})
+    return arrays
+
+
+def _assert_same_run(a, b):
+    """The two runs logged the same arrays, bit for bit."""
+    A, B = _arrays(a), _arrays(b)
+    assert A.keys() == B.keys()
+    for key in A:
+        assert np.array_equal(A[key], B[key]), key
+
+
+def _load(name, duration):
+    from ofrl_drake import load_scenario
+    from tests.conftest import ROOT
+
+    s = load_scenario(ROOT / "diagrams" / f"{name}.yaml")
+    return dataclasses.replace(s, simulation=dataclasses.replace(s.simulation, duration=duration))
+
+
+#: Loops whose blocks differ in how they hold a state: the symbolic and the Python plant
+#: and observer, Drake's Luenberger observer, the re-designed observer, the moving points,
+#: and a multibody truth behind noisy sampled sensors with a sampled controller.
+RERUN_CASES = {
+    "symbolic": lambda: _load("two_state_paper", 1.0),
+    "python": lambda: _with_simulation(_load("two_state_paper", 1.0), blocks="python"),
+    "drake_luenberger": lambda: _variant(
+        _load("two_state_paper", 1.0), observer="drake_luenberger"
+    ),
+    "scheduled": lambda: _observer(_load("two_state_paper", 0.5), schedule_period=0.2),
+    "around_estimate": lambda: _variant(_load("two_state_paper", 1.0), points="around_estimate"),
+    "multibody_real_world": lambda: _load("cart_pole_real_world", 0.5),
+}
+
+
+def _with_simulation(s, **changes):
+    return dataclasses.replace(s, simulation=dataclasses.replace(s.simulation, **changes))
+
+
+def _variant(s, **changes):
+    return dataclasses.replace(s, variant=dataclasses.replace(s.variant, **changes))
+
+
+def _observer(s, **changes):
+    return dataclasses.replace(s, observer=dataclasses.replace(s.observer, **changes))
+
+
+@pytest.mark.parametrize("case", sorted(RERUN_CASES))
+def test_a_built_loop_reruns_from_another_state_as_a_fresh_build(case):
+    """Writing x0 and xhat0 into a fresh context: the runs of a loop built for each state."""
+    scenario = RERUN_CASES[case]()
+    x0 = 0.8 * np.asarray(scenario.x0, dtype=float)
+    xhat0 = x0 + 0.5 * (np.asarray(scenario.xhat0) - np.asarray(scenario.x0))
+    other = dataclasses.replace(scenario, x0=x0.tolist(), xhat0=xhat0.tolist())
+    loop = build_closed_loop(scenario)
+    for s in (other, scenario, other):  # another state, the loop's own, the other again
+        reused = simulate(s, loop=loop, progress=False)
+        fresh = simulate(s, design=loop.design, progress=False)
+        assert reused.status == fresh.status == "ok"
+        _assert_same_run(reused, fresh)
+    assert reused.x[0] == pytest.approx(x0, abs=1e-12)
+
+
+def test_initial_weights_and_gamma_are_written_under_manual_gains(short_scenario, short_loop):
+    critic = dataclasses.replace(
+        short_scenario.critic, W0=[0.5, 0.1, 0.9], Gamma0=(20.0 * np.eye(3)).tolist()
+    )
+    other = dataclasses.replace(short_scenario, critic=critic)
+    reused = simulate(other, loop=short_loop, progress=False)
+    _assert_same_run(reused, simulate(other, design=short_loop.design, progress=False))
+    np.testing.assert_array_equal(reused.W[0], [0.5, 0.1, 0.9])
+    np.testing.assert_array_equal(reused.Gamma[0], 20.0 * np.eye(3))
+
+
+def test_only_the_values_a_run_writes_may_differ_from_the_loops_scenario(
+    short_scenario, short_loop
+):
+    gains = dataclasses.replace(short_scenario.critic, kc=0.02)
+    with pytest.raises(ScenarioError, match=r"\(it differs in critic\.kc\); pass the scenario"):
+        simulate(dataclasses.replace(short_scenario, critic=gains), loop=short_loop)
+    pendulum = _load("pendulum_upright", 0.2)  # critic.gains: auto, derived from W0
+    loop = build_closed_loop(pendulum)
+    W0 = dataclasses.replace(pendulum.critic, W0=[1.0, 0.0, 1.0])
+    with pytest.raises(ScenarioError, match=r"\(it differs in critic\.W0\)"):
+        simulate(dataclasses.replace(pendulum, critic=W0), loop=loop)
+
+
+def _gain_setters(loop, context, *, kc, beta, nu, gamma_bound=None):
+    """Write the learning gains into the blocks' contexts of ``context``."""
+    sub = {slot: loop.blocks[slot].GetMyMutableContextFromRoot(context) for slot in loop.blocks}
+    loop.critic.set_kc(sub["critic"], kc)
+    loop.gamma.set_kc(sub["gamma"], kc)
+    loop.gamma.set_beta(sub["gamma"], beta)
+    loop.gamma.set_gamma_bound(sub["gamma"], gamma_bound)
+    loop.bellman.set_nu(sub["bellman"], nu)
+
+
+def test_gains_set_in_the_context_run_as_a_loop_built_with_them(short_scenario, short_loop):
+    context = short_loop.diagram.CreateDefaultContext()
+    _gain_setters(short_loop, context, kc=0.05, beta=0.5, nu=0.3)
+    reused = simulate(short_scenario, loop=short_loop, parameters=context, progress=False)
+    critic = dataclasses.replace(short_scenario.critic, kc=0.05, beta=0.5, nu=0.3)
+    rebuilt = simulate(
+        dataclasses.replace(short_scenario, critic=critic),
+        design=short_loop.design,
+        progress=False,
+    )
+    _assert_same_run(reused, rebuilt)
+    # The context given is not modified, and a run without it uses the loop's own gains.
+    assert short_loop.critic.get_kc(short_loop.critic.GetMyContextFromRoot(context)) == 0.05
+    own = simulate(short_scenario, loop=short_loop, progress=False)
+    _assert_same_run(own, simulate(short_scenario, design=short_loop.design, progress=False))
+    assert not np.array_equal(own.W, reused.W)
+
+
+def test_bounded_forgetting_gains_set_in_the_context(tmp_path):
+    """policy_iteration's gamma_bound and the derived gains, written out as manual ones."""
+    pendulum = _load("pendulum_upright", 2.0)
+    resolved = build_closed_loop(pendulum).resolved_scenario()  # critic.gains: manual
+    loop = build_closed_loop(resolved)
+    g = resolved.critic
+    changed = {"kc": 2 * g.kc, "beta": 0.5 * g.beta, "nu": 3 * g.nu, "gamma_bound": 1.5}
+    context = loop.diagram.CreateDefaultContext()
+    _gain_setters(loop, context, **changed)
+    reused = simulate(resolved, loop=loop, parameters=context, progress=False)
+    rebuilt = dataclasses.replace(resolved, critic=dataclasses.replace(g, **changed))
+    _assert_same_run(reused, simulate(rebuilt, design=loop.design, progress=False))
+    # W0 (the critic's and the policy in force's) and Gamma0 written into the context.
+    W0 = (1.1 * np.asarray(g.W0)).tolist()
+    other = dataclasses.replace(
+        resolved, critic=dataclasses.replace(g, W0=W0, Gamma0=(2 * np.asarray(g.Gamma0)).tolist())
+    )
+    reused = simulate(other, loop=loop, progress=False)
+    _assert_same_run(reused, simulate(other, design=loop.design, progress=False))
+    np.testing.assert_array_equal(reused.W_policy[0], W0)
+
+
+def test_parameters_need_a_loop(short_scenario, short_loop):
+    context = short_loop.diagram.CreateDefaultContext()
+    with pytest.raises(SwapError, match=r"^parameters: a context of a built loop's diagram"):
+        simulate(short_scenario, parameters=context)
+
+
+class _PlantWithoutSetter(LeafSystem):
+    """The paper's plant with no ``set_state``: it starts from its own default state."""
+
+    def __init__(self, x0):
+        super().__init__()
+        from ofrl_drake.examples import make_system
+
+        self.system = make_system("two_state")
+        state = self.DeclareContinuousState(BasicVector(np.asarray(x0, dtype=float)))
+        self._u = self.DeclareVectorInputPort("u", 1)
+        self.DeclareStateOutputPort("state", state)
+        self.DeclareVectorOutputPort(
+            "y",
+            1,
+            lambda c, out: out.SetFromVector(c.get_continuous_state_vector().CopyToVector()[:1]),
+            prerequisites_of_calc={self.xc_ticket()},
+        )
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        x = context.get_continuous_state_vector().CopyToVector()
+        derivatives.SetFromVector(self.system.dynamics(x, self._u.Eval(context)))
+
+
+def test_swapped_blocks_keep_their_own_initial_values(short_scenario):
+    W_own = [0.1, 0.0, 0.1]
+    loop = build_closed_loop(short_scenario, critic=CriticWeights(W_own, kc=0.0))
+    r = simulate(short_scenario, loop=loop, progress=False)
+    np.testing.assert_array_equal(r.W[0], W_own)  # not the scenario's W0
+    # A run from another x0 writes it into the blocks that take it, W0 stays the block's.
+    other = dataclasses.replace(short_scenario, x0=[0.5, -0.5], xhat0=[0.6, -0.4])
+    r = simulate(other, loop=loop, progress=False)
+    np.testing.assert_array_equal(r.x[0], [0.5, -0.5])
+    np.testing.assert_array_equal(r.xhat[0], [0.6, -0.4])
+    np.testing.assert_array_equal(r.W[0], W_own)
+    # A stateless observer has nothing to set.
+    swapped = build_closed_loop(short_scenario, observer=FullStateObserver(2))
+    assert simulate(other, loop=swapped, progress=False).status == "ok"
+    # A block without the setter starts from its own state, and cannot start from another.
+    swapped = build_closed_loop(short_scenario, plant=_PlantWithoutSetter(short_scenario.x0))
+    r = simulate(short_scenario, loop=swapped, progress=False)
+    np.testing.assert_array_equal(r.x[0], short_scenario.x0)
+    with pytest.raises(
+        SwapError,
+        match=r"^plant: the block _PlantWithoutSetter has no set_state\(context, value\), so a "
+        r"run cannot start it from x0 = \[0\.5, -0\.5\]; give it one",
+    ):
+        simulate(other, loop=swapped, progress=False)
 
 
 # ------------------------------------------------------- validity per observer

@@ -62,48 +62,57 @@ def test_ports_match_the_python_blocks(name):
         assert ports(symbolic) == ports(python)
 
 
-def test_default_state_is_the_initial_state():
+def test_the_state_is_x_itself_zero_by_default():
+    """No offset: the context holds x (xhat), which starts at zero (Drake's default)."""
     system = make_system("coupled_two_state")
-    x0 = np.array([0.3, -1.2, 0.5, 2.0])
-    plant = SymbolicPlant(system, initial_state=x0)
+    x = np.array([0.3, -1.2, 0.5, 2.0])
+    plant = SymbolicPlant(system)
     context = plant.CreateDefaultContext()
-    np.testing.assert_array_equal(plant.get_state_output_port().Eval(context), x0)
+    np.testing.assert_array_equal(plant.get_state_output_port().Eval(context), np.zeros(4))
+    context.SetContinuousState(x)
+    np.testing.assert_array_equal(plant.get_state_output_port().Eval(context), x)
     np.testing.assert_allclose(
-        plant.get_y_output_port().Eval(context), system.output_matrix @ x0, rtol=RTOL
+        plant.get_y_output_port().Eval(context), system.output_matrix @ x, rtol=RTOL
     )
-    observer = SymbolicObserver(system, random_gains(system), initial_state=-x0)
+    observer = SymbolicObserver(system, random_gains(system))
     context = observer.CreateDefaultContext()
-    np.testing.assert_array_equal(observer.get_estimated_state_output_port().Eval(context), -x0)
+    np.testing.assert_array_equal(
+        observer.get_estimated_state_output_port().Eval(context), np.zeros(4)
+    )
+    context.SetContinuousState(-x)
+    np.testing.assert_array_equal(observer.get_estimated_state_output_port().Eval(context), -x)
 
 
 def test_set_state_writes_the_state_the_ports_read():
     system = make_system("two_state")
     x0, x = np.array([0.3, -1.2]), np.array([1.1, 0.4])
-    for plant in (SymbolicPlant(system, initial_state=x0), ControlAffinePlant(system, x0)):
+    for plant in (SymbolicPlant(system), ControlAffinePlant(system, x0)):
         context = plant.CreateDefaultContext()
         plant.set_state(context, x)
-        np.testing.assert_allclose(plant.get_state_output_port().Eval(context), x, rtol=RTOL)
+        np.testing.assert_array_equal(plant.get_state_output_port().Eval(context), x)
+        np.testing.assert_array_equal(context.get_continuous_state_vector().CopyToVector(), x)
     gains = random_gains(system)
     for observer in (
-        SymbolicObserver(system, gains, initial_state=x0),
+        SymbolicObserver(system, gains),
         ThreeGainObserver(system, gains, initial_state=x0),
     ):
         context = observer.CreateDefaultContext()
         observer.set_estimated_state(context, x)
-        np.testing.assert_allclose(
-            observer.get_estimated_state_output_port().Eval(context), x, rtol=RTOL
-        )
+        np.testing.assert_array_equal(observer.get_estimated_state_output_port().Eval(context), x)
+    with pytest.raises(ModelError, match=r"two_state: x must have length 2; got 3"):
+        SymbolicPlant(system).set_state(context, [1.0, 2.0, 3.0])
+    with pytest.raises(ModelError, match=r"two_state: xhat must be finite; got \[nan, 0.0\]"):
+        SymbolicObserver(system, gains).set_estimated_state(context, [np.nan, 0.0])
 
 
 @pytest.mark.parametrize("name", ["two_state", "coupled_two_state"])
 def test_plant_derivative_matches_f_plus_g_u(name):
     system = make_system(name)
-    x0 = np.linspace(-0.5, 0.5, system.n)
-    plant = SymbolicPlant(system, initial_state=x0)
+    plant = SymbolicPlant(system)
     rng = np.random.default_rng(1)
     for _ in range(5):
         x, u = rng.uniform(-2, 2, system.n), rng.uniform(-3, 3, system.m)
-        xdot, _ = _derivatives(plant, x - x0, {"u": u})  # the state is the offset from x0
+        xdot, _ = _derivatives(plant, x, {"u": u})
         np.testing.assert_allclose(xdot, system.dynamics(x, u), rtol=RTOL, atol=ATOL)
 
 

@@ -363,3 +363,100 @@ def test_critic_set_weights_and_derivative(kc):
     rate = block.EvalTimeDerivatives(context).CopyToVector()
     expected = -kc * Gamma @ inputs["critic_sum"]
     np.testing.assert_allclose(rate, expected, rtol=1e-14, atol=1e-15)
+
+
+# ------------------------------------------------- gains as context parameters
+def _parameter_block_derivative(block, state, inputs, set_values):
+    """The derivative of ``block`` at ``state``, after ``set_values(context)``."""
+    context = block.CreateDefaultContext()
+    set_values(context)
+    for name, value in inputs.items():
+        block.GetInputPort(name).FixValue(context, value)
+    context.SetContinuousState(state)
+    return block.EvalTimeDerivatives(context).CopyToVector()
+
+
+def test_gains_in_the_context_give_the_derivative_of_a_block_built_with_them():
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(3, 3))
+    Gamma = A @ A.T + np.eye(3)
+    S = rng.normal(size=(3, 3))
+    S = S @ S.T
+    s, W = rng.normal(size=3), rng.normal(size=3)
+    G0 = 2.0 * np.eye(3) + 0.1
+    critic_inputs = {"critic_sum": s, "gamma": Gamma.ravel()}
+    critic = CriticWeights(np.zeros(3), 0.01)
+    got = _parameter_block_derivative(critic, W, critic_inputs, lambda c: critic.set_kc(c, 0.3))
+    built = _derivatives(CriticWeights(np.zeros(3), 0.3), W, critic_inputs)
+    np.testing.assert_array_equal(got, built)
+
+    gamma = GammaGain(np.eye(3), 0.01, 0.2)
+
+    def gains(context):
+        gamma.set_kc(context, 0.05)
+        gamma.set_beta(context, 0.7)
+        gamma.set_gamma_bound(context, 4.0)
+        gamma.set_initial_gamma(context, G0)  # the reference of bounded forgetting too
+
+    got = _parameter_block_derivative(gamma, Gamma.ravel(), {"gain_sum": S.ravel()}, gains)
+    built = _derivatives(GammaGain(G0, 0.05, 0.7, 4.0), Gamma.ravel(), {"gain_sum": S.ravel()})
+    np.testing.assert_array_equal(got, built)
+    context = gamma.CreateDefaultContext()
+    gains(context)
+    assert gamma.get_gains(context) == (0.05, 0.7, 4.0)
+    np.testing.assert_array_equal(gamma.get_gamma_output_port().Eval(context), G0.ravel())
+    gamma.set_gamma_bound(context, None)
+    assert gamma.get_gains(context) == (0.05, 0.7, None)
+    assert gamma.get_gains(gamma.CreateDefaultContext()) == (0.01, 0.2, None)
+
+
+def test_nu_in_the_context_gives_the_sums_of_a_block_built_with_it():
+    system, basis = make_system("two_state"), PolynomialBasis(2)
+    features = point_features(system, basis, grid_points([-1, -1], [1, 1], [4, 3]), np.eye(2))
+    r, W, Wp = np.array([1.0]), np.array([0.4, 0.2, 0.8]), np.array([0.5, 0.1, 0.7])
+    block = BellmanExtrapolator(features, r, 3.0, 0.7)
+    context = block.CreateDefaultContext()
+    block.get_weights_input_port().FixValue(context, W)
+    block.get_policy_weights_input_port().FixValue(context, Wp)
+    built = BellmanExtrapolator(features, r, 3.0, 0.2)
+    built_context = built.CreateDefaultContext()
+    built.get_weights_input_port().FixValue(built_context, W)
+    built.get_policy_weights_input_port().FixValue(built_context, Wp)
+    default = block.get_critic_sum_output_port().Eval(context).copy()
+    block.set_nu(context, 0.2)  # invalidates the cached sums
+    assert block.get_nu(context) == 0.2
+    for name in ("critic_sum", "gain_sum", "learning_condition"):
+        np.testing.assert_array_equal(
+            block.GetOutputPort(name).Eval(context), built.GetOutputPort(name).Eval(built_context)
+        )
+    assert not np.array_equal(default, block.get_critic_sum_output_port().Eval(context))
+    weights = np.array([W, Wp, 2 * W])
+    np.testing.assert_array_equal(
+        block.learning_condition_of(weights, context), built.learning_condition_of(weights)
+    )
+    with pytest.raises(ModelError, match=r"BellmanExtrapolator: nu must be > 0; got -1.0"):
+        block.set_nu(context, -1.0)
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda: CriticWeights(np.zeros(2), 0.1).set_kc(None, -1.0), r"kc must be >= 0; got -1.0"),
+        (lambda: GammaGain(np.eye(2), 0.1, 0.2).set_beta(None, np.nan), r"beta must be finite"),
+        (
+            lambda: GammaGain(np.eye(2), 0.1, 0.2).set_gamma_bound(None, 0.0),
+            r"GammaGain: gamma_bound must be > 0; got 0.0",
+        ),
+        (
+            lambda: GammaGain(np.eye(2), 0.1, 0.2).set_initial_gamma(None, -np.eye(2)),
+            r"GammaGain: Gamma\(0\) must be positive definite",
+        ),
+        (
+            lambda: CriticWeights(np.zeros(2), 0.1).set_weights(None, [1.0, 2.0, 3.0]),
+            r"CriticWeights: W must have length 2; got 3",
+        ),
+    ],
+)
+def test_setters_name_the_bad_value(call, message):
+    with pytest.raises(ModelError, match=message):
+        call()

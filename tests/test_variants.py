@@ -384,23 +384,24 @@ def test_drake_luenberger_block_starts_at_xhat0_and_runs_the_linear_observer():
     lin = linearize_at_origin(make_system("two_state"))
     L = luenberger_gain(lin.A(), lin.C(), [-4.0, -6.0])
     xhat0 = np.array([2.0, 1.5])
-    block = LinearizedLuenbergerObserver(lin, L, initial_state=xhat0)
+    block = LinearizedLuenbergerObserver(lin, L)
     assert block.get_y_input_port().get_name() == "y"
     assert block.get_u_input_port().get_name() == "u"
     context = block.CreateDefaultContext()
+    out = block.get_estimated_state_output_port()
+    np.testing.assert_array_equal(out.Eval(context), np.zeros(2))  # Drake's default state
+    block.set_estimated_state(context, xhat0)
     y, u = np.array([0.7]), np.array([-1.2])
     block.get_y_input_port().FixValue(context, y)
     block.get_u_input_port().FixValue(context, u)
-    out = block.get_estimated_state_output_port()
-    np.testing.assert_allclose(out.Eval(context), xhat0, rtol=0, atol=1e-15)
-    # The derivative of the (shifted) state is xhat' = A xhat + B u + L (y - C xhat).
+    np.testing.assert_array_equal(out.Eval(context), xhat0)
+    # The derivative of the state, the estimate, is xhat' = A xhat + B u + L (y - C xhat).
     xdot = block.EvalTimeDerivatives(context).CopyToVector()
     expected = lin.A() @ xhat0 + lin.B() @ u + L @ (y - lin.C() @ xhat0)
     np.testing.assert_allclose(xdot, expected, rtol=1e-13, atol=1e-13)
-    # Moving the observer's state moves the estimate by the same amount.
-    shift = np.array([0.25, -0.5])
-    context.SetContinuousState(shift)
-    np.testing.assert_allclose(out.Eval(context), xhat0 + shift, rtol=0, atol=1e-15)
+    # The observer's state is the estimate itself.
+    context.SetContinuousState(xhat0 + np.array([0.25, -0.5]))
+    np.testing.assert_array_equal(out.Eval(context), xhat0 + np.array([0.25, -0.5]))
 
 
 def test_lqr_block_gain_and_saturation():
@@ -483,6 +484,7 @@ def test_around_estimate_points_move_with_xhat(paper_scenario):
     bellman = loop.bellman
     assert isinstance(bellman, MovingBellmanExtrapolator)
     context = loop.diagram.CreateDefaultContext()
+    loop.set_initial_values(context)  # the scenario's x0, xhat0, W0, Gamma0
     sub = bellman.GetMyContextFromRoot(context)
     system, basis = make_system("two_state"), PolynomialBasis(2)
     Q, r = np.asarray(paper_scenario.cost.Q), np.asarray(paper_scenario.cost.R)

@@ -22,15 +22,17 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.controllers import LinearQuadraticRegulator
 from pydrake.systems.estimators import LuenbergerObserver
 from pydrake.systems.framework import (
+    BasicVector,
+    Context,
     Diagram,
     DiagramBuilder,
     InputPort,
     LeafSystem,
+    NumericParameterIndex,
     OutputPort,
     ValueProducer,
 )
 from pydrake.systems.primitives import (
-    AffineSystem,
     ConstantVectorSource,
     LinearSystem,
     Saturation,
@@ -39,6 +41,7 @@ from pydrake.systems.primitives import (
 from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.checks import finite_vector, positive_number
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -103,11 +106,7 @@ class LinearizedLuenbergerObserver(Diagram):
     """Drake's ``LuenbergerObserver`` on the linearization, with ports ``y, u``.
 
     The observer runs the linear model ``xhat' = A xhat + B u + L (y - C xhat
-    - D u)``. Drake's ``LuenbergerObserver`` starts from a zero state, so to
-    start from ``xhat(0) = initial_state`` it observes the same model in the
-    shifted coordinates ``z = xhat - xhat(0)`` (an ``AffineSystem`` with
-    ``f0 = A xhat(0)`` and ``y0 = C xhat(0)``), and a stateless ``AffineSystem``
-    adds ``xhat(0)`` back. The estimate is the same; only its origin moved.
+    - D u)``; its state is the estimate itself.
 
     .. pydrake_system::
 
@@ -125,47 +124,50 @@ class LinearizedLuenbergerObserver(Diagram):
         (:func:`ofrl_drake.baselines.linearize_at_origin`).
     gain : array_like, shape (n, q)
         Observer gain L (e.g. :func:`ofrl_drake.baselines.luenberger_gain`).
-    initial_state : array_like, shape (n,), optional
-        Default xhat(0) (zeros if omitted).
     alpha : float, optional
         The decay rate the gain is meant to achieve; :meth:`observer_certificate`
         then reports the Lyapunov certificate of the linearized error at that
         rate (:func:`ofrl_drake.baselines.linearized_observer_certificate`).
+
+    Notes
+    -----
+    ``xhat(0)`` is set in a context with :meth:`set_estimated_state` (a run
+    does it). Its default is zero: Drake's ``LuenbergerObserver`` declares its
+    state with a zero default, and a ``Diagram`` cannot give a subsystem
+    another (pydrake binds no ``SetDefaultState`` to override; see
+    `LuenbergerObserver <https://drake.mit.edu/doxygen_cxx/classdrake_1_1systems_1_1estimators_1_1_luenberger_observer.html>`_).
     """
 
     def __init__(
         self,
         linearization: LinearSystem,
         gain: np.ndarray,
-        initial_state: Sequence[float] | None = None,
         alpha: float | None = None,
     ) -> None:
         super().__init__()
         self.linearization = linearization
         self.gain = gain
-        self.initial_state = initial_state
         self.alpha = alpha
-        A, B = linearization.A(), linearization.B()
-        C, D = linearization.C(), linearization.D()
-        n = A.shape[0]
-        xhat0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
-        shifted = AffineSystem(A, B, A @ xhat0, C, D, C @ xhat0)
         builder = DiagramBuilder()
-        observer = builder.AddNamedSystem(
+        self._observer = builder.AddNamedSystem(
             "luenberger",
             LuenbergerObserver(
-                shifted, shifted.CreateDefaultContext(), np.asarray(gain, dtype=float)
+                linearization,
+                linearization.CreateDefaultContext(),
+                np.asarray(gain, dtype=float),
             ),
         )
-        # estimated_state = z + xhat(0): a stateless affine map y = I z + xhat(0).
-        shift_back = builder.AddNamedSystem(
-            "add_initial_estimate", AffineSystem(D=np.eye(n), y0=xhat0)
-        )
-        builder.Connect(observer.get_estimated_state_output_port(), shift_back.get_input_port())
+        observer = self._observer
         builder.ExportInput(observer.get_observed_system_output_input_port(), "y")
         builder.ExportInput(observer.get_observed_system_input_input_port(), "u")
-        builder.ExportOutput(shift_back.get_output_port(), "estimated_state")
+        builder.ExportOutput(observer.get_estimated_state_output_port(), "estimated_state")
         builder.BuildInto(self)
+
+    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+        """Set the estimate to ``xhat`` in ``context``, this block's own context."""
+        n = self.linearization.A().shape[0]
+        value = finite_vector("LinearizedLuenbergerObserver: xhat", xhat, n)
+        self.GetMutableSubsystemContext(self._observer, context).SetContinuousState(value)
 
     def get_y_input_port(self) -> InputPort:
         """The measurement ``y`` (size q)."""
@@ -336,7 +338,8 @@ class MovingBellmanExtrapolator(LeafSystem):
     input_bound : float
         lbar.
     nu : float
-        Normalization gain of rho.
+        The default normalization gain of rho, a numeric parameter of the
+        context (:meth:`set_nu`).
     metric : array_like, shape (L,), optional
         Diagonal of the metric of rho (default ones, the paper's).
 
@@ -373,6 +376,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         self._Q = np.asarray(Q, dtype=float)
         self._r = np.asarray(r, dtype=float)
         size = basis.size
+        self._nu_index = self.DeclareNumericParameter(BasicVector([float(nu)]))
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
         self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
@@ -386,6 +390,7 @@ class MovingBellmanExtrapolator(LeafSystem):
                 self._weights_port.ticket(),
                 self._policy_port.ticket(),
                 self._xhat_port.ticket(),
+                self.numeric_parameter_ticket(NumericParameterIndex(self._nu_index)),
             },
         )
         deps = {self._cache.ticket()}
@@ -427,6 +432,15 @@ class MovingBellmanExtrapolator(LeafSystem):
         """The cached :class:`~ofrl_drake.bellman.BellmanExtrapolation`."""
         return self._cache.Eval(context)
 
+    def get_nu(self, context: Context) -> float:
+        """The normalization gain in ``context`` (this block's own)."""
+        return context.get_numeric_parameter(self._nu_index).GetAtIndex(0)
+
+    def set_nu(self, context: Context, nu: float) -> None:
+        """Set the normalization gain ``nu > 0`` in ``context`` (this block's own)."""
+        value = positive_number("MovingBellmanExtrapolator: nu", nu)
+        context.get_mutable_numeric_parameter(self._nu_index).SetAtIndex(0, value)
+
     def _calc_extrapolation(self, context, value) -> None:
         W = self._weights_port.Eval(context)
         xhat = self._xhat_port.Eval(context)
@@ -437,7 +451,7 @@ class MovingBellmanExtrapolator(LeafSystem):
                 W,
                 self._r,
                 self.input_bound,
-                self.nu,
+                self.get_nu(context),
                 W_policy=self._policy_port.Eval(context),
                 metric=self.metric,
             )

@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 from pydrake.systems.framework import (
+    BasicVector,
     Context,
     Diagram,
     DiagramBuilder,
     InputPort,
     LeafSystem,
+    NumericParameterIndex,
     OutputPort,
 )
 from pydrake.systems.primitives import Demultiplexer
 
 from ofrl_drake.bellman import BellmanSums, Extrapolator, PointFeatures, learning_condition
+from ofrl_drake.checks import positive_number
 
 __all__ = ["BellmanExtrapolator"]
 
@@ -22,16 +25,24 @@ class _StackedSums(LeafSystem):
     """Both sums in one vector ``[critic_sum; vec(gain_sum)]``, one compiled call each.
 
     The kernel writes straight into the output, so a derivative evaluation
-    makes one Python call here and allocates nothing.
+    makes one Python call here and allocates nothing. ``nu`` is a numeric
+    parameter: the :class:`~ofrl_drake.bellman.Extrapolator` of the default
+    ``nu`` is kept, and one of the last other value used.
     """
 
     def __init__(self, extrapolator: Extrapolator, size: int) -> None:
         super().__init__()
         self.extrapolator = extrapolator
         self._size = size
+        self._other: Extrapolator | None = None  # at the last nu that is not the default
+        self._nu_index = self.DeclareNumericParameter(BasicVector([extrapolator.nu]))
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
-        inputs = {self._weights_port.ticket(), self._policy_port.ticket()}
+        inputs = {
+            self._weights_port.ticket(),
+            self._policy_port.ticket(),
+            self.numeric_parameter_ticket(NumericParameterIndex(self._nu_index)),
+        }
         self._sums_port = self.DeclareVectorOutputPort(
             "sums", size + size * size, self._calc_sums, prerequisites_of_calc=inputs
         )
@@ -42,10 +53,30 @@ class _StackedSums(LeafSystem):
             prerequisites_of_calc=inputs,
         )
 
+    def nu(self, context: Context) -> float:
+        """The normalization gain in ``context`` (this block's own)."""
+        return context.get_numeric_parameter(self._nu_index).GetAtIndex(0)
+
+    def set_nu(self, context: Context, nu: float) -> None:
+        """Set the normalization gain ``nu > 0`` in ``context`` (this block's own)."""
+        value = positive_number("BellmanExtrapolator: nu", nu)
+        context.get_mutable_numeric_parameter(self._nu_index).SetAtIndex(0, value)
+
+    def extrapolator_for(self, nu: float) -> Extrapolator:
+        """The :class:`~ofrl_drake.bellman.Extrapolator` of this block's points at ``nu``."""
+        e = self.extrapolator
+        if nu == e.nu:
+            return e
+        if self._other is None or self._other.nu != nu:
+            self._other = Extrapolator(e.features, e.r, e.input_bound, nu, e.metric)
+        return self._other
+
     def _calc_sums(self, context, output) -> None:
         L = self._size
         value = output.get_mutable_value()
-        self.extrapolator.sums_into(
+        nu = context.get_numeric_parameter(self._nu_index).GetAtIndex(0)
+        e = self.extrapolator
+        (e if nu == e.nu else self.extrapolator_for(nu)).sums_into(
             self._weights_port.Eval(context),
             value[:L],
             value[L:].reshape(L, L),
@@ -90,7 +121,8 @@ class BellmanExtrapolator(Diagram):
     input_bound : float
         lbar.
     nu : float
-        Normalization gain of rho.
+        The default normalization gain of rho: a numeric parameter of the
+        context (:meth:`set_nu`), so a sweep over it needs no rebuild.
     metric : array_like, shape (L,), optional
         Diagonal of the metric of rho (default ones, the paper's; see
         :class:`~ofrl_drake.bellman.Extrapolator`).
@@ -150,15 +182,28 @@ class BellmanExtrapolator(Diagram):
         """``c = lambda_min(gain_sum)`` (size 1)."""
         return self.GetOutputPort("learning_condition")
 
-    def learning_condition_of(self, weights: np.ndarray) -> np.ndarray:
+    def set_nu(self, context: Context, nu: float) -> None:
+        """Set the normalization gain ``nu > 0`` in ``context`` (this block's own)."""
+        self._sums.set_nu(self.GetMutableSubsystemContext(self._sums, context), nu)
+
+    def get_nu(self, context: Context) -> float:
+        """The normalization gain in ``context`` (this block's own)."""
+        return self._sums.nu(self.GetSubsystemContext(self._sums, context))
+
+    def learning_condition_of(
+        self, weights: np.ndarray, context: Context | None = None
+    ) -> np.ndarray:
         """The ``learning_condition`` output for many policy weights, ``(T, L)`` -> ``(T,)``.
 
         The same values as the port, in one compiled call: what the simulation
         uses for its logs after the run, instead of evaluating the port at every
         publish (where the sums' cache is always stale: an integrator marks the
-        state changed at the start of each step).
+        state changed at the start of each step). At the ``nu`` of ``context``
+        (this block's own; the default ``nu`` without one).
         """
-        return self._sums.extrapolator.learning_conditions(weights)
+        if context is None:
+            return self._sums.extrapolator.learning_conditions(weights)
+        return self._sums.extrapolator_for(self.get_nu(context)).learning_conditions(weights)
 
     def extrapolation(self, context: Context) -> BellmanSums:
         """The two sums in ``context`` (this block's own), as :class:`BellmanSums`."""

@@ -31,9 +31,12 @@ class CriticWeights(LeafSystem):
     Parameters
     ----------
     initial_weights : array_like, shape (L,)
-        W(0); also fixes L.
+        The default W(0); also fixes L. A run writes its own W(0) into the
+        context (:meth:`set_weights`).
     kc : float
-        Adaptation gain k_c >= 0 (0 freezes the critic, an ablation).
+        The default adaptation gain k_c >= 0 (0 freezes the critic, an
+        ablation). ``kc`` is a numeric parameter of the context
+        (:meth:`set_kc`), so a sweep over it needs no rebuild.
 
     Raises
     ------
@@ -50,9 +53,9 @@ class CriticWeights(LeafSystem):
         positive_number("CriticWeights: kc", kc, allow_zero=True)
         size = W0.size
         self._size = size
-        self._kc = float(kc)
         self._rate = np.empty(size)  # scratch for the derivative, copied out at once
         self._state_index = self.DeclareContinuousState(BasicVector(W0))
+        self._kc_index = self.DeclareNumericParameter(BasicVector([float(kc)]))
         self._critic_sum_port = self.DeclareVectorInputPort("critic_sum", size)
         self._gamma_port = self.DeclareVectorInputPort("gamma", packed_size(size))
         self._weights_port = self.DeclareStateOutputPort("weights", self._state_index)
@@ -71,11 +74,26 @@ class CriticWeights(LeafSystem):
 
     def set_weights(self, context: Context, W: Sequence[float]) -> None:
         """Set the weights to ``W`` in ``context``, this block's own context."""
-        context.SetContinuousState(np.asarray(W, dtype=float))
+        value = finite_vector("CriticWeights: W", W, self._size)
+        context.SetContinuousState(value)
+
+    def get_kc(self, context: Context) -> float:
+        """The adaptation gain k_c in ``context`` (this block's own)."""
+        return float(context.get_numeric_parameter(self._kc_index).GetAtIndex(0))
+
+    def set_kc(self, context: Context, kc: float) -> None:
+        """Set the adaptation gain k_c >= 0 in ``context`` (this block's own).
+
+        Raises
+        ------
+        ModelError
+            If ``kc`` is negative or not finite.
+        """
+        positive_number("CriticWeights: kc", kc, allow_zero=True)
+        context.get_mutable_numeric_parameter(self._kc_index).SetAtIndex(0, float(kc))
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         rate = self._rate
-        critic_rate(
-            self._gamma_port.Eval(context), self._critic_sum_port.Eval(context), self._kc, rate
-        )
+        kc = context.get_numeric_parameter(self._kc_index).GetAtIndex(0)
+        critic_rate(self._gamma_port.Eval(context), self._critic_sum_port.Eval(context), kc, rate)
         derivatives.SetFromVector(rate)

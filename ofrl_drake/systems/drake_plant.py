@@ -8,6 +8,7 @@ import numpy as np
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import AffineSystem
 
+from ofrl_drake.checks import finite_vector
 from ofrl_drake.drake_models import MultibodySource
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, ShiftedSystem
@@ -47,10 +48,11 @@ class DrakePlant(Diagram):
         A model from :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody`,
         possibly shifted.
     initial_state : array_like, shape (n,), optional
-        Initial state, in the coordinates of ``system`` (zeros if omitted). The
-        positions become the clone's default positions; a multibody plant has
-        no default velocities, so :meth:`initialize_context` sets both in a
-        context (``simulate`` calls it).
+        Default initial state, in the coordinates of ``system`` (zeros if
+        omitted). The positions become the clone's default positions; a
+        multibody plant has no default velocities, so :meth:`initialize_context`
+        sets both in a context (``simulate`` calls it, then writes the run's
+        own x(0) with :meth:`set_state`).
     body_mass_scale : mapping of str to float, optional
         Factors on the masses of named bodies, set as Drake parameters in the
         context by :meth:`initialize_context` (the center of mass and unit
@@ -92,6 +94,7 @@ class DrakePlant(Diagram):
         plant = source.plant.Clone()
         nq = plant.num_positions()
         plant.SetDefaultPositions(x0[:nq])
+        self._x_eq = x_eq
         self._x0 = x0
         for body in body_mass_scale or {}:
             if not plant.HasBodyNamed(body):
@@ -114,13 +117,20 @@ class DrakePlant(Diagram):
         builder.BuildInto(self)
 
     def initialize_context(self, context: Context) -> None:
-        """Set the initial positions and velocities, and the scaled masses, in ``context``."""
+        """Set the default positions and velocities, and the scaled masses, in ``context``."""
         plant = self._plant
         plant_context = self.GetMutableSubsystemContext(plant, context)
         plant.SetPositionsAndVelocities(plant_context, self._x0)
         for body, scale in (self.body_mass_scale or {}).items():
             rigid = plant.GetBodyByName(body)
             rigid.SetMass(plant_context, rigid.default_mass() * float(scale))
+
+    def set_state(self, context: Context, x: Sequence[float]) -> None:
+        """Set the state to ``x`` (in the coordinates of ``system``) in ``context``, this
+        block's own context: the plant's positions and velocities ``x + x*``."""
+        z = finite_vector(f"{self.system.name}: x", x, self.system.n)
+        plant_context = self.GetMutableSubsystemContext(self._plant, context)
+        self._plant.SetPositionsAndVelocities(plant_context, z + self._x_eq)
 
     @property
     def plant(self):

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.checks import finite_vector
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -36,7 +37,8 @@ class ThreeGainObserver(LeafSystem):
         sector. Build them with :meth:`ObserverGains.from_design` from a
         certified ``ObserverDesign`` or :meth:`ObserverGains.from_arrays`.
     initial_state : array_like, shape (n,), optional
-        Default xhat(0) (zeros if omitted).
+        Default xhat(0) (zeros if omitted); a run writes its own
+        (:meth:`set_estimated_state`).
     design : ObserverDesign, optional
         The design ``gains`` come from; then :meth:`observer_certificate`
         reports it and its box. Without it the block certifies nothing.
@@ -85,7 +87,8 @@ class ThreeGainObserver(LeafSystem):
 
     def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        context.SetContinuousState(np.asarray(xhat, dtype=float))
+        value = finite_vector("ThreeGainObserver: xhat", xhat, self.system.n)
+        context.SetContinuousState(value)
 
     def observer_certificate(self) -> ObserverCertificate:
         """The design and its box, or nothing when built without a design."""

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.checks import finite_vector
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = ["ControlAffinePlant"]
@@ -29,7 +30,8 @@ class ControlAffinePlant(LeafSystem):
     system : ControlAffineSystem
         The model; its ``f`` and ``g`` are evaluated in double precision.
     initial_state : array_like, shape (n,), optional
-        Default value of the continuous state x (zeros if omitted).
+        Default value of the continuous state x (zeros if omitted); a run
+        writes its own (:meth:`set_state`).
 
     Notes
     -----
@@ -66,7 +68,8 @@ class ControlAffinePlant(LeafSystem):
 
     def set_state(self, context: Context, x: Sequence[float]) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
-        context.SetContinuousState(np.asarray(x, dtype=float))
+        value = finite_vector("ControlAffinePlant: x", x, self.system.n)
+        context.SetContinuousState(value)
 
     def _calc_y(self, context, output) -> None:
         x = context.get_continuous_state_vector().CopyToVector()

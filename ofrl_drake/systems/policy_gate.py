@@ -50,7 +50,8 @@ class PolicyGate(LeafSystem):
     Parameters
     ----------
     initial_weights : array_like, shape (L,)
-        The policy in force at ``t = 0``.
+        The default policy in force at ``t = 0``; a run writes its own
+        (:meth:`set_policy_weights`).
     period : float
         Seconds between improvement steps, > 0.
     A, B : array_like
@@ -119,6 +120,11 @@ class PolicyGate(LeafSystem):
     def get_policy_updates_output_port(self) -> OutputPort:
         """``[accepted, rejected]``: improvement steps so far (size 2)."""
         return self._updates_port
+
+    def set_policy_weights(self, context: Context, W: Sequence[float]) -> None:
+        """Put the policy of weights ``W`` in force in ``context``, this block's own context."""
+        value = finite_vector("PolicyGate: W", W, size=self.basis.size)
+        context.get_mutable_discrete_state(self._policy_index).SetFromVector(value)
 
     def check(self, W: np.ndarray) -> PolicyCheck:
         """What the acceptance test reads off weights ``W``."""

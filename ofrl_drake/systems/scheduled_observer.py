@@ -14,8 +14,9 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
+from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
+from ofrl_drake.checks import finite_vector
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
@@ -63,7 +64,8 @@ class ScheduledThreeGainObserver(LeafSystem):
     design_options : dict, optional
         Extra keyword arguments for :func:`ofrl_drake.design.design_observer`.
     initial_state : array_like, shape (n,), optional
-        Default xhat(0).
+        Default xhat(0) (zeros if omitted); a run writes its own
+        (:meth:`set_estimated_state`).
 
     Notes
     -----
@@ -187,6 +189,14 @@ class ScheduledThreeGainObserver(LeafSystem):
     def get_verification_output_port(self) -> OutputPort:
         """``[worst rate found, -2 alpha, falsified]`` of the design in force (size 3)."""
         return self._verification_port
+
+    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+        """Set the estimate to ``xhat`` in ``context``, this block's own context.
+
+        The gains in force stay the initial design's until the first re-solve.
+        """
+        value = finite_vector("ScheduledThreeGainObserver: xhat", xhat, self.system.n)
+        context.get_mutable_continuous_state_vector().SetFromVector(value)
 
     def observer_certificate(self) -> ObserverCertificate:
         """Kind ``"scheduled"``: the initial design; the boxes in force are logged."""

@@ -11,10 +11,14 @@ the Python block of its slot, like :class:`~ofrl_drake.systems.DrakePlant`:
 
 * a ``Multiplexer`` stacks a block's input ports into the one input of its
   ``SymbolicVectorSystem``;
-* a ``SymbolicVectorSystem`` has no way to set a default state, so the plant
-  and the observer integrate the offset ``z = x - x(0)`` from a zero default
-  and output ``z + x(0)``; their ports carry x itself, and ``set_state`` and
-  ``set_estimated_state`` write one into a context;
+* the plant's and the observer's state is x (xhat) itself, set in a context
+  with ``set_state`` (``set_estimated_state``), as a run does. Its default is
+  zero: a ``SymbolicVectorSystem`` declares its state with a zero default
+  (`symbolic_vector_system.cc
+  <https://github.com/RobotLocomotion/drake/blob/v1.51.0/systems/primitives/symbolic_vector_system.cc>`_,
+  ``DeclareContinuousState(state_vars_.size())``) and neither it nor a
+  ``Diagram`` around it lets Python set another (pydrake binds no
+  ``SetDefaultState`` to override);
 * Drake 1.51's ``SymbolicVectorSystem`` aborts when a continuous ``Diagram``
   asks a stateless one for its derivatives (``symbolic_vector_system.cc``:
   ``DRAKE_DEMAND(dynamics_.size() > 0)``), so the controller carries one
@@ -47,12 +51,12 @@ from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSy
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.checks import (
+    finite_vector,
     nonnegative_matrix,
     positive_number,
     positive_vector,
 )
 from ofrl_drake.cost import stage_cost_expression
-from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_expression
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -66,23 +70,10 @@ __all__ = [
 ]
 
 
-def _initial(value: Sequence[float] | None, n: int, what: str) -> np.ndarray:
-    x0 = np.zeros(n) if value is None else np.asarray(value, dtype=float)
-    if x0.shape != (n,):
-        raise ModelError(f"{what} must have length n = {n}; got shape {x0.shape}.")
-    return x0
-
-
-def _offset_state(x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """State variables ``z`` of the offset from ``x0``, and ``x = z + x0`` in them."""
-    z = MakeVectorVariable(x0.size, "z")
-    with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
-        return z, z + x0
-
-
-def _set_offset_state(context: Context, value: Sequence[float], offset: np.ndarray) -> None:
-    """Write the state ``value`` as the offset ``value - offset`` the block integrates."""
-    context.SetContinuousState(np.asarray(value, dtype=float) - offset)
+def _set_state(context: Context, value: Sequence[float], n: int, what: str) -> None:
+    """Write the state ``value`` (length ``n``) into a block's own ``context``."""
+    x = finite_vector(what, value, n)
+    context.SetContinuousState(x)
 
 
 def _add_symbolic_system(
@@ -134,36 +125,33 @@ class SymbolicPlant(Diagram):
     ----------
     system : ControlAffineSystem
         The model; ``system.symbolic()`` must succeed.
-    initial_state : array_like, shape (n,), optional
-        Default value of x (zeros if omitted).
 
     Raises
     ------
     ModelError
-        If ``f`` or ``g`` cannot be traced symbolically, or ``initial_state``
-        has the wrong length.
+        If ``f`` or ``g`` cannot be traced symbolically.
+
+    Notes
+    -----
+    The state starts at zero in a default context; set x(0) with
+    :meth:`set_state` (see the module docstring).
 
     See Also
     --------
     ofrl_drake.systems.ControlAffinePlant : the same block in Python.
     """
 
-    def __init__(
-        self, system: ControlAffineSystem, initial_state: Sequence[float] | None = None
-    ) -> None:
+    def __init__(self, system: ControlAffineSystem) -> None:
         super().__init__()
         self.system = system
-        self.initial_state = initial_state
         model = system.symbolic()
-        self._offset = _initial(initial_state, system.n, f"{system.name}: initial_state")
-        z, x = _offset_state(self._offset)
+        x = model.x
         u = MakeVectorVariable(system.m, "u")
         with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
-            f, g = model.substitute(x)
-            xdot = f + g @ u
+            xdot = model.f + model.g @ u
         builder = DiagramBuilder()
         dynamics = _add_symbolic_system(
-            builder, "dynamics", [("u", u)], state=z, dynamics=xdot, output=x
+            builder, "dynamics", [("u", u)], state=x, dynamics=xdot, output=x
         )
         output = builder.AddNamedSystem("output_map", MatrixGain(system.output_matrix))
         builder.Connect(dynamics.get_output_port(), output.get_input_port())
@@ -185,7 +173,7 @@ class SymbolicPlant(Diagram):
 
     def set_state(self, context: Context, x: Sequence[float]) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
-        _set_offset_state(context, x, self._offset)
+        _set_state(context, x, self.system.n, f"{self.system.name}: x")
 
 
 class SymbolicObserver(Diagram):
@@ -205,16 +193,19 @@ class SymbolicObserver(Diagram):
     system : ControlAffineSystem
         The model the observer runs; ``system.symbolic()`` must succeed.
     gains : ObserverGains
-    initial_state : array_like, shape (n,), optional
-        Default xhat(0) (zeros if omitted).
     design : ObserverDesign, optional
         The design ``gains`` come from, reported by :meth:`observer_certificate`.
 
     Raises
     ------
     ModelError
-        If ``f`` or ``g`` cannot be traced symbolically, ``initial_state`` has
-        the wrong length, or ``design`` has other gains.
+        If ``f`` or ``g`` cannot be traced symbolically, or ``design`` has
+        other gains.
+
+    Notes
+    -----
+    The estimate starts at zero in a default context; set xhat(0) with
+    :meth:`set_estimated_state` (see the module docstring).
 
     See Also
     --------
@@ -225,26 +216,22 @@ class SymbolicObserver(Diagram):
         self,
         system: ControlAffineSystem,
         gains: ObserverGains,
-        initial_state: Sequence[float] | None = None,
         design: Any = None,
     ) -> None:
         super().__init__()
         self.system = system
         self.gains = gains
-        self.initial_state = initial_state
         self.design = design
         if design is not None:
             gains.check_design(design)
         model = system.symbolic()
-        what = f"{system.name}: observer initial_state"
-        self._offset = _initial(initial_state, system.n, what)
-        z, xhat = _offset_state(self._offset)
+        xhat = MakeVectorVariable(system.n, "xhat")
         y = MakeVectorVariable(system.q, "y")
         u = MakeVectorVariable(system.m, "u")
         rhs = observer_rhs_expression(model, system.output_matrix, gains, xhat, y, u)
         builder = DiagramBuilder()
         dynamics = _add_symbolic_system(
-            builder, "dynamics", [("y", y), ("u", u)], state=z, dynamics=rhs, output=xhat
+            builder, "dynamics", [("y", y), ("u", u)], state=xhat, dynamics=rhs, output=xhat
         )
         builder.ExportOutput(dynamics.get_output_port(), "estimated_state")
         builder.BuildInto(self)
@@ -263,7 +250,7 @@ class SymbolicObserver(Diagram):
 
     def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        _set_offset_state(context, xhat, self._offset)
+        _set_state(context, xhat, self.system.n, f"{self.system.name}: xhat")
 
     def observer_certificate(self) -> ObserverCertificate:
         """The design and its box, or nothing when built without a design."""

@@ -6,6 +6,12 @@ Gaussian noise from Drake's ``RandomSource``, sampled and held by a
 ``ZeroOrderHold``. :class:`SampledController` wraps the controller slot's block:
 its output is held for a period, a sampled-data controller. Both keep the
 slot's port names, so the rest of the loop is wired as usual.
+
+A run prepares its context in three steps: :func:`initialize_context` lets
+each block set what its default context cannot hold (a multibody plant's
+velocities and masses), the run's initial values are written through the
+blocks' setters (``set_state`` ...), and :func:`start_holds` starts every hold
+at its input's value at ``t = 0``, which depends on them.
 """
 
 from __future__ import annotations
@@ -26,17 +32,27 @@ from pydrake.systems.primitives import (
 from ofrl_drake.checks import finite_vector, positive_number
 from ofrl_drake.errors import ModelError
 
-__all__ = ["MeasuredPlant", "SampledController", "initialize_context"]
+__all__ = ["MeasuredPlant", "SampledController", "initialize_context", "start_holds"]
 
 
 def initialize_context(system: System, context: Context) -> None:
     """Let ``system`` set what its default context cannot hold (its own ``context``).
 
     Blocks that need it define ``initialize_context(context)``: a multibody
-    plant's initial velocities and body masses, a hold's first value. Others
-    are left as they are.
+    plant's initial velocities and body masses. Others are left as they are.
     """
     hook = getattr(system, "initialize_context", None)
+    if hook is not None:
+        hook(context)
+
+
+def start_holds(system: System, context: Context) -> None:
+    """Start the holds of ``system`` at their input's value (its own ``context``).
+
+    Call it once the context holds the initial state: blocks with a hold define
+    ``start_holds(context)`` (:class:`MeasuredPlant`, :class:`SampledController`).
+    """
+    hook = getattr(system, "start_holds", None)
     if hook is not None:
         hook(context)
 
@@ -143,8 +159,28 @@ class MeasuredPlant(Diagram):
         self._inner = inner
 
     def initialize_context(self, context: Context) -> None:
-        """The inner plant's own initialization, then the hold starts at ``y(0)`` with its noise."""
+        """The inner plant's own initialization (:func:`initialize_context`)."""
         initialize_context(self._inner, self.GetMutableSubsystemContext(self._inner, context))
+
+    def set_state(self, context: Context, x: Sequence[float]) -> None:
+        """Set the inner plant's state to ``x`` in ``context``, this block's own context.
+
+        Raises
+        ------
+        ModelError
+            If the inner plant has no ``set_state(context, x)``.
+        """
+        setter = getattr(self._inner, "set_state", None)
+        if setter is None:
+            raise ModelError(
+                f"MeasuredPlant: the plant {type(self._inner).__name__} has no "
+                "set_state(context, x), so its state cannot be set; give it one."
+            )
+        setter(self.GetMutableSubsystemContext(self._inner, context), x)
+
+    def start_holds(self, context: Context) -> None:
+        """The sample-and-hold starts at ``y(0)`` with its noise (after the state is set)."""
+        start_holds(self._inner, self.GetMutableSubsystemContext(self._inner, context))
         if self._hold is not None:
             hold_context = self.GetMutableSubsystemContext(self._hold, context)
             value = self._hold.get_input_port().Eval(hold_context)
@@ -189,7 +225,11 @@ class SampledController(Diagram):
         self._inner = inner
 
     def initialize_context(self, context: Context) -> None:
-        """The hold starts at the controller's ``u(0)``."""
+        """The inner controller's own initialization (:func:`initialize_context`)."""
         initialize_context(self._inner, self.GetMutableSubsystemContext(self._inner, context))
+
+    def start_holds(self, context: Context) -> None:
+        """The hold starts at the controller's ``u(0)`` (after the loop's state is set)."""
+        start_holds(self._inner, self.GetMutableSubsystemContext(self._inner, context))
         hold_context = self.GetMutableSubsystemContext(self._hold, context)
         self._hold.SetVectorState(hold_context, self._hold.get_input_port().Eval(hold_context))
