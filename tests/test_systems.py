@@ -384,7 +384,7 @@ def test_gains_in_the_context_give_the_derivative_of_a_block_built_with_them():
     S = S @ S.T
     s, W = rng.normal(size=3), rng.normal(size=3)
     G0 = 2.0 * np.eye(3) + 0.1
-    critic_inputs = {"critic_sum": s, "gamma": Gamma.ravel()}
+    critic_inputs = {"critic_sum": s, "gamma": pack_symmetric(Gamma)}
     critic = CriticWeights(np.zeros(3), 0.01)
     got = _parameter_block_derivative(critic, W, critic_inputs, lambda c: critic.set_kc(c, 0.3))
     built = _derivatives(CriticWeights(np.zeros(3), 0.3), W, critic_inputs)
@@ -398,13 +398,15 @@ def test_gains_in_the_context_give_the_derivative_of_a_block_built_with_them():
         gamma.set_gamma_bound(context, 4.0)
         gamma.set_initial_gamma(context, G0)  # the reference of bounded forgetting too
 
-    got = _parameter_block_derivative(gamma, Gamma.ravel(), {"gain_sum": S.ravel()}, gains)
-    built = _derivatives(GammaGain(G0, 0.05, 0.7, 4.0), Gamma.ravel(), {"gain_sum": S.ravel()})
+    got = _parameter_block_derivative(gamma, pack_symmetric(Gamma), {"gain_sum": S.ravel()}, gains)
+    built = _derivatives(
+        GammaGain(G0, 0.05, 0.7, 4.0), pack_symmetric(Gamma), {"gain_sum": S.ravel()}
+    )
     np.testing.assert_array_equal(got, built)
     context = gamma.CreateDefaultContext()
     gains(context)
     assert gamma.get_gains(context) == (0.05, 0.7, 4.0)
-    np.testing.assert_array_equal(gamma.get_gamma_output_port().Eval(context), G0.ravel())
+    np.testing.assert_array_equal(gamma.get_gamma_output_port().Eval(context), pack_symmetric(G0))
     gamma.set_gamma_bound(context, None)
     assert gamma.get_gains(context) == (0.05, 0.7, None)
     assert gamma.get_gains(gamma.CreateDefaultContext()) == (0.01, 0.2, None)
