@@ -30,6 +30,7 @@ from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 __all__ = [
     "EXTRA_LOGS_FILE",
     "RUN_CRITIC_VALUES",
+    "RUN_MEASUREMENT_VALUES",
     "RUN_VALUES",
     "TRAJECTORY_KEYS",
     "SimulationResult",
@@ -328,6 +329,8 @@ def _same(a: Any, b: Any) -> bool:
 RUN_VALUES = ("x0", "xhat0")
 #: ``critic`` fields a run writes into the context under ``critic.gains: manual``.
 RUN_CRITIC_VALUES = ("W0", "Gamma0")
+#: ``measurement`` fields a run writes into the context (the noise seed).
+RUN_MEASUREMENT_VALUES = ("seed",)
 
 
 def _differing(built: Any, scenario: Any) -> list[str]:
@@ -347,10 +350,10 @@ def _check_loop_arguments(
     """Raise if ``simulate(scenario, loop=loop, ...)`` got arguments it would ignore.
 
     The scenario may differ from the loop's own only in what a run writes
-    into the context (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`):
-    :data:`RUN_VALUES`, and :data:`RUN_CRITIC_VALUES` when both scenarios give
-    the critic's gains (``critic.gains: manual``; under ``auto`` they are
-    derived from ``W0``).
+    into the context (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`,
+    the noise seed): :data:`RUN_VALUES`, :data:`RUN_MEASUREMENT_VALUES`, and
+    :data:`RUN_CRITIC_VALUES` when both scenarios give the critic's gains
+    (``critic.gains: manual``; under ``auto`` they are derived from ``W0``).
     """
     if design is not None:
         raise SwapError(
@@ -378,6 +381,12 @@ def _check_loop_arguments(
             if manual and critic_gains_choice(scenario.critic) == "manual":
                 fields = [f for f in fields if f not in RUN_CRITIC_VALUES]
             differing.extend(f"critic.{f}" for f in fields)
+            continue
+        if name == "measurement" and built.measurement is not None:
+            fields = _differing(built.measurement, scenario.measurement)
+            if scenario.measurement is not None:
+                fields = [f for f in fields if f not in RUN_MEASUREMENT_VALUES]
+            differing.extend(f"measurement.{f}" for f in fields)
             continue
         differing.append(name)
     if differing:
@@ -462,11 +471,12 @@ def simulate(
     loop : ClosedLoop, optional
         An already-built loop to simulate, from a fresh context. It must have
         been built from ``scenario`` but for the values a run writes into the
-        context: ``x0``, ``xhat0`` and, when the critic's gains are given
-        (``critic.gains: manual``), ``critic.W0`` and ``critic.Gamma0``
-        (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`). So one
-        built loop runs from many initial states. ``design`` and ``swaps``
-        must then be omitted (give them to :func:`~ofrl_drake.build_closed_loop`).
+        context: ``x0``, ``xhat0``, ``measurement.seed`` and, when the critic's
+        gains are given (``critic.gains: manual``), ``critic.W0`` and
+        ``critic.Gamma0`` (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`).
+        So one built loop runs from many initial states, under many noise
+        seeds. ``design`` and ``swaps`` must then be omitted (give them to
+        :func:`~ofrl_drake.build_closed_loop`).
     parameters : Context, optional
         A context of ``loop.diagram`` whose parameters the run uses, e.g. the
         learning gains set with the blocks' setters

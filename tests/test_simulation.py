@@ -167,6 +167,23 @@ def test_a_built_loop_reruns_from_another_state_as_a_fresh_build(case):
     assert reused.x[0] == pytest.approx(x0, abs=1e-12)
 
 
+def test_a_built_loop_reruns_under_another_noise_seed_as_a_fresh_build():
+    scenario = _load("cart_pole_real_world", 0.5)
+    loop = build_closed_loop(scenario)
+    other = dataclasses.replace(
+        scenario, measurement=dataclasses.replace(scenario.measurement, seed=7)
+    )
+    reused = simulate(other, loop=loop, progress=False)
+    _assert_same_run(reused, simulate(other, design=loop.design, progress=False))
+    assert reused.provenance["seeds"] == {"measurement": 7}
+    assert not np.array_equal(reused.xhat, simulate(scenario, loop=loop, progress=False).xhat)
+    noisier = dataclasses.replace(
+        scenario, measurement=dataclasses.replace(scenario.measurement, noise_std=[0.1, 0.1])
+    )
+    with pytest.raises(ScenarioError, match=r"\(it differs in measurement\.noise_std\)"):
+        simulate(noisier, loop=loop, progress=False)
+
+
 def test_initial_weights_and_gamma_are_written_under_manual_gains(short_scenario, short_loop):
     critic = dataclasses.replace(
         short_scenario.critic, W0=[0.5, 0.1, 0.9], Gamma0=(20.0 * np.eye(3)).tolist()
