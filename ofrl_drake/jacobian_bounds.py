@@ -51,6 +51,8 @@ from ofrl_drake.interval import (
     Interval,
     IntervalDomainError,
     UnsupportedExpressionError,
+    bisect_boxes,
+    halve_every_side,
 )
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure, certify
@@ -560,28 +562,7 @@ def _bisect(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Split boxes in two: all of them along the side widest relative to ``width``."""
     rel = (hi[used] - lo[used]) / width[used, None]
-    split = used[np.argmax(rel, axis=0)]
-    cols = np.arange(lo.shape[1])
-    mid = 0.5 * (lo[split, cols] + hi[split, cols])
-    lo_right = lo.copy()
-    lo_right[split, cols] = mid
-    hi_left = hi.copy()
-    hi_left[split, cols] = mid
-    return np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
-
-
-def _halve_every_side(
-    lo: np.ndarray, hi: np.ndarray, used: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split each box into ``2**d`` boxes, halving each of its ``d`` used sides."""
-    for j in used:
-        mid = 0.5 * (lo[j] + hi[j])
-        lo_right = lo.copy()
-        lo_right[j] = mid
-        hi_left = hi.copy()
-        hi_left[j] = mid
-        lo, hi = np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
-    return lo, hi
+    return bisect_boxes(lo, hi, used[np.argmax(rel, axis=0)])
 
 
 def _certify_entry(
@@ -640,7 +621,7 @@ def _certify_entry(
             return settled_lo, settled_hi, False
         lo, hi = lo[:, active], hi[:, active]
         if children > 2:
-            lo, hi = _halve_every_side(lo, hi, used)
+            lo, hi = halve_every_side(lo, hi, used)
         else:
             lo, hi = _bisect(lo, hi, used, box.width)
 

@@ -55,7 +55,13 @@ import numpy as np
 from pydrake.symbolic import Expression
 
 from ofrl_drake.errors import ModelError
-from ofrl_drake.interval import ExpressionEvaluator, Interval, as_expression
+from ofrl_drake.interval import (
+    ExpressionEvaluator,
+    Interval,
+    as_expression,
+    bisect_boxes,
+    halve_every_side,
+)
 from ofrl_drake.interval_linalg import IntervalLinearSystem, interval_matmul
 
 __all__ = [
@@ -582,34 +588,12 @@ class MultibodyEnclosure:
     finest: float
 
 
-def _bisect(lo, hi, split):
-    """Split box ``b`` in two along the side ``split[b]``."""
-    cols = np.arange(lo.shape[1])
-    mid = 0.5 * (lo[split, cols] + hi[split, cols])
-    lo_right = lo.copy()
-    lo_right[split, cols] = mid
-    hi_left = hi.copy()
-    hi_left[split, cols] = mid
-    return np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
-
-
 def _split_side(out: np.ndarray, spread: np.ndarray, slack: np.ndarray, used: np.ndarray):
     """The side to bisect in each box: the used variable that adds the most width,
     relative to the tolerance, to the entries that are not settled (``out``)."""
     share = np.where(out[:, None], spread / slack[:, :, None], 0.0).sum(axis=0)  # (L, B)
     share = np.where(np.isfinite(share), share, np.finfo(float).max)
     return used[np.argmax(share, axis=0)]
-
-
-def _halve_every_side(lo, hi, used):
-    for j in used:
-        mid = 0.5 * (lo[j] + hi[j])
-        lo_right = lo.copy()
-        lo_right[j] = mid
-        hi_left = hi.copy()
-        hi_left[j] = mid
-        lo, hi = np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
-    return lo, hi
 
 
 def certify(
@@ -718,8 +702,8 @@ def certify(
         if deadline is not None and time.monotonic() > deadline:
             return done(False, "max_wall_time", (level_lo, level_hi))
         if children > 2:
-            lo, hi = _halve_every_side(lo, hi, used)
+            lo, hi = halve_every_side(lo, hi, used)
         else:
-            lo, hi = _bisect(lo, hi, split)
+            lo, hi = bisect_boxes(lo, hi, split)
         finest = min(finest, float(((hi[used] - lo[used]) / width[used, None]).min()))
         parents = (level_lo, level_hi)
