@@ -19,7 +19,6 @@ from ofrl_drake.design import (
     design_observer,
     max_decay_rate,
 )
-from ofrl_drake.design.driver import design_observer_cvxpy
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.examples import make_system
 from ofrl_drake.jacobian_bounds import BoxError, JacobianBounds, jacobian_bounds
@@ -333,7 +332,7 @@ def test_backends_agree_on_feasibility(two_state, formulation, half, alpha, feas
 def test_backends_find_the_same_optimum(two_state, bounds2, formulation, alpha):
     kw = {"bounds": bounds2, "formulation": formulation}
     drake = design_observer(two_state, BOX2, 3.0, alpha, **kw)
-    other = design_observer_cvxpy(two_state, BOX2, 3.0, alpha, **kw)
+    other = design_observer(two_state, BOX2, 3.0, alpha, backend="cvxpy", **kw)
     assert other.backend == "cvxpy" and other.is_certified
     # Same convex program, same objective: the same minimal ||R||_2.
     assert np.linalg.norm(other.R, 2) == pytest.approx(np.linalg.norm(drake.R, 2), rel=1e-3)

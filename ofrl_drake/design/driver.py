@@ -22,7 +22,7 @@ from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import JacobianBounds
 from ofrl_drake.model import ControlAffineSystem
 
-__all__ = ["design_observer", "design_observer_cvxpy"]
+__all__ = ["design_observer"]
 
 
 def design_observer(
@@ -139,48 +139,4 @@ def design_observer(
     )
     return _finish(
         ObserverDesign, problem, bounds, box, input_bound, solver, backend, sector, max_gain
-    )
-
-
-def design_observer_cvxpy(
-    system: ControlAffineSystem,
-    box: Any,
-    input_bound: float,
-    alpha: float,
-    *,
-    bounds: JacobianBounds | None = None,
-    jacobian_method: str = "certified",
-    solver: str = "clarabel",
-    margin: float = DEFAULT_MARGIN,
-    objective: str = "min_gain",
-    max_gain: float | None = None,
-    sector: str = "sign_correct",
-    formulation: str = "polytopic",
-    injection_gains: bool = True,
-) -> ObserverDesign:
-    """:func:`design_observer` with ``backend="cvxpy"``.
-
-    Parameters and exceptions are those of :func:`design_observer`; ``solver``
-    is "clarabel" or "scs".
-
-    Returns
-    -------
-    ObserverDesign
-        Certified, with ``backend == "cvxpy"``.
-    """
-    return design_observer(
-        system,
-        box,
-        input_bound,
-        alpha,
-        bounds=bounds,
-        jacobian_method=jacobian_method,
-        solver=solver,
-        margin=margin,
-        objective=objective,
-        max_gain=max_gain,
-        backend="cvxpy",
-        sector=sector,
-        formulation=formulation,
-        injection_gains=injection_gains,
     )
