@@ -392,18 +392,27 @@ def make_plant():
 """
 
 
-def test_an_error_inside_the_users_f_names_the_users_file_not_ofrl_drake(tmp_path):
-    (tmp_path / "my_plant.py").write_text(USER_PLANT)
+def _user_plant_scenario(tmp_path, module, source):
+    """A 1 s paper scenario whose system is ``module.make_plant`` written from ``source``.
+
+    The true state is fed back: the user's f need not trace, so no observer is designed.
+    """
+    (tmp_path / f"{module}.py").write_text(source)
     data = yaml_load(filename=str(PAPER_SCENARIO))
     data.update(
-        system="my_plant:make_plant",
+        system=f"{module}:make_plant",
         x0=[1.0, 0.0],
         xhat0=[1.0, 0.0],
-        variant={"observer": "true_state"},  # f cannot be traced: no designed observer
+        variant={"observer": "true_state"},
     )
     data["simulation"]["duration"] = 1.0
     path = tmp_path / "s.yaml"
     path.write_text(yaml_dump(data))
+    return path
+
+
+def test_an_error_inside_the_users_f_names_the_users_file_not_ofrl_drake(tmp_path):
+    path = _user_plant_scenario(tmp_path, "my_plant", USER_PLANT)
     proc = _cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
     _one_line(
         proc,
@@ -435,17 +444,7 @@ def make_plant():
 def test_a_users_f_that_leaves_its_domain_stops_the_run_and_says_so(tmp_path):
     # log(nan) inside a traced f is raised by Drake's symbolic math mid-run: the run stops
     # as diverged (exit 3) naming the model and the cause, not as an internal error.
-    (tmp_path / "log_plant.py").write_text(LOG_PLANT)
-    data = yaml_load(filename=str(PAPER_SCENARIO))
-    data.update(
-        system="log_plant:make_plant",
-        x0=[1.0, 0.0],
-        xhat0=[1.0, 0.0],
-        variant={"observer": "true_state"},
-    )
-    data["simulation"]["duration"] = 1.0
-    path = tmp_path / "s.yaml"
-    path.write_text(yaml_dump(data))
+    path = _user_plant_scenario(tmp_path, "log_plant", LOG_PLANT)
     proc = _cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
     assert proc.returncode == 3, proc.stderr
     assert "internal error" not in proc.stderr
