@@ -275,9 +275,9 @@ _STATE_SLOTS = ("plant", "observer", "critic", "gamma", "running_cost")
 def _diagram_state(loop: Any, context: Any, z: np.ndarray) -> np.ndarray:
     """The diagram's continuous state for the fused state ``z = [x, xhat, W, vec(Gamma), J]``.
 
-    The plant, observer and critic blocks write their own state (the symbolic
-    ones store an offset from the initial state); Gamma's block holds its
-    upper triangle. ``context`` is left at the state.
+    The plant, observer and critic blocks write their own state through their
+    setters; Gamma's block holds its upper triangle. ``context`` is left at
+    the state.
     """
     from ofrl_drake.bellman import pack_symmetric
 
