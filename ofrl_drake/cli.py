@@ -332,7 +332,7 @@ def _run(args: argparse.Namespace) -> int:
             "formulation: polytopic for a guarantee. See docs/theory.md.",
             file=sys.stderr,
         )
-    if verification is not None:
+    if verification is not None and loop.design is not None:  # verified only with a design
         line = verification.verdict(loop.design.is_decay_certified)
         print(f"observer: {line}" + (f" {CERTIFICATE_DOCS}" if verification.falsified else ""))
     s = result.summary()

@@ -12,8 +12,13 @@ here, so that the wiring and the simulation ask "does this block offer it?"
   ``bellman`` block's ``learning_condition`` output for logged weights;
 * :class:`ContextInitializer`: ``initialize_context(context)``, a block whose
   context needs more than its default state (a multibody plant's);
-* :class:`PlantStateSetter`, :class:`EstimateSetter`, :class:`WeightsSetter`:
-  write ``x``, ``xhat`` or the critic's weights into the block's own context.
+* :class:`HoldStarter`: ``start_holds(context)``, a block with a sample and
+  hold that starts at its input's value once the state is set;
+* :class:`PlantStateSetter`, :class:`EstimateSetter`, :class:`WeightsSetter`,
+  :class:`PolicyWeightsSetter`, :class:`InitialGammaSetter`: write ``x``,
+  ``xhat``, the critic's weights, the policy's weights or ``Gamma(0)`` into the
+  block's own context (how a run starts the loop,
+  :meth:`ofrl_drake.diagram.ClosedLoop.set_initial_values`).
 
 All are ``runtime_checkable``: ``isinstance`` checks that the methods exist,
 not their signatures (the annotations state those for a type checker).
@@ -21,10 +26,10 @@ not their signatures (the annotations state those for a type checker).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:  # annotations only
     from pydrake.systems.framework import Context
@@ -35,8 +40,11 @@ __all__ = [
     "CertifiedObserver",
     "ContextInitializer",
     "EstimateSetter",
+    "HoldStarter",
+    "InitialGammaSetter",
     "LearningConditionSource",
     "PlantStateSetter",
+    "PolicyWeightsSetter",
     "WeightsSetter",
 ]
 
@@ -54,8 +62,13 @@ class CertifiedObserver(Protocol):
 class LearningConditionSource(Protocol):
     """A ``bellman`` block that can recompute its ``learning_condition`` output."""
 
-    def learning_condition_of(self, weights: np.ndarray) -> np.ndarray:
-        """The output for many policy weights at once, ``(T, L)`` -> ``(T,)``."""
+    def learning_condition_of(
+        self, weights: np.ndarray, context: Context | None = None
+    ) -> np.ndarray:
+        """The output for many policy weights at once, ``(T, L)`` -> ``(T,)``.
+
+        At the parameters in ``context``, the block's own (its defaults without one).
+        """
         ...
 
 
@@ -69,10 +82,19 @@ class ContextInitializer(Protocol):
 
 
 @runtime_checkable
+class HoldStarter(Protocol):
+    """A block whose sample-and-hold must start at its input's value."""
+
+    def start_holds(self, context: Context) -> None:
+        """Start the holds in ``context``, this block's own, once it holds the initial state."""
+        ...
+
+
+@runtime_checkable
 class PlantStateSetter(Protocol):
     """A plant block whose state ``x`` can be written into its context."""
 
-    def set_state(self, context: Context, x: Sequence[float]) -> None:
+    def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the state to ``x`` in ``context``, this block's own context."""
         ...
 
@@ -81,7 +103,7 @@ class PlantStateSetter(Protocol):
 class EstimateSetter(Protocol):
     """An observer block whose estimate ``xhat`` can be written into its context."""
 
-    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+    def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
         ...
 
@@ -90,6 +112,24 @@ class EstimateSetter(Protocol):
 class WeightsSetter(Protocol):
     """A critic block whose weights can be written into its context."""
 
-    def set_weights(self, context: Context, W: Sequence[float]) -> None:
+    def set_weights(self, context: Context, W: ArrayLike) -> None:
         """Set the weights to ``W`` in ``context``, this block's own context."""
+        ...
+
+
+@runtime_checkable
+class PolicyWeightsSetter(Protocol):
+    """A policy block whose policy in force can be written into its context."""
+
+    def set_policy_weights(self, context: Context, W: ArrayLike) -> None:
+        """Put the policy of weights ``W`` in force in ``context``, this block's own context."""
+        ...
+
+
+@runtime_checkable
+class InitialGammaSetter(Protocol):
+    """A Gamma block whose ``Gamma(0)`` can be written into its context."""
+
+    def set_initial_gamma(self, context: Context, gamma: ArrayLike) -> None:
+        """Start from ``Gamma(0) = gamma`` in ``context``, this block's own context."""
         ...

@@ -21,14 +21,24 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import Extrapolator, PointFeatures, point_features
+from ofrl_drake.contracts import (
+    EstimateSetter,
+    InitialGammaSetter,
+    LearningConditionSource,
+    PlantStateSetter,
+    PolicyWeightsSetter,
+    WeightsSetter,
+)
+from ofrl_drake.drake_typing import DrakeArray
 from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
@@ -44,6 +54,7 @@ from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import (
     Scenario,
     critic_gains_choice,
+    manual_gains,
     validate_scenario,
     variant_choices,
 )
@@ -56,6 +67,9 @@ from ofrl_drake.slots import (
 )
 from ofrl_drake.systems.world import MeasuredPlant, SampledController
 
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
+
 __all__ = [
     "INITIAL_VALUES",
     "LOGGED",
@@ -67,6 +81,7 @@ __all__ = [
     "critic_settings",
     "drake_plant",
     "extrapolation_points",
+    "initial_value_setter",
     "initial_values",
     "symbolic_blocks",
 ]
@@ -168,14 +183,51 @@ class ClosedLoop:
     loggers: dict[str, VectorLogSink] = field(default_factory=dict)
     swapped: frozenset[str] = frozenset()
 
-    def __getattr__(self, name: str) -> System:
-        blocks = self.__dict__.get("blocks", {})
-        if name in blocks:
-            return blocks[name]
-        raise AttributeError(name)
+    # The blocks by slot (:data:`~ofrl_drake.slots.SLOTS`), as ``loop.blocks[slot]``.
+    # Any System with the slot's ports fills a slot: what a block offers beyond
+    # them is asked through the Protocols of :mod:`ofrl_drake.contracts`.
+    @property
+    def plant(self) -> System:
+        """The ``plant`` block (outputs ``y`` and ``state``)."""
+        return self.blocks["plant"]
 
     @property
-    def design(self) -> Any:
+    def observer(self) -> System:
+        """The ``observer`` block (output ``estimated_state``)."""
+        return self.blocks["observer"]
+
+    @property
+    def controller(self) -> System:
+        """The ``controller`` block (output ``u``)."""
+        return self.blocks["controller"]
+
+    @property
+    def critic(self) -> System:
+        """The ``critic`` block (output ``weights``)."""
+        return self.blocks["critic"]
+
+    @property
+    def policy(self) -> System:
+        """The ``policy`` block (output ``policy_weights``)."""
+        return self.blocks["policy"]
+
+    @property
+    def gamma(self) -> System:
+        """The ``gamma`` block (output ``gamma``)."""
+        return self.blocks["gamma"]
+
+    @property
+    def bellman(self) -> System:
+        """The ``bellman`` block (outputs ``critic_sum``, ``gain_sum``, ``learning_condition``)."""
+        return self.blocks["bellman"]
+
+    @property
+    def running_cost(self) -> System:
+        """The ``running_cost`` block (output ``cost``)."""
+        return self.blocks["running_cost"]
+
+    @property
+    def design(self) -> ObserverDesign | None:
         """The ``ObserverDesign`` used by the observer (None if not designed)."""
         return self.parts.design
 
@@ -193,14 +245,16 @@ class ClosedLoop:
         One key per logger, plus the keys of :data:`LOGGED` that a block
         computes from the other logs after the run (see :func:`_after_run`).
         """
-        logs = {}
-        t = np.empty(0)
+        logs: dict[str, np.ndarray] = {}
+        t: np.ndarray = np.empty(0)
         for key, logger in self.loggers.items():
             log = logger.FindLog(root_context)
-            t = np.asarray(log.sample_times())
-            logs[key] = log.data().T.copy()
-        if "learning_condition" not in logs:
-            bellman = self.blocks["bellman"]
+            times: DrakeArray = log.sample_times()
+            data: DrakeArray = log.data()
+            t = np.asarray(times)
+            logs[key] = data.T.copy()
+        bellman = self.bellman
+        if "learning_condition" not in logs and isinstance(bellman, LearningConditionSource):
             condition = bellman.learning_condition_of(
                 logs["W_policy"], bellman.GetMyContextFromRoot(root_context)
             )
@@ -246,7 +300,7 @@ class ClosedLoop:
             same = np.array_equal(values[key], own[key])
             if slot in self.swapped and same:
                 continue  # a block given to build_closed_loop starts from its own values
-            setter = getattr(block, name, None)
+            setter = initial_value_setter(slot, block)
             if setter is None:
                 if same or _stateless(block):
                     continue
@@ -256,6 +310,26 @@ class ClosedLoop:
                     "one, or build a loop from the run's scenario."
                 )
             setter(block.GetMyMutableContextFromRoot(root_context), values[key])
+
+
+def initial_value_setter(slot: str, block: System) -> Callable[[Context, ArrayLike], None] | None:
+    """``block``'s setter of the initial value of ``slot`` (:data:`INITIAL_VALUES`).
+
+    The setter that :data:`INITIAL_VALUES` names, when ``block`` has it: its
+    Protocol in :mod:`ofrl_drake.contracts`. None for a slot without an
+    initial value, or a block without the setter.
+    """
+    if slot == "plant" and isinstance(block, PlantStateSetter):
+        return block.set_state
+    if slot == "observer" and isinstance(block, EstimateSetter):
+        return block.set_estimated_state
+    if slot == "critic" and isinstance(block, WeightsSetter):
+        return block.set_weights
+    if slot == "policy" and isinstance(block, PolicyWeightsSetter):
+        return block.set_policy_weights
+    if slot == "gamma" and isinstance(block, InitialGammaSetter):
+        return block.set_initial_gamma
+    return None
 
 
 def _stateless(block: System) -> bool:
@@ -273,7 +347,7 @@ def initial_values(scenario: Scenario, critic: CriticSettings | None) -> dict[st
     of ``critic`` (the gains in force, derived under ``auto``).
     """
     c = scenario.critic
-    gamma0 = c.Gamma0
+    gamma0: ArrayLike | None = c.Gamma0
     if critic is not None and critic_gains_choice(c) != "manual":
         gamma0 = critic.gains.Gamma0
     return {
@@ -374,11 +448,12 @@ def critic_settings(
         except ModelError as err:
             raise ScenarioError(str(err)) from None
     else:
+        kc, nu, beta, Gamma0 = manual_gains(c)
         gains = LearningGains(
-            kc=float(c.kc),
-            nu=float(c.nu),
-            beta=float(c.beta),
-            Gamma0=np.asarray(c.Gamma0, dtype=float),
+            kc=float(kc),
+            nu=float(nu),
+            beta=float(beta),
+            Gamma0=np.asarray(Gamma0, dtype=float),
             policy_period=POLICY_PERIOD_FRACTION * scenario.simulation.duration,
             gamma_bound=DEFAULT_GAMMA_BOUND,
         )
@@ -464,7 +539,9 @@ def _after_run(blocks: dict[str, System]) -> set[str]:
     call, instead of one evaluation per publish (where the Bellman sums'
     cache is always stale, so each sample would redo the extrapolation).
     """
-    return {"learning_condition"} if hasattr(blocks["bellman"], "learning_condition_of") else set()
+    return (
+        {"learning_condition"} if isinstance(blocks["bellman"], LearningConditionSource) else set()
+    )
 
 
 def drake_plant(parts: ClosedLoopParts) -> System:
@@ -531,7 +608,8 @@ def build_closed_loop(
     >>> loop = build_closed_loop(scenario, critic=CriticWeights(W0, kc=0.0))  # doctest: +SKIP
     >>> loop = build_closed_loop(scenario, observer="kalman")     # doctest: +SKIP
     """
-    named = {key: value for key, value in swaps.items() if isinstance(value, str)}
+    # Choices by name: values of the str fields of VariantConfig (the keys checked below).
+    named: dict[str, Any] = {key: value for key, value in swaps.items() if isinstance(value, str)}
     for key in sorted(named):
         if key not in VARIANT_FACTORIES:
             raise SwapError(
@@ -622,16 +700,16 @@ def _connect_by_name(builder: DiagramBuilder, blocks: dict[str, System]) -> None
         for i in range(block.num_input_ports()):
             port = block.get_input_port(i)
             name = port.get_name()
-            source_slot = SIGNALS.get(name)
-            if source_slot is None:
+            feeder = SIGNALS.get(name)
+            if feeder is None:
                 raise SwapError(
                     f"{slot}: input port {name!r} matches no signal of the loop; "
                     f"input ports must be named one of {sorted(SIGNALS)}."
                 )
-            out = blocks[source_slot].GetOutputPort(name)
+            out = blocks[feeder].GetOutputPort(name)
             if out.size() != port.size():
                 raise SwapError(
                     f"{slot}: input port {name!r} has size {port.size()}, but "
-                    f"{source_slot}'s output {name!r} has size {out.size()}."
+                    f"{feeder}'s output {name!r} has size {out.size()}."
                 )
             builder.Connect(out, port)

@@ -49,6 +49,7 @@ __all__ = [
     "critic_gains_choice",
     "dump_scenario",
     "load_scenario",
+    "manual_gains",
     "validate_scenario",
     "variant_choices",
 ]
@@ -504,17 +505,12 @@ def validate_scenario(scenario: Scenario) -> None:
             f"{', '.join('critic.' + k for k in given)} or set critic.gains: manual."
         )
     if gains == "manual":
-        if c.kc is None or c.nu is None or c.beta is None or c.Gamma0 is None:
-            missing = [k for k in MANUAL_GAINS if getattr(c, k) is None]
-            raise ScenarioError(
-                f"critic.{missing[0]}: missing; critic.gains: manual needs "
-                f"{', '.join('critic.' + k for k in MANUAL_GAINS)} (or set critic.gains: auto)."
-            )
-        Gamma0 = _matrix("critic.Gamma0", c.Gamma0, (L, L))
+        kc, nu, beta, given_gamma0 = manual_gains(c)
+        Gamma0 = _matrix("critic.Gamma0", given_gamma0, (L, L))
         _spd("critic.Gamma0", Gamma0)
-        _positive("critic.kc", c.kc)
-        _positive("critic.nu", c.nu)
-        _positive("critic.beta", c.beta)
+        _positive("critic.kc", kc)
+        _positive("critic.nu", nu)
+        _positive("critic.beta", beta)
     if c.law == "paper":
         for key in ("policy_period", "gamma_bound"):
             if getattr(c, key) is not None:
@@ -696,6 +692,24 @@ def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
                 f"truth: the truth has (n, m, q) = ({system.n}, {system.m}, {system.q}), the "
                 f"model ({n}, {m}, {q}); they must agree."
             )
+
+
+def manual_gains(critic: CriticConfig) -> tuple[float, float, float, list[list[float]]]:
+    """``(kc, nu, beta, Gamma0)`` as ``critic.gains: manual`` gives them.
+
+    Raises
+    ------
+    ScenarioError
+        If one of them is missing.
+    """
+    kc, nu, beta, Gamma0 = critic.kc, critic.nu, critic.beta, critic.Gamma0
+    if kc is None or nu is None or beta is None or Gamma0 is None:
+        missing = [k for k in MANUAL_GAINS if getattr(critic, k) is None]
+        raise ScenarioError(
+            f"critic.{missing[0]}: missing; critic.gains: manual needs "
+            f"{', '.join('critic.' + k for k in MANUAL_GAINS)} (or set critic.gains: auto)."
+        )
+    return kc, nu, beta, Gamma0
 
 
 def critic_gains_choice(critic: CriticConfig) -> str:

@@ -21,6 +21,7 @@ from ofrl_drake.bellman import unpack_symmetric
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
+from ofrl_drake.model import ShiftedSystem
 from ofrl_drake.observer_certificate import certificate_of
 from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
@@ -282,7 +283,8 @@ class SimulationResult:
                 arrays["x_equilibrium"] = np.asarray(self.x_equilibrium, float)
                 arrays["u_equilibrium"] = np.asarray(self.u_equilibrium, float)
             np.savez(fh, **arrays)
-        extra = self._extra_log_arrays()
+        # dict[str, Any]: numpy's stub reads a **dict of arrays as savez's allow_pickle too
+        extra: dict[str, Any] = self._extra_log_arrays()
         if extra:
             with atomic_file(directory / EXTRA_LOGS_FILE, "wb") as fh:
                 np.savez(fh, **extra)
@@ -371,7 +373,7 @@ def _check_loop_arguments(
     built = loop.parts.scenario
     if built is scenario:
         return
-    differing = []
+    differing: list[str] = []
     for name in _differing(built, scenario):
         if name in RUN_VALUES:
             continue
@@ -597,7 +599,7 @@ def simulate(
         provenance=origin,
     )
     system = loop.parts.system
-    if getattr(system, "x_eq", None) is not None:  # a ShiftedSystem
+    if isinstance(system, ShiftedSystem):
         result.x_equilibrium = np.asarray(system.x_eq, float)
         result.u_equilibrium = np.asarray(system.u_eq, float)
     if loop.parts.truth is not None:
@@ -608,7 +610,7 @@ def simulate(
             loop.parts.system,
             loop.parts.truth,
             (o.box.lower, o.box.upper),
-            body_mass_scale=scenario.truth.body_mass_scale,
+            body_mass_scale=None if scenario.truth is None else scenario.truth.body_mass_scale,
         ).to_dict()
     from ofrl_drake.ablation_metrics import regulation
 

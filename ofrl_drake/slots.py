@@ -87,7 +87,7 @@ class ClosedLoopParts:
         observer needs (:attr:`Choice.design`); None if neither.
     Q, r : ndarray
         The state cost matrix and the input weights.
-    critic : CriticSettings or None
+    critic : CriticSettings
         The learning law and gains in force.
     truth : ControlAffineSystem or None
         The plant simulated, when it is not the model.
@@ -103,7 +103,7 @@ class ClosedLoopParts:
     design: Any
     Q: np.ndarray
     r: np.ndarray
-    critic: CriticSettings | None = None
+    critic: CriticSettings
     truth: ControlAffineSystem | None = None
     symbolic: bool = False
 

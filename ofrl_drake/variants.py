@@ -59,6 +59,7 @@ from ofrl_drake.baselines import (
     point_offsets,
 )
 from ofrl_drake.bellman import PointFeatures, point_features
+from ofrl_drake.drake_typing import DrakeArray
 from ofrl_drake.errors import ModelError, ScenarioError
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.plants import resolve_system
@@ -150,7 +151,8 @@ def plant(parts: ClosedLoopParts) -> System:
     from ofrl_drake.systems.drake_plant import DrakePlant
 
     if multibody_body_names(truth) is not None:
-        return DrakePlant(truth, initial_state=s.x0, body_mass_scale=s.truth.body_mass_scale)
+        scale = None if s.truth is None else s.truth.body_mass_scale
+        return DrakePlant(truth, initial_state=s.x0, body_mass_scale=scale)
     try:
         truth.symbolic()
     except ModelError:
@@ -287,7 +289,9 @@ def drake_luenberger(parts: ClosedLoopParts) -> System:
     """Drake's Luenberger observer on the linearization, poles from ``observer.alpha``."""
     linearization = linearize_at_origin(parts.system)
     poles = luenberger_poles(parts.scenario.observer.alpha, parts.system.n)
-    gain = luenberger_gain(linearization.A(), linearization.C(), poles)
+    A: DrakeArray = linearization.A()
+    C: DrakeArray = linearization.C()
+    gain = luenberger_gain(A, C, poles)
     return LinearizedLuenbergerObserver(linearization, gain, alpha=parts.scenario.observer.alpha)
 
 
@@ -305,7 +309,9 @@ def kalman(parts: ClosedLoopParts) -> System:
 
     s = parts.scenario
     linearization = linearize_at_origin(parts.system)
-    A, B, C = linearization.A(), linearization.B(), linearization.C()
+    A: DrakeArray = linearization.A()
+    B: DrakeArray = linearization.B()
+    C: DrakeArray = linearization.C()
     lower = np.asarray(s.observer.box.lower, dtype=float)
     upper = np.asarray(s.observer.box.upper, dtype=float)
     X = uniform_points(lower, upper, 200, seed=0)
@@ -319,7 +325,7 @@ def kalman(parts: ClosedLoopParts) -> System:
     if s.measurement is not None and s.measurement.noise_std:
         noise = np.asarray(s.measurement.noise_std, dtype=float)
     V = np.diag(np.maximum(noise, 1e-3 * widths) ** 2)
-    gain = SteadyStateKalmanFilter(A, C, W, V)
+    gain: DrakeArray = SteadyStateKalmanFilter(A, C, W, V)
     return LinearizedLuenbergerObserver(linearization, gain)
 
 
@@ -378,12 +384,20 @@ def frozen_critic(parts: ClosedLoopParts) -> System:
 
 def policy(parts: ClosedLoopParts) -> System:
     """The policy gate of ``policy_iteration``; a pass-through under ``critic.law: paper``."""
-    if parts.critic.law == "paper":
+    critic = parts.critic
+    if critic.law == "paper":
         return PolicyPassThrough(parts.basis.size)
-    A, B = parts.critic.linearization
+    if critic.linearization is None or critic.gains.policy_period is None:
+        raise ScenarioError(
+            f"critic.law: {critic.law} puts policies in force by a test on the linearization "
+            f"at the target every policy period; the critic settings have linearization "
+            f"{'None' if critic.linearization is None else 'given'} and policy_period "
+            f"{critic.gains.policy_period}. Build them with ofrl_drake.diagram.critic_settings."
+        )
+    A, B = critic.linearization
     return PolicyGate(
         parts.scenario.critic.W0,
-        parts.critic.gains.policy_period,
+        critic.gains.policy_period,
         A,
         B,
         parts.Q,

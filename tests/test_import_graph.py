@@ -21,6 +21,7 @@ LAYERS = {
         "_jit",
         "checks",
         "contracts",
+        "drake_typing",
         "atomic",
         "model",
         "plants",

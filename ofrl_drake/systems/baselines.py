@@ -16,8 +16,10 @@ They use the port names of the blocks they replace, so
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.common.value import AbstractValue
 from pydrake.systems.controllers import LinearQuadraticRegulator
 from pydrake.systems.estimators import LuenbergerObserver
@@ -40,8 +42,14 @@ from pydrake.systems.primitives import (
 
 from ofrl_drake.baselines import linearized_observer_certificate
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.bellman import extrapolate, learning_condition, point_features
+from ofrl_drake.bellman import (
+    BellmanExtrapolation,
+    extrapolate,
+    learning_condition,
+    point_features,
+)
 from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -99,7 +107,7 @@ class FullStateObserver(LeafSystem):
         return self._xhat_port
 
     def _calc_estimated_state(self, context, output) -> None:
-        output.SetFromVector(self._state_port.Eval(context))
+        output.SetFromVector(vector_value(self._state_port, context))
 
 
 class LinearizedLuenbergerObserver(Diagram):
@@ -149,24 +157,20 @@ class LinearizedLuenbergerObserver(Diagram):
         self.gain = gain
         self.alpha = alpha
         builder = DiagramBuilder()
-        self._observer = builder.AddNamedSystem(
-            "luenberger",
-            LuenbergerObserver(
-                linearization,
-                linearization.CreateDefaultContext(),
-                np.asarray(gain, dtype=float),
-            ),
+        observer = LuenbergerObserver(
+            linearization, linearization.CreateDefaultContext(), drake_array(gain)
         )
-        observer = self._observer
+        builder.AddNamedSystem("luenberger", observer)
+        self._observer = observer
         builder.ExportInput(observer.get_observed_system_output_input_port(), "y")
         builder.ExportInput(observer.get_observed_system_input_input_port(), "u")
         builder.ExportOutput(observer.get_estimated_state_output_port(), "estimated_state")
         builder.BuildInto(self)
 
-    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+    def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        n = self.linearization.A().shape[0]
-        value = finite_vector("LinearizedLuenbergerObserver: xhat", xhat, n)
+        A: DrakeArray = self.linearization.A()
+        value: DrakeArray = finite_vector("LinearizedLuenbergerObserver: xhat", xhat, A.shape[0])
         self.GetMutableSubsystemContext(self._observer, context).SetContinuousState(value)
 
     def get_y_input_port(self) -> InputPort:
@@ -183,11 +187,12 @@ class LinearizedLuenbergerObserver(Diagram):
 
     def observer_certificate(self) -> ObserverCertificate:
         """Kind ``"local"``: the linearized error's certificate at ``alpha``, no box."""
-        lin = self.linearization
+        A: DrakeArray = self.linearization.A()
+        C: DrakeArray = self.linearization.C()
         design = (
             None
             if self.alpha is None
-            else linearized_observer_certificate(lin.A(), lin.C(), self.gain, self.alpha).to_dict()
+            else linearized_observer_certificate(A, C, self.gain, self.alpha).to_dict()
         )
         return ObserverCertificate(
             "local",
@@ -242,14 +247,17 @@ class SaturatedLqrController(Diagram):
         self.R = R
         self.input_bound = input_bound
         lqr = LinearQuadraticRegulator(
-            linearization, np.asarray(Q, dtype=float), np.atleast_2d(np.asarray(R, float))
+            linearization, drake_array(Q), drake_array(np.atleast_2d(np.asarray(R, float)))
         )
         self.K = -np.asarray(lqr.D(), dtype=float)
         m = self.K.shape[0]
         builder = DiagramBuilder()
         builder.AddNamedSystem("lqr", lqr)
         saturation = builder.AddNamedSystem(
-            "saturation", Saturation(-input_bound * np.ones(m), input_bound * np.ones(m))
+            "saturation",
+            Saturation(
+                drake_array(-input_bound * np.ones(m)), drake_array(input_bound * np.ones(m))
+            ),
         )
         builder.Connect(lqr.get_output_port(), saturation.get_input_port())
         builder.ExportInput(lqr.get_input_port(), "estimated_state")
@@ -291,7 +299,7 @@ class ConstantController(Diagram):
     def __init__(self, value: Sequence[float]) -> None:
         super().__init__()
         self.value = value
-        u = np.atleast_1d(np.asarray(value, dtype=float))
+        u: DrakeArray = np.atleast_1d(np.asarray(value, dtype=float))
         if u.ndim != 1 or u.size == 0 or not np.all(np.isfinite(u)):
             raise ModelError(f"value must be a non-empty finite vector; got {value!r}.")
         builder = DiagramBuilder()
@@ -376,7 +384,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         self._Q = np.asarray(Q, dtype=float)
         self._r = np.asarray(r, dtype=float)
         size = basis.size
-        self._nu_index = self.DeclareNumericParameter(BasicVector([float(nu)]))
+        self._nu_index = self.DeclareNumericParameter(BasicVector(drake_array([float(nu)])))
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
         self._xhat_port = self.DeclareVectorInputPort("estimated_state", system.n)
@@ -428,9 +436,9 @@ class MovingBellmanExtrapolator(LeafSystem):
         """``c = lambda_min(gain_sum)`` (size 1)."""
         return self._learning_condition_port
 
-    def extrapolation(self, context):
+    def extrapolation(self, context: Context) -> BellmanExtrapolation:
         """The cached :class:`~ofrl_drake.bellman.BellmanExtrapolation`."""
-        return self._cache.Eval(context)
+        return cast(BellmanExtrapolation, self._cache.Eval(context))
 
     def get_nu(self, context: Context) -> float:
         """The normalization gain in ``context`` (this block's own)."""
@@ -442,8 +450,8 @@ class MovingBellmanExtrapolator(LeafSystem):
         context.get_mutable_numeric_parameter(self._nu_index).SetAtIndex(0, value)
 
     def _calc_extrapolation(self, context, value) -> None:
-        W = self._weights_port.Eval(context)
-        xhat = self._xhat_port.Eval(context)
+        W = vector_value(self._weights_port, context)
+        xhat = vector_value(self._xhat_port, context)
         features = point_features(self.system, self.basis, xhat[:, None] + self._offsets, self._Q)
         value.set_value(
             extrapolate(
@@ -452,16 +460,16 @@ class MovingBellmanExtrapolator(LeafSystem):
                 self._r,
                 self.input_bound,
                 self.get_nu(context),
-                W_policy=self._policy_port.Eval(context),
+                W_policy=vector_value(self._policy_port, context),
                 metric=self.metric,
             )
         )
 
     def _calc_critic_sum(self, context, output) -> None:
-        output.SetFromVector(self._cache.Eval(context).critic_sum)
+        output.SetFromVector(self.extrapolation(context).critic_sum)
 
     def _calc_gain_sum(self, context, output) -> None:
-        output.SetFromVector(self._cache.Eval(context).gain_sum.ravel())
+        output.SetFromVector(self.extrapolation(context).gain_sum.ravel())
 
     def _calc_learning_condition(self, context, output) -> None:
-        output.SetAtIndex(0, learning_condition(self._cache.Eval(context).gain_sum))
+        output.SetAtIndex(0, learning_condition(self.extrapolation(context).gain_sum))

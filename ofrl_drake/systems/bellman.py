@@ -17,6 +17,7 @@ from pydrake.systems.primitives import Demultiplexer
 
 from ofrl_drake.bellman import BellmanSums, Extrapolator, PointFeatures, learning_condition
 from ofrl_drake.checks import positive_number
+from ofrl_drake.drake_typing import drake_array, vector_value
 
 __all__ = ["BellmanExtrapolator"]
 
@@ -35,7 +36,7 @@ class _StackedSums(LeafSystem):
         self.extrapolator = extrapolator
         self._size = size
         self._other: Extrapolator | None = None  # at the last nu that is not the default
-        self._nu_index = self.DeclareNumericParameter(BasicVector([extrapolator.nu]))
+        self._nu_index = self.DeclareNumericParameter(BasicVector(drake_array([extrapolator.nu])))
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
         inputs = {
@@ -77,15 +78,16 @@ class _StackedSums(LeafSystem):
         nu = context.get_numeric_parameter(self._nu_index).GetAtIndex(0)
         e = self.extrapolator
         (e if nu == e.nu else self.extrapolator_for(nu)).sums_into(
-            self._weights_port.Eval(context),
+            vector_value(self._weights_port, context),
             value[:L],
             value[L:].reshape(L, L),
-            self._policy_port.Eval(context),
+            vector_value(self._policy_port, context),
         )
 
     def _calc_learning_condition(self, context, output) -> None:
         L = self._size
-        output.SetAtIndex(0, learning_condition(self._sums_port.Eval(context)[L:].reshape(L, L)))
+        sums = vector_value(self._sums_port, context)
+        output.SetAtIndex(0, learning_condition(sums[L:].reshape(L, L)))
 
 
 class BellmanExtrapolator(Diagram):
@@ -148,9 +150,8 @@ class BellmanExtrapolator(Diagram):
         self.metric = metric
         size = features.drift.shape[0]
         builder = DiagramBuilder()
-        sums = builder.AddNamedSystem(
-            "sums", _StackedSums(Extrapolator(features, r, input_bound, nu, metric), size)
-        )
+        sums = _StackedSums(Extrapolator(features, r, input_bound, nu, metric), size)
+        builder.AddNamedSystem("sums", sums)
         split = builder.AddNamedSystem("split_sums", Demultiplexer([size, size * size]))
         builder.Connect(sums.GetOutputPort("sums"), split.get_input_port())
         builder.ExportInput(sums.GetInputPort("weights"), "weights")
@@ -208,7 +209,7 @@ class BellmanExtrapolator(Diagram):
     def extrapolation(self, context: Context) -> BellmanSums:
         """The two sums in ``context`` (this block's own), as :class:`BellmanSums`."""
         L = self._size
-        stacked = self._sums.GetOutputPort("sums").Eval(
-            self.GetSubsystemContext(self._sums, context)
+        stacked = vector_value(
+            self._sums.GetOutputPort("sums"), self.GetSubsystemContext(self._sums, context)
         )
         return BellmanSums(stacked[:L].copy(), stacked[L:].reshape(L, L).copy())

@@ -6,6 +6,7 @@ import numpy as np
 from pydrake.systems.framework import InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.drake_typing import vector_value
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.policy import check_policy_arguments, policy_kernel, policy_scale
 
@@ -82,11 +83,11 @@ class SaturatedController(LeafSystem):
         return self._u_port
 
     def _calc_u(self, context, output) -> None:
-        xhat = self._xhat_port.Eval(context)
+        xhat = vector_value(self._xhat_port, context)
         g = np.asarray(self.system.g(xhat), dtype=float)
         lowered, index, factor = self._tables
         u = policy_kernel(
-            xhat, g, self._weights_port.Eval(context), lowered, index, factor,
+            xhat, g, vector_value(self._weights_port, context), lowered, index, factor,
             self._scale, self._lbar,
         )  # fmt: skip
         output.SetFromVector(u)

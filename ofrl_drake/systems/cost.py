@@ -7,6 +7,7 @@ from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, Output
 
 from ofrl_drake.checks import nonnegative_matrix, positive_number, positive_vector
 from ofrl_drake.cost import raise_input_out_of_bound, stage_cost_rate
+from ofrl_drake.drake_typing import drake_array, vector_value
 
 __all__ = ["RunningCost"]
 
@@ -49,7 +50,7 @@ class RunningCost(LeafSystem):
         positive_number("RunningCost: input_bound", input_bound)
         self._lbar = float(input_bound)
         n, m = self._Q.shape[0], self._r.size
-        self._state_index = self.DeclareContinuousState(BasicVector(np.zeros(1)))
+        self._state_index = self.DeclareContinuousState(BasicVector(drake_array([0.0])))
         self._x_port = self.DeclareVectorInputPort("state", n)
         self._u_port = self.DeclareVectorInputPort("u", m)
         self._cost_port = self.DeclareStateOutputPort("cost", self._state_index)
@@ -67,8 +68,10 @@ class RunningCost(LeafSystem):
         return self._cost_port
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
-        u = self._u_port.Eval(context)
-        rate, worst = stage_cost_rate(self._x_port.Eval(context), u, self._Q, self._r, self._lbar)
+        u = vector_value(self._u_port, context)
+        rate, worst = stage_cost_rate(
+            vector_value(self._x_port, context), u, self._Q, self._r, self._lbar
+        )
         if worst > 1.0 + 1e-12:
             raise_input_out_of_bound(u, self.input_bound)
         derivatives.get_mutable_vector().SetAtIndex(0, rate)

@@ -5,10 +5,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.bellman import critic_rate, packed_size
 from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 
 __all__ = ["CriticWeights"]
 
@@ -49,13 +51,13 @@ class CriticWeights(LeafSystem):
         super().__init__()
         self.initial_weights = initial_weights
         self.kc = kc
-        W0 = finite_vector("CriticWeights: initial_weights", initial_weights)
+        W0: DrakeArray = finite_vector("CriticWeights: initial_weights", initial_weights)
         positive_number("CriticWeights: kc", kc, allow_zero=True)
         size = W0.size
         self._size = size
         self._rate = np.empty(size)  # scratch for the derivative, copied out at once
         self._state_index = self.DeclareContinuousState(BasicVector(W0))
-        self._kc_index = self.DeclareNumericParameter(BasicVector([float(kc)]))
+        self._kc_index = self.DeclareNumericParameter(BasicVector(drake_array([float(kc)])))
         self._critic_sum_port = self.DeclareVectorInputPort("critic_sum", size)
         self._gamma_port = self.DeclareVectorInputPort("gamma", packed_size(size))
         self._weights_port = self.DeclareStateOutputPort("weights", self._state_index)
@@ -72,9 +74,9 @@ class CriticWeights(LeafSystem):
         """The weights W (size L)."""
         return self._weights_port
 
-    def set_weights(self, context: Context, W: Sequence[float]) -> None:
+    def set_weights(self, context: Context, W: ArrayLike) -> None:
         """Set the weights to ``W`` in ``context``, this block's own context."""
-        value = finite_vector("CriticWeights: W", W, self._size)
+        value: DrakeArray = finite_vector("CriticWeights: W", W, self._size)
         context.SetContinuousState(value)
 
     def get_kc(self, context: Context) -> float:
@@ -95,5 +97,10 @@ class CriticWeights(LeafSystem):
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         rate = self._rate
         kc = context.get_numeric_parameter(self._kc_index).GetAtIndex(0)
-        critic_rate(self._gamma_port.Eval(context), self._critic_sum_port.Eval(context), kc, rate)
+        critic_rate(
+            vector_value(self._gamma_port, context),
+            vector_value(self._critic_sum_port, context),
+            kc,
+            rate,
+        )
         derivatives.SetFromVector(rate)

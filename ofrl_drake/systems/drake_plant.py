@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import numpy as np
+from numpy.typing import ArrayLike
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import AffineSystem
 
 from ofrl_drake.checks import finite_vector
 from ofrl_drake.drake_models import MultibodySource
+from ofrl_drake.drake_typing import DrakeArray, drake_array
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, ShiftedSystem
 
@@ -68,7 +71,7 @@ class DrakePlant(Diagram):
     def __init__(
         self,
         system: ControlAffineSystem,
-        initial_state: Sequence[float] | None = None,
+        initial_state: ArrayLike | None = None,
         body_mass_scale: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__()
@@ -83,17 +86,17 @@ class DrakePlant(Diagram):
                 f"(source = {type(source).__name__}). Use ControlAffinePlant instead."
             )
         n, m = system.n, system.m
-        x_eq = system.x_eq if isinstance(system, ShiftedSystem) else np.zeros(n)
-        u_eq = system.u_eq if isinstance(system, ShiftedSystem) else np.zeros(m)
+        x_eq = drake_array(system.x_eq if isinstance(system, ShiftedSystem) else np.zeros(n))
+        u_eq = drake_array(system.u_eq if isinstance(system, ShiftedSystem) else np.zeros(m))
         z0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
         if z0.shape != (n,):
             raise ModelError(
                 f"{system.name}: initial_state must have length n = {n}; got shape {z0.shape}."
             )
-        x0 = z0 + x_eq
-        plant = source.plant.Clone()
+        x0: DrakeArray = z0 + x_eq
+        plant: MultibodyPlant = source.plant.Clone()
         nq = plant.num_positions()
-        plant.SetDefaultPositions(x0[:nq])
+        plant.SetDefaultPositions(drake_array(x0[:nq]))
         self._x_eq = x_eq
         self._x0 = x0
         for body in body_mass_scale or {}:
@@ -103,11 +106,17 @@ class DrakePlant(Diagram):
                     "the plant."
                 )
         builder = DiagramBuilder()
-        self._plant = builder.AddNamedSystem("multibody_plant", plant)
-        offset = builder.AddNamedSystem("add_input_offset", AffineSystem(D=np.eye(m), y0=u_eq))
-        state = builder.AddNamedSystem("state_offset", AffineSystem(D=np.eye(n), y0=-x_eq))
-        C = system.output_matrix
-        output = builder.AddNamedSystem("output_map", AffineSystem(D=C, y0=-C @ x_eq))
+        builder.AddNamedSystem("multibody_plant", plant)
+        self._plant = plant
+        offset = builder.AddNamedSystem(
+            "add_input_offset", AffineSystem(D=drake_array(np.eye(m)), y0=u_eq)
+        )
+        state = builder.AddNamedSystem(
+            "state_offset", AffineSystem(D=drake_array(np.eye(n)), y0=-x_eq)
+        )
+        C: DrakeArray = system.output_matrix
+        y0: DrakeArray = -C @ x_eq
+        output = builder.AddNamedSystem("output_map", AffineSystem(D=C, y0=y0))
         builder.Connect(offset.get_output_port(), plant.get_actuation_input_port())
         builder.Connect(plant.get_state_output_port(), state.get_input_port())
         builder.Connect(plant.get_state_output_port(), output.get_input_port())
@@ -125,15 +134,15 @@ class DrakePlant(Diagram):
             rigid = plant.GetBodyByName(body)
             rigid.SetMass(plant_context, rigid.default_mass() * float(scale))
 
-    def set_state(self, context: Context, x: Sequence[float]) -> None:
+    def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the state to ``x`` (in the coordinates of ``system``) in ``context``, this
         block's own context: the plant's positions and velocities ``x + x*``."""
         z = finite_vector(f"{self.system.name}: x", x, self.system.n)
         plant_context = self.GetMutableSubsystemContext(self._plant, context)
-        self._plant.SetPositionsAndVelocities(plant_context, z + self._x_eq)
+        self._plant.SetPositionsAndVelocities(plant_context, drake_array(z + self._x_eq))
 
     @property
-    def plant(self):
+    def plant(self) -> MultibodyPlant:
         """The ``MultibodyPlant`` inside (a clone of ``system.source.plant``)."""
         return self._plant
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.bellman import gamma_rate, pack_symmetric, packed_size
 from ofrl_drake.checks import positive_number, spd_matrix
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.learning import bounded_forgetting
 
 __all__ = ["GammaGain"]
@@ -91,13 +93,15 @@ class GammaGain(LeafSystem):
         self._full_index[rows * L + cols] = np.arange(rows.size)
         self._full_index[cols * L + rows] = np.arange(rows.size)
         self._rate = np.empty(packed_size(L))  # scratch for the derivative, copied out at once
-        initial = pack_symmetric(0.5 * (G0 + G0.T))
+        initial: DrakeArray = pack_symmetric(0.5 * (G0 + G0.T))
         self._state_index = self.DeclareContinuousState(BasicVector(initial))
         # [kc, beta, gamma_bound] and the reference Gamma0^{-1} (row-major) of bounded forgetting.
         self._gains_index = self.DeclareNumericParameter(
-            BasicVector([float(kc), float(beta), bound])
+            BasicVector(drake_array([float(kc), float(beta), bound]))
         )
-        self._reference_index = self.DeclareNumericParameter(BasicVector(np.linalg.inv(G0).ravel()))
+        self._reference_index = self.DeclareNumericParameter(
+            BasicVector(drake_array(np.linalg.inv(G0).ravel()))
+        )
         self._gain_sum_port = self.DeclareVectorInputPort("gain_sum", L * L)
         self._gamma_port = self.DeclareStateOutputPort("gamma", self._state_index)
 
@@ -109,7 +113,7 @@ class GammaGain(LeafSystem):
         """Gamma's upper triangle, row by row (size L (L + 1) / 2)."""
         return self._gamma_port
 
-    def set_initial_gamma(self, context: Context, gamma: np.ndarray) -> None:
+    def set_initial_gamma(self, context: Context, gamma: ArrayLike) -> None:
         """Start from ``Gamma(0) = gamma`` in ``context`` (this block's own).
 
         Sets the state and the reference ``Gamma0^{-1}`` of bounded forgetting.
@@ -120,9 +124,10 @@ class GammaGain(LeafSystem):
             If ``gamma`` is not a symmetric positive definite L x L matrix.
         """
         G0 = spd_matrix("GammaGain: Gamma(0)", gamma, self._size)
-        context.SetContinuousState(pack_symmetric(0.5 * (G0 + G0.T)))
+        packed: DrakeArray = pack_symmetric(0.5 * (G0 + G0.T))
+        context.SetContinuousState(packed)
         context.get_mutable_numeric_parameter(self._reference_index).SetFromVector(
-            np.linalg.inv(G0).ravel()
+            drake_array(np.linalg.inv(G0).ravel())
         )
 
     def _set_gain(self, context: Context, index: int, value: float) -> None:
@@ -156,5 +161,5 @@ class GammaGain(LeafSystem):
             reference = context.get_numeric_parameter(self._reference_index).get_value()
             ratio = float(reference @ gamma[self._full_index]) / self._size
             beta = bounded_forgetting(beta, ratio, bound)
-        gamma_rate(gamma, self._gain_sum_port.Eval(context), kc, beta, rate)
+        gamma_rate(gamma, vector_value(self._gain_sum_port, context), kc, beta, rate)
         derivatives.SetFromVector(rate)

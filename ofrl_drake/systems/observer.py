@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.checks import finite_vector
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -57,7 +58,7 @@ class ThreeGainObserver(LeafSystem):
         self,
         system: ControlAffineSystem,
         gains: ObserverGains,
-        initial_state: Sequence[float] | None = None,
+        initial_state: ArrayLike | None = None,
         design: Any = None,
     ) -> None:
         super().__init__()
@@ -67,7 +68,7 @@ class ThreeGainObserver(LeafSystem):
         self.design = design
         if design is not None:
             gains.check_design(design)
-        x0 = np.zeros(system.n) if initial_state is None else np.asarray(initial_state, float)
+        x0 = drake_array(np.zeros(system.n) if initial_state is None else initial_state)
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._y_port = self.DeclareVectorInputPort("y", system.q)
         self._u_port = self.DeclareVectorInputPort("u", system.m)
@@ -85,9 +86,9 @@ class ThreeGainObserver(LeafSystem):
         """The estimate ``xhat`` (size n)."""
         return self._xhat_port
 
-    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+    def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        value = finite_vector("ThreeGainObserver: xhat", xhat, self.system.n)
+        value: DrakeArray = finite_vector("ThreeGainObserver: xhat", xhat, self.system.n)
         context.SetContinuousState(value)
 
     def observer_certificate(self) -> ObserverCertificate:
@@ -96,6 +97,6 @@ class ThreeGainObserver(LeafSystem):
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         xhat = context.get_continuous_state_vector().CopyToVector()
-        y = self._y_port.Eval(context)
-        u = self._u_port.Eval(context)
+        y = vector_value(self._y_port, context)
+        u = vector_value(self._u_port, context)
         derivatives.SetFromVector(observer_rhs(self.system, self.gains, xhat, y, u))

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.checks import finite_vector
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = ["ControlAffinePlant"]
@@ -39,13 +39,11 @@ class ControlAffinePlant(LeafSystem):
     that reads ``y`` closes no algebraic loop.
     """
 
-    def __init__(
-        self, system: ControlAffineSystem, initial_state: Sequence[float] | None = None
-    ) -> None:
+    def __init__(self, system: ControlAffineSystem, initial_state: ArrayLike | None = None) -> None:
         super().__init__()
         self.system = system
         self.initial_state = initial_state
-        x0 = np.zeros(system.n) if initial_state is None else np.asarray(initial_state, float)
+        x0 = drake_array(np.zeros(system.n) if initial_state is None else initial_state)
         self._C = system.output_matrix
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._u_port = self.DeclareVectorInputPort("u", system.m)
@@ -66,9 +64,9 @@ class ControlAffinePlant(LeafSystem):
         """The true state ``x`` (size n)."""
         return self._state_port
 
-    def set_state(self, context: Context, x: Sequence[float]) -> None:
+    def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
-        value = finite_vector("ControlAffinePlant: x", x, self.system.n)
+        value: DrakeArray = finite_vector("ControlAffinePlant: x", x, self.system.n)
         context.SetContinuousState(value)
 
     def _calc_y(self, context, output) -> None:
@@ -77,5 +75,5 @@ class ControlAffinePlant(LeafSystem):
 
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         x = context.get_continuous_state_vector().CopyToVector()
-        u = self._u_port.Eval(context)
+        u = vector_value(self._u_port, context)
         derivatives.SetFromVector(self.system.dynamics(x, u))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import (
     BasicVector,
     Context,
@@ -19,6 +20,7 @@ from pydrake.systems.primitives import PassThrough
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.learning import PolicyCheck, check_policy, second_moment
 
 __all__ = ["PolicyGate", "PolicyPassThrough"]
@@ -92,7 +94,9 @@ class PolicyGate(LeafSystem):
         self.r = r
         self.basis = basis
         self.points = points
-        W0 = finite_vector("PolicyGate: initial_weights", initial_weights, size=basis.size)
+        W0: DrakeArray = finite_vector(
+            "PolicyGate: initial_weights", initial_weights, size=basis.size
+        )
         positive_number("PolicyGate: period", period)
         self._A = np.asarray(A, dtype=float)
         self._B = np.asarray(B, dtype=float)
@@ -101,7 +105,7 @@ class PolicyGate(LeafSystem):
         self._moment = second_moment(points)
         size = basis.size
         self._policy_index = self.DeclareDiscreteState(BasicVector(W0))
-        self._updates_index = self.DeclareDiscreteState(BasicVector(np.zeros(2)))
+        self._updates_index = self.DeclareDiscreteState(BasicVector(drake_array([0.0, 0.0])))
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._policy_port = self.DeclareStateOutputPort("policy_weights", self._policy_index)
         self._updates_port = self.DeclareStateOutputPort("policy_updates", self._updates_index)
@@ -121,21 +125,21 @@ class PolicyGate(LeafSystem):
         """``[accepted, rejected]``: improvement steps so far (size 2)."""
         return self._updates_port
 
-    def set_policy_weights(self, context: Context, W: Sequence[float]) -> None:
+    def set_policy_weights(self, context: Context, W: ArrayLike) -> None:
         """Put the policy of weights ``W`` in force in ``context``, this block's own context."""
-        value = finite_vector("PolicyGate: W", W, size=self.basis.size)
-        context.get_mutable_discrete_state(self._policy_index).SetFromVector(value)
+        value: DrakeArray = finite_vector("PolicyGate: W", W, size=self.basis.size)
+        context.get_mutable_discrete_state(int(self._policy_index)).SetFromVector(value)
 
     def check(self, W: np.ndarray) -> PolicyCheck:
         """What the acceptance test reads off weights ``W``."""
         return check_policy(self._A, self._B, self._Q, self._r, self.basis, W, self._moment)
 
     def _improve(self, context: Context, discrete_state: DiscreteValues) -> None:
-        W = np.array(self._weights_port.Eval(context), dtype=float)
-        in_force = context.get_discrete_state(self._policy_index).CopyToVector()
-        counts = discrete_state.get_mutable_vector(self._updates_index)
+        W: DrakeArray = np.array(vector_value(self._weights_port, context), dtype=float)
+        in_force: DrakeArray = context.get_discrete_state(int(self._policy_index)).CopyToVector()
+        counts = discrete_state.get_mutable_vector(int(self._updates_index))
         if self.check(W).improves_on(self.check(in_force)):
-            discrete_state.get_mutable_vector(self._policy_index).SetFromVector(W)
+            discrete_state.get_mutable_vector(int(self._policy_index)).SetFromVector(W)
             counts.SetAtIndex(0, counts.GetAtIndex(0) + 1.0)
         else:
             counts.SetAtIndex(1, counts.GetAtIndex(1) + 1.0)

@@ -10,13 +10,14 @@ the ``solve_failed`` output and counted on ``solve_counts``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.checks import finite_vector
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
@@ -94,11 +95,11 @@ class ScheduledThreeGainObserver(LeafSystem):
         initial_design: Any,
         *,
         period: float,
-        half_width: Sequence[float],
+        half_width: ArrayLike,
         input_bound: float,
         alpha: float,
         design_options: dict[str, Any] | None = None,
-        initial_state: Sequence[float] | None = None,
+        initial_state: ArrayLike | None = None,
     ) -> None:
         super().__init__()
         self.system = system
@@ -114,23 +115,25 @@ class ScheduledThreeGainObserver(LeafSystem):
         hw = np.asarray(half_width, dtype=float)
         if hw.shape != (system.n,) or np.any(hw <= 0):
             raise ModelError(
-                f"half_width must hold {system.n} positive numbers; got {list(half_width)}."
+                f"half_width must hold {system.n} positive numbers; got {hw.tolist()}."
             )
         self._half_width = hw
         n, q = system.n, system.q
         self._gain_shape = (n, q)
         gains = ObserverGains.from_design(system, initial_design)
-        x0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
+        x0 = drake_array(np.zeros(n) if initial_state is None else initial_state)
         self._xhat_index = self.DeclareContinuousState(BasicVector(x0))
         self._gains_index = self.DeclareDiscreteState(self._pack_gains(gains))
         self._bounds_index = self.DeclareDiscreteState(self._pack_bounds(gains))
         box = initial_design.box
         self._box_index = self.DeclareDiscreteState(
-            np.concatenate([np.asarray(box.lower, float), np.asarray(box.upper, float)])
+            drake_array(
+                np.concatenate([np.asarray(box.lower, float), np.asarray(box.upper, float)])
+            )
         )
-        self._P_index = self.DeclareDiscreteState(np.asarray(initial_design.P, float).ravel())
+        self._P_index = self.DeclareDiscreteState(drake_array(np.ravel(initial_design.P)))
         self._certificate_index = self.DeclareDiscreteState(
-            np.array([float(initial_design.max_eigenvalue)])
+            drake_array([float(initial_design.max_eigenvalue)])
         )
         self._verification_index = self.DeclareDiscreteState(self._verify(initial_design, 0))
         self._failed_index = self.DeclareDiscreteState(1)
@@ -190,12 +193,12 @@ class ScheduledThreeGainObserver(LeafSystem):
         """``[worst rate found, -2 alpha, falsified]`` of the design in force (size 3)."""
         return self._verification_port
 
-    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+    def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context.
 
         The gains in force stay the initial design's until the first re-solve.
         """
-        value = finite_vector("ScheduledThreeGainObserver: xhat", xhat, self.system.n)
+        value: DrakeArray = finite_vector("ScheduledThreeGainObserver: xhat", xhat, self.system.n)
         context.get_mutable_continuous_state_vector().SetFromVector(value)
 
     def observer_certificate(self) -> ObserverCertificate:
@@ -209,21 +212,21 @@ class ScheduledThreeGainObserver(LeafSystem):
             ),
         )
 
-    def _verify(self, design: Any, seed: int) -> np.ndarray:
+    def _verify(self, design: Any, seed: int) -> DrakeArray:
         from ofrl_drake.verification import verify_observer
 
         report = verify_observer(
             design, self.system, samples=VERIFY_SAMPLES, seed=seed, refine=False
         )
-        return np.array([report.worst_rate, report.claimed_rate, float(report.falsified)])
+        return drake_array([report.worst_rate, report.claimed_rate, float(report.falsified)])
 
     # --------------------------------------------------------------- packing
     @staticmethod
-    def _pack_gains(gains: ObserverGains) -> np.ndarray:
+    def _pack_gains(gains: ObserverGains) -> DrakeArray:
         return np.concatenate([gains.L.ravel(), gains.H.ravel(), gains.K.ravel()])
 
     @staticmethod
-    def _pack_bounds(gains: ObserverGains) -> np.ndarray:
+    def _pack_bounds(gains: ObserverGains) -> DrakeArray:
         return np.concatenate([gains.Mf1.ravel(), gains.Mg1.ravel(), gains.Mg2.ravel()])
 
     def _unpack(self, context) -> ObserverGains:
@@ -243,8 +246,8 @@ class ScheduledThreeGainObserver(LeafSystem):
     # -------------------------------------------------------------- dynamics
     def DoCalcTimeDerivatives(self, context, derivatives) -> None:
         xhat = context.get_continuous_state_vector().CopyToVector()
-        y = self._y_port.Eval(context)
-        u = self._u_port.Eval(context)
+        y = vector_value(self._y_port, context)
+        u = vector_value(self._u_port, context)
         gains = self._unpack(context)
         derivatives.SetFromVector(observer_rhs(self.system, gains, xhat, y, u))
 

@@ -45,6 +45,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.symbolic import MakeVectorVariable
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSystem
@@ -57,6 +58,7 @@ from ofrl_drake.checks import (
     positive_vector,
 )
 from ofrl_drake.cost import stage_cost_expression
+from ofrl_drake.drake_typing import DrakeArray, SymbolicArray
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_expression
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -70,18 +72,18 @@ __all__ = [
 ]
 
 
-def _set_state(context: Context, value: Sequence[float], n: int, what: str) -> None:
+def _set_state(context: Context, value: ArrayLike, n: int, what: str) -> None:
     """Write the state ``value`` (length ``n``) into a block's own ``context``."""
-    x = finite_vector(what, value, n)
+    x: DrakeArray = finite_vector(what, value, n)
     context.SetContinuousState(x)
 
 
 def _add_symbolic_system(
     builder: DiagramBuilder,
     name: str,
-    inputs: Sequence[tuple[str, np.ndarray]],
+    inputs: Sequence[tuple[str, SymbolicArray]],
     *,
-    state: np.ndarray,
+    state: SymbolicArray,
     dynamics: Any,
     output: Any,
 ) -> SymbolicVectorSystem:
@@ -90,15 +92,13 @@ def _add_symbolic_system(
     ``inputs`` is ``(port name, variables)`` in order; several ports are
     stacked into the system's one input by a ``Multiplexer``.
     """
-    system = builder.AddNamedSystem(
-        name,
-        SymbolicVectorSystem(
-            state=state,
-            input=np.concatenate([variables for _, variables in inputs]),
-            dynamics=dynamics,
-            output=output,
-        ),
+    system = SymbolicVectorSystem(
+        state=state,
+        input=np.concatenate([variables for _, variables in inputs]),
+        dynamics=dynamics,
+        output=output,
     )
+    builder.AddNamedSystem(name, system)
     if len(inputs) == 1:
         builder.ExportInput(system.get_input_port(), inputs[0][0])
         return system
@@ -146,14 +146,15 @@ class SymbolicPlant(Diagram):
         self.system = system
         model = system.symbolic()
         x = model.x
-        u = MakeVectorVariable(system.m, "u")
+        u: SymbolicArray = MakeVectorVariable(system.m, "u")
         with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
             xdot = model.f + model.g @ u
         builder = DiagramBuilder()
         dynamics = _add_symbolic_system(
             builder, "dynamics", [("u", u)], state=x, dynamics=xdot, output=x
         )
-        output = builder.AddNamedSystem("output_map", MatrixGain(system.output_matrix))
+        C: DrakeArray = system.output_matrix
+        output = builder.AddNamedSystem("output_map", MatrixGain(C))
         builder.Connect(dynamics.get_output_port(), output.get_input_port())
         builder.ExportOutput(output.get_output_port(), "y")
         builder.ExportOutput(dynamics.get_output_port(), "state")
@@ -171,7 +172,7 @@ class SymbolicPlant(Diagram):
         """The true state ``x`` (size n)."""
         return self.GetOutputPort("state")
 
-    def set_state(self, context: Context, x: Sequence[float]) -> None:
+    def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
         _set_state(context, x, self.system.n, f"{self.system.name}: x")
 
@@ -225,9 +226,9 @@ class SymbolicObserver(Diagram):
         if design is not None:
             gains.check_design(design)
         model = system.symbolic()
-        xhat = MakeVectorVariable(system.n, "xhat")
-        y = MakeVectorVariable(system.q, "y")
-        u = MakeVectorVariable(system.m, "u")
+        xhat: SymbolicArray = MakeVectorVariable(system.n, "xhat")
+        y: SymbolicArray = MakeVectorVariable(system.q, "y")
+        u: SymbolicArray = MakeVectorVariable(system.m, "u")
         rhs = observer_rhs_expression(model, system.output_matrix, gains, xhat, y, u)
         builder = DiagramBuilder()
         dynamics = _add_symbolic_system(
@@ -248,7 +249,7 @@ class SymbolicObserver(Diagram):
         """The estimate ``xhat`` (size n)."""
         return self.GetOutputPort("estimated_state")
 
-    def set_estimated_state(self, context: Context, xhat: Sequence[float]) -> None:
+    def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
         _set_state(context, xhat, self.system.n, f"{self.system.name}: xhat")
 
@@ -306,9 +307,9 @@ class SymbolicController(Diagram):
             "SymbolicController", system.n, system.m, basis, r, input_bound
         )
         model = system.symbolic()
-        W = MakeVectorVariable(basis.size, "W")
+        W: SymbolicArray = MakeVectorVariable(basis.size, "W")
         u = policy_expression(basis, model.x, model.g, W, r_arr, float(input_bound))
-        unused = MakeVectorVariable(1, "unused")
+        unused: SymbolicArray = MakeVectorVariable(1, "unused")
         builder = DiagramBuilder()
         policy = _add_symbolic_system(
             builder,
@@ -376,9 +377,9 @@ class SymbolicRunningCost(Diagram):
         r_arr = positive_vector("SymbolicRunningCost: r", r)
         positive_number("SymbolicRunningCost: input_bound", input_bound)
         n, m = Q_arr.shape[0], r_arr.size
-        J = MakeVectorVariable(1, "J")
-        x = MakeVectorVariable(n, "x")
-        u = MakeVectorVariable(m, "u")
+        J: SymbolicArray = MakeVectorVariable(1, "J")
+        x: SymbolicArray = MakeVectorVariable(n, "x")
+        u: SymbolicArray = MakeVectorVariable(m, "u")
         rate = stage_cost_expression(x, u, Q_arr, r_arr, float(input_bound))
         builder = DiagramBuilder()
         integrand = _add_symbolic_system(

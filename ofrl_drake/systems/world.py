@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.common import RandomDistribution
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 from pydrake.systems.primitives import (
@@ -30,6 +31,8 @@ from pydrake.systems.primitives import (
 )
 
 from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.contracts import ContextInitializer, HoldStarter, PlantStateSetter
+from ofrl_drake.drake_typing import DrakeArray, vector_value
 from ofrl_drake.errors import ModelError
 
 __all__ = ["MeasuredPlant", "SampledController", "initialize_context", "start_holds"]
@@ -38,34 +41,36 @@ __all__ = ["MeasuredPlant", "SampledController", "initialize_context", "start_ho
 def initialize_context(system: System, context: Context) -> None:
     """Let ``system`` set what its default context cannot hold (its own ``context``).
 
-    Blocks that need it define ``initialize_context(context)``: a multibody
-    plant's initial velocities and body masses. Others are left as they are.
+    Blocks that need it define ``initialize_context(context)``
+    (:class:`~ofrl_drake.contracts.ContextInitializer`): a multibody plant's
+    initial velocities and body masses. Others are left as they are.
     """
-    hook = getattr(system, "initialize_context", None)
-    if hook is not None:
-        hook(context)
+    if isinstance(system, ContextInitializer):
+        system.initialize_context(context)
 
 
 def start_holds(system: System, context: Context) -> None:
     """Start the holds of ``system`` at their input's value (its own ``context``).
 
     Call it once the context holds the initial state: blocks with a hold define
-    ``start_holds(context)`` (:class:`MeasuredPlant`, :class:`SampledController`).
+    ``start_holds(context)`` (:class:`~ofrl_drake.contracts.HoldStarter`:
+    :class:`MeasuredPlant`, :class:`SampledController`).
     """
-    hook = getattr(system, "start_holds", None)
-    if hook is not None:
-        hook(context)
+    if isinstance(system, HoldStarter):
+        system.start_holds(context)
 
 
-def _export_other_ports(builder: DiagramBuilder, inner: System, skip_in: set, skip_out: set):
+def _export_other_ports(
+    builder: DiagramBuilder, inner: System, skip_in: set[str], skip_out: set[str]
+) -> None:
     for i in range(inner.num_input_ports()):
-        port = inner.get_input_port(i)
-        if port.get_name() not in skip_in:
-            builder.ExportInput(port, port.get_name())
+        input_port = inner.get_input_port(i)
+        if input_port.get_name() not in skip_in:
+            builder.ExportInput(input_port, input_port.get_name())
     for i in range(inner.num_output_ports()):
-        port = inner.get_output_port(i)
-        if port.get_name() not in skip_out:
-            builder.ExportOutput(port, port.get_name())
+        output_port = inner.get_output_port(i)
+        if output_port.get_name() not in skip_out:
+            builder.ExportOutput(output_port, output_port.get_name())
 
 
 class MeasuredPlant(Diagram):
@@ -126,7 +131,9 @@ class MeasuredPlant(Diagram):
             raise ModelError(f"MeasuredPlant: noise_std must be >= 0; got {std.tolist()}.")
         if np.any(std > 0) and period == 0:
             raise ModelError("MeasuredPlant: noise needs a sampling period > 0; got 0.")
-        d = np.zeros(m) if not disturbance else finite_vector("disturbance", disturbance, m)
+        d: DrakeArray = (
+            np.zeros(m) if not disturbance else finite_vector("disturbance", disturbance, m)
+        )
         builder = DiagramBuilder()
         inner = builder.AddNamedSystem("plant", plant)
         if np.any(d != 0):
@@ -138,7 +145,7 @@ class MeasuredPlant(Diagram):
         else:
             builder.ExportInput(inner.GetInputPort("u"), "u")
         y = inner.GetOutputPort("y")
-        self._hold = None
+        self._hold: ZeroOrderHold | None = None
         if np.any(std > 0):
             noise = builder.AddNamedSystem(
                 "noise", RandomSource(RandomDistribution.kGaussian, q, float(period))
@@ -150,7 +157,8 @@ class MeasuredPlant(Diagram):
             builder.Connect(scale.get_output_port(), add_v.get_input_port(1))
             y = add_v.get_output_port()
         if period > 0:
-            self._hold = builder.AddNamedSystem("sample_and_hold", ZeroOrderHold(float(period), q))
+            self._hold = ZeroOrderHold(float(period), q)
+            builder.AddNamedSystem("sample_and_hold", self._hold)
             builder.Connect(y, self._hold.get_input_port())
             y = self._hold.get_output_port()
         builder.ExportOutput(y, "y")
@@ -162,7 +170,7 @@ class MeasuredPlant(Diagram):
         """The inner plant's own initialization (:func:`initialize_context`)."""
         initialize_context(self._inner, self.GetMutableSubsystemContext(self._inner, context))
 
-    def set_state(self, context: Context, x: Sequence[float]) -> None:
+    def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the inner plant's state to ``x`` in ``context``, this block's own context.
 
         Raises
@@ -170,20 +178,19 @@ class MeasuredPlant(Diagram):
         ModelError
             If the inner plant has no ``set_state(context, x)``.
         """
-        setter = getattr(self._inner, "set_state", None)
-        if setter is None:
+        if not isinstance(self._inner, PlantStateSetter):
             raise ModelError(
                 f"MeasuredPlant: the plant {type(self._inner).__name__} has no "
                 "set_state(context, x), so its state cannot be set; give it one."
             )
-        setter(self.GetMutableSubsystemContext(self._inner, context), x)
+        self._inner.set_state(self.GetMutableSubsystemContext(self._inner, context), x)
 
     def start_holds(self, context: Context) -> None:
         """The sample-and-hold starts at ``y(0)`` with its noise (after the state is set)."""
         start_holds(self._inner, self.GetMutableSubsystemContext(self._inner, context))
         if self._hold is not None:
             hold_context = self.GetMutableSubsystemContext(self._hold, context)
-            value = self._hold.get_input_port().Eval(hold_context)
+            value = vector_value(self._hold.get_input_port(), hold_context)
             self._hold.SetVectorState(hold_context, value)
 
 
@@ -217,7 +224,8 @@ class SampledController(Diagram):
         m = controller.GetOutputPort("u").size()
         builder = DiagramBuilder()
         inner = builder.AddNamedSystem("controller", controller)
-        self._hold = builder.AddNamedSystem("hold", ZeroOrderHold(float(period), m))
+        self._hold = ZeroOrderHold(float(period), m)
+        builder.AddNamedSystem("hold", self._hold)
         builder.Connect(inner.GetOutputPort("u"), self._hold.get_input_port())
         builder.ExportOutput(self._hold.get_output_port(), "u")
         _export_other_ports(builder, inner, set(), {"u"})
@@ -232,4 +240,6 @@ class SampledController(Diagram):
         """The hold starts at the controller's ``u(0)`` (after the loop's state is set)."""
         start_holds(self._inner, self.GetMutableSubsystemContext(self._inner, context))
         hold_context = self.GetMutableSubsystemContext(self._hold, context)
-        self._hold.SetVectorState(hold_context, self._hold.get_input_port().Eval(hold_context))
+        self._hold.SetVectorState(
+            hold_context, vector_value(self._hold.get_input_port(), hold_context)
+        )

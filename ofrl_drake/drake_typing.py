@@ -1,0 +1,48 @@
+"""pydrake's typed boundary: the array type its stubs accept, and a vector port's value.
+
+pydrake's stubs (pybind11-stubgen) write an Eigen vector or matrix as
+``numpy.ndarray[numpy.float64[m, 1]]``. numpy's own stubs read the first
+parameter of ``ndarray`` as the array's *shape* type, so a type checker sees
+an array whose shape is typed ``float64``. No array that numpy builds matches
+such a parameter (numpy types shapes as tuples: ``np.zeros(n)`` is an
+``ndarray[tuple[int], ...]``), and the arrays pydrake returns match no
+``np.ndarray`` parameter of ours. An array whose shape type is ``Any`` matches
+both: :data:`DrakeArray` (float) and :data:`SymbolicArray` (``pydrake.symbolic``
+variables and expressions). Arrays handed to pydrake are typed with them,
+through :func:`drake_array` where they are built, and so are the values of
+vector ports (:func:`vector_value`), whose stub says ``object``.
+
+Neither changes a value: :func:`drake_array` is ``np.asarray(values,
+dtype=float)``, and :func:`vector_value` is ``port.Eval(context)``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, TypeAlias, cast
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:  # annotations only
+    from pydrake.systems.framework import Context, InputPort, OutputPort
+
+__all__ = ["DrakeArray", "SymbolicArray", "drake_array", "vector_value"]
+
+#: A float array as pydrake's stubs take and give it: any shape (see the module docstring).
+DrakeArray: TypeAlias = np.ndarray[Any, np.dtype[np.float64]]
+#: An array of ``pydrake.symbolic`` variables or expressions, as pydrake's stubs take and give it.
+SymbolicArray: TypeAlias = np.ndarray[Any, np.dtype[np.object_]]
+
+
+def drake_array(values: ArrayLike) -> DrakeArray:
+    """``values`` as a float array that pydrake's stubs accept (``np.asarray(values, float)``)."""
+    return np.asarray(values, dtype=float)
+
+
+def vector_value(port: InputPort | OutputPort, context: Context) -> DrakeArray:
+    """The value of the vector-valued ``port`` in ``context``: ``port.Eval(context)``.
+
+    ``Eval``'s stub returns ``object`` (an abstract-valued port gives any
+    object); a vector-valued port gives a float array.
+    """
+    return cast(DrakeArray, port.Eval(context))
