@@ -132,11 +132,11 @@ class BellmanExtrapolation(BellmanSums):
         As in :class:`BellmanSums`.
     """
 
-    D: np.ndarray = None  # type: ignore[assignment]
-    u: np.ndarray = None  # type: ignore[assignment]
-    omega: np.ndarray = None  # type: ignore[assignment]
-    delta: np.ndarray = None  # type: ignore[assignment]
-    rho: np.ndarray = None  # type: ignore[assignment]
+    D: np.ndarray
+    u: np.ndarray
+    omega: np.ndarray
+    delta: np.ndarray
+    rho: np.ndarray
 
 
 def point_features(

@@ -563,7 +563,7 @@ class ExpressionEvaluator:
     ----------
     expressions : array_like of Expression or float
         Any shape ``S``; plain numbers are allowed.
-    variables : sequence of pydrake.symbolic.Variable
+    variables : iterable of pydrake.symbolic.Variable
         The ``n`` variables, in the order of the rows of the points and boxes.
 
     Raises
