@@ -5,8 +5,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from ofrl_drake import SimulationResult, SwapError, build_closed_loop, simulate
-from ofrl_drake.diagram import LOGGED
-from ofrl_drake.systems import CriticWeights
+from ofrl_drake.diagram import INITIAL_VALUES, LOGGED, ClosedLoop, initial_value_setter
+from ofrl_drake.slots import SLOTS
+from ofrl_drake.systems import CriticWeights, PolicyPassThrough
+from ofrl_drake.systems.baselines import FullStateObserver
 
 
 def _critic_gamma_reference(scenario, t_eval):
@@ -150,11 +152,33 @@ def test_mimo_scenario_runs_with_right_shapes(mimo_scenario):
 
 def test_build_returns_named_handles(paper_scenario, paper_design):
     loop = build_closed_loop(paper_scenario, design=paper_design)
-    for slot in ("plant", "observer", "controller", "critic", "gamma", "bellman", "running_cost"):
-        assert getattr(loop, slot).get_name() == slot
+    for slot in SLOTS:  # one typed property per slot, no attribute lookup by name
+        assert isinstance(vars(ClosedLoop)[slot], property), slot
+        assert getattr(loop, slot) is loop.blocks[slot] and loop.blocks[slot].get_name() == slot
+    with pytest.raises(AttributeError, match=r"'ClosedLoop' object has no attribute 'nonsense'"):
+        loop.nonsense  # noqa: B018
     # The learning condition is computed from the logged W after the run.
     assert set(loop.loggers) == set(LOGGED) - {"learning_condition"}
     assert "observer" in loop.diagram.GetGraphvizString()
+
+
+@pytest.mark.parametrize("blocks", ["symbolic", "python"])
+def test_every_initial_value_has_the_setter_its_table_names(paper_scenario, paper_design, blocks):
+    import dataclasses
+
+    scenario = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, blocks=blocks),
+        critic=dataclasses.replace(paper_scenario.critic, law="policy_iteration"),  # a gate
+    )
+    loop = build_closed_loop(scenario, design=paper_design)
+    for slot, (name, _) in INITIAL_VALUES.items():
+        setter = initial_value_setter(slot, loop.blocks[slot])
+        assert setter is not None and setter.__name__ == name, (slot, type(loop.blocks[slot]))
+    # No initial value for the running cost; none settable for stateless blocks.
+    assert initial_value_setter("running_cost", loop.running_cost) is None
+    assert initial_value_setter("observer", FullStateObserver(2)) is None
+    assert initial_value_setter("policy", PolicyPassThrough(3)) is None
 
 
 def test_swap_frozen_critic(paper_scenario, paper_design):

@@ -350,3 +350,30 @@ def test_run_writes_a_scenario_yaml_that_reproduces_the_noisy_run(tmp_path):
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["provenance"]["seeds"] == {"measurement": 0}
     assert "model_error" in summary
+
+
+def test_the_measured_plant_forwards_the_slot_contracts_of_its_plant():
+    from ofrl_drake.contracts import ContextInitializer, HoldStarter, PlantStateSetter
+    from ofrl_drake.errors import ModelError
+
+    system = make_system("two_state")
+    plant = MeasuredPlant(ControlAffinePlant(system), period=0.1)
+    assert all(isinstance(plant, c) for c in (PlantStateSetter, HoldStarter, ContextInitializer))
+    context = plant.CreateDefaultContext()
+    plant.set_state(context, [0.3, -0.2])
+    np.testing.assert_array_equal(plant.GetOutputPort("state").Eval(context), [0.3, -0.2])
+    # A plant block without set_state: the wrapper says so when asked for it.
+    builder = DiagramBuilder()
+    inner = builder.AddSystem(ControlAffinePlant(system))
+    builder.ExportInput(inner.GetInputPort("u"), "u")
+    for port in ("y", "state"):
+        builder.ExportOutput(inner.GetOutputPort(port), port)
+    bare = builder.Build()
+    assert not isinstance(bare, PlantStateSetter)
+    wrapped = MeasuredPlant(bare, period=0.1)
+    with pytest.raises(
+        ModelError,
+        match=r"^MeasuredPlant: the plant Diagram has no set_state\(context, x\), so its state "
+        r"cannot be set; give it one\.$",
+    ):
+        wrapped.set_state(wrapped.CreateDefaultContext(), [0.3, -0.2])

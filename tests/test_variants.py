@@ -442,6 +442,19 @@ def test_frozen_critic_and_constant_gamma_hold_their_state(paper_scenario):
     )
 
 
+def test_the_policy_gate_needs_the_linearization_and_a_policy_period(paper_scenario):
+    from ofrl_drake.variants import policy
+
+    loop = build_closed_loop(_short(paper_scenario))
+    critic = dataclasses.replace(loop.parts.critic, law="policy_iteration", linearization=None)
+    with pytest.raises(
+        ScenarioError,
+        match=r"^critic.law: policy_iteration puts policies in force .* linearization None and "
+        r"policy_period None\. Build them with ofrl_drake.diagram.critic_settings\.$",
+    ):
+        policy(dataclasses.replace(loop.parts, critic=critic))
+
+
 def test_linear_luenberger_has_no_injection_gains_and_a_certificate(paper_scenario):
     loop = build_closed_loop(_short(paper_scenario, observer="linear_luenberger"))
     observer = loop.observer
