@@ -561,7 +561,7 @@ def drake_plant(parts: ClosedLoopParts) -> System:
 def build_closed_loop(
     scenario: Scenario,
     *,
-    design: Any = None,
+    design: ObserverDesign | None = None,
     log_period: float | None = None,
     **swaps: Swap | str,
 ) -> ClosedLoop:

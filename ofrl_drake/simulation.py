@@ -10,7 +10,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
@@ -27,6 +27,9 @@ from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
 from ofrl_drake.scenario import Scenario, abort_box, critic_gains_choice, load_scenario
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = [
     "EXTRA_LOGS_FILE",
@@ -347,7 +350,7 @@ def _differing(built: Any, scenario: Any) -> list[str]:
 
 
 def _check_loop_arguments(
-    scenario: Scenario, loop: ClosedLoop, design: Any, swaps: dict[str, Any]
+    scenario: Scenario, loop: ClosedLoop, design: ObserverDesign | None, swaps: dict[str, Any]
 ) -> None:
     """Raise if ``simulate(scenario, loop=loop, ...)`` got arguments it would ignore.
 
@@ -442,7 +445,7 @@ def _design_dict(loop: ClosedLoop) -> dict[str, Any] | None:
 def simulate(
     scenario: Scenario | str | Path,
     *,
-    design: Any = None,
+    design: ObserverDesign | None = None,
     progress: bool | None = None,
     loop: ClosedLoop | None = None,
     parameters: Context | None = None,

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydrake.systems.framework import System
@@ -40,6 +40,7 @@ from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.model import ControlAffineSystem
 
 if TYPE_CHECKING:  # annotations only: the scenario and the wiring import this module
+    from ofrl_drake.design import ObserverDesign
     from ofrl_drake.diagram import CriticSettings
     from ofrl_drake.scenario import Scenario
 
@@ -100,7 +101,7 @@ class ClosedLoopParts:
     system: ControlAffineSystem
     basis: PolynomialBasis
     features: PointFeatures
-    design: Any
+    design: ObserverDesign | None
     Q: np.ndarray
     r: np.ndarray
     critic: CriticSettings
@@ -113,7 +114,7 @@ Factory = Callable[[ClosedLoopParts], dict[str, System]]
 #: ``builder(parts) -> System``: one block.
 BlockFactory = Callable[[ClosedLoopParts], System]
 #: ``design(scenario, system) -> ObserverDesign``.
-DesignFactory = Callable[["Scenario", ControlAffineSystem], Any]
+DesignFactory = Callable[["Scenario", ControlAffineSystem], "ObserverDesign"]
 
 
 @dataclass(frozen=True)

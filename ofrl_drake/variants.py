@@ -46,7 +46,7 @@ The plant, observer, controller and running cost are C++ symbolic blocks when
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -91,6 +91,7 @@ from ofrl_drake.systems.baselines import (
 if TYPE_CHECKING:  # annotations only: the registry imports this module
     from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.design import ObserverDesign
+    from ofrl_drake.jacobian_bounds import JacobianBounds
     from ofrl_drake.model import ControlAffineSystem
     from ofrl_drake.scenario import Scenario
     from ofrl_drake.slots import ClosedLoopParts
@@ -161,7 +162,7 @@ def plant(parts: ClosedLoopParts) -> System:
 
 
 # ---------------------------------------------------------------- observer
-def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> Any:
+def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> JacobianBounds:
     """The Jacobian bounds of ``system`` over the observer box, by the scenario's method.
 
     Their refinement stops after ``simulation.max_wall_time`` (``--max-wall``)
@@ -176,7 +177,7 @@ def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> Any:
     )
 
 
-def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> Any:
+def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> ObserverDesign:
     """The observer design of ``scenario``: certified by LMI unless gains are pinned.
 
     Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
@@ -246,14 +247,33 @@ def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> O
     )
 
 
+def _observer_design(parts: ClosedLoopParts) -> ObserverDesign:
+    """``parts.design``, which the three-gain observers run.
+
+    Raises
+    ------
+    ScenarioError
+        If there is none: neither given to ``build_closed_loop`` nor computed
+        for the chosen observer (a :class:`~ofrl_drake.slots.Choice` without
+        ``design``).
+    """
+    if parts.design is None:
+        raise ScenarioError(
+            f"variant.observer: {parts.scenario.variant.observer!r} builds a three-gain "
+            "observer, which runs an observer design, and none was given or computed; pass "
+            "design= to build_closed_loop, or register the choice as a Choice with "
+            "design=ofrl_drake.variants.design_for."
+        )
+    return parts.design
+
+
 def _gain_observer(parts: ClosedLoopParts, symbolic: bool) -> System:
     """The three-gain observer with the gains of ``parts.design``."""
-    gains = ObserverGains.from_design(parts.system, parts.design)
+    design = _observer_design(parts)
+    gains = ObserverGains.from_design(parts.system, design)
     if symbolic:  # its default estimate is zero; a run writes xhat(0)
-        return SymbolicObserver(parts.system, gains, design=parts.design)
-    return ThreeGainObserver(
-        parts.system, gains, initial_state=parts.scenario.xhat0, design=parts.design
-    )
+        return SymbolicObserver(parts.system, gains, design=design)
+    return ThreeGainObserver(parts.system, gains, initial_state=parts.scenario.xhat0, design=design)
 
 
 def three_gain(parts: ClosedLoopParts) -> System:
@@ -265,7 +285,7 @@ def three_gain(parts: ClosedLoopParts) -> System:
         half = np.asarray(o.schedule_half_width or 0.5 * width, float)
         return ScheduledThreeGainObserver(
             parts.system,
-            parts.design,
+            _observer_design(parts),
             period=o.schedule_period,
             half_width=half,
             input_bound=s.input_bound,

@@ -176,6 +176,18 @@ def test_a_registered_variant_works_from_a_scenario_file_and_a_swap(registry, tm
     np.testing.assert_array_equal(r.xhat, r.x)
 
 
+def test_a_three_gain_observer_without_a_design_says_how_to_give_one(paper_scenario, registry):
+    from ofrl_drake.variants import three_gain
+
+    register_variant("observer", "undesigned", Choice({"observer": three_gain}))
+    with pytest.raises(
+        ScenarioError,
+        match=r"^variant.observer: 'undesigned' builds a three-gain observer, which runs an "
+        r"observer design, and none was given or computed; pass design= to build_closed_loop",
+    ):
+        build_closed_loop(paper_scenario, observer="undesigned")
+
+
 def test_a_registered_variant_works_in_an_ablation(paper_scenario, registry, tmp_path):
     register_variant(
         "observer", "measured_state", lambda parts: {"observer": FullStateObserver(parts.system.n)}

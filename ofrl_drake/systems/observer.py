@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -13,6 +13,9 @@ from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = ["ThreeGainObserver"]
 
@@ -59,7 +62,7 @@ class ThreeGainObserver(LeafSystem):
         system: ControlAffineSystem,
         gains: ObserverGains,
         initial_state: ArrayLike | None = None,
-        design: Any = None,
+        design: ObserverDesign | None = None,
     ) -> None:
         super().__init__()
         self.system = system

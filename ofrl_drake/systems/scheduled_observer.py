@@ -10,7 +10,7 @@ the ``solve_failed`` output and counted on ``solve_counts``.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -22,6 +22,9 @@ from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = ["VERIFY_SAMPLES", "ScheduledThreeGainObserver"]
 
@@ -92,7 +95,7 @@ class ScheduledThreeGainObserver(LeafSystem):
     def __init__(
         self,
         system: ControlAffineSystem,
-        initial_design: Any,
+        initial_design: ObserverDesign,
         *,
         period: float,
         half_width: ArrayLike,
@@ -212,7 +215,7 @@ class ScheduledThreeGainObserver(LeafSystem):
             ),
         )
 
-    def _verify(self, design: Any, seed: int) -> DrakeArray:
+    def _verify(self, design: ObserverDesign, seed: int) -> DrakeArray:
         from ofrl_drake.verification import verify_observer
 
         report = verify_observer(

@@ -42,7 +42,7 @@ bound where :class:`~ofrl_drake.systems.RunningCost` raises.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -63,6 +63,9 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_expression
 from ofrl_drake.observer_certificate import ObserverCertificate
 from ofrl_drake.policy import check_policy_arguments, policy_expression
+
+if TYPE_CHECKING:  # annotations only
+    from ofrl_drake.design import ObserverDesign
 
 __all__ = [
     "SymbolicController",
@@ -217,7 +220,7 @@ class SymbolicObserver(Diagram):
         self,
         system: ControlAffineSystem,
         gains: ObserverGains,
-        design: Any = None,
+        design: ObserverDesign | None = None,
     ) -> None:
         super().__init__()
         self.system = system
