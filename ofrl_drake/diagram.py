@@ -127,7 +127,8 @@ LOGGED = {
 
 
 #: Slot -> (setter, value): the initial value a run writes into each block's context,
-#: through the block's setter ``setter(context, value)``; values of :func:`initial_values`.
+#: through the block's setter ``setter(context, value)`` (a Protocol of
+#: :mod:`ofrl_drake.contracts`, :func:`initial_value_setter`); values of :func:`initial_values`.
 INITIAL_VALUES = {
     "plant": ("set_state", "x0"),
     "observer": ("set_estimated_state", "xhat0"),
