@@ -77,7 +77,7 @@ from ofrl_drake.ablation_tasks import (
 )
 from ofrl_drake.optimal import Mesh, OptimalControlResult, OptimalCostCache, Trajectory
 from ofrl_drake.scenario import Scenario
-from ofrl_drake.sweep import execute
+from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
 __all__ = [
@@ -345,7 +345,9 @@ class _Sweep:
         parts = -(-self.workers // max(1, len(order)))  # tasks per variant, ceil
         tasks: dict[Any, tuple] = {}
         solving: set[str] = set()
-        for name, mine in ((n, part) for n in order for part in _split(labels[n], parts)):
+        for name, mine in (
+            (n, part) for n in order for part in split_consecutive(labels[n], parts)
+        ):
             states = tuple(tuple(self.states[label]) for label in mine)
             args = (self.scenario, self.variants[name], states, self.duration)
             handle = engine.submit(run_variant_states, *args)
@@ -406,28 +408,6 @@ class _Sweep:
                 self.store.write(row)
             rows.append(row)
         return rows
-
-
-def _split(items: Sequence[str], parts: int) -> list[list[str]]:
-    """``items`` in at most ``parts`` consecutive runs of nearly equal length."""
-    count = max(1, min(parts, len(items)))
-    size, extra = divmod(len(items), count)
-    out, start = [], 0
-    for k in range(count):
-        stop = start + size + (1 if k < extra else 0)
-        out.append(list(items[start:stop]))
-        start = stop
-    return [part for part in out if part]
-
-
-def _worker_threads(client: Any) -> int:
-    """How many tasks ``client``'s cluster runs at once (1 without a cluster)."""
-    if client is None:
-        return 1
-    try:
-        return max(1, int(sum(client.nthreads().values())))
-    except Exception:  # a client that cannot tell: one task per variant
-        return 1
 
 
 def ablate(
@@ -512,7 +492,7 @@ def ablate(
         solver=solver,
         store=None if out is None else SweepStore(FILES, Path(out)),
         seed=seed,
-        workers=_worker_threads(client),
+        workers=worker_threads(client),
     )
     sweep.open(resume, retry_failed)
     todo = [k for k in keys if k not in sweep.done]

@@ -11,8 +11,11 @@ Each run is scored like an ablation row: ``status``, ``regulated``
 ``simulation.regulation_tolerance``), ``|x(T) - x*|``, the rms
 estimation error, ``J(T)`` and its ratio to ``J*`` of the nominal problem (the
 model, noise-free, from ``x0``; solved once). The runs are tasks of the sweep
-engine (:mod:`ofrl_drake.sweep`), serial or on Dask. With ``out``, rows are
-appended to ``montecarlo.csv`` and fsynced as runs finish, ``montecarlo.json``
+engine (:mod:`ofrl_drake.sweep`), serial or on Dask, up to
+:data:`RUNS_PER_TASK` consecutive seeds per task (:func:`run_seeds`): a task
+designs the observer once, and without a mass spread builds the closed loop
+once and re-runs it by writing each seed into the context. With ``out``, rows are
+appended to ``montecarlo.csv`` and fsynced as tasks finish, ``montecarlo.json``
 records what defines the sweep so that ``resume`` refuses another one by name,
 and ``runs/`` keeps each run's trajectories for the envelope figure
 (:func:`write_montecarlo_report`); the folder is a
@@ -36,17 +39,19 @@ from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_file, atomic_write_text
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig
-from ofrl_drake.sweep import execute
+from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
 __all__ = [
     "CSV_COLUMNS",
     "FILES",
+    "RUNS_PER_TASK",
     "MonteCarloError",
     "montecarlo",
     "montecarlo_table",
     "read_montecarlo_rows",
     "run_for",
+    "run_seeds",
     "write_montecarlo_report",
 ]
 
@@ -113,36 +118,87 @@ def run_for(scenario: Scenario, seed: int, k: int, mass_spread: float) -> tuple[
     return changed, perturbation
 
 
-def _one_run(scenario: Scenario, seed: int, k: int, mass_spread: float) -> dict[str, Any]:
-    """Simulate run ``k``; never raises (an error becomes its status)."""
-    from ofrl_drake.simulation import simulate
+#: At most this many runs per task: one task builds the loop (or designs the
+#: observer) once for its runs; its rows are recorded when it ends.
+RUNS_PER_TASK = 8
 
-    start = time.perf_counter()
-    run, perturbation = run_for(scenario, seed, k, mass_spread)
-    row: dict[str, Any] = {
-        "seed": str(int(seed) + int(k)),
+
+def run_seeds(
+    scenario: Scenario, seed: int, ks: Sequence[int], mass_spread: float
+) -> list[dict[str, Any]]:
+    """Simulate runs ``ks`` (:func:`run_for`), designing the observer once; never raises.
+
+    Without a mass spread the runs differ only in their noise seed, which a
+    run writes into the context: one closed loop is built (Jacobian bounds,
+    LMI, diagram) and re-run for every ``k``
+    (``simulate(run, loop=loop)``). With one, each run's truth differs, so
+    each run builds its own diagram, with the observer design of the first
+    (the design is the model's, not the truth's).
+
+    Returns
+    -------
+    list of dict
+        ``{"row": ..., "logs": ...}`` per run, in the order of ``ks``; an error
+        becomes the status of its run (of every run, if the build fails).
+    """
+    from ofrl_drake.diagram import build_closed_loop
+
+    out: list[dict[str, Any]] = []
+    loop: Any = None
+    for k in ks:
+        run, perturbation = run_for(scenario, seed, k, mass_spread)
+        start = time.perf_counter()
+        try:
+            if loop is None or mass_spread > 0:
+                design = None if loop is None else loop.design
+                loop = build_closed_loop(run, design=design)
+            out.append(_one_run(run, loop, seed + k, perturbation, start))
+        except Exception as err:  # the build failed: the status of this run
+            out.append(_failed(seed + k, perturbation, err, start))
+    return out
+
+
+def _row(seed: int, perturbation: dict[str, float]) -> dict[str, Any]:
+    return {
+        "seed": str(int(seed)),
         "perturbation": json.dumps(perturbation, sort_keys=True),
         "regulated": "false",
         "final_state_norm": math.nan,
         "rms_estimation_error": math.nan,
         "cost": math.nan,
     }
-    logs: dict[str, np.ndarray] = {}
-    try:
-        result = simulate(run, progress=False)
-        stop = result.stop
-        row["status"] = (
-            "ok" if stop is None or result.status == "ok" else f"{result.status}: {stop.reason}"
-        )
-        row["regulated"] = "true" if result.regulated else "false"
-        row["final_state_norm"] = float(np.linalg.norm(result.x[-1]))
-        row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)
-        row["cost"] = float(result.cost[-1])
-        logs = {"t": result.t, "x": result.original("x")}
-    except Exception as err:
-        row["status"] = " ".join(f"{type(err).__name__}: {err}".split())
+
+
+def _failed(
+    seed: int, perturbation: dict[str, float], err: BaseException, start: float
+) -> dict[str, Any]:
+    row = _row(seed, perturbation)
+    row["status"] = " ".join(f"{type(err).__name__}: {err}".split())
     row["wall_time"] = time.perf_counter() - start
-    return {"row": row, "logs": logs}
+    return {"row": row, "logs": {}}
+
+
+def _one_run(
+    run: Scenario, loop: Any, seed: int, perturbation: dict[str, float], start: float
+) -> dict[str, Any]:
+    """Simulate ``run`` on the built ``loop``; never raises (an error becomes its status)."""
+    from ofrl_drake.simulation import simulate
+
+    try:
+        result = simulate(run, loop=loop, progress=False)
+    except Exception as err:
+        return _failed(seed, perturbation, err, start)
+    row = _row(seed, perturbation)
+    stop = result.stop
+    row["status"] = (
+        "ok" if stop is None or result.status == "ok" else f"{result.status}: {stop.reason}"
+    )
+    row["regulated"] = "true" if result.regulated else "false"
+    row["final_state_norm"] = float(np.linalg.norm(result.x[-1]))
+    row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)
+    row["cost"] = float(result.cost[-1])
+    row["wall_time"] = time.perf_counter() - start
+    return {"row": row, "logs": {"t": result.t, "x": result.original("x")}}
 
 
 def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dict]:
@@ -237,12 +293,15 @@ def montecarlo(
     finished = {r["seed"]: r for r in done}
     todo = [k for k in range(runs) if str(seed + k) not in finished]
 
-    def submit(engine: Any) -> dict[Any, int]:
-        return {engine.submit(_one_run, scenario, seed, k, mass_spread): k for k in todo}
+    parts = max(worker_threads(client), -(-len(todo) // RUNS_PER_TASK))
 
-    def finish(k: int, value: Any, err: BaseException | None) -> list[dict]:
-        if err is not None:  # the task guards itself; a worker lost is recorded too
-            raise MonteCarloError(f"a Monte Carlo task failed: {err}")
+    def submit(engine: Any) -> dict[Any, tuple[int, ...]]:
+        return {
+            engine.submit(run_seeds, scenario, seed, tuple(ks), mass_spread): tuple(ks)
+            for ks in split_consecutive(todo, parts)
+        }
+
+    def record(value: dict[str, Any]) -> dict:
         row = value["row"]
         row["optimal_cost"] = float(optimal_cost)
         row["optimality_ratio"] = (
@@ -255,7 +314,12 @@ def montecarlo(
                 store.save_run(f"seed_{row['seed']}.npz", value["logs"])
             store.write(row)
         finished[row["seed"]] = row
-        return [row]
+        return row
+
+    def finish(ks: tuple[int, ...], value: Any, err: BaseException | None) -> list[dict]:
+        if err is not None:  # the task guards itself; a worker lost is recorded too
+            raise MonteCarloError(f"a Monte Carlo task failed (runs {list(ks)}): {err}")
+        return [record(run) for run in value]
 
     if store is not None:
         store.start()

@@ -26,7 +26,7 @@ from typing import Any
 
 from ofrl_drake.progress import ProgressBar
 
-__all__ = ["Engine", "execute"]
+__all__ = ["Engine", "execute", "split_consecutive", "worker_threads"]
 
 
 @dataclass(frozen=True)
@@ -124,3 +124,29 @@ def execute(
                 bar.advance()
     finally:
         bar.close()
+
+
+def worker_threads(client: Any) -> int:
+    """How many tasks ``client``'s cluster runs at once (1 without a cluster)."""
+    if client is None:
+        return 1
+    try:
+        return max(1, int(sum(client.nthreads().values())))
+    except Exception:  # a client that cannot tell: as if it ran one task at a time
+        return 1
+
+
+def split_consecutive(items: Sequence[Any], parts: int) -> list[list[Any]]:
+    """``items`` in at most ``parts`` consecutive runs of nearly equal length, none empty.
+
+    >>> split_consecutive([1, 2, 3, 4, 5], 2)
+    [[1, 2, 3], [4, 5]]
+    """
+    count = max(1, min(parts, len(items)))
+    size, extra = divmod(len(items), count)
+    out, start = [], 0
+    for k in range(count):
+        stop = start + size + (1 if k < extra else 0)
+        out.append(list(items[start:stop]))
+        start = stop
+    return [part for part in out if part]

@@ -20,6 +20,7 @@ from ofrl_drake.monte_carlo import (
     MonteCarloError,
     montecarlo,
     read_montecarlo_rows,
+    run_seeds,
     write_montecarlo_report,
 )
 from ofrl_drake.scenario import MeasurementConfig, TruthConfig
@@ -214,6 +215,25 @@ def test_without_real_world_keys_nothing_changes(paper_result, paper_scenario):
 
 
 # ----------------------------------------------------------------- montecarlo
+@pytest.mark.parametrize("mass_spread", [0.0, 0.2], ids=["seeds", "seeds_and_masses"])
+def test_a_task_of_several_seeds_gives_each_run_as_a_task_of_its_own(real, mass_spread):
+    """One task designs once (and, without a mass spread, builds the loop once) for its runs.
+
+    Run 1 after run 0 on the same loop or design equals run 1 alone, bit for bit.
+    """
+    short = dataclasses.replace(real, simulation=dataclasses.replace(real.simulation, duration=0.5))
+    together = run_seeds(short, 3, (0, 1), mass_spread)
+    alone = run_seeds(short, 3, (1,), mass_spread)[0]
+    assert [r["row"]["seed"] for r in together] == ["3", "4"]
+    assert together[1]["row"]["status"] == "ok"
+    for key in ("perturbation", "final_state_norm", "rms_estimation_error", "cost"):
+        assert together[1]["row"][key] == alone["row"][key], key
+    np.testing.assert_array_equal(together[1]["logs"]["x"], alone["logs"]["x"])
+    assert together[0]["row"]["cost"] != together[1]["row"]["cost"]  # another seed
+    perturbed = json.loads(together[1]["row"]["perturbation"])
+    assert (perturbed != {}) == (mass_spread > 0)
+
+
 def test_montecarlo_statuses_resume_and_refusals(real, tmp_path):
     short = dataclasses.replace(
         real, simulation=dataclasses.replace(real.simulation, duration=1.0, max_wall_time=1e-4)

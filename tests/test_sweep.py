@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ofrl_drake.errors import OfrlError
-from ofrl_drake.sweep import Engine, execute
+from ofrl_drake.sweep import Engine, execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
 
@@ -163,3 +163,28 @@ def test_first_difference_names_the_key_path():
     assert first_difference({"a": {"b": 1, "c": 2}}, {"a": {"b": 1, "c": 3}}) == "a.c"
     assert first_difference({"a": 1}, {"a": 1, "z": 0}) == "z"
     assert first_difference({"a": [1]}, {"a": [1]}) is None
+
+
+@pytest.mark.parametrize(
+    ("count", "parts", "lengths"),
+    [(5, 2, [3, 2]), (5, 1, [5]), (3, 8, [1, 1, 1]), (0, 3, []), (7, 3, [3, 2, 2])],
+)
+def test_split_consecutive_keeps_order_and_balances(count, parts, lengths):
+    items = list(range(count))
+    chunks = split_consecutive(items, parts)
+    assert [len(c) for c in chunks] == lengths
+    assert [i for c in chunks for i in c] == items
+
+
+def test_worker_threads_without_a_cluster_or_with_one_that_cannot_tell():
+    class Client:
+        def nthreads(self):
+            return {"a": 2, "b": 3}
+
+    class Broken:
+        def nthreads(self):
+            raise OSError("scheduler gone")
+
+    assert worker_threads(None) == 1
+    assert worker_threads(Client()) == 5
+    assert worker_threads(Broken()) == 1
