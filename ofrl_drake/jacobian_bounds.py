@@ -27,10 +27,15 @@ Two methods:
       values of the small expressions ``M``, ``tau`` and their derivatives and
       interval linear solves with ``[M]``, never a symbolic inverse
       (:mod:`ofrl_drake.multibody_bounds`; all entries refined together);
-    * any other model: interval arithmetic on each symbolic Jacobian entry of
-      ``f`` and ``g``, the intersection of the natural interval extension and
-      the mean-value form ``h(c) + grad h(X) (X - c)``, whose overestimation
-      shrinks quadratically with the box width.
+    * any other model: interval arithmetic on the symbolic Jacobian entries of
+      ``f`` and ``g``, each the intersection of the natural interval extension,
+      the mean-value form ``h(c) + grad h(X) (X - c)`` and the second-order
+      Taylor form, whose overestimation shrinks with the cube of the box width
+      (derivatives by forward differentiation on the expression graph,
+      :mod:`ofrl_drake.interval_taylor`); all entries refined by one branch
+      and bound (:mod:`ofrl_drake.symbolic_bounds`). An entry the Taylor form
+      cannot differentiate (``Abs``, ``Min``, ...) gets its own, with the
+      natural and mean-value forms.
 
     An enclosure that is still infinite when the budget (``max_boxes``,
     ``max_wall_time``) runs out raises :class:`UncertifiedBoundsError`.
@@ -54,8 +59,10 @@ from ofrl_drake.interval import (
     bisect_boxes,
     halve_every_side,
 )
+from ofrl_drake.interval_taylor import TaylorEvaluator
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure, certify
+from ofrl_drake.symbolic_bounds import certify_expressions
 
 __all__ = [
     "BoundsError",
@@ -626,6 +633,94 @@ def _certify_entry(
             lo, hi = _bisect(lo, hi, used, box.width)
 
 
+def _taylor_supported(entries: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Which entries the Taylor form can differentiate (no ``Abs``, ``Min``, ...)."""
+    try:
+        TaylorEvaluator(entries, x, [])
+        return np.ones(entries.size, dtype=bool)
+    except UnsupportedExpressionError:
+        out = np.zeros(entries.size, dtype=bool)
+        for e, expr in enumerate(entries):
+            try:
+                TaylorEvaluator([expr], x, [])
+                out[e] = True
+            except UnsupportedExpressionError:
+                pass
+        return out
+
+
+def _certify_symbolic(
+    entries: np.ndarray,
+    x: np.ndarray,
+    box: Box,
+    s_lo: np.ndarray,
+    s_hi: np.ndarray,
+    tol: float,
+    rtol: float,
+    max_boxes: int,
+    deadline: float | None,
+    names: list[str],
+) -> tuple[np.ndarray, np.ndarray, bool, str]:
+    """Certified bounds of symbolic Jacobian entries: ``(lo, hi, converged, budget note)``.
+
+    Constant entries are enclosed once. The others are refined together by
+    :func:`ofrl_drake.symbolic_bounds.certify_expressions` (natural, mean-value
+    and second-order Taylor forms, one branch and bound for all of them);
+    entries the Taylor form cannot differentiate (``Abs``, ``Min``, ...) get
+    their own branch and bound with the natural and mean-value forms
+    (:class:`_EntryEncloser`), as does every entry when an enclosure is
+    undefined on a box (so that the error names the entry).
+    """
+    c_lo = np.empty_like(s_lo)
+    c_hi = np.empty_like(s_hi)
+    evaluator = ExpressionEvaluator(entries, x)
+    constant = evaluator.is_constant().ravel()
+    if constant.any():
+        idx = np.flatnonzero(constant)
+        try:
+            enc = ExpressionEvaluator(entries[idx], x).interval(box.lower, box.upper)
+        except IntervalDomainError as err:
+            raise BoundsError(f"{names[int(idx[0])]}: {err}") from err
+        c_lo[idx], c_hi[idx] = enc.lo, enc.hi
+    varying = np.flatnonzero(~constant)
+    supported = _taylor_supported(entries[varying], x)
+    joint, alone = varying[supported], varying[~supported]
+    converged, budget = True, "converged"
+    if joint.size:
+        try:
+            result = certify_expressions(
+                entries[joint],
+                x,
+                box.lower,
+                box.upper,
+                s_lo[joint],
+                s_hi[joint],
+                tol=tol,
+                rtol=rtol,
+                max_boxes=max_boxes,
+                deadline=deadline,
+            )
+        except IntervalDomainError:
+            alone = varying  # the per-entry refinement names the entry
+        else:
+            c_lo[joint], c_hi[joint] = result.lo, result.hi
+            converged = result.converged
+            budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
+    for e in alone:
+        encloser = _EntryEncloser(entries[e], x)
+        try:
+            lo, hi, ok = _certify_entry(
+                encloser, box, s_lo[e], s_hi[e], tol, max_boxes, rtol, deadline
+            )
+        except IntervalDomainError as err:
+            raise BoundsError(f"{names[e]}: {err}") from err
+        c_lo[e], c_hi[e] = lo, hi
+        converged = converged and ok
+        if not ok:
+            budget = "max_boxes or max_wall_time reached"
+    return c_lo, c_hi, converged, budget
+
+
 # ------------------------------------------------------------------ the entry
 def jacobian_bounds(
     system: ControlAffineSystem,
@@ -672,9 +767,9 @@ def jacobian_bounds(
         ``w``. Default: :data:`MULTIBODY_RTOL` for multibody models, 0 (``tol``
         alone) for the others.
     max_boxes : int
-        Certified only: the most boxes evaluated per Jacobian entry (for a
-        multibody model, for all entries together). When it is reached, the
-        (still guaranteed) enclosure is returned as it is, and
+        Certified only: the most boxes evaluated for all entries together (per
+        entry for those refined alone, module docstring). When it is reached,
+        the (still guaranteed) enclosure is returned as it is, and
         ``excess.converged`` is False.
     max_wall_time : float, optional
         Certified only: seconds after which no further boxes are refined; the
@@ -759,27 +854,18 @@ def jacobian_bounds(
         c_lo, c_hi, converged = np.array(result.lo), np.array(result.hi), result.converged
         budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
     else:
-        c_lo = np.empty_like(s_lo)
-        c_hi = np.empty_like(s_hi)
-        converged = True
-        for e, expr in enumerate(entries):
-            encloser = _EntryEncloser(expr, x)
-            try:
-                lo, hi, ok = _certify_entry(
-                    encloser,
-                    box,
-                    s_lo[e],
-                    s_hi[e],
-                    float(tol),
-                    int(max_boxes),
-                    0.0 if rtol is None else float(rtol),
-                    deadline,
-                )
-            except IntervalDomainError as err:
-                raise BoundsError(f"{names[e]}: {err}") from err
-            c_lo[e], c_hi[e] = lo, hi
-            converged = converged and ok
-        budget = "max_boxes or max_wall_time reached"
+        c_lo, c_hi, converged, budget = _certify_symbolic(
+            entries,
+            x,
+            box,
+            s_lo,
+            s_hi,
+            float(tol),
+            0.0 if rtol is None else float(rtol),
+            int(max_boxes),
+            deadline,
+            names,
+        )
     infinite = np.flatnonzero(~(np.isfinite(c_lo) & np.isfinite(c_hi)))
     if infinite.size:
         e = int(infinite[0])
