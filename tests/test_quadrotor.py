@@ -6,8 +6,8 @@ measured) is accepted, gets a sound certificate with certified bounds on a box
 around hover within 5 minutes, and its closed loop converges. Layers: the
 scenario as written (its W0 is the LQR value, no solver); the certified
 Jacobian bounds on a smaller box hold every sample (quick); the CLI design is
-decay-certified with converged certified bounds, verify-observer exits 0, and
-the run converges (slow, about 5 minutes in all).
+decay-certified with certified bounds and verify-observer exits 0 (slow,
+about 3 minutes), and the run converges (slow, about 2.5 minutes).
 """
 
 import json
@@ -85,22 +85,27 @@ def test_certified_bounds_on_a_small_box_hold_every_sample(scenario):
 
 
 @pytest.mark.slow
-def test_the_quadrotor_is_certified_verified_and_converges(tmp_path):
+def test_the_quadrotor_is_certified_and_verified_from_the_cli(tmp_path):
+    # About 3 minutes: design-observer 96 s, verify-observer 83 s (measured).
     design = tmp_path / "design.json"
     start = time.perf_counter()
     proc = _cli("design-observer", QUADROTOR, "--out", design)
     elapsed = time.perf_counter() - start
     assert proc.returncode == 0, proc.stderr
     assert "decay-certified and not falsified" in proc.stdout
-    assert elapsed < 300.0  # the issue's budget: 5 minutes on the 2-core VM (measured 96 s)
+    assert elapsed < 300.0  # the issue's budget: 5 minutes on the 2-core VM
     d = json.loads(design.read_text())
     assert d["formulation"] == "structured_row" and d["is_decay_certified"] is True
     assert d["jacobian_method"] == "certified" and d["bounds_are_guaranteed"] is True
     assert len(d["tau"]) == 81  # one LMI per input vertex, 3^4
-
     proc = _cli("verify-observer", QUADROTOR, "--samples", 2000)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "not falsified" in proc.stdout
 
+
+@pytest.mark.slow
+def test_the_quadrotor_converges_to_hover(tmp_path):
+    # About 2.5 minutes: the design again, the falsifier, 10 s of closed loop.
     out = tmp_path / "run"
     proc = _cli("run", QUADROTOR, "--out", out, "--checkpoints", 0, "--quiet")
     assert proc.returncode == 0, proc.stderr
