@@ -395,9 +395,11 @@ class TaylorEvaluator:
             value = Interval(lo[int(node.value)], hi[int(node.value)])
             if not full:
                 return _Jet(value)
-            g = np.ones((1, B))
-            return _Jet(value, full, Interval(g, g.copy()))
+            one = np.ones((1, B))
+            return _Jet(value, full, Interval(one, one.copy()))
         if k == "Add":
+            g: Interval | None
+            h: Interval | None
             if node.value == 0.0:
                 v, terms = args[0].v, args[1:]
                 g, h = self._lift(args[0], full, B)
@@ -421,7 +423,8 @@ class TaylorEvaluator:
                 out = self._product(out, factor, B, order)
             return out
         # Every other kind: the value as ExpressionEvaluator encloses it.
-        value = ExpressionEvaluator._interval(node, {i: jets[i].v for i in node.args}, lo, hi)
+        children = {i: jets[i].v for i in node.args}  # indexed like the node list
+        value = ExpressionEvaluator._interval(node, children, lo, hi)  # type: ignore[arg-type]
         if not full:
             return _Jet(value)
         if k == "Div":

@@ -84,6 +84,13 @@ MULTIBODY_RTOL = 0.1
 _STRUCTURE_POINTS = 16
 #: Relative tolerance of that comparison: ``|a - b| <= rtol (1 + |b|)``.
 STRUCTURE_RTOL = 1e-8
+#: A multibody model whose symbolic ``f`` or ``g`` has an entry longer than
+#: this (characters) takes its sampled estimates from its structure
+#: (:meth:`~ofrl_drake.multibody_bounds.MultibodyStructure.jacobians`):
+#: differentiating such expressions takes minutes (a cart with three
+#: pendulums: rows of 600,000 characters, 54 s for one entry). The shipped
+#: multibody plants stay below 20,000.
+SYMBOLIC_MAX_CHARS = 100_000
 _POINT_BUDGET = 100_000
 _CHUNK = 20_000
 #: Branch and bound: the most boxes for which every used side is halved at once.
@@ -485,6 +492,66 @@ def _sampled_bounds(
     return lo, hi
 
 
+def _too_large_to_differentiate(system: ControlAffineSystem) -> bool:
+    """Whether some entry of the symbolic ``f`` or ``g`` exceeds :data:`SYMBOLIC_MAX_CHARS`."""
+    try:
+        model = system.symbolic()
+    except ModelError:
+        return False  # symbolic_jacobians reports it
+    return any(
+        len(e.to_string()) > SYMBOLIC_MAX_CHARS for e in (*np.ravel(model.f), *np.ravel(model.g))
+    )
+
+
+def _structure_samples(
+    structure: MultibodyStructure,
+    box: Box,
+    grid: int | None,
+    n_random: int,
+    seed: int,
+    names: list[str],
+    deadline: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sampled minima and maxima of every Jacobian entry from the multibody structure.
+
+    The same seeded random points and centre as :func:`_sampled_bounds`, and one
+    grid over the states the structure depends on, evaluated by
+    :meth:`MultibodyStructure.jacobians` (interval-free, no symbolic Jacobian of
+    ``f``) in chunks; after ``deadline`` no further chunk is started (the
+    centre and the first chunk always are).
+    """
+    used = structure.used_states()
+    g = _default_grid(len(used)) if grid is None else int(grid)
+    points = np.concatenate(
+        [
+            box.center[:, None],
+            _random_points(box, n_random, seed),
+            _grid_points(box, used, g),
+        ],
+        axis=1,
+    )
+    n, m = structure.n, structure.m
+    E = n * n + n * n * m
+    lo, hi = np.full(E, np.inf), np.full(E, -np.inf)
+    for start in range(0, points.shape[1], _CHUNK):
+        if start and deadline is not None and time.monotonic() > deadline:
+            break
+        chunk = points[:, start : start + _CHUNK]
+        Jf, Jg = structure.jacobians(chunk)
+        vals = np.concatenate([Jf.reshape(n * n, -1), Jg.reshape(n * n * m, -1)])
+        bad = ~np.isfinite(vals)
+        if bad.any():
+            e, p = np.argwhere(bad)[0]
+            raise BoundsError(
+                f"the Jacobian entry {names[e]} is not finite ({vals[e, p]}) at "
+                f"x = {chunk[:, p].tolist()}; f and g must be continuously differentiable "
+                "on the box (shrink it)."
+            )
+        lo = np.minimum(lo, vals.min(axis=1))
+        hi = np.maximum(hi, vals.max(axis=1))
+    return lo, hi
+
+
 def _entry_names(n: int, m: int) -> list[str]:
     names = [f"d f[{i}] / d x[{j}]" for i in range(n) for j in range(n)]
     names += [f"d g[{i}, {k}] / d x[{j}]" for i in range(n) for j in range(n) for k in range(m)]
@@ -825,10 +892,15 @@ def jacobian_bounds(
         )
     deadline = None if max_wall_time is None else start + float(max_wall_time)
 
-    x, Jf, Jg = symbolic_jacobians(system)
-    entries = np.concatenate([Jf.ravel(), Jg.ravel()])
     names = _entry_names(n, m)
-    s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
+    structure = system.multibody_structure()
+    entries: np.ndarray | None = None
+    if structure is not None and _too_large_to_differentiate(system):
+        s_lo, s_hi = _structure_samples(structure, box, grid, int(n_random), seed, names, deadline)
+    else:
+        x, Jf, Jg = symbolic_jacobians(system)
+        entries = np.concatenate([Jf.ravel(), Jg.ravel()])
+        s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
 
     def split(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return v[: n * n].reshape(n, n), v[n * n :].reshape(n, n, m)
@@ -837,7 +909,6 @@ def jacobian_bounds(
         (Mf1, Mg1), (Mf2, Mg2) = split(s_lo), split(s_hi)
         return JacobianBounds("sampled", box, Mf1, Mf2, Mg1, Mg2)
 
-    structure = system.multibody_structure()
     if structure is not None:
         _check_structure(system, structure, box, seed)
         result = certify(
@@ -854,6 +925,7 @@ def jacobian_bounds(
         c_lo, c_hi, converged = np.array(result.lo), np.array(result.hi), result.converged
         budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
     else:
+        assert entries is not None  # no multibody structure: the symbolic Jacobians
         c_lo, c_hi, converged, budget = _certify_symbolic(
             entries,
             x,
