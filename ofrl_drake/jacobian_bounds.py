@@ -39,6 +39,12 @@ Two methods:
 
     An enclosure that is still infinite when the budget (``max_boxes``,
     ``max_wall_time``) runs out raises :class:`UncertifiedBoundsError`.
+
+Both methods start from the sampled estimate: of the symbolic Jacobians, or,
+for a multibody model whose ``f`` or ``g`` has an entry longer than
+:data:`SYMBOLIC_MAX_CHARS`, of the structure's Jacobians at the points
+(:meth:`~ofrl_drake.multibody_bounds.MultibodyStructure.jacobians`), whose
+chunks stop at ``max_wall_time``.
 """
 
 from __future__ import annotations
