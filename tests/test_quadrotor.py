@@ -6,8 +6,9 @@ measured) is accepted, gets a sound certificate with certified bounds on a box
 around hover within 5 minutes, and its closed loop converges. Layers: the
 scenario as written (its W0 is the LQR value, no solver); the certified
 Jacobian bounds on a smaller box hold every sample (quick); the CLI design is
-decay-certified with certified bounds and verify-observer exits 0 (slow,
-about 3 minutes), and the run converges (slow, about 2.5 minutes).
+decay-certified with certified bounds and not falsified (slow, about 100 s;
+tests/test_verification.py runs verify_observer on it too), and the run
+converges (slow, about 2 minutes).
 """
 
 import json
@@ -85,8 +86,10 @@ def test_certified_bounds_on_a_small_box_hold_every_sample(scenario):
 
 
 @pytest.mark.slow
-def test_the_quadrotor_is_certified_and_verified_from_the_cli(tmp_path):
-    # About 3 minutes: design-observer 96 s, verify-observer 83 s (measured).
+def test_the_quadrotor_is_certified_from_the_cli(tmp_path):
+    # About 100 s (measured 96 s: bounds 29 s, LMI 15 s, falsifier 47 s). What
+    # verify-observer checks, test_verification.py checks on every shipped
+    # scenario, this one included (verify_observer on design_for's design).
     design = tmp_path / "design.json"
     start = time.perf_counter()
     proc = _cli("design-observer", QUADROTOR, "--out", design)
@@ -98,14 +101,12 @@ def test_the_quadrotor_is_certified_and_verified_from_the_cli(tmp_path):
     assert d["formulation"] == "structured_row" and d["is_decay_certified"] is True
     assert d["jacobian_method"] == "certified" and d["bounds_are_guaranteed"] is True
     assert len(d["tau"]) == 81  # one LMI per input vertex, 3^4
-    proc = _cli("verify-observer", QUADROTOR, "--samples", 2000)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "not falsified" in proc.stdout
+    assert d["verification"]["falsified"] is False
 
 
 @pytest.mark.slow
 def test_the_quadrotor_converges_to_hover(tmp_path):
-    # About 2.5 minutes: the design again, the falsifier, 10 s of closed loop.
+    # About 2 minutes: the design again, the falsifier, 10 s of closed loop.
     out = tmp_path / "run"
     proc = _cli("run", QUADROTOR, "--out", out, "--checkpoints", 0, "--quiet")
     assert proc.returncode == 0, proc.stderr
