@@ -5,10 +5,11 @@
 One row per plant, from the pendulum (n = 2) to n = 12, each on its own
 observer box, input bound and decay rate:
 
-* ``pendulum_upright``, ``cart_pole``, ``acrobot``, ``cart_double_pendulum``:
-  the shipped diagrams/*.yaml, loaded with :func:`ofrl_drake.load_scenario`
-  and :func:`ofrl_drake.plants.resolve_system` as ``ofrl-drake
-  design-observer`` loads them;
+* ``pendulum_upright``, ``cart_pole``, ``acrobot``, ``cart_double_pendulum``,
+  ``quadrotor``: the shipped diagrams/*.yaml, loaded with
+  :func:`ofrl_drake.load_scenario` and :func:`ofrl_drake.plants.resolve_system`
+  as ``ofrl-drake design-observer`` loads them (with the scenario's
+  ``observer.jacobian_tol`` and ``jacobian_rtol`` when it gives them);
 * ``synthetic_n8_k24``, ``synthetic_n12_k36``: **synthetic** plants,
   :func:`benchmarks.structured_certificate.synthetic_system` (coupled copies
   of a two-state plant with ``k`` sine terms) on its box, at its input bound
@@ -20,10 +21,11 @@ For each: the time of the one ``jacobian_bounds(..., "certified")`` call
 (on a freshly built model, so it includes building the symbolic Jacobians),
 whether its refinement converged, the uncertain Jacobian entries ``k`` (of
 the summed box ``M_f + M_g u`` at each input vertex, the largest), then, for
-the ``polytopic`` and the ``structured`` formulation of
+the ``polytopic``, ``structured`` and ``structured_row`` formulations of
 :func:`ofrl_drake.design.design_observer` with those bounds: the LMI blocks
 and their size (polytopic: ``3^m 2^k`` corners of size ``n``; structured: one
-LMI of size ``n + k`` per distinct input vertex), the wall time of the design
+LMI of size ``n + k`` per distinct input vertex; structured_row: ``n + r``,
+``r`` the uncertain rows), the wall time of the design
 (building and solving the LMI, and checking the answer), ``||L||``,
 ``cond(P)`` and whether the decay claim is certified.
 
@@ -67,7 +69,7 @@ __all__ = [
     "row",
 ]
 
-FORMULATIONS = ("polytopic", "structured")
+FORMULATIONS = ("polytopic", "structured", "structured_row")
 
 
 #: Synthetic row name -> ``(n, k)`` of the synthetic plant family.
@@ -79,13 +81,18 @@ ROWS: dict[str, Path | None] = {
     "cart_pole": DIAGRAMS / "cart_pole.yaml",
     "acrobot": DIAGRAMS / "acrobot.yaml",
     "cart_double_pendulum": DIAGRAMS / "cart_double_pendulum.yaml",
+    "quadrotor": DIAGRAMS / "quadrotor.yaml",
     **dict.fromkeys(SYNTHETIC),
 }
 
 
 @dataclass(frozen=True)
 class Plant:
-    """What a row designs for: the model, its observer box, input bound and rate."""
+    """What a row designs for: the model, its observer box, input bound and rate.
+
+    ``tolerances``: the ``tol``/``rtol`` of its certified bounds, when the
+    scenario gives them.
+    """
 
     name: str
     system: Any
@@ -94,6 +101,7 @@ class Plant:
     alpha: float
     jacobian_method: str
     solver: str
+    tolerances: tuple[tuple[str, float], ...] = ()
 
 
 def build(name: str) -> Plant:
@@ -118,6 +126,11 @@ def build(name: str) -> Plant:
     scenario = load_scenario(path)
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    tolerances = tuple(
+        (key, float(value))
+        for key, value in (("tol", o.jacobian_tol), ("rtol", o.jacobian_rtol))
+        if value is not None
+    )
     return Plant(
         name,
         resolve_system(scenario),
@@ -126,6 +139,7 @@ def build(name: str) -> Plant:
         float(o.alpha),
         o.jacobian_method,
         o.solver,
+        tolerances,
     )
 
 
@@ -138,14 +152,19 @@ def _blocks(plant: Plant, bounds: Any) -> dict[str, dict[str, Any]]:
 
     vertices = input_vertices(plant.input_bound, bounds.m)
     corners = sum(corner_count(bounds, u) for u in vertices)
-    problem = structured_lmi(
-        plant.system.output_matrix, bounds, plant.input_bound, plant.alpha, margin=DEFAULT_MARGIN
+    C = plant.system.output_matrix
+    entry, by_row = (
+        structured_lmi(
+            C, bounds, plant.input_bound, plant.alpha, margin=DEFAULT_MARGIN, grouping=grouping
+        )
+        for grouping in ("entry", "row")
     )
     return {
-        "k": max(m.k for m in problem.models),
+        "k": max(m.k for m in entry.models),
         "input_vertices": len(vertices),
         "polytopic": {"blocks": corners, "block_size": plant.system.n},
-        "structured": {"blocks": len(problem.models), "block_size": max(problem.sizes)},
+        "structured": {"blocks": len(entry.models), "block_size": max(entry.sizes)},
+        "structured_row": {"blocks": len(by_row.models), "block_size": max(by_row.sizes)},
     }
 
 
@@ -234,7 +253,7 @@ def row(name: str, *, poly_timeout: float | None = None) -> dict[str, Any]:
     dict
         ``name, source, n, m, q, k, input_vertices, input_bound, alpha, box,
         build_seconds`` (loading the model), ``bounds`` (``method, seconds,
-        converged``) and, per formulation, ``blocks,
+        converged, tolerances``) and, per formulation, ``blocks,
         block_size`` and either ``not_run`` (why) or ``lmi_seconds, feasible,
         status`` (and when feasible ``solve_time, gain_norm,
         condition_number, decay_certified``).
@@ -246,7 +265,9 @@ def row(name: str, *, poly_timeout: float | None = None) -> dict[str, Any]:
     plant = build(name)
     build_seconds = time.perf_counter() - start
     start = time.perf_counter()
-    bounds = jacobian_bounds(plant.system, plant.box, plant.jacobian_method)
+    bounds = jacobian_bounds(
+        plant.system, plant.box, plant.jacobian_method, **dict(plant.tolerances)
+    )
     bounds_seconds = time.perf_counter() - start
     blocks = _blocks(plant, bounds)
     system = plant.system
@@ -266,6 +287,7 @@ def row(name: str, *, poly_timeout: float | None = None) -> dict[str, Any]:
             "method": bounds.method,
             "seconds": bounds_seconds,
             "converged": None if bounds.excess is None else bool(bounds.excess.converged),
+            "tolerances": dict(plant.tolerances),
         },
     }
     for formulation in FORMULATIONS:

@@ -649,6 +649,22 @@ class ExpressionEvaluator:
         return [tuple(sorted(self._uses[i])) for i in self._outputs]
 
     @property
+    def nodes(self) -> tuple[Any, ...]:
+        """The merged expression graph, children before parents.
+
+        Each node has ``kind`` (Drake's expression kind), ``args`` (indices of
+        its children in this tuple), ``value`` (the constant of ``Constant``,
+        ``Add`` and ``Mul`` nodes, the variable index of ``Var``), ``lo``,
+        ``hi`` (the enclosure of that constant) and ``text``.
+        """
+        return tuple(self._nodes)
+
+    @property
+    def outputs(self) -> tuple[int, ...]:
+        """The node of each expression (flattened), an index into :attr:`nodes`."""
+        return tuple(self._outputs)
+
+    @property
     def node_count(self) -> int:
         """Nodes of the merged expression graph: one array per node per evaluation."""
         return len(self._nodes)

@@ -27,13 +27,24 @@ Two methods:
       values of the small expressions ``M``, ``tau`` and their derivatives and
       interval linear solves with ``[M]``, never a symbolic inverse
       (:mod:`ofrl_drake.multibody_bounds`; all entries refined together);
-    * any other model: interval arithmetic on each symbolic Jacobian entry of
-      ``f`` and ``g``, the intersection of the natural interval extension and
-      the mean-value form ``h(c) + grad h(X) (X - c)``, whose overestimation
-      shrinks quadratically with the box width.
+    * any other model: interval arithmetic on the symbolic Jacobian entries of
+      ``f`` and ``g``, each the intersection of the natural interval extension,
+      the mean-value form ``h(c) + grad h(X) (X - c)`` and the second-order
+      Taylor form, whose overestimation shrinks with the cube of the box width
+      (derivatives by forward differentiation on the expression graph,
+      :mod:`ofrl_drake.interval_taylor`); all entries refined by one branch
+      and bound (:mod:`ofrl_drake.symbolic_bounds`). An entry the Taylor form
+      cannot differentiate (``Abs``, ``Min``, ...) gets its own, with the
+      natural and mean-value forms.
 
     An enclosure that is still infinite when the budget (``max_boxes``,
     ``max_wall_time``) runs out raises :class:`UncertifiedBoundsError`.
+
+Both methods start from the sampled estimate: of the symbolic Jacobians, or,
+for a multibody model whose ``f`` or ``g`` has an entry longer than
+:data:`SYMBOLIC_MAX_CHARS`, of the structure's Jacobians at the points
+(:meth:`~ofrl_drake.multibody_bounds.MultibodyStructure.jacobians`), whose
+chunks stop at ``max_wall_time``.
 """
 
 from __future__ import annotations
@@ -54,8 +65,10 @@ from ofrl_drake.interval import (
     bisect_boxes,
     halve_every_side,
 )
+from ofrl_drake.interval_taylor import TaylorEvaluator
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure, certify
+from ofrl_drake.symbolic_bounds import certify_expressions
 
 __all__ = [
     "BoundsError",
@@ -77,6 +90,13 @@ MULTIBODY_RTOL = 0.1
 _STRUCTURE_POINTS = 16
 #: Relative tolerance of that comparison: ``|a - b| <= rtol (1 + |b|)``.
 STRUCTURE_RTOL = 1e-8
+#: A multibody model whose symbolic ``f`` or ``g`` has an entry longer than
+#: this (characters) takes its sampled estimates from its structure
+#: (:meth:`~ofrl_drake.multibody_bounds.MultibodyStructure.jacobians`):
+#: differentiating such expressions takes minutes (a cart with three
+#: pendulums: rows of 600,000 characters, 54 s for one entry). The shipped
+#: multibody plants stay below 20,000.
+SYMBOLIC_MAX_CHARS = 100_000
 _POINT_BUDGET = 100_000
 _CHUNK = 20_000
 #: Branch and bound: the most boxes for which every used side is halved at once.
@@ -478,6 +498,66 @@ def _sampled_bounds(
     return lo, hi
 
 
+def _too_large_to_differentiate(system: ControlAffineSystem) -> bool:
+    """Whether some entry of the symbolic ``f`` or ``g`` exceeds :data:`SYMBOLIC_MAX_CHARS`."""
+    try:
+        model = system.symbolic()
+    except ModelError:
+        return False  # symbolic_jacobians reports it
+    return any(
+        len(e.to_string()) > SYMBOLIC_MAX_CHARS for e in (*np.ravel(model.f), *np.ravel(model.g))
+    )
+
+
+def _structure_samples(
+    structure: MultibodyStructure,
+    box: Box,
+    grid: int | None,
+    n_random: int,
+    seed: int,
+    names: list[str],
+    deadline: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sampled minima and maxima of every Jacobian entry from the multibody structure.
+
+    The same seeded random points and centre as :func:`_sampled_bounds`, and one
+    grid over the states the structure depends on, evaluated by
+    :meth:`MultibodyStructure.jacobians` (interval-free, no symbolic Jacobian of
+    ``f``) in chunks; after ``deadline`` no further chunk is started (the
+    centre and the first chunk always are).
+    """
+    used = structure.used_states()
+    g = _default_grid(len(used)) if grid is None else int(grid)
+    points = np.concatenate(
+        [
+            box.center[:, None],
+            _random_points(box, n_random, seed),
+            _grid_points(box, used, g),
+        ],
+        axis=1,
+    )
+    n, m = structure.n, structure.m
+    E = n * n + n * n * m
+    lo, hi = np.full(E, np.inf), np.full(E, -np.inf)
+    for start in range(0, points.shape[1], _CHUNK):
+        if start and deadline is not None and time.monotonic() > deadline:
+            break
+        chunk = points[:, start : start + _CHUNK]
+        Jf, Jg = structure.jacobians(chunk)
+        vals = np.concatenate([Jf.reshape(n * n, -1), Jg.reshape(n * n * m, -1)])
+        bad = ~np.isfinite(vals)
+        if bad.any():
+            e, p = np.argwhere(bad)[0]
+            raise BoundsError(
+                f"the Jacobian entry {names[e]} is not finite ({vals[e, p]}) at "
+                f"x = {chunk[:, p].tolist()}; f and g must be continuously differentiable "
+                "on the box (shrink it)."
+            )
+        lo = np.minimum(lo, vals.min(axis=1))
+        hi = np.maximum(hi, vals.max(axis=1))
+    return lo, hi
+
+
 def _entry_names(n: int, m: int) -> list[str]:
     names = [f"d f[{i}] / d x[{j}]" for i in range(n) for j in range(n)]
     names += [f"d g[{i}, {k}] / d x[{j}]" for i in range(n) for j in range(n) for k in range(m)]
@@ -626,6 +706,94 @@ def _certify_entry(
             lo, hi = _bisect(lo, hi, used, box.width)
 
 
+def _taylor_supported(entries: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Which entries the Taylor form can differentiate (no ``Abs``, ``Min``, ...)."""
+    try:
+        TaylorEvaluator(entries, x, [])
+        return np.ones(entries.size, dtype=bool)
+    except UnsupportedExpressionError:
+        out = np.zeros(entries.size, dtype=bool)
+        for e, expr in enumerate(entries):
+            try:
+                TaylorEvaluator([expr], x, [])
+                out[e] = True
+            except UnsupportedExpressionError:
+                pass
+        return out
+
+
+def _certify_symbolic(
+    entries: np.ndarray,
+    x: np.ndarray,
+    box: Box,
+    s_lo: np.ndarray,
+    s_hi: np.ndarray,
+    tol: float,
+    rtol: float,
+    max_boxes: int,
+    deadline: float | None,
+    names: list[str],
+) -> tuple[np.ndarray, np.ndarray, bool, str]:
+    """Certified bounds of symbolic Jacobian entries: ``(lo, hi, converged, budget note)``.
+
+    Constant entries are enclosed once. The others are refined together by
+    :func:`ofrl_drake.symbolic_bounds.certify_expressions` (natural, mean-value
+    and second-order Taylor forms, one branch and bound for all of them);
+    entries the Taylor form cannot differentiate (``Abs``, ``Min``, ...) get
+    their own branch and bound with the natural and mean-value forms
+    (:class:`_EntryEncloser`), as does every entry when an enclosure is
+    undefined on a box (so that the error names the entry).
+    """
+    c_lo = np.empty_like(s_lo)
+    c_hi = np.empty_like(s_hi)
+    evaluator = ExpressionEvaluator(entries, x)
+    constant = evaluator.is_constant().ravel()
+    if constant.any():
+        idx = np.flatnonzero(constant)
+        try:
+            enc = ExpressionEvaluator(entries[idx], x).interval(box.lower, box.upper)
+        except IntervalDomainError as err:
+            raise BoundsError(f"{names[int(idx[0])]}: {err}") from err
+        c_lo[idx], c_hi[idx] = enc.lo, enc.hi
+    varying = np.flatnonzero(~constant)
+    supported = _taylor_supported(entries[varying], x)
+    joint, alone = varying[supported], varying[~supported]
+    converged, budget = True, "converged"
+    if joint.size:
+        try:
+            result = certify_expressions(
+                entries[joint],
+                x,
+                box.lower,
+                box.upper,
+                s_lo[joint],
+                s_hi[joint],
+                tol=tol,
+                rtol=rtol,
+                max_boxes=max_boxes,
+                deadline=deadline,
+            )
+        except IntervalDomainError:
+            alone = varying  # the per-entry refinement names the entry
+        else:
+            c_lo[joint], c_hi[joint] = result.lo, result.hi
+            converged = result.converged
+            budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
+    for e in alone:
+        encloser = _EntryEncloser(entries[e], x)
+        try:
+            lo, hi, ok = _certify_entry(
+                encloser, box, s_lo[e], s_hi[e], tol, max_boxes, rtol, deadline
+            )
+        except IntervalDomainError as err:
+            raise BoundsError(f"{names[e]}: {err}") from err
+        c_lo[e], c_hi[e] = lo, hi
+        converged = converged and ok
+        if not ok:
+            budget = "max_boxes or max_wall_time reached"
+    return c_lo, c_hi, converged, budget
+
+
 # ------------------------------------------------------------------ the entry
 def jacobian_bounds(
     system: ControlAffineSystem,
@@ -672,9 +840,9 @@ def jacobian_bounds(
         ``w``. Default: :data:`MULTIBODY_RTOL` for multibody models, 0 (``tol``
         alone) for the others.
     max_boxes : int
-        Certified only: the most boxes evaluated per Jacobian entry (for a
-        multibody model, for all entries together). When it is reached, the
-        (still guaranteed) enclosure is returned as it is, and
+        Certified only: the most boxes evaluated for all entries together (per
+        entry for those refined alone, module docstring). When it is reached,
+        the (still guaranteed) enclosure is returned as it is, and
         ``excess.converged`` is False.
     max_wall_time : float, optional
         Certified only: seconds after which no further boxes are refined; the
@@ -730,10 +898,15 @@ def jacobian_bounds(
         )
     deadline = None if max_wall_time is None else start + float(max_wall_time)
 
-    x, Jf, Jg = symbolic_jacobians(system)
-    entries = np.concatenate([Jf.ravel(), Jg.ravel()])
     names = _entry_names(n, m)
-    s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
+    structure = system.multibody_structure()
+    entries: np.ndarray | None = None
+    if structure is not None and _too_large_to_differentiate(system):
+        s_lo, s_hi = _structure_samples(structure, box, grid, int(n_random), seed, names, deadline)
+    else:
+        x, Jf, Jg = symbolic_jacobians(system)
+        entries = np.concatenate([Jf.ravel(), Jg.ravel()])
+        s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
 
     def split(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return v[: n * n].reshape(n, n), v[n * n :].reshape(n, n, m)
@@ -742,7 +915,6 @@ def jacobian_bounds(
         (Mf1, Mg1), (Mf2, Mg2) = split(s_lo), split(s_hi)
         return JacobianBounds("sampled", box, Mf1, Mf2, Mg1, Mg2)
 
-    structure = system.multibody_structure()
     if structure is not None:
         _check_structure(system, structure, box, seed)
         result = certify(
@@ -759,27 +931,19 @@ def jacobian_bounds(
         c_lo, c_hi, converged = np.array(result.lo), np.array(result.hi), result.converged
         budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
     else:
-        c_lo = np.empty_like(s_lo)
-        c_hi = np.empty_like(s_hi)
-        converged = True
-        for e, expr in enumerate(entries):
-            encloser = _EntryEncloser(expr, x)
-            try:
-                lo, hi, ok = _certify_entry(
-                    encloser,
-                    box,
-                    s_lo[e],
-                    s_hi[e],
-                    float(tol),
-                    int(max_boxes),
-                    0.0 if rtol is None else float(rtol),
-                    deadline,
-                )
-            except IntervalDomainError as err:
-                raise BoundsError(f"{names[e]}: {err}") from err
-            c_lo[e], c_hi[e] = lo, hi
-            converged = converged and ok
-        budget = "max_boxes or max_wall_time reached"
+        assert entries is not None  # no multibody structure: the symbolic Jacobians
+        c_lo, c_hi, converged, budget = _certify_symbolic(
+            entries,
+            x,
+            box,
+            s_lo,
+            s_hi,
+            float(tol),
+            0.0 if rtol is None else float(rtol),
+            int(max_boxes),
+            deadline,
+            names,
+        )
     infinite = np.flatnonzero(~(np.isfinite(c_lo) & np.isfinite(c_hi)))
     if infinite.size:
         e = int(infinite[0])

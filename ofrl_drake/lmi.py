@@ -117,6 +117,7 @@ __all__ = [
     "SECTORS",
     "THIN_RTOL",
     "LmiError",
+    "block_matrix",
     "bounds_arrays",
     "box_corners",
     "certificate",
@@ -320,11 +321,12 @@ def lmi2_blocks(
 
     Parameters
     ----------
-    P : ndarray, shape (n, n)
-        Symmetric Lyapunov matrix.
-    R : ndarray, shape (n, q)
+    P : ndarray, shape (..., n, n)
+        Symmetric Lyapunov matrix (or a stack of them, for a backend that
+        reads the coefficients of many decision variables at once).
+    R : ndarray, shape (..., n, q)
         ``P L``.
-    H, K : ndarray, shape (n, q)
+    H, K : ndarray, shape (..., n, q)
         Injection gains.
     C : ndarray, shape (q, n)
         Output matrix.
@@ -335,16 +337,52 @@ def lmi2_blocks(
 
     Returns
     -------
-    ndarray, shape (2n, 2n)
-        The symmetrized (lmi2) matrix.
+    ndarray, shape (..., 2n, 2n)
+        The symmetrized (lmi2) matrix (one per stacked ``P, R, H, K``).
     """
-    n = P.shape[0]
+    n = P.shape[-1]
     eye = np.eye(n)
     J21 = Jf21 @ (eye - H @ C) + Jg21 @ (eye - K @ C)
-    M11 = A.T @ P + P @ A - C.T @ R.T - R @ C + 2.0 * alpha * P
+    M11 = A.T @ P + P @ A - C.T @ _t(R) - R @ C + 2.0 * alpha * P
     M21 = P - J21
-    M = np.block([[M11, M21.T], [M21, -2.0 * eye]])
-    return 0.5 * (M + M.T)
+    M = block_matrix([[M11, _t(M21)], [M21, -2.0 * eye]])
+    return 0.5 * (M + _t(M))
+
+
+def _t(M: np.ndarray) -> np.ndarray:
+    """The transpose of the last two axes (of every matrix of a stack)."""
+    return np.swapaxes(M, -1, -2)
+
+
+def block_matrix(rows: list[list[np.ndarray]]) -> np.ndarray:
+    """``np.block`` of 2-D blocks, or of stacks of them with broadcast leading axes.
+
+    Parameters
+    ----------
+    rows : list of list of ndarray
+        Each block of shape ``(..., r_i, c_j)``; the leading axes broadcast
+        (a plain ``(r_i, c_j)`` block is repeated along them).
+
+    Returns
+    -------
+    ndarray, shape (..., sum r_i, sum c_j)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> stack = block_matrix([[np.ones((2, 1, 1)), np.zeros((1, 1))]])
+    >>> stack.shape, stack[1].tolist()
+    ((2, 1, 2), [[1.0, 0.0]])
+    """
+    arrays = [[np.asarray(b, dtype=float) for b in row] for row in rows]
+    lead = np.broadcast_shapes(*(b.shape[:-2] for row in arrays for b in row))
+    return np.concatenate(
+        [
+            np.concatenate([np.broadcast_to(b, (*lead, *b.shape[-2:])) for b in row], axis=-1)
+            for row in arrays
+        ],
+        axis=-2,
+    )
 
 
 def certificate(
@@ -664,9 +702,10 @@ def polytopic_lmi(
     Parameters
     ----------
     P : ndarray, shape (n, n)
-        Symmetric.
+        Symmetric (or a stack of them whose leading axes broadcast against
+        ``A``'s, e.g. ``(B, 1, n, n)``).
     R : ndarray, shape (n, q)
-        ``P L``.
+        ``P L`` (stacked like ``P``).
     A : ndarray, shape (..., n, n)
         From :func:`corner_matrices`.
     C : ndarray, shape (q, n)

@@ -202,6 +202,77 @@ class MultibodyStructure:
         g = np.concatenate([np.zeros((nq, m, N)), np.moveaxis(solved[:, :, 1:], 0, 2)])
         return f, g
 
+    def used_states(self) -> tuple[int, ...]:
+        """The state indices ``M``, ``tau``, ``qdot`` and their derivatives depend on."""
+        used = _jacobian_evaluator(self).variables_used()
+        return tuple(sorted({v for u in used for v in u}))
+
+    def jacobians(self, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians of ``f`` and ``g`` at the columns of ``Z``, in floating point.
+
+        From the structure, never from ``f`` and ``g`` written out:
+        ``da/dx_j = M^-1 (r_j - M_j a)`` and ``dG/dx_j = -M^-1 M_j G`` (module
+        docstring), with ``M_j``, ``r_j`` and ``d qdot / dx_j`` the symbolic
+        derivatives of the small expressions, evaluated at the points.
+
+        Parameters
+        ----------
+        Z : ndarray, shape (n, N)
+            States ``z = x - x_eq``.
+
+        Returns
+        -------
+        Jf : ndarray, shape (n, n, N)
+            ``Jf[i, j] = d f_i / d x_j``.
+        Jg : ndarray, shape (n, n, m, N)
+            ``Jg[i, j, k] = d g[i, k] / d x_j``.
+        """
+        Z = np.asarray(Z, dtype=float)
+        nq, nv, m, n = len(self.q), len(self.v), self.m, self.n
+        N = Z.shape[1]
+        values = _jacobian_evaluator(self)(Z + self.x_eq[:, None])
+        at = 0
+        M = np.moveaxis(values[at : at + nv * nv].reshape(nv, nv, N), 2, 0)  # (N, nv, nv)
+        at += nv * nv
+        r = values[at : at + nv].T + self.B @ self.u_eq  # (N, nv)
+        at += nv
+        dM = np.moveaxis(values[at : at + n * nv * nv].reshape(n, nv, nv, N), 3, 1)  # (n, N, ., .)
+        at += n * nv * nv
+        dr = np.moveaxis(values[at : at + n * nv].reshape(n, nv, N), 2, 1)  # (n, N, nv)
+        at += n * nv
+        dqdot = values[at : at + n * nq].reshape(n, nq, N)  # [j, i]
+        rhs = np.concatenate([r[:, :, None], np.broadcast_to(self.B, (N, nv, m))], axis=2)
+        aG = np.linalg.solve(M, rhs)  # (N, nv, 1 + m): a, then the columns of G
+        # One solve for every j: [r_j - M_j a, -M_j G], stacked along the columns.
+        products = dM @ aG[None]  # (n, N, nv, 1 + m)
+        right = np.concatenate([dr[..., None] - products[..., :1], -products[..., 1:]], axis=3)
+        right = np.moveaxis(right, 0, 2).reshape(N, nv, n * (1 + m))
+        d = np.linalg.solve(M, right).reshape(N, nv, n, 1 + m)
+        Jf = np.zeros((n, n, N))
+        Jg = np.zeros((n, n, m, N))
+        Jf[:nq] = np.swapaxes(dqdot, 0, 1)
+        Jf[nq:] = np.transpose(d[:, :, :, 0], (1, 2, 0))
+        Jg[nq:] = np.transpose(d[:, :, :, 1:], (1, 2, 3, 0))
+        return Jf, Jg
+
+
+def _jacobian_evaluator(structure: MultibodyStructure) -> ExpressionEvaluator:
+    """``[M, tau, dM/dx_j, dtau/dx_j, dqdot/dx_j]`` as one evaluator (built once per structure)."""
+    cached = structure.__dict__.get("_jacobian_evaluator")
+    if cached is not None:
+        return cached
+    x = structure.x
+    M = [as_expression(e) for e in np.ravel(structure.M)]
+    tau = [as_expression(e) for e in structure.tau]
+    qdot = [as_expression(e) for e in structure.qdot]
+    parts = [*M, *tau]
+    parts += [e.Differentiate(xj) for xj in x for e in M]
+    parts += [e.Differentiate(xj) for xj in x for e in tau]
+    parts += [e.Differentiate(xj) for xj in x for e in qdot]
+    evaluator = ExpressionEvaluator(parts, x)
+    object.__setattr__(structure, "_jacobian_evaluator", evaluator)  # a cache, not a field
+    return evaluator
+
 
 def multibody_structure(plant: Any) -> MultibodyStructure:
     """The :class:`MultibodyStructure` of a finalized continuous ``MultibodyPlant``.

@@ -148,6 +148,9 @@ class ObserverConfig:
     plant; see docs/theory.md);
     ``L``, ``H``, ``K`` pin the gains (all three or none);
     ``jacobian_method`` (``sampled`` or ``certified``), ``solver``;
+    ``jacobian_tol`` (> 0) and ``jacobian_rtol`` (>= 0), the tolerances of the
+    certified bounds' refinement (:func:`ofrl_drake.jacobian_bounds.jacobian_bounds`'s
+    ``tol`` and ``rtol``; default: its defaults);
     ``schedule_period`` > 0 re-solves the LMI every that many seconds over the
     box ``xhat +- schedule_half_width`` (default: half the box width), the
     paper's "final values from the simulation".
@@ -157,6 +160,8 @@ class ObserverConfig:
     box: BoxConfig = field(default_factory=BoxConfig)
     formulation: str = field(default="polytopic", metadata=_OPTIONAL)
     jacobian_method: str = field(default="certified", metadata=_OPTIONAL)
+    jacobian_tol: Optional[float] = field(default=None, metadata=_OPTIONAL)
+    jacobian_rtol: Optional[float] = field(default=None, metadata=_OPTIONAL)
     solver: str = field(default="clarabel", metadata=_OPTIONAL)
     L: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
     H: Optional[list[list[float]]] = field(default=None, metadata=_OPTIONAL)
@@ -572,6 +577,10 @@ def validate_scenario(scenario: Scenario) -> None:
             f"observer.jacobian_method: must be {' or '.join(map(repr, METHODS))}; got "
             f"{o.jacobian_method!r}."
         )
+    if o.jacobian_tol is not None:
+        _positive("observer.jacobian_tol", o.jacobian_tol)
+    if o.jacobian_rtol is not None:
+        _positive("observer.jacobian_rtol", o.jacobian_rtol, allow_zero=True)
     if o.solver not in SOLVERS:
         raise ScenarioError(
             f"observer.solver: must be one of {', '.join(SOLVERS)}; got {o.solver!r}."

@@ -89,6 +89,7 @@ from ofrl_drake.lmi import (
     LmiError,
     _collapse,
     _injection,
+    block_matrix,
     bounds_arrays,
     decay_matrices,
     thin_perturbation,
@@ -399,22 +400,24 @@ def structured_lmi_blocks(
     """The matrix ``M`` of each model (module docstring), for numbers ``P, R, tau``.
 
     Affine in ``(P, R, tau)`` jointly (no checks), so a backend can read the
-    coefficient matrices of the LMI ``-M - margin I >= 0`` off it.
+    coefficient matrices of the LMI ``-M - margin I >= 0`` off it. Every
+    argument may carry the same leading (batch) axes, e.g. one per decision
+    variable whose coefficients are read at once.
 
     Parameters
     ----------
     problem : StructuredLmi
         The data.
-    P : ndarray, shape (n, n)
+    P : ndarray, shape (..., n, n)
         Symmetric Lyapunov matrix.
-    R : ndarray, shape (n, q)
+    R : ndarray, shape (..., n, q)
         ``P L``.
     tau : list of ndarray
-        The multipliers of each model, shapes ``(r_v,)``.
+        The multipliers of each model, shapes ``(..., r_v)``.
 
     Returns
     -------
-    list of ndarray, shapes (n + r_v, n + r_v)
+    list of ndarray, shapes (..., n + r_v, n + r_v)
         Symmetric; the certificate needs each negative definite.
     """
     C, alpha = problem.C, problem.alpha
@@ -422,10 +425,13 @@ def structured_lmi_blocks(
     for model, t in zip(problem.models, tau, strict=True):
         E, D = model.signals(problem.grouping)
         PA = P @ model.A0 - R @ C
-        S = PA + PA.T + 2.0 * alpha * P + np.tensordot(t, D, axes=1)
+        n = D.shape[-1]
+        tD = (t @ D.reshape(D.shape[0], n * n)).reshape(*t.shape[:-1], n, n)  # sum_g t_g D_g
+        S = PA + np.swapaxes(PA, -1, -2) + 2.0 * alpha * P + tD
         PE = P @ E
-        M = np.block([[S, PE], [PE.T, -np.diag(t)]])
-        out.append(0.5 * (M + M.T))
+        T = t[..., :, None] * np.eye(t.shape[-1])  # diag(t), of each stacked t
+        M = block_matrix([[S, PE], [np.swapaxes(PE, -1, -2), -T]])
+        out.append(0.5 * (M + np.swapaxes(M, -1, -2)))
     return out
 
 

@@ -166,14 +166,24 @@ def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> Jacobian
     """The Jacobian bounds of ``system`` over the observer box, by the scenario's method.
 
     Their refinement stops after ``simulation.max_wall_time`` (``--max-wall``)
-    seconds, with the sound bounds reached so far.
+    seconds, with the sound bounds reached so far, and at the tolerances
+    ``observer.jacobian_tol`` and ``observer.jacobian_rtol`` when given.
     """
     from ofrl_drake.jacobian_bounds import jacobian_bounds
 
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    tolerances: dict[str, float] = {}
+    if o.jacobian_tol is not None:
+        tolerances["tol"] = float(o.jacobian_tol)
+    if o.jacobian_rtol is not None:
+        tolerances["rtol"] = float(o.jacobian_rtol)
     return jacobian_bounds(
-        system, box, o.jacobian_method, max_wall_time=scenario.simulation.max_wall_time
+        system,
+        box,
+        o.jacobian_method,
+        max_wall_time=scenario.simulation.max_wall_time,
+        **tolerances,
     )
 
 

@@ -338,6 +338,49 @@ def test_backends_find_the_same_optimum(two_state, bounds2, formulation, alpha):
     assert np.linalg.norm(other.R, 2) == pytest.approx(np.linalg.norm(drake.R, 2), rel=1e-3)
 
 
+@pytest.mark.parametrize(
+    ("formulation", "objective", "max_gain", "pinned"),
+    [
+        ("polytopic", "min_gain", None, None),
+        ("polytopic", "min_condition", 50.0, "L"),
+        ("paper", "min_gain", None, None),
+        ("paper", "feasibility", 3.0, "HK"),
+        ("structured", "min_gain", 100.0, None),
+        ("structured_row", "min_condition", None, None),
+    ],
+)
+@pytest.mark.parametrize("entries", [50, None])
+def test_drake_coefficients_are_the_blocks_change_at_each_unit_vector(
+    monkeypatch, two_state, bounds2, formulation, objective, max_gain, pinned, entries
+):
+    from ofrl_drake.design import backend_drake
+    from ofrl_drake.design.pipeline import _problem
+
+    if entries is not None:  # many small stacks of unit vectors instead of one
+        monkeypatch.setattr(backend_drake, "_COEFFICIENT_ENTRIES", entries)
+    C = np.atleast_2d(np.asarray(two_state.C, dtype=float))
+    kw = {}
+    if pinned == "L":
+        kw["L"] = np.array([[1.0], [2.0]])
+    elif pinned == "HK":
+        kw["HK"] = (np.array([[0.1], [0.2]]), np.array([[0.3], [0.0]]))
+    problem = _problem(
+        C, bounds2, 1.0, 0.5, 1e-3, objective, max_gain, "sign_correct", formulation, **kw
+    )
+    layout = backend_drake._Layout.of(problem)
+    N = layout.size
+    F0 = backend_drake._psd_blocks(problem, layout.unpack(np.zeros(N)))
+    one_at_a_time = [backend_drake._psd_blocks(problem, layout.unpack(e)) for e in np.eye(N)]
+    got = backend_drake._coefficients(problem, layout)
+    assert len(got) == len(F0)
+    for j, (matrices, used) in enumerate(got):
+        expected_used = [i for i in range(N) if np.any(one_at_a_time[i][j] != F0[j])]
+        assert used == expected_used
+        np.testing.assert_array_equal(matrices[0], F0[j])
+        for F, i in zip(matrices[1:], used, strict=True):
+            np.testing.assert_array_equal(F, one_at_a_time[i][j] - F0[j])
+
+
 def test_csdp_through_drake(two_state, bounds2):
     for formulation in ("polytopic", "paper"):
         d = design_observer(

@@ -165,6 +165,46 @@ def test_the_structure_gives_the_models_f_and_g(model):
     np.testing.assert_allclose(g, shifted.g_batch(X), rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("model", [ACROBOT, CART_POLE, CART_DOUBLE_PENDULUM])
+def test_the_structure_gives_the_models_jacobians(model):
+    from ofrl_drake.interval import ExpressionEvaluator
+    from ofrl_drake.jacobian_bounds import symbolic_jacobians
+
+    system = ControlAffineSystem.from_multibody(model)
+    shifted = system.shifted(np.zeros(system.n), [0.7], tol=1e9)  # u* enters the drift's
+    X = np.random.default_rng(3).uniform(-1.0, 1.0, size=(system.n, 100))
+    Jf, Jg = shifted.multibody_structure().jacobians(X)
+    x, Sf, Sg = symbolic_jacobians(shifted)
+    want_f, want_g = ExpressionEvaluator(Sf, x)(X), ExpressionEvaluator(Sg, x)(X)
+    scale = 1.0 + np.abs(want_f).max()
+    np.testing.assert_allclose(Jf, want_f, rtol=0, atol=1e-11 * scale)
+    np.testing.assert_allclose(Jg, want_g, rtol=0, atol=1e-11 * scale)
+    assert set(shifted.multibody_structure().used_states()) <= set(range(system.n))
+
+
+def test_large_expressions_take_their_samples_from_the_structure(monkeypatch, upright, bounds):
+    # Past SYMBOLIC_MAX_CHARS the symbolic Jacobians of f and g are never formed.
+    from ofrl_drake import jacobian_bounds as jb
+
+    def refuse(system):
+        raise AssertionError("symbolic_jacobians called")
+
+    monkeypatch.setattr(jb, "SYMBOLIC_MAX_CHARS", 0)
+    monkeypatch.setattr(jb, "symbolic_jacobians", refuse)
+    system, box = upright["acrobot"], PLANTS["acrobot"][2]
+    sampled = bounds["acrobot"][0]
+    from_structure = jacobian_bounds(system, box, "sampled")
+    # Other points (one grid over the states M and tau depend on): close, not equal.
+    for a, b in zip(from_structure.arrays(), sampled.arrays(), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=0.02 * (1 + np.abs(b).max()))
+    again = jacobian_bounds(system, box, "certified")
+    assert again.excess.converged and again.contains(from_structure)
+    X = _states(box, 200, seed=4)
+    Jf, Jg = _fd_jacobians(system, X)
+    assert np.all((again.Mf1[..., None] - 1e-5 <= Jf) & (Jf <= again.Mf2[..., None] + 1e-5))
+    assert np.all((again.Mg1[..., None] - 1e-5 <= Jg) & (Jg <= again.Mg2[..., None] + 1e-5))
+
+
 def test_mass_matrix_and_bias_do_not_depend_on_a_root_joint():
     # The structure evaluates M and C(q, v) v with the acrobot's shoulder (a
     # revolute joint on the world) at zero; the double plant's own, at the true

@@ -109,6 +109,11 @@ BAD = [
         r"observer\.box\.upper: must exceed observer\.box\.lower",
     ),
     (_set("observer", "L", value=[[1.0], [2.0]]), r"observer\.H: pin all of L, H and K or none"),
+    (_set("observer", "jacobian_tol", value=0.0), r"observer\.jacobian_tol: must be > 0; got 0\.0"),
+    (
+        _set("observer", "jacobian_rtol", value=-0.1),
+        r"observer\.jacobian_rtol: must be >= 0; got -0\.1",
+    ),
     (_set("points", "kind", value="sobol"), r"points\.kind: must be 'grid' or 'uniform'"),
     (
         _set("critic", "basis_degrees", value=[1]),
@@ -167,3 +172,19 @@ def test_dump_scenario_reads_back_to_the_resolved_scenario(paper_scenario, tmp_p
     odd = dataclasses.replace(paper_scenario, x0=[0.1 + 0.2, -1.0 / 3.0])
     path.write_text(dump_scenario(odd))
     assert load_scenario(path).x0 == [0.1 + 0.2, -1.0 / 3.0]
+
+
+def test_the_tolerances_of_the_certified_bounds_reach_them(tmp_path):
+    from ofrl_drake.plants import resolve_system
+    from ofrl_drake.variants import scenario_bounds
+
+    default = load_scenario(_write(tmp_path, lambda d: d))
+    loose = load_scenario(
+        _write(tmp_path, _set("observer", "jacobian_rtol", value=0.5)),
+    )
+    assert loose.observer.jacobian_rtol == 0.5 and default.observer.jacobian_rtol is None
+    system = resolve_system(default)
+    tight_b, loose_b = scenario_bounds(default, system), scenario_bounds(loose, system)
+    # d f2 / d x1 of the two-state plant: each end may lie half its sampled width beyond.
+    assert (loose_b.Mf2 - loose_b.Mf1)[1, 0] > (tight_b.Mf2 - tight_b.Mf1)[1, 0] + 0.1
+    assert loose_b.excess.converged and tight_b.excess.converged

@@ -27,6 +27,7 @@ from pydrake.solvers import (
 from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import FORMULATIONS
 from ofrl_drake.design.sdp import LmiProblem, SdpBackend, SdpSolution
+from ofrl_drake.lmi import block_matrix
 
 __all__ = ["DrakeBackend"]
 
@@ -49,6 +50,9 @@ _SCS_STATUS = {
     -6: "unbounded inaccurate",
     -7: "infeasible inaccurate",
 }
+#: :func:`_coefficients` reads the unit vectors in stacks of at most this many
+#: block entries (floats) in all: 160 MB.
+_COEFFICIENT_ENTRIES = 20_000_000
 # SCS (first order) needs tight tolerances to return numbers that certify.
 _DRAKE_OPTIONS: dict[str, dict[str, float | int]] = {
     "scs": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iters": 200_000},
@@ -108,30 +112,36 @@ class _Layout:
         return sum(k for _, k in self.names)
 
     def unpack(self, z: np.ndarray) -> dict[str, Any]:
-        """``P, R, H, K`` (and ``tau``, ``t, s`` if present) from ``z``; affine in ``z``."""
+        """``P, R, H, K`` (and ``tau``, ``t, s`` if present) from ``z``; affine in ``z``.
+
+        ``z`` of shape ``(size,)`` gives matrices; a stack ``(B, size)`` gives
+        stacks ``(B, n, n)``, ``(B, n, q)``, ``(B, r)`` and ``(B,)`` (pinned
+        ``H, K`` stay unstacked and broadcast).
+        """
         n, q, p = self.problem.n, self.problem.q, self.problem
+        lead = z.shape[:-1]
         parts: dict[str, Any] = {}
         pos = 0
         for name, k in self.names:
-            parts[name] = z[pos : pos + k]
+            parts[name] = z[..., pos : pos + k]
             pos += k
-        P = np.zeros((n, n))
+        P = np.zeros((*lead, n, n))
         rows, cols = np.triu_indices(n)
-        P[rows, cols] = parts["P"]
-        P[cols, rows] = parts["P"]
+        P[..., rows, cols] = parts["P"]
+        P[..., cols, rows] = parts["P"]
         out: dict[str, Any] = {"P": P}
-        out["R"] = parts["R"].reshape(n, q) if p.L is None else P @ p.L
+        out["R"] = parts["R"].reshape(*lead, n, q) if p.L is None else P @ p.L
         if p.HK is None:
-            out["H"] = parts["H"].reshape(n, q)
-            out["K"] = parts["K"].reshape(n, q)
+            out["H"] = parts["H"].reshape(*lead, n, q)
+            out["K"] = parts["K"].reshape(*lead, n, q)
         else:
             out["H"], out["K"] = p.HK
         out["tau"] = None
         if "tau" in parts:
-            out["tau"] = np.split(parts["tau"], np.cumsum(p.multiplier_counts)[:-1])
+            out["tau"] = np.split(parts["tau"], np.cumsum(p.multiplier_counts)[:-1], axis=-1)
         for name in ("t", "s"):
             if name in parts:
-                out[name] = float(parts[name][0])
+                out[name] = parts[name][..., 0] if lead else float(parts[name][0])
         return out
 
 
@@ -139,48 +149,74 @@ def _psd_blocks(problem: LmiProblem, v: dict[str, Any]) -> list[np.ndarray]:
     """Every matrix the SDP asks to be positive semidefinite, at the numbers ``v``.
 
     Affine in the decision vector (see :class:`_Layout`), so the Drake backend
-    reads the coefficient matrices ``F_i`` off it.
+    reads the coefficient matrices ``F_i`` off it. ``v`` may hold stacks (from
+    a stack of decision vectors, :meth:`_Layout.unpack`); every block is then
+    a stack ``(B, size, size)``.
     """
     n, q = problem.n, problem.q
     P, R, H, K = v["P"], v["R"], v["H"], v["K"]
     eye = np.eye(n)
     blocks = [P - eye]
     blocks += FORMULATIONS[problem.formulation].lmi_blocks(problem, P, R, H, K, v["tau"])
+    Rt = np.swapaxes(R, -1, -2)
     if problem.max_gain is not None:
         g = float(problem.max_gain)
-        blocks.append(np.block([[g * eye, R], [R.T, g * np.eye(q)]]))
+        blocks.append(block_matrix([[g * eye, R], [Rt, g * np.eye(q)]]))
     if problem.objective == "min_gain":
-        t = v["t"]
-        blocks.append(np.block([[t * eye, R], [R.T, t * np.eye(q)]]))
+        t = np.asarray(v["t"])[..., None, None]
+        blocks.append(block_matrix([[t * eye, R], [Rt, t * np.eye(q)]]))
         if problem.HK is None:
-            s = v["s"]
-            w = np.concatenate([H.ravel(), K.ravel()])[:, None]
-            blocks.append(np.block([[np.array([[s]]), w.T], [w, s * np.eye(w.shape[0])]]))
+            s = np.asarray(v["s"])[..., None, None]
+            lead = np.shape(v["s"])
+            w = np.concatenate([H.reshape(*lead, -1), K.reshape(*lead, -1)], axis=-1)[..., :, None]
+            blocks.append(block_matrix([[s, np.swapaxes(w, -1, -2)], [w, s * np.eye(w.shape[-2])]]))
     elif problem.objective == "min_condition":
-        blocks.append(v["s"] * eye - P)
-    return [0.5 * (B + B.T) for B in blocks]
+        blocks.append(np.asarray(v["s"])[..., None, None] * eye - P)
+    return [0.5 * (B + np.swapaxes(B, -1, -2)) for B in blocks]
+
+
+def _coefficients(problem: LmiProblem, layout: _Layout) -> list[tuple[np.ndarray, list[int]]]:
+    """Each PSD block's coefficient matrices ``[F_0, F_i, ...]`` and the ``i`` that appear.
+
+    ``F_0`` is :func:`_psd_blocks` at ``z = 0`` and ``F_i`` its change at the
+    unit vector ``e_i`` (exact for an affine map). The unit vectors are
+    evaluated in stacks of up to :data:`_COEFFICIENT_ENTRIES` block entries in
+    all, with one call of the (vectorized) block assembly per stack, and only
+    the ``F_i`` that are not zero are kept: a structured LMI's multiplier
+    appears in its own block only.
+    """
+    N = layout.size
+    F0 = _psd_blocks(problem, layout.unpack(np.zeros(N)))
+    entries = sum(B.size for B in F0)
+    chunk = int(max(1, min(N, _COEFFICIENT_ENTRIES // max(entries, 1))))
+    out: list[tuple[list[np.ndarray], list[int]]] = [([B0], []) for B0 in F0]
+    for start in range(0, N, chunk):
+        stop = min(N, start + chunk)
+        Z = np.zeros((stop - start, N))
+        Z[np.arange(stop - start), np.arange(start, stop)] = 1.0
+        for (matrices, used), B, B0 in zip(
+            out, _psd_blocks(problem, layout.unpack(Z)), F0, strict=True
+        ):
+            D = B - B0
+            for i in np.flatnonzero(np.any(D != 0, axis=(-2, -1))):
+                matrices.append(D[i])
+                used.append(start + int(i))
+    return [(np.asarray(m), u) for m, u in out]
 
 
 def _drake_program(problem: LmiProblem) -> tuple[MathematicalProgram, np.ndarray, _Layout]:
     """The SDP as a ``MathematicalProgram``; returns it, ``z`` and its layout.
 
-    Each LMI ``F_0 + sum_i z_i F_i >= 0`` is added with its numeric ``F_i``:
-    ``F_0`` is :func:`_psd_blocks` at ``z = 0`` and ``F_i`` its change at the
-    unit vector ``e_i`` (exact for an affine map), keeping only the variables
-    that appear in that block.
+    Each LMI ``F_0 + sum_i z_i F_i >= 0`` is added with its numeric ``F_i``
+    (:func:`_coefficients`), keeping only the variables that appear in that
+    block.
     """
     layout = _Layout.of(problem)
     prog = MathematicalProgram()
     z = np.concatenate([prog.NewContinuousVariables(k, name) for name, k in layout.names])
     N = layout.size
-    F0 = _psd_blocks(problem, layout.unpack(np.zeros(N)))
-    Fi = [
-        [B - B0 for B, B0 in zip(_psd_blocks(problem, layout.unpack(e)), F0, strict=True)]
-        for e in np.eye(N)
-    ]
-    for j, B0 in enumerate(F0):
-        used = [i for i in range(N) if np.any(Fi[i][j])]
-        prog.AddLinearMatrixInequalityConstraint([B0] + [Fi[i][j] for i in used], z[used])
+    for matrices, used in _coefficients(problem, layout):
+        prog.AddLinearMatrixInequalityConstraint(list(matrices), z[used])
     if problem.objective in ("min_gain", "min_condition"):
         cost = np.zeros(N)
         pos = 0

@@ -153,7 +153,10 @@ class Formulation(ABC):
         Built from :mod:`ofrl_drake.lmi`'s (or :mod:`ofrl_drake.structured_lmi`'s)
         assembly and affine in ``P, R, H, K`` (and the multipliers ``tau`` of a
         structured formulation, one array per model), so the Drake backend
-        reads its coefficient matrices off them.
+        reads its coefficient matrices off them. ``P, R, H, K`` and each
+        ``tau`` may carry the same leading (batch) axes, shapes ``(..., n, n)``,
+        ``(..., n, q)`` and ``(..., r)``; every block then has them too, so the
+        backend reads the coefficients of many decision variables in one call.
         """
 
     @abstractmethod
@@ -244,8 +247,12 @@ class PolytopicFormulation(Formulation):
         tau: list[np.ndarray] | None = None,
     ) -> list[np.ndarray]:
         """One block per corner, from :func:`ofrl_drake.lmi.polytopic_lmi`."""
-        M = polytopic_lmi(P, R, problem.corners, problem.C, problem.alpha)
-        return list(-M - problem.margin * np.eye(problem.n))
+        # (..., 1, n, n) against the corners' (N, n, n): (..., N, n, n).
+        M = polytopic_lmi(
+            P[..., None, :, :], R[..., None, :, :], problem.corners, problem.C, problem.alpha
+        )
+        blocks = -M - problem.margin * np.eye(problem.n)
+        return [blocks[..., c, :, :] for c in range(blocks.shape[-3])]
 
     def cvxpy_blocks(
         self, problem: LmiProblem, P: Any, R: Any, H: Any, K: Any, tau: list[Any] | None = None
@@ -446,7 +453,7 @@ class StructuredFormulation(Formulation):
         """One ``(n + r)`` block per model, from ``structured_lmi_blocks``."""
         assert problem.structured is not None and tau is not None
         return [
-            -M - problem.margin * np.eye(M.shape[0])
+            -M - problem.margin * np.eye(M.shape[-1])
             for M in structured_lmi_blocks(problem.structured, P, R, tau)
         ]
 
