@@ -71,6 +71,7 @@ from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStru
 from ofrl_drake.symbolic_bounds import certify_expressions
 
 __all__ = [
+    "DEFAULT_TOL",
     "BoundsError",
     "BoundsExcess",
     "Box",
@@ -795,6 +796,10 @@ def _certify_symbolic(
 
 
 # ------------------------------------------------------------------ the entry
+#: The default absolute tolerance of the certified bounds' refinement (``tol``).
+DEFAULT_TOL = 1e-3
+
+
 def jacobian_bounds(
     system: ControlAffineSystem,
     box: Any,
@@ -803,7 +808,7 @@ def jacobian_bounds(
     grid: int | None = None,
     n_random: int = 10_000,
     seed: int = 0,
-    tol: float = 1e-3,
+    tol: float = DEFAULT_TOL,
     rtol: float | None = None,
     max_boxes: int = 200_000,
     max_wall_time: float | None = None,

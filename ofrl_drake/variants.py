@@ -169,21 +169,17 @@ def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> Jacobian
     seconds, with the sound bounds reached so far, and at the tolerances
     ``observer.jacobian_tol`` and ``observer.jacobian_rtol`` when given.
     """
-    from ofrl_drake.jacobian_bounds import jacobian_bounds
+    from ofrl_drake.jacobian_bounds import DEFAULT_TOL, jacobian_bounds
 
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
-    tolerances: dict[str, float] = {}
-    if o.jacobian_tol is not None:
-        tolerances["tol"] = float(o.jacobian_tol)
-    if o.jacobian_rtol is not None:
-        tolerances["rtol"] = float(o.jacobian_rtol)
     return jacobian_bounds(
         system,
         box,
         o.jacobian_method,
         max_wall_time=scenario.simulation.max_wall_time,
-        **tolerances,
+        tol=DEFAULT_TOL if o.jacobian_tol is None else float(o.jacobian_tol),
+        rtol=None if o.jacobian_rtol is None else float(o.jacobian_rtol),
     )
 
 
