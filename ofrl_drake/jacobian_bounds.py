@@ -50,6 +50,7 @@ chunks stop at ``max_wall_time``.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -538,25 +539,12 @@ def _structure_samples(
         axis=1,
     )
     n, m = structure.n, structure.m
-    E = n * n + n * n * m
-    lo, hi = np.full(E, np.inf), np.full(E, -np.inf)
-    for start in range(0, points.shape[1], _CHUNK):
-        if start and deadline is not None and time.monotonic() > deadline:
-            break
-        chunk = points[:, start : start + _CHUNK]
+
+    def values(chunk: np.ndarray) -> np.ndarray:
         Jf, Jg = structure.jacobians(chunk)
-        vals = np.concatenate([Jf.reshape(n * n, -1), Jg.reshape(n * n * m, -1)])
-        bad = ~np.isfinite(vals)
-        if bad.any():
-            e, p = np.argwhere(bad)[0]
-            raise BoundsError(
-                f"the Jacobian entry {names[e]} is not finite ({vals[e, p]}) at "
-                f"x = {chunk[:, p].tolist()}; f and g must be continuously differentiable "
-                "on the box (shrink it)."
-            )
-        lo = np.minimum(lo, vals.min(axis=1))
-        hi = np.maximum(hi, vals.max(axis=1))
-    return lo, hi
+        return np.concatenate([Jf.reshape(n * n, -1), Jg.reshape(n * n * m, -1)])
+
+    return _range_over_points(values, n * n + n * n * m, points, names, deadline)
 
 
 def _entry_names(n: int, m: int) -> list[str]:
@@ -569,11 +557,33 @@ def _sampled_range(
     evaluator: ExpressionEvaluator, points: np.ndarray, names: list[str]
 ) -> tuple[np.ndarray, np.ndarray]:
     E = int(np.prod(evaluator.shape))
+    return _range_over_points(lambda chunk: evaluator(chunk).reshape(E, -1), E, points, names)
+
+
+def _range_over_points(
+    values: Callable[[np.ndarray], np.ndarray],
+    E: int,
+    points: np.ndarray,
+    names: list[str],
+    deadline: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Minima and maxima over ``points`` of the ``E`` entries ``values(chunk)`` (E, k).
+
+    Chunk by chunk; after ``deadline`` (``time.monotonic()``) no further chunk
+    is started, the first always is.
+
+    Raises
+    ------
+    BoundsError
+        At the first non-finite value, naming its entry and point.
+    """
     lo = np.full(E, np.inf)
     hi = np.full(E, -np.inf)
     for start in range(0, points.shape[1], _CHUNK):
+        if start and deadline is not None and time.monotonic() > deadline:
+            break
         chunk = points[:, start : start + _CHUNK]
-        vals = evaluator(chunk).reshape(E, -1)
+        vals = values(chunk)
         bad = ~np.isfinite(vals)
         if bad.any():
             e, p = np.argwhere(bad)[0]
