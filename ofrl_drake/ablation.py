@@ -71,10 +71,10 @@ from ofrl_drake.ablation_tasks import (
     METRICS,
     RunOutcome,
     failed_optimum,
-    one_line,
     run_variant_states,
     solve_optimal_task,
 )
+from ofrl_drake.errors import status_line
 from ofrl_drake.optimal import Mesh, OptimalControlResult, OptimalCostCache, Trajectory
 from ofrl_drake.scenario import Scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
@@ -378,7 +378,7 @@ class _Sweep:
     def finished(self, task: tuple, value: Any, err: BaseException | None) -> list[dict]:
         """Record a finished task; return the rows it completes."""
         kind, key = task
-        reason = one_line(err) if err is not None else "no result"
+        reason = status_line(err) if err is not None else "no result"
         if kind == "optimal":
             if err is not None or value is None:
                 horizon = self.horizon_scenario.simulation.duration

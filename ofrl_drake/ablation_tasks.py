@@ -27,6 +27,7 @@ import numpy as np
 
 from ofrl_drake.ablation_grid import Variant, initial_state_label
 from ofrl_drake.ablation_metrics import run_metrics
+from ofrl_drake.errors import status_line
 from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
 from ofrl_drake.scenario import Scenario, variant_choices
 
@@ -34,7 +35,6 @@ __all__ = [
     "METRICS",
     "RunOutcome",
     "failed_optimum",
-    "one_line",
     "run_variant",
     "run_variant_states",
     "solve_optimal_task",
@@ -123,11 +123,6 @@ class RunOutcome:
         )
 
 
-def one_line(err: BaseException) -> str:
-    """An error as a status: its type and message on one line."""
-    return f"{type(err).__name__}: {' '.join(str(err).split())}"
-
-
 def run_variant_states(
     scenario: Scenario,
     variant: Variant,
@@ -162,7 +157,7 @@ def run_variant_states(
         share = (time.perf_counter() - start) / len(states)
         nan = dict.fromkeys(METRICS, math.nan)
         return [
-            RunOutcome(variant.name, initial_state_label(x0), nan, one_line(err), share, learned)
+            RunOutcome(variant.name, initial_state_label(x0), nan, status_line(err), share, learned)
             for x0 in states
         ]
     share = (time.perf_counter() - start) / len(states)
@@ -204,7 +199,7 @@ def _run(
         logs = {k: np.asarray(getattr(result, k)) for k in ("t", "x", "xhat", "u", "cost")}
     except Exception as err:
         metrics = dict.fromkeys(METRICS, math.nan)
-        status = one_line(err)
+        status = status_line(err)
         logs = {}
     return RunOutcome(
         variant=variant.name,
@@ -265,7 +260,7 @@ def solve_optimal_task(
     try:
         return optimal_control(scenario, x0, warm_start=warm_start, mesh=mesh, solver=solver)
     except Exception as err:
-        return failed_optimum(x0, scenario.simulation.duration, one_line(err))
+        return failed_optimum(x0, scenario.simulation.duration, status_line(err))
 
 
 def failed_optimum(x0: Iterable[float], duration: float, status: str) -> OptimalControlResult:

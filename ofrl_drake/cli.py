@@ -353,7 +353,7 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.variants import design_for
     from ofrl_drake.verification import verify_observer
 
-    scenario = load_scenario(args.scenario)
+    scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     check_writable(Path(args.out))  # fail before the work, not after
     system = resolve_system(scenario)
     design = design_for(scenario, system)
@@ -388,7 +388,7 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.variants import design_for
     from ofrl_drake.verification import verify_observer
 
-    scenario = load_scenario(args.scenario)
+    scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     system = resolve_system(scenario)
     design = design_for(scenario, system)
     report = verify_observer(design, system, samples=args.samples, seed=args.seed)
@@ -588,6 +588,16 @@ def _scheduler_timeout_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _design_wall_option(command: argparse.ArgumentParser) -> None:
+    command.add_argument(
+        "--max-wall",
+        type=float,
+        metavar="SECONDS",
+        help="stop the design (Jacobian bounds, then the LMI solve) after this much wall "
+        "time, with exit 2 and no output; overrides simulation.max_wall_time",
+    )
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ofrl-drake",
@@ -625,6 +635,7 @@ def _parser() -> argparse.ArgumentParser:
     design = sub.add_parser("design-observer", help="certified observer gains as JSON")
     design.add_argument("scenario", help="scenario YAML file")
     design.add_argument("--out", required=True, help="output JSON file")
+    _design_wall_option(design)
     design.set_defaults(func=_cmd_design_observer)
 
     verify = sub.add_parser(
@@ -638,6 +649,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     verify.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the samples")
     verify.add_argument("--out", metavar="FILE.json", help="also write the report as JSON")
+    _design_wall_option(verify)
     verify.set_defaults(func=_cmd_verify_observer)
 
     ab = sub.add_parser(

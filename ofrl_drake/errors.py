@@ -7,7 +7,15 @@ that one type; the command-line tool prints them on one line and exits 2.
 
 from __future__ import annotations
 
-__all__ = ["ModelError", "OfrlError", "OutputError", "ScenarioError", "SwapError"]
+__all__ = [
+    "ModelError",
+    "OfrlError",
+    "OutputError",
+    "ScenarioError",
+    "SwapError",
+    "WallTimeExceeded",
+    "status_line",
+]
 
 
 class OfrlError(ValueError):
@@ -28,3 +36,31 @@ class SwapError(OfrlError):
 
 class OutputError(OfrlError):
     """An output path cannot be written safely (a file in the way, a foreign folder...)."""
+
+
+class WallTimeExceeded(OfrlError):
+    """A step ran out of its wall-time budget (``max_wall_time``, ``--max-wall``).
+
+    Raised by the steps of an observer design that cannot return a sound
+    partial result: the symbolic Jacobians and the LMI solve. The message names
+    the step, the budget and how to allow more.
+
+    Attributes
+    ----------
+    step : str
+        What was running when the budget ran out.
+    """
+
+    def __init__(self, message: str, *, step: str) -> None:
+        super().__init__(message)
+        self.step = step
+
+
+def status_line(err: BaseException) -> str:
+    """An error as the one-line status of a run in a sweep.
+
+    ``"timeout: <message>"`` for :class:`WallTimeExceeded`, like a run the
+    guard stopped; ``"<ExceptionType>: <message>"`` otherwise.
+    """
+    head = "timeout" if isinstance(err, WallTimeExceeded) else type(err).__name__
+    return f"{head}: {' '.join(str(err).split())}"

@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression, Jacobian
 
-from ofrl_drake.errors import ModelError, OfrlError
+from ofrl_drake.errors import ModelError, OfrlError, WallTimeExceeded
 from ofrl_drake.interval import (
     ExpressionEvaluator,
     Interval,
@@ -405,6 +405,7 @@ class JacobianBounds:
 # ------------------------------------------------------------------ Jacobians
 def symbolic_jacobians(
     system: ControlAffineSystem,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Symbolic Jacobians of ``f`` and ``g`` from ``pydrake.symbolic.Jacobian``.
 
@@ -412,6 +413,10 @@ def symbolic_jacobians(
     ----------
     system : ControlAffineSystem
         The plant; ``f`` and ``g`` are called on symbolic states.
+    deadline : float, optional
+        A ``time.monotonic()`` instant after which no further row of ``f`` or
+        column of ``g`` is differentiated (one already started cannot be
+        interrupted). Default: none.
 
     Returns
     -------
@@ -427,6 +432,8 @@ def symbolic_jacobians(
     BoundsError
         If ``f`` or ``g`` cannot be called on ``pydrake.symbolic.Expression``
         states (for example because they call scipy or use ``if`` on the state).
+    WallTimeExceeded
+        If ``deadline`` passes before every row is differentiated.
     """
     n, m = system.n, system.m
     try:
@@ -434,10 +441,23 @@ def symbolic_jacobians(
     except ModelError as err:
         raise BoundsError(f"{err} They must be, to be differentiated.") from err
     x, fx, gx = model.x, model.f, model.g
-    Jf: np.ndarray = Jacobian(fx, x)  # type: ignore[assignment]  # pydrake array stub
+    Jf = np.empty((n, n), dtype=object)
     Jg = np.empty((n, n, m), dtype=object)
-    for k in range(m):
-        Jg[:, :, k] = Jacobian(gx[:, k], x)
+    start = time.monotonic()
+    for name, rows, out in (
+        *((f"f[{i}]", fx[i : i + 1], Jf[i : i + 1]) for i in range(n)),
+        *((f"g[:, {k}]", gx[:, k], Jg[:, :, k]) for k in range(m)),
+    ):
+        now = time.monotonic()
+        if deadline is not None and now > deadline:
+            raise WallTimeExceeded(
+                f"the symbolic Jacobians of f and g were not done by the deadline "
+                f"(max_wall_time, --max-wall): {name} was next after {now - start:.3g} s; "
+                "allow more wall time, simplify f and g, or build a multibody plant with "
+                "from_multibody, whose bounds come from its mass-matrix structure.",
+                step="symbolic Jacobians",
+            )
+        out[...] = Jacobian(rows, x)
     return x, Jf, Jg
 
 
@@ -860,8 +880,11 @@ def jacobian_bounds(
         the (still guaranteed) enclosure is returned as it is, and
         ``excess.converged`` is False.
     max_wall_time : float, optional
-        Certified only: seconds after which no further boxes are refined; the
-        enclosure reached is returned, as for ``max_boxes``. Default: no limit.
+        Seconds after which no further row of ``f`` is differentiated
+        symbolically (:func:`symbolic_jacobians`: past it,
+        :class:`~ofrl_drake.errors.WallTimeExceeded`) and, certified, no
+        further boxes are refined (the enclosure reached is returned, as for
+        ``max_boxes``). Default: no limit.
 
     Returns
     -------
@@ -877,6 +900,8 @@ def jacobian_bounds(
     UncertifiedBoundsError
         If a certified bound is still infinite when ``max_boxes`` or
         ``max_wall_time`` runs out (the message names the entry and the box).
+    WallTimeExceeded
+        If ``max_wall_time`` runs out before the symbolic Jacobians are formed.
     BoxError
         If ``box`` is malformed or not ``n``-dimensional.
     UnsupportedExpressionError
@@ -919,7 +944,7 @@ def jacobian_bounds(
     if structure is not None and _too_large_to_differentiate(system):
         s_lo, s_hi = _structure_samples(structure, box, grid, int(n_random), seed, names, deadline)
     else:
-        x, Jf, Jg = symbolic_jacobians(system)
+        x, Jf, Jg = symbolic_jacobians(system, deadline)
         entries = np.concatenate([Jf.ravel(), Jg.ravel()])
         s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
 

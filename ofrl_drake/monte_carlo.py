@@ -37,7 +37,7 @@ import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_file, atomic_write_text
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import OfrlError, status_line
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
@@ -173,7 +173,7 @@ def _failed(
     seed: int, perturbation: dict[str, float], err: BaseException, start: float
 ) -> dict[str, Any]:
     row = _row(seed, perturbation)
-    row["status"] = " ".join(f"{type(err).__name__}: {err}".split())
+    row["status"] = status_line(err)
     row["wall_time"] = time.perf_counter() - start
     return {"row": row, "logs": {}}
 

@@ -40,7 +40,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from ofrl_drake.errors import ModelError, ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError, status_line
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
@@ -60,11 +60,6 @@ _DOTTED = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 def is_import_path(entry: str) -> bool:
     """True if ``entry`` is meant as ``"module.path:callable"`` (it holds a colon)."""
     return ":" in entry
-
-
-def _one_line(err: BaseException) -> str:
-    text = " ".join(str(err).split())
-    return f"{type(err).__name__}: {text}" if text else type(err).__name__
 
 
 def _split(entry: str, key: str) -> tuple[str, str]:
@@ -138,7 +133,7 @@ def _load_file(path: Path, entry: str, key: str) -> ModuleType:
     except BaseException as err:  # anything the user's module raises, SystemExit included
         del sys.modules[name]
         raise ScenarioError(
-            f"{key}: {entry!r}: importing {path} failed: {_one_line(err)}"
+            f"{key}: {entry!r}: importing {path} failed: {status_line(err)}"
         ) from None
     finally:
         if root in sys.path:
@@ -156,13 +151,13 @@ def _import(module: str, entry: str, key: str) -> ModuleType:
                 "sys.path; put the module in the scenario's folder or install it."
             ) from None
         raise ScenarioError(
-            f"{key}: {entry!r}: importing {module} failed: {_one_line(err)}"
+            f"{key}: {entry!r}: importing {module} failed: {status_line(err)}"
         ) from None
     except KeyboardInterrupt:
         raise
     except BaseException as err:
         raise ScenarioError(
-            f"{key}: {entry!r}: importing {module} failed: {_one_line(err)}"
+            f"{key}: {entry!r}: importing {module} failed: {status_line(err)}"
         ) from None
 
 
@@ -205,7 +200,7 @@ def _call_entry(entry: str, key: str, kind: type, not_callable: str, wrong_type:
     except KeyboardInterrupt:
         raise
     except BaseException as err:
-        raise ScenarioError(f"{key}: {entry!r} raised {_one_line(err)}") from None
+        raise ScenarioError(f"{key}: {entry!r} raised {status_line(err)}") from None
     if not isinstance(result, kind):
         raise ScenarioError(
             f"{key}: {entry!r} returned an object of type {type(result).__name__}{wrong_type}"

@@ -46,6 +46,7 @@ The plant, observer, controller and running cost are C++ symbolic blocks when
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -60,7 +61,7 @@ from ofrl_drake.baselines import (
 )
 from ofrl_drake.bellman import PointFeatures, point_features
 from ofrl_drake.drake_typing import DrakeArray
-from ofrl_drake.errors import ModelError, ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.points import grid_points, uniform_points
@@ -165,8 +166,9 @@ def plant(parts: ClosedLoopParts) -> System:
 def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> JacobianBounds:
     """The Jacobian bounds of ``system`` over the observer box, by the scenario's method.
 
-    Their refinement stops after ``simulation.max_wall_time`` (``--max-wall``)
-    seconds, with the sound bounds reached so far, and at the tolerances
+    The symbolic Jacobians and the refinement stop after
+    ``simulation.max_wall_time`` (``--max-wall``) seconds, the refinement with
+    the sound bounds reached so far, and at the tolerances
     ``observer.jacobian_tol`` and ``observer.jacobian_rtol`` when given.
     """
     from ofrl_drake.jacobian_bounds import DEFAULT_TOL, jacobian_bounds
@@ -183,20 +185,52 @@ def scenario_bounds(scenario: Scenario, system: ControlAffineSystem) -> Jacobian
     )
 
 
+def _time_left(scenario: Scenario, start: float) -> float | None:
+    """Seconds of the design's ``max_wall_time`` left since ``start`` (None: no limit).
+
+    Raises
+    ------
+    WallTimeExceeded
+        If the Jacobian bounds used the whole budget, leaving nothing for the LMI.
+    """
+    budget = scenario.simulation.max_wall_time
+    if budget is None:
+        return None
+    used = time.monotonic() - start
+    if used >= budget:
+        raise WallTimeExceeded(
+            f"the observer design's Jacobian bounds took {used:.3g} s of max_wall_time "
+            f"(--max-wall) = {budget:g} s, leaving nothing for the LMI; allow more wall "
+            "time, shrink the observer box, or loosen observer.jacobian_tol.",
+            step="Jacobian bounds",
+        )
+    return budget - used
+
+
 def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> ObserverDesign:
     """The observer design of ``scenario``: certified by LMI unless gains are pinned.
 
     Pinned gains (``observer.L/H/K``) are wrapped with their Jacobian bounds and
-    certificate, which reports honestly whether they satisfy the LMI. The
-    Jacobian bounds' refinement stops after ``simulation.max_wall_time``
-    (``--max-wall``) seconds, with the sound bounds reached so far.
+    certificate, which reports honestly whether they satisfy the LMI.
+    ``simulation.max_wall_time`` (``--max-wall``) bounds the whole design: the
+    Jacobian bounds (:func:`scenario_bounds`) and then the LMI solve, which gets
+    the time they leave as its solver's time limit.
+
+    Raises
+    ------
+    WallTimeExceeded
+        If the design does not finish within ``simulation.max_wall_time``.
+    ObserverDesignInfeasible
+        If no certified gains exist (or the pinned ones are not certified).
     """
     from ofrl_drake.design import ObserverDesign, design_observer
 
+    start = time.monotonic()
     system = system or resolve_system(scenario)
     o = scenario.observer
     box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
     bounds = scenario_bounds(scenario, system)
+    time_limit = _time_left(scenario, start)
     if o.L is not None:
         return ObserverDesign.from_gains(
             system,
@@ -208,6 +242,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
             K=np.asarray(o.K, float),
             bounds=bounds,
             formulation=o.formulation,
+            time_limit=time_limit,
         )
     return design_observer(
         system,
@@ -217,14 +252,15 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
         bounds=bounds,
         solver=o.solver,
         formulation=o.formulation,
+        time_limit=time_limit,
     )
 
 
 def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> ObserverDesign:
     """The scenario's observer design with ``H = K = 0`` and ``L`` from the same LMI.
 
-    Same box, input bound, decay rate, Jacobian method, solver and
-    formulation as :func:`design_for`, with ``injection_gains=False``. The
+    Same box, input bound, decay rate, Jacobian method, solver, formulation and
+    wall-time budget as :func:`design_for`, with ``injection_gains=False``. The
     ``polytopic`` formulation has ``H = K = 0`` already, so there it returns
     the three-gain design itself; under ``paper`` it is a linear Luenberger
     gain certified by (lmi2).
@@ -237,19 +273,24 @@ def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> O
     ------
     ObserverDesignInfeasible
         If the LMI has no solution with ``H = K = 0``.
+    WallTimeExceeded
+        If the design does not finish within ``simulation.max_wall_time``.
     """
     from ofrl_drake.design import design_observer
 
+    start = time.monotonic()
     o = scenario.observer
+    bounds = scenario_bounds(scenario, system)
     return design_observer(
         system,
         (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)),
         scenario.input_bound,
         o.alpha,
-        bounds=scenario_bounds(scenario, system),
+        bounds=bounds,
         solver=o.solver,
         formulation=o.formulation,
         injection_gains=False,
+        time_limit=_time_left(scenario, start),
     )
 
 

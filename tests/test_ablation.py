@@ -27,9 +27,11 @@ from ofrl_drake.ablation_metrics import (
     settling_time,
     time_outside_box,
 )
-from ofrl_drake.ablation_tasks import run_variant
+from ofrl_drake.ablation_tasks import _run, _scenario_for, run_variant
 from ofrl_drake.cli import main
+from ofrl_drake.diagram import build_closed_loop
 from ofrl_drake.slots import VARIANT_FACTORIES
+from ofrl_drake.variants import design_for
 
 from .conftest import PAPER_SCENARIO, ROOT
 
@@ -311,14 +313,29 @@ def test_a_run_keeps_the_scenario_s_constant_input(paper_scenario):
 
 
 def test_a_run_the_guard_stops_is_recorded_with_its_status(paper_scenario):
+    # The design fits no budget of 1 ms, so it is made without one and the loop
+    # built with it: the guard, not the design, stops the run.
+    baseline = Variant("baseline")
     simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3)
     scenario = dataclasses.replace(paper_scenario, simulation=simulation)
-    outcome = run_variant(scenario, Variant("baseline"), [-1.0, 1.0])
+    run = _scenario_for(scenario, baseline, [-1.0, 1.0], None)
+    loop = build_closed_loop(run, design=design_for(paper_scenario))
+    outcome = _run(loop, None, run, baseline, build_share=0.0)
     assert outcome.status.startswith("timeout: wall time ")
     assert "exceeded max_wall_time = 0.001 s" in outcome.status
     # A truncated run is not comparable with J*: no metrics, no warm start.
     assert all(math.isnan(v) for v in outcome.metrics.values())
     assert outcome.logs["t"].size >= 1
+    assert outcome.warm_start() is None
+
+
+def test_a_design_out_of_wall_time_is_a_timeout_row(paper_scenario):
+    simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3)
+    scenario = dataclasses.replace(paper_scenario, simulation=simulation)
+    outcome = run_variant(scenario, Variant("baseline"), [-1.0, 1.0])
+    assert outcome.status.startswith("timeout: the observer design's Jacobian bounds took ")
+    assert "max_wall_time (--max-wall) = 0.001 s" in outcome.status
+    assert all(math.isnan(v) for v in outcome.metrics.values())
     assert outcome.warm_start() is None
 
 

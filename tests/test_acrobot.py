@@ -6,26 +6,16 @@ no counterexample, and the run converges to |x - x*|, |e| < 1e-3.
 """
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from ofrl_drake.scenario import load_scenario
+from tests.cli_helpers import run_cli
 
 from .conftest import ROOT
 
 ACROBOT = ROOT / "diagrams" / "acrobot.yaml"
-
-
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=1200,
-    )
 
 
 def test_w0_is_the_lqr_value_of_the_urdfs_linearization():
@@ -57,18 +47,18 @@ def test_w0_is_the_lqr_value_of_the_urdfs_linearization():
 @pytest.mark.slow
 def test_the_acrobot_is_certified_verified_and_balanced(tmp_path):
     design = tmp_path / "design.json"
-    proc = _cli("design-observer", ACROBOT, "--out", design)
+    proc = run_cli("design-observer", ACROBOT, "--out", design)
     assert proc.returncode == 0, proc.stderr
     d = json.loads(design.read_text())
     assert d["is_decay_certified"] and d["bounds_are_guaranteed"]
     assert d["jacobian_method"] == "certified"
     assert d["gain_norm"] <= 1e3
 
-    proc = _cli("verify-observer", ACROBOT, "--samples", 20000)
+    proc = run_cli("verify-observer", ACROBOT, "--samples", 20000)
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
     out = tmp_path / "run"
-    proc = _cli("run", ACROBOT, "--out", out, "--checkpoints", 0, "--quiet")
+    proc = run_cli("run", ACROBOT, "--out", out, "--checkpoints", 0, "--quiet")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "ok"

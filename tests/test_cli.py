@@ -13,17 +13,9 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
+from tests.cli_helpers import run_cli
+
 from .conftest import PAPER_SCENARIO
-
-
-def _cli(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=900,
-    )
 
 
 def _short_scenario(tmp_path, duration=2.0, **edits):
@@ -38,7 +30,7 @@ def _short_scenario(tmp_path, duration=2.0, **edits):
 
 def test_run_writes_every_output(tmp_path):
     out = tmp_path / "out"
-    proc = _cli("run", _short_scenario(tmp_path), "--out", out)
+    proc = run_cli("run", _short_scenario(tmp_path), "--out", out)
     assert proc.returncode == 0, proc.stderr
     data = np.load(out / "trajectories.npz")
     assert set(data.files) == {
@@ -100,7 +92,7 @@ def test_run_writes_every_output(tmp_path):
 
 def test_bad_scenario_exits_2_with_one_line_and_no_output(tmp_path):
     out = tmp_path / "out"
-    proc = _cli("run", _short_scenario(tmp_path, input_bound=-3.0), "--out", out)
+    proc = run_cli("run", _short_scenario(tmp_path, input_bound=-3.0), "--out", out)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
@@ -111,7 +103,7 @@ def test_bad_scenario_exits_2_with_one_line_and_no_output(tmp_path):
 
 
 def test_missing_scenario_exits_2(tmp_path):
-    proc = _cli("run", tmp_path / "nope.yaml", "--out", tmp_path / "out")
+    proc = run_cli("run", tmp_path / "nope.yaml", "--out", tmp_path / "out")
     assert proc.returncode == 2
     assert "no such scenario file" in proc.stderr
     assert not (tmp_path / "out").exists()
@@ -127,7 +119,7 @@ def _scenario_with(tmp_path, **observer):
 
 def test_design_observer_writes_the_certificate(tmp_path):
     out = tmp_path / "design.json"
-    proc = _cli("design-observer", PAPER_SCENARIO, "--out", out)
+    proc = run_cli("design-observer", PAPER_SCENARIO, "--out", out)
     assert proc.returncode == 0, proc.stderr
     design = json.loads(out.read_text())
     for key in (
@@ -174,7 +166,7 @@ def test_design_observer_writes_the_certificate(tmp_path):
 
 def test_infeasible_design_exits_2_with_one_line(tmp_path):
     out = tmp_path / "design.json"
-    proc = _cli("design-observer", _scenario_with(tmp_path, alpha=500.0), "--out", out)
+    proc = run_cli("design-observer", _scenario_with(tmp_path, alpha=500.0), "--out", out)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "alpha" in lines[0], proc.stderr
@@ -187,7 +179,7 @@ def test_run_refuses_to_replace_a_folder_it_did_not_write(tmp_path):
     out = tmp_path / "precious"
     out.mkdir()
     (out / "notes.txt").write_text("keep me")
-    proc = _cli("run", _short_scenario(tmp_path, duration=0.5), "--out", out)
+    proc = run_cli("run", _short_scenario(tmp_path, duration=0.5), "--out", out)
     assert proc.returncode == 2
     assert "is not empty and was not written by ofrl-drake run" in proc.stderr
     assert (out / "notes.txt").read_text() == "keep me"
@@ -197,9 +189,9 @@ def test_run_refuses_to_replace_a_folder_it_did_not_write(tmp_path):
 def test_run_replaces_its_own_earlier_output(tmp_path):
     out = tmp_path / "out"
     scenario = _short_scenario(tmp_path, duration=0.5)
-    assert _cli("run", scenario, "--out", out).returncode == 0
+    assert run_cli("run", scenario, "--out", out).returncode == 0
     (out / "stale.txt").write_text("from an older run")
-    proc = _cli("run", scenario, "--out", out)
+    proc = run_cli("run", scenario, "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert not (out / "stale.txt").exists() and (out / "summary.json").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenario.yaml"]
@@ -209,7 +201,7 @@ def test_run_without_a_certified_box_says_what_was_checked(tmp_path):
     data = yaml_load(data=PAPER_SCENARIO.read_text())
     variant = dict(data.get("variant") or {})
     variant["observer"] = "true_state"
-    proc = _cli(
+    proc = run_cli(
         "run", _short_scenario(tmp_path, duration=0.2, variant=variant), "--out", tmp_path / "o"
     )
     assert proc.returncode == 0, proc.stderr
@@ -223,10 +215,10 @@ def test_run_without_a_certified_box_says_what_was_checked(tmp_path):
 
 def test_bad_out_paths_exit_2_with_one_line(tmp_path):
     (tmp_path / "afile").write_text("x")
-    proc = _cli("run", PAPER_SCENARIO, "--out", tmp_path / "afile" / "sub")
+    proc = run_cli("run", PAPER_SCENARIO, "--out", tmp_path / "afile" / "sub")
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "afile is a file, so" in proc.stderr
-    proc = _cli("design-observer", PAPER_SCENARIO, "--out", tmp_path)
+    proc = run_cli("design-observer", PAPER_SCENARIO, "--out", tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "is a folder; name a file inside it" in proc.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
@@ -254,7 +246,7 @@ def test_run_without_dot_writes_the_source_and_says_so(tmp_path):
 def test_version_prints_the_package_version_without_loading_drake():
     from ofrl_drake import __version__
 
-    proc = _cli("--version")
+    proc = run_cli("--version")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == f"ofrl-drake {__version__}"
     # The command starts without Drake, so a SIGINT during its imports is handled.
@@ -282,7 +274,7 @@ def _cannot_write_in(folder):
 def test_unwritable_out_parents_exit_2_with_one_line(tmp_path):
     target = "/sys/ofrl_drake_test_out/sub"  # sysfs refuses new entries, even to root
     for command in ("run", "design-observer"):
-        proc = _cli(command, PAPER_SCENARIO, "--out", target)
+        proc = run_cli(command, PAPER_SCENARIO, "--out", target)
         assert proc.returncode == 2, proc.stderr
         assert proc.stderr.count("\n") == 1, proc.stderr
         assert proc.stderr.startswith("error: --out: cannot write in /sys"), proc.stderr
@@ -290,7 +282,7 @@ def test_unwritable_out_parents_exit_2_with_one_line(tmp_path):
 
 
 def test_malformed_scheduler_address_exits_2_with_one_line(tmp_path):
-    proc = _cli("ablate", PAPER_SCENARIO, "--out", tmp_path / "o", "--scheduler", "notanaddress")
+    proc = run_cli("ablate", PAPER_SCENARIO, "--out", tmp_path / "o", "--scheduler", "notanaddress")
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.count("\n") == 1, proc.stderr
     assert proc.stderr.startswith("error: --scheduler: 'notanaddress' is not a scheduler address")
@@ -305,7 +297,7 @@ def test_resume_with_another_seed_exits_2_naming_it(tmp_path):
     (out / "ablation.json").write_text(json.dumps({"seed": 0}) + "\n")
     (out / "ablation.csv").write_text(",".join(CSV_COLUMNS) + "\n")
     args = ["ablate", PAPER_SCENARIO, "--out", out, "--workers", "0", "--resume"]
-    proc = _cli(*args, "--seed", "1")
+    proc = run_cli(*args, "--seed", "1")
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.count("\n") == 1, proc.stderr
     assert "--resume: the folder's sweep used --seed 0, this one --seed 1" in proc.stderr
@@ -358,7 +350,7 @@ def test_sigint_at_any_moment_exits_130_with_one_line(tmp_path, moment):
 
 def test_run_scenario_yaml_reproduces_the_run_bit_for_bit(tmp_path):
     first = tmp_path / "first"
-    proc = _cli("run", _short_scenario(tmp_path), "--out", first, "--quiet")
+    proc = run_cli("run", _short_scenario(tmp_path), "--out", first, "--quiet")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((first / "summary.json").read_text())
     assert summary["status"] == "ok"
@@ -368,7 +360,7 @@ def test_run_scenario_yaml_reproduces_the_run_bit_for_bit(tmp_path):
     assert " -m ofrl_drake run " in origin["command_line"]
     assert origin["started"].endswith("+00:00")
     again = tmp_path / "again"
-    proc = _cli("run", first / "scenario.yaml", "--out", again, "--quiet")
+    proc = run_cli("run", first / "scenario.yaml", "--out", again, "--quiet")
     assert proc.returncode == 0, proc.stderr
     with np.load(first / "trajectories.npz") as a, np.load(again / "trajectories.npz") as b:
         assert a.files == b.files

@@ -19,7 +19,7 @@ from ofrl_drake.design import (
     design_observer,
     max_decay_rate,
 )
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.examples import make_system
 from ofrl_drake.jacobian_bounds import BoxError, JacobianBounds, jacobian_bounds
 from ofrl_drake.lmi import certificate, decay_certificate, lmi_matrix
@@ -542,6 +542,84 @@ def test_argument_errors(two_state, bounds2):
         design_observer(two_state, BOX2, 3.0, 1.0, jacobian_method="exact")
 
 
+# --------------------------------------------------------------- time limit
+@pytest.mark.parametrize("backend", ["drake", "cvxpy"])
+def test_a_time_limit_the_lmi_cannot_meet_raises_wall_time_exceeded(two_state, certified2, backend):
+    with pytest.raises(
+        WallTimeExceeded,
+        match=rf"the observer LMI \(polytopic, clarabel/{backend}\) ran out of its time "
+        r"limit of 1e-06 s .*allow more wall time",
+    ) as caught:
+        design_observer(
+            two_state, BOX2, 3.0, 0.9, bounds=certified2, backend=backend, time_limit=1e-6
+        )
+    assert caught.value.step == "LMI solve"
+
+
+def test_scs_and_pinned_gains_are_bounded_too(two_state, certified2, poly2):
+    with pytest.raises(WallTimeExceeded, match=r"polytopic, scs/drake"):
+        design_observer(two_state, BOX2, 3.0, 0.9, bounds=certified2, solver="scs", time_limit=1e-6)
+    with pytest.raises(WallTimeExceeded, match=r"ran out of its time limit"):
+        ObserverDesign.from_gains(
+            two_state, BOX2, 3.0, 0.9, poly2.L, poly2.H, poly2.K, bounds=certified2,
+            time_limit=1e-6,
+        )  # fmt: skip
+
+
+def test_a_time_limit_that_is_met_changes_nothing(two_state, certified2, poly2):
+    timed = design_observer(two_state, BOX2, 3.0, 0.9, bounds=certified2, time_limit=600.0)
+    np.testing.assert_array_equal(timed.P, poly2.P)
+    np.testing.assert_array_equal(timed.L, poly2.L)
+    assert timed.solve_time < 600.0
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), "10"])
+def test_time_limit_must_be_a_positive_number(two_state, bounds2, bad):
+    with pytest.raises(DesignError, match=r"time_limit must be a positive number of seconds"):
+        design_observer(two_state, BOX2, 3.0, 0.9, bounds=bounds2, time_limit=bad)
+
+
+def test_csdp_has_no_time_limit_and_is_refused_with_one(two_state, bounds2):
+    with pytest.raises(
+        DesignError,
+        match=r"solver 'csdp' has no time limit, so max_wall_time \(--max-wall\) = 5 s "
+        r"cannot bound the LMI solve; use solver 'clarabel' or 'scs'",
+    ):
+        design_observer(two_state, BOX2, 3.0, 0.9, bounds=bounds2, solver="csdp", time_limit=5)
+
+
+def test_a_scenarios_max_wall_time_bounds_its_whole_design(paper_scenario, monkeypatch):
+    import ofrl_drake.design as design_module
+    from ofrl_drake.variants import design_for
+
+    timed = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, max_wall_time=30.0),
+    )
+    limits = []
+    solve = design_module.design_observer
+
+    def spy(*args, **kwargs):
+        limits.append(kwargs["time_limit"])
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(design_module, "design_observer", spy)
+    assert design_for(timed).is_certified
+    assert design_for(paper_scenario).is_certified
+    # The LMI gets what the Jacobian bounds leave of the budget; no budget, no limit.
+    assert 0.0 < limits[0] < 30.0 and limits[1] is None
+    rushed = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3),
+    )
+    with pytest.raises(
+        WallTimeExceeded,
+        match=r"the observer design's Jacobian bounds took .* s of max_wall_time "
+        r"\(--max-wall\) = 0\.001 s, leaving nothing for the LMI",
+    ):
+        design_for(rushed)
+
+
 def test_too_many_corners_is_a_design_error():
     n = 5
     A = -np.eye(n)
@@ -633,8 +711,8 @@ def test_a_solution_that_fails_the_certificate_is_inaccurate_not_infeasible(
 
     real = design_module._solve
 
-    def sloppy(problem, solver, backend):  # a solver that returns R off by a factor 3
-        sol = real(problem, solver, backend)
+    def sloppy(problem, solver, backend, time_limit):  # returns R off by a factor 3
+        sol = real(problem, solver, backend, time_limit)
         return dataclasses.replace(sol, R=3.0 * sol.R)
 
     monkeypatch.setattr(design_module, "_solve", sloppy)

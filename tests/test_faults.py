@@ -20,20 +20,11 @@ from pydrake.common.yaml import yaml_dump, yaml_load
 
 from ofrl_drake.atomic import atomic_write_text, output_lock
 from ofrl_drake.errors import OutputError
+from tests.cli_helpers import run_cli
 
 from .conftest import PAPER_SCENARIO, ROOT
 
 PENDULUM = ROOT / "diagrams" / "pendulum_upright.yaml"
-
-
-def _cli(*args, cwd=None, timeout=900):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=cwd,
-    )
 
 
 def _one_line(proc, code, pattern):
@@ -55,29 +46,29 @@ def _short(tmp_path, source=PAPER_SCENARIO, **simulation):
 def test_out_refuses_a_fifo_a_symlink_and_a_device(tmp_path):
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)
-    proc = _cli("design-observer", PAPER_SCENARIO, "--out", fifo)
+    proc = run_cli("design-observer", PAPER_SCENARIO, "--out", fifo)
     _one_line(proc, 2, r"--out: .*pipe is not a regular file \(a device, FIFO or socket\)")
     assert fifo.is_fifo()  # untouched
     target = tmp_path / "real.json"
     target.write_text("{}")
     link = tmp_path / "link.json"
     link.symlink_to(target)
-    proc = _cli("design-observer", PAPER_SCENARIO, "--out", link)
+    proc = run_cli("design-observer", PAPER_SCENARIO, "--out", link)
     _one_line(proc, 2, r"--out: .*link\.json is a symbolic link")
     assert link.is_symlink() and target.read_text() == "{}"
-    proc = _cli("verify-observer", PAPER_SCENARIO, "--samples", 10, "--out", "/dev/null")
+    proc = run_cli("verify-observer", PAPER_SCENARIO, "--samples", 10, "--out", "/dev/null")
     _one_line(proc, 2, r"--out: /dev/null is not a regular file")
     assert not os.path.isfile("/dev/null")  # still the device
     os.symlink(tmp_path, tmp_path / "dir_link")
-    proc = _cli("run", PAPER_SCENARIO, "--out", tmp_path / "dir_link")
+    proc = run_cli("run", PAPER_SCENARIO, "--out", tmp_path / "dir_link")
     _one_line(proc, 2, r"--out: .*dir_link is a symbolic link")
 
 
 def test_out_refuses_the_empty_path_and_the_current_folder(tmp_path):
     (tmp_path / "keep.txt").write_text("mine")
-    proc = _cli("run", PAPER_SCENARIO, "--out", "", cwd=tmp_path)
+    proc = run_cli("run", PAPER_SCENARIO, "--out", "", cwd=tmp_path)
     _one_line(proc, 2, r"--out: the path is empty")
-    proc = _cli("run", PAPER_SCENARIO, "--out", ".", cwd=tmp_path)
+    proc = run_cli("run", PAPER_SCENARIO, "--out", ".", cwd=tmp_path)
     _one_line(proc, 2, r"--out: .* is the current folder or holds it")
     assert (tmp_path / "keep.txt").read_text() == "mine"
 
@@ -130,7 +121,7 @@ def test_a_partial_folder_of_a_dead_run_is_removed_by_the_next_run(tmp_path):
     stale = tmp_path / ".o.partial-4194303.abc"  # above any pid: its process is gone
     stale.mkdir()
     (stale / "summary.json").write_text('{"status": "ok"}')
-    proc = _cli("run", _short(tmp_path), "--out", out, "--quiet", "--checkpoints", "0")
+    proc = run_cli("run", _short(tmp_path), "--out", out, "--quiet", "--checkpoints", "0")
     assert proc.returncode == 0, proc.stderr
     assert not stale.exists()
     assert (out / "summary.json").is_file()
@@ -140,9 +131,9 @@ def test_a_partial_folder_of_a_dead_run_is_removed_by_the_next_run(tmp_path):
 def test_a_second_writer_of_the_same_output_is_refused(tmp_path):
     out = tmp_path / "o"
     with output_lock(out):
-        proc = _cli("run", _short(tmp_path), "--out", out, "--quiet")
+        proc = run_cli("run", _short(tmp_path), "--out", out, "--quiet")
         _one_line(proc, 2, r"--out: another ofrl-drake command is writing .*o now")
-        proc = _cli("ablate", _short(tmp_path), "--workers", 0, "--out", out)
+        proc = run_cli("ablate", _short(tmp_path), "--workers", 0, "--out", out)
         _one_line(proc, 2, r"--out: another ofrl-drake command is writing")
     assert not out.exists()
 
@@ -154,7 +145,7 @@ def test_duplicate_keys_are_refused_with_both_lines(tmp_path):
     )
     path = tmp_path / "dup.yaml"
     path.write_text(text)
-    proc = _cli("run", path, "--out", tmp_path / "o")
+    proc = run_cli("run", path, "--out", tmp_path / "o")
     _one_line(proc, 2, r"key 'name' appears twice in one mapping \(lines \d+ and \d+\)")
 
 
@@ -166,7 +157,7 @@ def test_an_alias_bomb_is_refused_at_once(tmp_path):
     path = tmp_path / "bomb.yaml"
     path.write_text("\n".join(rows) + "\n")
     start = time.perf_counter()
-    proc = _cli("run", path, "--out", tmp_path / "o")
+    proc = run_cli("run", path, "--out", tmp_path / "o")
     _one_line(proc, 2, r"expands to more than 100000 values")
     assert time.perf_counter() - start < 60  # was: 123 s and 11.5 GB
 
@@ -193,7 +184,7 @@ def test_a_long_list_without_aliases_is_named_by_its_line_not_blamed_on_aliases(
 def test_a_huge_file_is_refused_before_parsing(tmp_path):
     path = tmp_path / "huge.yaml"
     path.write_text("name: " + "x" * 2_000_000 + "\n")
-    proc = _cli("run", path, "--out", tmp_path / "o")
+    proc = run_cli("run", path, "--out", tmp_path / "o")
     _one_line(proc, 2, r"the file is 2\.0 MB; a scenario file is at most 1 MB")
 
 
@@ -203,17 +194,17 @@ def test_an_input_bound_that_would_overflow_is_named(tmp_path):
     data["input_bound"] = 1e308
     path = tmp_path / "huge_u.yaml"
     path.write_text(yaml_dump(data))
-    proc = _cli("design-observer", path, "--out", tmp_path / "d.json")
+    proc = run_cli("design-observer", path, "--out", tmp_path / "d.json")
     _one_line(proc, 2, r"input_bound: 1e\+308 is beyond what the input sector .* at most 1e\+12")
 
 
 def test_a_log_period_beyond_the_horizon_is_refused(tmp_path):
-    proc = _cli("run", _short(tmp_path, log_period=5.0), "--out", tmp_path / "o")
+    proc = run_cli("run", _short(tmp_path, log_period=5.0), "--out", tmp_path / "o")
     _one_line(proc, 2, r"simulation\.log_period: 5\.0 s is longer than the horizon")
 
 
 def test_cenic_is_not_offered(tmp_path):
-    proc = _cli("run", _short(tmp_path, integrator="cenic"), "--out", tmp_path / "o")
+    proc = run_cli("run", _short(tmp_path, integrator="cenic"), "--out", tmp_path / "o")
     _one_line(proc, 2, r"simulation\.integrator: unknown scheme 'cenic'; choose one of \[")
     assert "'cenic'" not in proc.stderr.split("choose one of")[1]
 
@@ -221,7 +212,7 @@ def test_cenic_is_not_offered(tmp_path):
 # --------------------------------------------------------------- regulated
 def test_summary_says_whether_the_run_regulated_and_run_warns_when_not(tmp_path):
     out = tmp_path / "short"
-    proc = _cli("run", _short(tmp_path, source=PENDULUM, duration=0.3), "--out", out, "--quiet")
+    proc = run_cli("run", _short(tmp_path, source=PENDULUM, duration=0.3), "--out", out, "--quiet")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "ok" and summary["regulated"] is False
@@ -231,7 +222,7 @@ def test_summary_says_whether_the_run_regulated_and_run_warns_when_not(tmp_path)
     assert "warning: the run did not regulate: |x_" in proc.stderr
     assert "simulation.regulation_tolerance" in proc.stderr
     full = tmp_path / "full"
-    proc = _cli("run", PENDULUM, "--out", full, "--quiet", "--checkpoints", "0")
+    proc = run_cli("run", PENDULUM, "--out", full, "--quiet", "--checkpoints", "0")
     summary = json.loads((full / "summary.json").read_text())
     assert summary["regulated"] is True and "did not regulate" not in proc.stderr
     assert np.all(np.asarray(summary["regulation"]["final_error"]) < 1e-6)
@@ -246,23 +237,23 @@ def test_resume_retry_failed_reruns_failed_rows_and_a_missing_plan_is_explained(
     variants.write_text("baseline: {}\n")
     out = tmp_path / "sweep"
     args = ["ablate", scenario, "--variants", variants, "--workers", 0, "--out", out]
-    assert _cli(*args).returncode == 0
+    assert run_cli(*args).returncode == 0
     table = out / "ablation.csv"
     (row,) = read_rows(table)
     assert row["status"] == "ok" and row["regulated"] in ("true", "false")
     failed = table.read_text().replace(",ok\n", ",timeout: injected\n")
     table.write_text(failed)
-    proc = _cli(*args, "--resume")
+    proc = run_cli(*args, "--resume")
     assert proc.returncode == 0 and read_rows(table)[0]["status"].startswith("timeout")
-    proc = _cli(*args, "--resume", "--retry-failed")
+    proc = run_cli(*args, "--resume", "--retry-failed")
     assert proc.returncode == 0, proc.stderr
     rows = read_rows(table)
     assert len(rows) == 1 and rows[0]["status"] == "ok"
     assert tuple(table.read_text().splitlines()[0].split(",")) == CSV_COLUMNS
-    proc = _cli(*args[:-2], "--out", out, "--retry-failed")
+    proc = run_cli(*args[:-2], "--out", out, "--retry-failed")
     _one_line(proc, 2, r"--retry-failed: reruns failed rows of a sweep; pass --resume too")
     (out / "ablation.json").unlink()
-    proc = _cli(*args, "--resume")
+    proc = run_cli(*args, "--resume")
     _one_line(proc, 2, r"ablation\.json is missing; it records the sweep .* Restore it, or move")
 
 
@@ -287,7 +278,7 @@ def test_point_sets_are_checked_before_any_allocation(tmp_path, points, message)
     path = tmp_path / "big.yaml"
     path.write_text(yaml_dump(data))
     start = time.perf_counter()
-    proc = _cli("run", path, "--out", tmp_path / "o")
+    proc = run_cli("run", path, "--out", tmp_path / "o")
     _one_line(proc, 2, message)
     assert time.perf_counter() - start < 60
 
@@ -297,8 +288,8 @@ def test_a_long_name_and_too_many_samples_are_refused(tmp_path):
     data["name"] = "n" * 20_000
     path = tmp_path / "long.yaml"
     path.write_text(yaml_dump(data))
-    _one_line(_cli("run", path, "--out", tmp_path / "o"), 2, r"name: 20000 characters")
-    proc = _cli("verify-observer", PAPER_SCENARIO, "--samples", 10**9)
+    _one_line(run_cli("run", path, "--out", tmp_path / "o"), 2, r"name: 20000 characters")
+    proc = run_cli("verify-observer", PAPER_SCENARIO, "--samples", 10**9)
     _one_line(proc, 2, r"samples: 1000000000 would need about .* GiB .* at most 10000000")
 
 
@@ -312,10 +303,10 @@ def test_a_cut_short_plan_and_a_failing_table_write_are_named(tmp_path, monkeypa
     variants.write_text("baseline: {}\n")
     out = tmp_path / "sweep"
     args = ["ablate", scenario, "--variants", variants, "--workers", 0, "--out", out]
-    assert _cli(*args).returncode == 0
+    assert run_cli(*args).returncode == 0
     plan = out / "ablation.json"
     plan.write_text(plan.read_text()[:40])
-    _one_line(_cli(*args, "--resume"), 2, r"ablation\.json is not valid JSON \(cut short\?\)")
+    _one_line(run_cli(*args, "--resume"), 2, r"ablation\.json is not valid JSON \(cut short\?\)")
     writer = RowWriter(tmp_path / "t.csv", ("a",), ())
     writer._fh.close()
     writer._fh = open("/dev/full", "w")  # every write: no space left on device
@@ -328,7 +319,7 @@ def test_a_scheduler_without_workers_is_waited_for_a_stated_time(tmp_path):
 
     with LocalCluster(n_workers=0, dashboard_address=None, processes=True) as cluster:
         start = time.perf_counter()
-        proc = _cli(
+        proc = run_cli(
             "ablate",
             _short(tmp_path),
             "--out",
@@ -344,7 +335,7 @@ def test_a_scheduler_without_workers_is_waited_for_a_stated_time(tmp_path):
 
 # ------------------------------------------------------------ first run
 def test_the_first_runs_warnings_point_to_the_docs(tmp_path):
-    proc = _cli("run", _short(tmp_path), "--out", tmp_path / "o", "--quiet", "--checkpoints", 0)
+    proc = run_cli("run", _short(tmp_path), "--out", tmp_path / "o", "--quiet", "--checkpoints", 0)
     assert proc.returncode == 0, proc.stderr
     assert "falsified: r = +" in proc.stdout
     assert "What the observer certificate does, and does not, prove" in proc.stdout
@@ -413,7 +404,7 @@ def _user_plant_scenario(tmp_path, module, source):
 
 def test_an_error_inside_the_users_f_names_the_users_file_not_ofrl_drake(tmp_path):
     path = _user_plant_scenario(tmp_path, "my_plant", USER_PLANT)
-    proc = _cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
+    proc = run_cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
     _one_line(
         proc,
         2,
@@ -445,7 +436,7 @@ def test_a_users_f_that_leaves_its_domain_stops_the_run_and_says_so(tmp_path):
     # log(nan) inside a traced f is raised by Drake's symbolic math mid-run: the run stops
     # as diverged (exit 3) naming the model and the cause, not as an internal error.
     path = _user_plant_scenario(tmp_path, "log_plant", LOG_PLANT)
-    proc = _cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
+    proc = run_cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
     assert proc.returncode == 3, proc.stderr
     assert "internal error" not in proc.stderr
     assert re.search(

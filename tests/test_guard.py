@@ -3,7 +3,6 @@
 import dataclasses
 import io
 import json
-import subprocess
 import sys
 
 import numpy as np
@@ -16,6 +15,7 @@ from ofrl_drake.errors import ScenarioError
 from ofrl_drake.guard import STATUS_DIVERGED, STATUS_OK, STATUS_TIMEOUT, RunGuard
 from ofrl_drake.scenario import ABORT_BOX_FACTOR, BoxConfig, abort_box, validate_scenario
 from ofrl_drake.simulation import TRAJECTORY_KEYS
+from tests.cli_helpers import run_cli
 
 from .conftest import PAPER_SCENARIO, ROOT
 
@@ -124,23 +124,13 @@ def test_the_guard_reports_a_non_finite_state(paper_scenario, paper_design):
     assert guard.stopped
 
 
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=ROOT,
-    )
-
-
 def test_a_far_initial_state_ends_diverged_with_exit_3_and_a_complete_folder(tmp_path):
     data = yaml_load(data=PAPER_SCENARIO.read_text())
     data["x0"] = [100.0, 100.0]
     path = tmp_path / "far.yaml"
     path.write_text(yaml_dump(data))
     out = tmp_path / "out"
-    proc = _cli("run", path, "--out", out, "--quiet")
+    proc = run_cli("run", path, "--out", out, "--quiet", cwd=ROOT)
     assert proc.returncode == 3, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 2, proc.stderr
@@ -157,8 +147,14 @@ def test_a_far_initial_state_ends_diverged_with_exit_3_and_a_complete_folder(tmp
 
 
 def test_max_wall_on_the_command_line_gives_timeout_and_exit_3(tmp_path):
+    # With the true state fed back there is no observer design to fit in 1 ms:
+    # the run itself is what --max-wall stops.
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["variant"] = {**data.get("variant", {}), "observer": "true_state"}
+    path = tmp_path / "true_state.yaml"
+    path.write_text(yaml_dump(data))
     out = tmp_path / "out"
-    proc = _cli("run", PAPER_SCENARIO, "--out", out, "--quiet", "--max-wall", "0.001")
+    proc = run_cli("run", path, "--out", out, "--quiet", "--max-wall", "0.001", cwd=ROOT)
     assert proc.returncode == 3, proc.stderr
     assert proc.stderr.startswith("stopped: timeout: wall time")
     assert proc.stderr.count("\n") == 1
@@ -166,6 +162,19 @@ def test_max_wall_on_the_command_line_gives_timeout_and_exit_3(tmp_path):
     assert summary["status"] == "timeout"
     scenario = yaml_load(data=(out / "scenario.yaml").read_text())
     assert scenario["simulation"]["max_wall_time"] == 0.001
+
+
+@pytest.mark.parametrize("command", ["run", "design-observer", "verify-observer"])
+def test_max_wall_bounds_the_observer_design_too(tmp_path, command):
+    out = tmp_path / "out.json"
+    args = [] if command == "verify-observer" else ["--out", out]
+    proc = run_cli(command, PAPER_SCENARIO, *args, "--max-wall", "0.001", cwd=ROOT)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith("error: the observer design's Jacobian bounds took ")
+    assert "max_wall_time (--max-wall) = 0.001 s, leaving nothing for the LMI" in lines[0]
+    assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
 class _FiniteTimeBlowUp(LeafSystem):

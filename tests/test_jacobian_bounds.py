@@ -1,11 +1,13 @@
 """Jacobian bounds: closed forms, containment, certified enclosures, errors."""
 
+import time
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.examples import make_system
 from ofrl_drake.interval import UnsupportedExpressionError
 from ofrl_drake.jacobian_bounds import (
@@ -271,11 +273,35 @@ def test_rtol_loosens_the_tolerance_relative_to_the_sampled_width(two_state, two
 
 def test_max_wall_time_stops_the_refinement_with_sound_bounds(coupled):
     s4 = jacobian_bounds(coupled, BOX4, "sampled")
-    rushed = jacobian_bounds(coupled, BOX4, "certified", tol=1e-9, max_wall_time=1e-6)
+    # tol = 1e-9 is out of reach and max_boxes is not binding: only the clock stops it
+    # (the symbolic Jacobians of this n = 4 plant take milliseconds of the 0.5 s).
+    rushed = jacobian_bounds(
+        coupled, BOX4, "certified", tol=1e-9, max_boxes=10**9, max_wall_time=0.5
+    )
     assert not rushed.excess.converged
     assert rushed.contains(s4)
     with pytest.raises(BoundsError, match=r"max_wall_time must be a positive number.*got 0"):
         jacobian_bounds(coupled, BOX4, "certified", max_wall_time=0)
+
+
+@pytest.mark.parametrize("method", ["sampled", "certified"])
+def test_max_wall_time_also_bounds_the_symbolic_jacobians(coupled, method):
+    # No sound partial result exists before every row is differentiated: past
+    # the deadline the next row is not started, and the error names it.
+    with pytest.raises(
+        WallTimeExceeded,
+        match=r"symbolic Jacobians of f and g were not done by the deadline "
+        r"\(max_wall_time, --max-wall\): f\[0\] was next",
+    ):
+        jacobian_bounds(coupled, BOX4, method, max_wall_time=1e-9)
+    # A deadline that is not reached changes nothing.
+    x, Jf, Jg = symbolic_jacobians(coupled, deadline=time.monotonic() + 3600.0)
+    x0, Jf0, Jg0 = symbolic_jacobians(coupled)
+    point = [0.3, -0.7, 1.1, 0.2]
+    for J, J0 in ((Jf, Jf0), (Jg, Jg0)):
+        values = [e.Evaluate(dict(zip(x, point, strict=True))) for e in J.ravel()]
+        values0 = [e.Evaluate(dict(zip(x0, point, strict=True))) for e in J0.ravel()]
+        np.testing.assert_array_equal(values, values0)
 
 
 def test_an_entry_still_infinite_when_the_budget_runs_out_is_named():

@@ -9,8 +9,6 @@ designs the falsifier cannot break, and one of them balances.
 
 import json
 import re
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -22,22 +20,13 @@ from ofrl_drake.design import design_observer
 from ofrl_drake.jacobian_bounds import jacobian_bounds
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.verification import verify_observer
+from tests.cli_helpers import run_cli
 
 from .conftest import ROOT
 
 CDP = ROOT / "diagrams" / "cart_double_pendulum.yaml"
 CDP_URDF = ROOT / "diagrams" / "models" / "cart_double_pendulum.urdf"
 ACROBOT_URDF = FindResourceOrThrow("drake/examples/acrobot/Acrobot.urdf")
-
-
-def _cli(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=900,
-    )
 
 
 def _lqr_w0(model_file, x_eq, Q, R):
@@ -73,7 +62,7 @@ def test_cart_double_pendulum_w0_is_the_lqr_value():
 
 def test_cart_double_pendulum_design_is_certified_from_the_cli(tmp_path):
     start = time.perf_counter()
-    proc = _cli("design-observer", CDP, "--out", tmp_path / "d.json")
+    proc = run_cli("design-observer", CDP, "--out", tmp_path / "d.json")
     elapsed = time.perf_counter() - start
     assert proc.returncode == 0, proc.stderr
     assert "decay-certified and not falsified" in proc.stdout
@@ -82,7 +71,7 @@ def test_cart_double_pendulum_design_is_certified_from_the_cli(tmp_path):
     assert d["jacobian_method"] == "certified" and d["bounds_are_guaranteed"] is True
     assert d["gain_norm"] < 1e3 and len(d["tau"]) == 3
     assert elapsed < 300.0  # the budget: 5 minutes on the 2-core VM (measured 12 s)
-    proc = _cli("verify-observer", CDP, "--samples", "3000")
+    proc = run_cli("verify-observer", CDP, "--samples", "3000")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert re.search(r"not falsified", proc.stdout)
 
@@ -90,7 +79,7 @@ def test_cart_double_pendulum_design_is_certified_from_the_cli(tmp_path):
 @pytest.mark.slow
 def test_cart_double_pendulum_balances(tmp_path):
     # 0.05 rad off upright, links moving at 0.1 rad/s, zero velocity estimates: about 1 minute.
-    proc = _cli("run", CDP, "--out", tmp_path / "out", "--quiet", "--checkpoints", "0")
+    proc = run_cli("run", CDP, "--out", tmp_path / "out", "--quiet", "--checkpoints", "0")
     assert proc.returncode == 0, proc.stderr
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert s["status"] == "ok" and s["regulated"]

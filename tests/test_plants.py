@@ -3,8 +3,6 @@
 import json
 import os
 import re
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
@@ -16,6 +14,7 @@ from ofrl_drake.ablation import read_rows
 from ofrl_drake.cli import main
 from ofrl_drake.errors import ScenarioError
 from ofrl_drake.plants import locate_system_entry, resolve_system
+from tests.cli_helpers import run_cli
 
 from .conftest import PAPER_SCENARIO, ROOT
 
@@ -65,22 +64,12 @@ def plant_folder(tmp_path):
     return folder
 
 
-def _cli(*args, cwd):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=600,
-    )
-
-
 def test_cli_runs_a_plant_from_a_module_beside_the_scenario(plant_folder, tmp_path):
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     scenario = _scenario(plant_folder, "users_plant:make_plant")
     out = tmp_path / "out"
-    proc = _cli("run", scenario, "--out", out, "--quiet", cwd=elsewhere)
+    proc = run_cli("run", scenario, "--out", out, "--quiet", cwd=elsewhere)
     assert proc.returncode == 0, proc.stderr
     mine = np.load(out / "trajectories.npz")
     # The same equations as the registered example: the same closed loop.
@@ -157,7 +146,7 @@ def test_bad_entries_raise_a_scenario_error_naming_the_entry(plant_folder, entry
 @pytest.mark.parametrize(("entry", "match"), ERRORS, ids=[e for e, _ in ERRORS])
 def test_cli_prints_bad_entries_on_one_line_and_exits_2(plant_folder, tmp_path, entry, match):
     out = tmp_path / "out"
-    proc = _cli("run", _scenario(plant_folder, entry), "--out", out, cwd=tmp_path)
+    proc = run_cli("run", _scenario(plant_folder, entry), "--out", out, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr

@@ -12,8 +12,6 @@ converges (slow, about 2 minutes).
 """
 
 import json
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -22,19 +20,11 @@ import pytest
 from ofrl_drake.jacobian_bounds import jacobian_bounds
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import load_scenario
+from tests.cli_helpers import run_cli
 
 from .conftest import ROOT
 
 QUADROTOR = ROOT / "diagrams" / "quadrotor.yaml"
-
-
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=1200,
-    )
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +82,7 @@ def test_the_quadrotor_is_certified_from_the_cli(tmp_path):
     # scenario, this one included (verify_observer on design_for's design).
     design = tmp_path / "design.json"
     start = time.perf_counter()
-    proc = _cli("design-observer", QUADROTOR, "--out", design)
+    proc = run_cli("design-observer", QUADROTOR, "--out", design)
     elapsed = time.perf_counter() - start
     assert proc.returncode == 0, proc.stderr
     assert "decay-certified and not falsified" in proc.stdout
@@ -108,7 +98,7 @@ def test_the_quadrotor_is_certified_from_the_cli(tmp_path):
 def test_the_quadrotor_converges_to_hover(tmp_path):
     # About 2 minutes: the design again, the falsifier, 10 s of closed loop.
     out = tmp_path / "run"
-    proc = _cli("run", QUADROTOR, "--out", out, "--checkpoints", 0, "--quiet")
+    proc = run_cli("run", QUADROTOR, "--out", out, "--checkpoints", 0, "--quiet")
     assert proc.returncode == 0, proc.stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "ok" and s["regulated"]

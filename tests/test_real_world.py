@@ -2,8 +2,6 @@
 
 import dataclasses
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -26,6 +24,7 @@ from ofrl_drake.monte_carlo import (
 from ofrl_drake.scenario import MeasurementConfig, TruthConfig
 from ofrl_drake.systems import ControlAffinePlant
 from ofrl_drake.systems.world import MeasuredPlant
+from tests.cli_helpers import run_cli
 
 from .conftest import ROOT
 
@@ -41,16 +40,6 @@ def real():
 @pytest.fixture(scope="module")
 def real_result(real):
     return simulate(real, progress=False)
-
-
-def _cli(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=cwd,
-    )
 
 
 # ---------------------------------------------------------------- done when
@@ -291,7 +280,7 @@ def test_montecarlo_command_on_dask(tmp_path):
     data["simulation"]["duration"] = 2.0
     data["truth"]["body_mass_scale"] = {"Pole": 1.3, "Cart": 0.8}
     scenario.write_text(yaml_dump(data))
-    proc = _cli("montecarlo", scenario, "--runs", 2, "--workers", 2, "--out", out)
+    proc = run_cli("montecarlo", scenario, "--runs", 2, "--workers", 2, "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert "wrote" in proc.stdout and "montecarlo.md" in proc.stdout
     rows = read_montecarlo_rows(out / "montecarlo.csv")
@@ -333,7 +322,7 @@ def test_bad_real_world_keys_exit_2_naming_the_key(tmp_path, edit, message):
     data.update(edit)
     path = tmp_path / "bad.yaml"
     path.write_text(yaml_dump(data))
-    proc = _cli("run", path, "--out", tmp_path / "o")
+    proc = run_cli("run", path, "--out", tmp_path / "o")
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(message, lines[0]), lines
@@ -349,9 +338,9 @@ def test_run_writes_a_scenario_yaml_that_reproduces_the_noisy_run(tmp_path):
     data["simulation"]["duration"] = 1.0
     path = tmp_path / "short.yaml"
     path.write_text(yaml_dump(data))
-    first = _cli("run", path, "--out", tmp_path / "a", "--quiet", "--checkpoints", "0")
+    first = run_cli("run", path, "--out", tmp_path / "a", "--quiet", "--checkpoints", "0")
     assert first.returncode == 0, first.stderr
-    again = _cli(
+    again = run_cli(
         "run",
         tmp_path / "a" / "scenario.yaml",
         "--out",

@@ -1,28 +1,19 @@
 """``ofrl-drake verify-observer`` and the verification shown next to every design."""
 
 import json
-import subprocess
-import sys
 
 import pytest
+
+from tests.cli_helpers import run_cli
 
 from .conftest import PAPER_SCENARIO, ROOT
 
 SOUND_SCENARIO = ROOT / "diagrams" / "two_state_sound.yaml"
 
 
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-
-
 def test_paper_design_is_falsified_exit_4_with_the_counterexample_in_one_line(tmp_path):
     out = tmp_path / "report.json"
-    proc = _cli("verify-observer", PAPER_SCENARIO, "--samples", 3000, "--seed", 1, "--out", out)
+    proc = run_cli("verify-observer", PAPER_SCENARIO, "--samples", 3000, "--seed", 1, "--out", out)
     assert proc.returncode == 4, proc.stderr
     lines = proc.stdout.strip().splitlines()
     assert len(lines) == 1
@@ -36,7 +27,7 @@ def test_paper_design_is_falsified_exit_4_with_the_counterexample_in_one_line(tm
 
 
 def test_sound_design_is_not_falsified_exit_0(tmp_path):
-    proc = _cli("verify-observer", SOUND_SCENARIO, "--samples", 3000)
+    proc = run_cli("verify-observer", SOUND_SCENARIO, "--samples", 3000)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("two_state_sound: decay-certified and not falsified")
 
@@ -49,21 +40,21 @@ def test_sound_design_is_not_falsified_exit_0(tmp_path):
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(args, message):
-    proc = _cli("verify-observer", PAPER_SCENARIO, *args)
+    proc = run_cli("verify-observer", PAPER_SCENARIO, *args)
     assert proc.returncode == 2
     assert proc.stderr.strip() == message
     assert proc.stdout == ""
 
 
 def test_missing_scenario_exits_2(tmp_path):
-    proc = _cli("verify-observer", tmp_path / "nope.yaml")
+    proc = run_cli("verify-observer", tmp_path / "nope.yaml")
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "no such scenario file" in proc.stderr
 
 
 def test_design_observer_shows_and_writes_its_verification(tmp_path):
     out = tmp_path / "design.json"
-    proc = _cli("design-observer", SOUND_SCENARIO, "--out", out)
+    proc = run_cli("design-observer", SOUND_SCENARIO, "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert "observer: decay-certified and not falsified" in proc.stdout
     verification = json.loads(out.read_text())["verification"]

@@ -23,7 +23,13 @@ import numpy as np
 
 from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import FORMULATIONS
-from ofrl_drake.design.sdp import LmiProblem, SdpBackend, SdpSolution
+from ofrl_drake.design.sdp import (
+    TIME_LIMIT_OPTIONS,
+    LmiProblem,
+    SdpBackend,
+    SdpSolution,
+    solver_time_limit,
+)
 
 __all__ = ["CVXPY_SOLVERS", "CvxpyBackend"]
 
@@ -41,7 +47,9 @@ class CvxpyBackend(SdpBackend):
     name = "cvxpy"
     solvers = tuple(CVXPY_SOLVERS)
 
-    def solve(self, problem: LmiProblem, solver: str) -> SdpSolution:
+    def solve(
+        self, problem: LmiProblem, solver: str, time_limit: float | None = None
+    ) -> SdpSolution:
         """Build and solve ``problem`` in cvxpy.
 
         Parameters
@@ -50,6 +58,9 @@ class CvxpyBackend(SdpBackend):
             The SDP data.
         solver : {"clarabel", "scs"}
             The cvxpy solver.
+        time_limit : float, optional
+            Seconds for building and solving, through the solver's own
+            time-limit option (:data:`~ofrl_drake.design.sdp.TIME_LIMIT_OPTIONS`).
 
         Returns
         -------
@@ -99,19 +110,30 @@ class CvxpyBackend(SdpBackend):
         else:
             objective = cp.Minimize(0)
         prob = cp.Problem(objective, constraints)
+        options = dict(_SOLVER_OPTIONS[solver])
+        limit = solver_time_limit(solver, time_limit, time.perf_counter() - start)
+        if limit is not None:
+            options[TIME_LIMIT_OPTIONS[solver]] = limit
         with warnings.catch_warnings():
             # "Solution may be inaccurate": the numpy certificate decides.
             warnings.simplefilter("ignore", UserWarning)
             try:
-                prob.solve(solver=CVXPY_SOLVERS[solver], **_SOLVER_OPTIONS[solver])
+                prob.solve(solver=CVXPY_SOLVERS[solver], **options)
             except cp.error.SolverError as err:
                 elapsed = time.perf_counter() - start
                 return SdpSolution(None, None, None, None, f"solver_error: {err}", False, elapsed)
         elapsed = time.perf_counter() - start
         status = str(prob.status)
+        # cvxpy reports a solver's time limit as "user_limit" (no numbers) or,
+        # with numbers, as "optimal_inaccurate".
+        timed_out = time_limit is not None and (
+            status == cp.USER_LIMIT or (status != cp.OPTIMAL and elapsed >= time_limit)
+        )
         infeasible = status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE)
         if infeasible or P.value is None:
-            return SdpSolution(None, None, None, None, status, infeasible, elapsed)
+            return SdpSolution(
+                None, None, None, None, status, infeasible, elapsed, timed_out=timed_out
+            )
         Pv = np.asarray(P.value, dtype=float)
         Rv = np.asarray(R.value, dtype=float) if problem.L is None else Pv @ problem.L
         if problem.HK is None:
@@ -120,4 +142,4 @@ class CvxpyBackend(SdpBackend):
         else:
             Hv, Kv = problem.HK
         tau_v = [np.asarray(t.value, dtype=float).ravel() for t in tau] if tau else None
-        return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed, tau_v)
+        return SdpSolution(Pv, Rv, Hv, Kv, status, False, elapsed, tau_v, timed_out)

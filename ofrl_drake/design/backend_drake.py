@@ -26,7 +26,13 @@ from pydrake.solvers import (
 
 from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import FORMULATIONS
-from ofrl_drake.design.sdp import LmiProblem, SdpBackend, SdpSolution
+from ofrl_drake.design.sdp import (
+    TIME_LIMIT_OPTIONS,
+    LmiProblem,
+    SdpBackend,
+    SdpSolution,
+    solver_time_limit,
+)
 from ofrl_drake.lmi import block_matrix
 
 __all__ = ["DrakeBackend"]
@@ -234,19 +240,29 @@ class DrakeBackend(SdpBackend):
     name = "drake"
     solvers = tuple(_MAKERS)
 
-    def solve(self, problem: LmiProblem, solver: str) -> SdpSolution:
+    def solve(
+        self, problem: LmiProblem, solver: str, time_limit: float | None = None
+    ) -> SdpSolution:
         """Build and solve ``problem`` with ``pydrake.solvers.MathematicalProgram``.
+
+        ``time_limit`` (seconds, building included) goes to the solver's own
+        time-limit option (:data:`~ofrl_drake.design.sdp.TIME_LIMIT_OPTIONS`).
 
         Raises
         ------
         DesignError
-            For an unknown solver or one not usable here (MOSEK without licence).
+            For an unknown solver, one not usable here (MOSEK without licence),
+            or a ``time_limit`` for CSDP, which has none.
         """
         drake_solver = _drake_solver(solver)
+        solver_time_limit(solver, time_limit, 0.0)  # refuse CSDP before the build
         start = time.perf_counter()
         prog, z, layout = _drake_program(problem)
         for key, value in _DRAKE_OPTIONS.get(solver, {}).items():
             prog.SetSolverOption(drake_solver.solver_id(), key, value)
+        limit = solver_time_limit(solver, time_limit, time.perf_counter() - start)
+        if limit is not None:
+            prog.SetSolverOption(drake_solver.solver_id(), TIME_LIMIT_OPTIONS[solver], limit)
         result = drake_solver.Solve(prog)
         elapsed = time.perf_counter() - start
         code = result.get_solution_result()
@@ -259,6 +275,11 @@ class DrakeBackend(SdpBackend):
             # Drake reports SCS's "solved inaccurate" (2) as kSolutionFound; say which.
             name = _SCS_STATUS.get(int(scs), f"code {int(scs)}")
             status = f"{status} (SCS: {name}, {details.iter} iterations)"
+        clean = code == SolutionResult.kSolutionFound and (scs is None or int(scs) == 1)
+        # Clarabel says "MaxTime"; SCS and MOSEK return what they have, inaccurate.
+        timed_out = time_limit is not None and (
+            "MaxTime" in status or (not clean and elapsed >= time_limit)
+        )
         infeasible = code in (
             SolutionResult.kInfeasibleConstraints,
             SolutionResult.kInfeasibleOrUnbounded,
@@ -266,4 +287,6 @@ class DrakeBackend(SdpBackend):
         if infeasible:
             return SdpSolution(None, None, None, None, status, True, elapsed)
         v = layout.unpack(np.asarray(result.GetSolution(z), dtype=float))
-        return SdpSolution(v["P"], v["R"], v["H"], v["K"], status, False, elapsed, v["tau"])
+        return SdpSolution(
+            v["P"], v["R"], v["H"], v["K"], status, False, elapsed, v["tau"], timed_out
+        )

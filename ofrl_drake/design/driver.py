@@ -16,7 +16,13 @@ import numpy as np
 from ofrl_drake.design.backends import SOLVERS, get_backend
 from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import get_formulation
-from ofrl_drake.design.pipeline import _box_and_bounds, _check_numbers, _finish, _problem
+from ofrl_drake.design.pipeline import (
+    _box_and_bounds,
+    _check_numbers,
+    _check_time_limit,
+    _finish,
+    _problem,
+)
 from ofrl_drake.design.result import ObserverDesign
 from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import JacobianBounds
@@ -41,6 +47,7 @@ def design_observer(
     sector: str = "sign_correct",
     formulation: str = "polytopic",
     injection_gains: bool = True,
+    time_limit: float | None = None,
 ) -> ObserverDesign:
     """Design certified observer gains by solving an LMI.
 
@@ -101,10 +108,13 @@ def design_observer(
     ------
     ObserverDesignInfeasible
         If the solver reports infeasibility or the numbers do not certify.
+    WallTimeExceeded
+        If the solve ran out of ``time_limit``.
     DesignError
         For an unknown solver, backend, objective, sector or formulation, a
         solver that is not usable here (MOSEK without licence), bounds that do
-        not match, or too many corners for the polytopic formulation.
+        not match, too many corners for the polytopic formulation, a bad
+        ``time_limit``, or a ``time_limit`` with CSDP.
 
     Examples
     --------
@@ -122,6 +132,7 @@ def design_observer(
     get_backend(backend)
     get_formulation(formulation, sector)
     alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
+    time_limit = _check_time_limit(time_limit)
     box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
     n, q = system.n, system.q
     pinned = None if injection_gains else (np.zeros((n, q)), np.zeros((n, q)))
@@ -138,5 +149,14 @@ def design_observer(
         HK=pinned,
     )
     return _finish(
-        ObserverDesign, problem, bounds, box, input_bound, solver, backend, sector, max_gain
+        ObserverDesign,
+        problem,
+        bounds,
+        box,
+        input_bound,
+        solver,
+        backend,
+        sector,
+        max_gain,
+        time_limit,
     )

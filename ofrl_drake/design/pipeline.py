@@ -24,6 +24,7 @@ from ofrl_drake.design.backends import get_backend
 from ofrl_drake.design.errors import DesignError, ObserverDesignInaccurate, ObserverDesignInfeasible
 from ofrl_drake.design.formulations import get_formulation
 from ofrl_drake.design.sdp import OBJECTIVES, LmiProblem, SdpSolution
+from ofrl_drake.errors import WallTimeExceeded
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds, jacobian_bounds
 from ofrl_drake.model import ControlAffineSystem
 
@@ -102,8 +103,20 @@ def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
     return hint
 
 
-def _solve(problem: LmiProblem, solver: str, backend: str) -> SdpSolution:
-    return get_backend(backend).solve(problem, solver)
+def _check_time_limit(time_limit: float | None) -> float | None:
+    if time_limit is None:
+        return None
+    if not isinstance(time_limit, int | float | np.floating | np.integer) or not (
+        math.isfinite(time_limit) and time_limit > 0
+    ):
+        raise DesignError(
+            f"time_limit must be a positive number of seconds or None; got {time_limit!r}."
+        )
+    return float(time_limit)
+
+
+def _solve(problem: LmiProblem, solver: str, backend: str, time_limit: float | None) -> SdpSolution:
+    return get_backend(backend).solve(problem, solver, time_limit)
 
 
 def _finish(
@@ -116,18 +129,33 @@ def _finish(
     backend: str,
     sector: str,
     max_gain: float | None,
+    time_limit: float | None = None,
 ) -> ObserverDesign:
     """Solve ``problem`` and return the certified ``design_type`` (ObserverDesign or a subclass).
 
+    ``time_limit`` bounds the solve (seconds, building included; None: no limit).
+
     Raises
     ------
+    WallTimeExceeded
+        If the solve ran out of ``time_limit``.
     ObserverDesignInfeasible
         If the solver reports infeasibility or returns no numbers.
     ObserverDesignInaccurate
         If the numbers are not finite, ``P`` is singular, or the numpy
         certificate of the formulation fails.
     """
-    sol = _solve(problem, solver, backend)
+    sol = _solve(problem, solver, backend, time_limit)
+    if sol.timed_out:
+        raise WallTimeExceeded(
+            f"the observer LMI ({problem.formulation}, {solver}/{backend}) ran out of its "
+            f"time limit of {time_limit:.3g} s (status {sol.status}; from a scenario, the "
+            "time max_wall_time (--max-wall) leaves after the Jacobian bounds); allow more "
+            "wall time, or make the LMI "
+            "smaller (a smaller box, fewer uncertain Jacobian entries, formulation "
+            "'structured').",
+            step="LMI solve",
+        )
     where = (
         f"formulation={problem.formulation}, alpha={problem.alpha:g}, box "
         f"{box.lower.tolist()}..{box.upper.tolist()}, |u_k| <= {input_bound:g}"

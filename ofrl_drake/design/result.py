@@ -11,7 +11,13 @@ import numpy as np
 
 from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import get_formulation
-from ofrl_drake.design.pipeline import _box_and_bounds, _check_numbers, _finish, _problem
+from ofrl_drake.design.pipeline import (
+    _box_and_bounds,
+    _check_numbers,
+    _check_time_limit,
+    _finish,
+    _problem,
+)
 from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds
 from ofrl_drake.lmi import LmiError, decay_certificate
@@ -402,6 +408,7 @@ class ObserverDesign:
         margin: float = DEFAULT_MARGIN,
         sector: str = "sign_correct",
         formulation: str = "polytopic",
+        time_limit: float | None = None,
     ) -> ObserverDesign:
         """A design from pinned gains ``L, H, K`` (and optionally ``P``).
 
@@ -411,10 +418,14 @@ class ObserverDesign:
         the formulation's LMI ``<= -margin I`` at every vertex (``"paper"``) or
         every corner and vertex (``"polytopic"``, where the corners are built
         with the given ``H, K``, so nonzero injection gains are checked
-        soundly too), ``L, H, K`` fixed, minimizing ``lambda_max(P)``.
+        soundly too), ``L, H, K`` fixed, minimizing ``lambda_max(P)``;
+        ``time_limit`` bounds that solve as in
+        :func:`~ofrl_drake.design.design_observer`.
 
         Raises
         ------
+        WallTimeExceeded
+            If the solve for ``P`` ran out of ``time_limit``.
         ObserverDesignInfeasible
             If ``P`` is None and no certifying ``P`` is found.
         DesignError
@@ -474,5 +485,14 @@ class ObserverDesign:
             HK=(gains[1], gains[2]),
         )
         return _finish(
-            cls, problem, bounds, box, input_bound, solver, backend, sector, max_gain=None
+            cls,
+            problem,
+            bounds,
+            box,
+            input_bound,
+            solver,
+            backend,
+            sector,
+            max_gain=None,
+            time_limit=_check_time_limit(time_limit),
         )

@@ -35,12 +35,51 @@ from typing import ClassVar
 
 import numpy as np
 
+from ofrl_drake.design.errors import DesignError
 from ofrl_drake.structured_lmi import StructuredLmi
 
-__all__ = ["DEFAULT_MARGIN", "OBJECTIVES", "LmiProblem", "SdpBackend", "SdpSolution"]
+__all__ = [
+    "DEFAULT_MARGIN",
+    "OBJECTIVES",
+    "TIME_LIMIT_OPTIONS",
+    "LmiProblem",
+    "SdpBackend",
+    "SdpSolution",
+    "solver_time_limit",
+]
 
 OBJECTIVES = ("min_gain", "min_condition", "feasibility")
 DEFAULT_MARGIN = 1e-3
+#: Each solver's own wall-time option (seconds), the same name in Drake's
+#: ``SetSolverOption`` and in cvxpy's ``solve(**options)``. CSDP has none.
+TIME_LIMIT_OPTIONS = {
+    "clarabel": "time_limit",
+    "scs": "time_limit_secs",
+    "mosek": "MSK_DPAR_OPTIMIZER_MAX_TIME",
+}
+#: The least time a solver is given (its option must be positive): a build
+#: that used the whole limit leaves the solver this, and it reports running out.
+_MIN_SOLVER_TIME = 1e-6
+
+
+def solver_time_limit(solver: str, time_limit: float | None, elapsed: float) -> float | None:
+    """The seconds left to ``solver`` after a build of ``elapsed`` seconds (None: no limit).
+
+    Raises
+    ------
+    DesignError
+        If ``time_limit`` is given for a solver without a time-limit option
+        (CSDP).
+    """
+    if time_limit is None:
+        return None
+    if solver not in TIME_LIMIT_OPTIONS:
+        raise DesignError(
+            f"solver {solver!r} has no time limit, so max_wall_time (--max-wall) = "
+            f"{time_limit:g} s cannot bound the LMI solve; use solver 'clarabel' or "
+            "'scs', or drop the limit."
+        )
+    return max(float(time_limit) - elapsed, _MIN_SOLVER_TIME)
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +164,9 @@ class SdpSolution:
     tau : list of ndarray or None
         The S-procedure multipliers of each structured LMI (``"structured"``
         formulations only; None otherwise or without a solution).
+    timed_out : bool
+        True if the solve stopped at its ``time_limit`` (the numbers, if any,
+        are not to be trusted).
     """
 
     P: np.ndarray | None
@@ -135,6 +177,7 @@ class SdpSolution:
     infeasible: bool
     solve_time: float
     tau: list[np.ndarray] | None = None
+    timed_out: bool = False
 
 
 class SdpBackend(ABC):
@@ -152,7 +195,9 @@ class SdpBackend(ABC):
     solvers: ClassVar[tuple[str, ...]]
 
     @abstractmethod
-    def solve(self, problem: LmiProblem, solver: str) -> SdpSolution:
+    def solve(
+        self, problem: LmiProblem, solver: str, time_limit: float | None = None
+    ) -> SdpSolution:
         """Build and solve ``problem`` with ``solver``.
 
         Parameters
@@ -161,6 +206,11 @@ class SdpBackend(ABC):
             The SDP data.
         solver : str
             One of :attr:`solvers`.
+        time_limit : float, optional
+            Wall-clock seconds for building and solving together: the solver
+            gets what the build leaves (its own time-limit option), and
+            :attr:`SdpSolution.timed_out` says whether it ran out. Default: no
+            limit.
 
         Returns
         -------
@@ -170,5 +220,6 @@ class SdpBackend(ABC):
         Raises
         ------
         DesignError
-            For a solver this backend does not offer, or one not usable here.
+            For a solver this backend does not offer, or one not usable here,
+            or a ``time_limit`` for a solver that has no time limit (CSDP).
         """
