@@ -46,6 +46,10 @@ _BATCH = 256
 #: derivative rows x boxes) per derivative array.
 _VALUES = 2_000_000
 _MIN_CHUNK, _MAX_CHUNK = 64, 4096
+#: Under a deadline, boxes are enclosed in chunks of about this many seconds
+#: (measured on the chunk before), so the clock is read often enough to stop
+#: near it; the chunks change no enclosure (each box is enclosed alone).
+_CHUNK_SECONDS = 0.5
 
 
 class TaylorEncloser:
@@ -237,6 +241,7 @@ def certify_expressions(
     lo, hi = lower[:, None].copy(), upper[:, None].copy()
     parents: tuple[np.ndarray, np.ndarray] | None = None  # open entries' hull on the boxes split
     evaluated = 0
+    step = encloser.chunk  # boxes per call; under a deadline, set from the time of the last
 
     def finish(converged: bool, stop: str, *extra: tuple[np.ndarray, np.ndarray]):
         for e_lo, e_hi in extra:  # hulls over ``current``
@@ -258,13 +263,20 @@ def certify_expressions(
         C = current.size
         level_lo, level_hi = np.full(C, np.inf), np.full(C, -np.inf)
         keep_lo, keep_hi, keep_spread, keep_enc_lo, keep_enc_hi = [], [], [], [], []
-        for s in range(0, lo.shape[1], encloser.chunk):
+        s, step = 0, min(step, encloser.chunk)
+        while s < lo.shape[1]:
             if parents is not None and deadline is not None and time.monotonic() > deadline:
                 # The boxes not enclosed yet lie in their parents: use the parents' hull.
                 return finish(False, "max_wall_time", parents, (level_lo, level_hi))
-            b_lo, b_hi = lo[:, s : s + encloser.chunk], hi[:, s : s + encloser.chunk]
+            b_lo, b_hi = lo[:, s : s + step], hi[:, s : s + step]
+            began = time.monotonic()
             enc, at_c, spread = encloser.enclose(b_lo, b_hi)
-            evaluated += b_lo.shape[1]
+            B = b_lo.shape[1]
+            s += B
+            evaluated += B
+            if deadline is not None:  # a chunk takes at most about _CHUNK_SECONDS
+                per_box = max(time.monotonic() - began, 1e-9) / B
+                step = int(np.clip(_CHUNK_SECONDS / per_box, 1, encloser.chunk))
             # at_c.hi >= J(c) >= min J and at_c.lo <= max J: inner estimates.
             c_hi = np.where(np.isfinite(at_c.hi), at_c.hi, np.inf).min(axis=1)
             c_lo = np.where(np.isfinite(at_c.lo), at_c.lo, -np.inf).max(axis=1)

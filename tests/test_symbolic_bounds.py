@@ -54,6 +54,34 @@ def test_a_wall_clock_stop_is_sound_and_names_the_open_entries():
     assert 0 in rushed.open_entries.tolist()
 
 
+def test_a_deadline_that_is_not_reached_changes_no_bound(monkeypatch):
+    # Under a deadline the boxes go to the encloser in chunks timed to about
+    # _CHUNK_SECONDS; each box is enclosed alone, so the bounds are the same.
+    import time
+
+    import ofrl_drake.symbolic_bounds as sb
+
+    s_lo, s_hi = _samples()
+    free = certify_expressions(EXPRS, X, LO, HI, s_lo, s_hi, tol=1e-3, rtol=0.0, max_boxes=10**6)
+    sizes = []
+    enclose = sb.TaylorEncloser.enclose
+
+    def spy(self, lower, upper):
+        sizes.append(lower.shape[1])
+        return enclose(self, lower, upper)
+
+    monkeypatch.setattr(sb, "_CHUNK_SECONDS", 1e-12)  # one box per call
+    monkeypatch.setattr(sb.TaylorEncloser, "enclose", spy)
+    timed = certify_expressions(
+        EXPRS, X, LO, HI, s_lo, s_hi, tol=1e-3, rtol=0.0, max_boxes=10**6,
+        deadline=time.monotonic() + 3600.0,
+    )  # fmt: skip
+    assert timed.converged and timed.boxes == free.boxes
+    np.testing.assert_array_equal(timed.lo, free.lo)
+    np.testing.assert_array_equal(timed.hi, free.hi)
+    assert max(sizes[1:]) == 1 and len(sizes) == timed.boxes
+
+
 def test_a_box_budget_stop_is_sound():
     s_lo, s_hi = _samples()
     few = certify_expressions(EXPRS, X, LO, HI, s_lo, s_hi, tol=1e-9, rtol=0.0, max_boxes=50)
