@@ -802,6 +802,26 @@ def _user_code_frame(err: BaseException) -> Any:
     return None
 
 
+@contextlib.contextmanager
+def _drake_warnings_only() -> Iterator[None]:
+    """Drake's log at WARNING while a command runs, unless configured otherwise.
+
+    pydrake logs at INFO by default, and its solvers say so at every solve
+    (``Clarabel returns MaxTime``, ``SCS returns code 2``): lines on stderr
+    beside the command's own, which the command reports itself.
+    """
+    import logging
+
+    logger = logging.getLogger("drake")
+    level = logger.level
+    if level in (logging.NOTSET, logging.INFO):
+        logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code."""
 
@@ -816,7 +836,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _sigint_held():
             for module in _COMMAND_MODULES.get(args.command, _DEFAULT_MODULES):
                 importlib.import_module(module)
-        return args.func(args)
+        with _drake_warnings_only():
+            return args.func(args)
     except OfrlError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_BAD_INPUT

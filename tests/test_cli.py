@@ -175,6 +175,17 @@ def test_infeasible_design_exits_2_with_one_line(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scenario.yaml"]
 
 
+def test_solver_info_lines_stay_off_stderr(tmp_path):
+    # SCS stops inaccurate on the paper's LMI, which pydrake logs at INFO
+    # ("SCS returns code 2"); the command's own error is the only line.
+    out = tmp_path / "design.json"
+    proc = run_cli("design-observer", _scenario_with(tmp_path, solver="scs"), "--out", out)
+    assert proc.returncode == 2
+    assert "INFO" not in proc.stderr and "drake" not in proc.stderr.split(":")[0]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "SCS: solved inaccurate" in lines[0], proc.stderr
+
+
 def test_run_refuses_to_replace_a_folder_it_did_not_write(tmp_path):
     out = tmp_path / "precious"
     out.mkdir()

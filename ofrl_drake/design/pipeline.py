@@ -103,6 +103,13 @@ def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
     return hint
 
 
+def _smaller_lmi(formulation: str) -> str:
+    hint = "a smaller box or fewer uncertain Jacobian entries"
+    if not formulation.startswith("structured"):
+        hint += ", or formulation 'structured', one LMI instead of one per corner"
+    return hint
+
+
 def _check_time_limit(time_limit: float | None) -> float | None:
     if time_limit is None:
         return None
@@ -151,9 +158,7 @@ def _finish(
             f"the observer LMI ({problem.formulation}, {solver}/{backend}) ran out of its "
             f"time limit of {time_limit:.3g} s (status {sol.status}; from a scenario, the "
             "time max_wall_time (--max-wall) leaves after the Jacobian bounds); allow more "
-            "wall time, or make the LMI "
-            "smaller (a smaller box, fewer uncertain Jacobian entries, formulation "
-            "'structured').",
+            f"wall time, or make the LMI smaller ({_smaller_lmi(problem.formulation)}).",
             step="LMI solve",
         )
     where = (
