@@ -59,6 +59,7 @@ def test_a_deadline_that_is_not_reached_changes_no_bound(monkeypatch):
     # _CHUNK_SECONDS; each box is enclosed alone, so the bounds are the same.
     import time
 
+    import ofrl_drake.branch_and_bound as bb
     import ofrl_drake.symbolic_bounds as sb
 
     s_lo, s_hi = _samples()
@@ -70,7 +71,7 @@ def test_a_deadline_that_is_not_reached_changes_no_bound(monkeypatch):
         sizes.append(lower.shape[1])
         return enclose(self, lower, upper)
 
-    monkeypatch.setattr(sb, "_CHUNK_SECONDS", 1e-12)  # one box per call
+    monkeypatch.setattr(bb, "_CHUNK_SECONDS", 1e-12)  # one box per call
     monkeypatch.setattr(sb.TaylorEncloser, "enclose", spy)
     timed = certify_expressions(
         EXPRS, X, LO, HI, s_lo, s_hi, tol=1e-3, rtol=0.0, max_boxes=10**6,
