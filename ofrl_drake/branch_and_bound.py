@@ -246,6 +246,9 @@ class _Slicer:
         if not parts:
             empty = np.empty((E, 0))
             return _Chunk(empty, empty, empty, empty, None, late)
+        if len(parts) == 1:  # no copies: the usual case without a deadline
+            boxes, centres, spread = parts[0]
+            return _Chunk(boxes.lo, boxes.hi, centres.lo, centres.hi, spread, late)
         spreads = [p[2] for p in parts if p[2] is not None]
         return _Chunk(
             np.concatenate([p[0].lo for p in parts], axis=1),
