@@ -92,12 +92,12 @@ class Encloser(Protocol):
     def enclose(
         self, lower: np.ndarray, upper: np.ndarray
     ) -> tuple[Interval, Interval, np.ndarray | None]:
-        """Enclose every entry over each box, and at each box's centre.
+        """Enclose every entry over the boxes ``[lower[:, b], upper[:, b]]`` and at their centres.
 
         Parameters
         ----------
         lower, upper : ndarray, shape (n, B)
-            ``B`` boxes.
+            The corners of ``B`` boxes.
 
         Returns
         -------

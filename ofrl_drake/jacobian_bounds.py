@@ -69,7 +69,7 @@ from ofrl_drake.interval import (
 from ofrl_drake.interval_taylor import TaylorEvaluator
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure
-from ofrl_drake.symbolic_bounds import certify_expressions
+from ofrl_drake.symbolic_bounds import TaylorEncloser
 
 __all__ = [
     "DEFAULT_TOL",
@@ -706,8 +706,8 @@ def _certify_symbolic(
 ) -> tuple[np.ndarray, np.ndarray, bool, str]:
     """Certified bounds of symbolic Jacobian entries: ``(lo, hi, converged, budget note)``.
 
-    Constant entries are enclosed once. The others are refined together by
-    :func:`ofrl_drake.symbolic_bounds.certify_expressions` (natural, mean-value
+    Constant entries are enclosed once. The others are refined together with a
+    :class:`~ofrl_drake.symbolic_bounds.TaylorEncloser` (natural, mean-value
     and second-order Taylor forms, one branch and bound for all of them);
     entries the Taylor form cannot differentiate (``Abs``, ``Min``, ...) are
     refined one by one with the natural and mean-value forms
@@ -732,9 +732,8 @@ def _certify_symbolic(
     converged, budget = True, "converged"
     if joint.size:
         try:
-            result = certify_expressions(
-                entries[joint],
-                x,
+            result = refine(
+                TaylorEncloser(entries[joint], x),
                 box.lower,
                 box.upper,
                 s_lo[joint],

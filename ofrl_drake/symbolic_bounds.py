@@ -15,16 +15,16 @@ differentiation):
   width, so that expressions whose variables repeat and cancel (a rotation's
   ``sin^2 + cos^2``) still converge.
 
-:func:`certify_expressions` refines them with the one branch and bound of
-:func:`ofrl_drake.branch_and_bound.refine`: boxes are split along the
-variable with the largest share, relative to the tolerance, of the unsettled
-entries' Taylor forms (the encloser's ``spread``). The encloser can be
-restricted (:meth:`TaylorEncloser.restrict`), so an entry settled on every
-open box leaves the refinement (its enclosures there join its bound) and the
-evaluator is rebuilt for the entries left: the work per box follows the
-entries still open, not all of them. The result is the hull of each entry's
-enclosures over boxes that cover the box: always sound, tight when the
-refinement converged.
+The bounds come from the one branch and bound,
+:func:`ofrl_drake.branch_and_bound.refine`, with a :class:`TaylorEncloser`:
+boxes are split along the variable with the largest share, relative to the
+tolerance, of the unsettled entries' Taylor forms (the encloser's
+``spread``). The encloser can be restricted (:meth:`TaylorEncloser.restrict`),
+so an entry settled on every open box leaves the refinement (its enclosures
+there join its bound) and the evaluator is rebuilt for the entries left: the
+work per box follows the entries still open, not all of them. The result is
+the hull of each entry's enclosures over boxes that cover the box: always
+sound, tight when the refinement converged.
 """
 
 from __future__ import annotations
@@ -33,11 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.branch_and_bound import Refinement, refine
 from ofrl_drake.interval import Interval
 from ofrl_drake.interval_taylor import TaylorEvaluator, taylor_from_jets
 
-__all__ = ["TaylorEncloser", "certify_expressions"]
+__all__ = ["TaylorEncloser"]
 
 #: Boxes enclosed per call: at most this many interval values (entries x
 #: derivative rows x boxes) per derivative array.
@@ -142,58 +141,3 @@ class TaylorEncloser:
         hi = np.minimum(natural.hi, np.where(ok, np.minimum(mean_value.hi, taylor.hi), np.inf))
         spread = np.where(ok & np.isfinite(spread), spread, np.inf)
         return Interval(lo, hi), at_centres.value, spread
-
-
-def certify_expressions(
-    expressions: Any,
-    variables: Any,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    inner_lo: np.ndarray,
-    inner_hi: np.ndarray,
-    *,
-    tol: float,
-    rtol: float,
-    max_boxes: int,
-    deadline: float | None = None,
-) -> Refinement:
-    """Certified bounds of many expressions over the box ``[lower, upper]``, refined together.
-
-    :func:`ofrl_drake.branch_and_bound.refine` with a :class:`TaylorEncloser`
-    (which lets the entries settled on every open box leave the refinement).
-
-    Parameters
-    ----------
-    expressions : sequence of Expression
-        The ``E`` expressions (see :class:`TaylorEncloser`).
-    variables : sequence of Variable
-        The state variables, in the order of the rows of the box.
-    lower, upper : ndarray, shape (n,)
-        The box.
-    inner_lo, inner_hi : ndarray, shape (E,)
-        Inner estimates (sampled minima and maxima).
-    tol, rtol, max_boxes, deadline
-        As for :func:`~ofrl_drake.branch_and_bound.refine`.
-
-    Returns
-    -------
-    Refinement
-        Always sound: each entry's bound is the hull of its enclosures over
-        boxes that cover ``[lower, upper]``.
-
-    Raises
-    ------
-    UnsupportedExpressionError
-        If an expression uses a kind the Taylor form does not support.
-    """
-    return refine(
-        TaylorEncloser(expressions, variables),
-        lower,
-        upper,
-        inner_lo,
-        inner_hi,
-        tol=tol,
-        rtol=rtol,
-        max_boxes=max_boxes,
-        deadline=deadline,
-    )

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from pydrake.symbolic import MakeVectorVariable, cos, sin
 
+from ofrl_drake.branch_and_bound import Refinement, refine
 from ofrl_drake.interval import ExpressionEvaluator
-from ofrl_drake.symbolic_bounds import TaylorEncloser, certify_expressions
+from ofrl_drake.symbolic_bounds import TaylorEncloser
 
 X = MakeVectorVariable(3, "x")
 r, p, w = X
@@ -20,6 +21,11 @@ EXPRS = [
 ]
 LO = np.array([-0.3, -0.2, -1.0])
 HI = np.array([0.3, 0.2, 1.0])
+
+
+def certify_expressions(exprs, x, lo, hi, inner_lo, inner_hi, **budget) -> Refinement:
+    """The one branch and bound with the Taylor encloser of ``exprs``."""
+    return refine(TaylorEncloser(exprs, x), lo, hi, inner_lo, inner_hi, **budget)
 
 
 def _samples(n=20000, seed=0):
