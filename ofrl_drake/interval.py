@@ -98,10 +98,8 @@ __all__ = [
     "IntervalDomainError",
     "UnsupportedExpressionError",
     "as_expression",
-    "bisect_boxes",
     "evaluate",
     "evaluate_interval",
-    "halve_every_side",
 ]
 
 _TWO_PI = 2.0 * np.pi
@@ -934,32 +932,3 @@ def evaluate_interval(
         See :meth:`ExpressionEvaluator.interval`.
     """
     return ExpressionEvaluator(expression, variables).interval(lower, upper)
-
-
-# ------------------------------------------------------------ box splitting
-# Boxes are held column-wise: ``lo``, ``hi`` of shape (d, B) for B boxes.
-def bisect_boxes(
-    lo: np.ndarray, hi: np.ndarray, split: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split box ``b`` in two along its side ``split[b]``: ``2 B`` boxes, lower halves first."""
-    cols = np.arange(lo.shape[1])
-    mid = 0.5 * (lo[split, cols] + hi[split, cols])
-    lo_right = lo.copy()
-    lo_right[split, cols] = mid
-    hi_left = hi.copy()
-    hi_left[split, cols] = mid
-    return np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
-
-
-def halve_every_side(
-    lo: np.ndarray, hi: np.ndarray, used: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split each box into ``2**d`` boxes, halving each of its ``d`` sides in ``used``."""
-    for j in used:
-        mid = 0.5 * (lo[j] + hi[j])
-        lo_right = lo.copy()
-        lo_right[j] = mid
-        hi_left = hi.copy()
-        hi_left[j] = mid
-        lo, hi = np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
-    return lo, hi

@@ -17,9 +17,10 @@ Two methods:
     all at once (:class:`ofrl_drake.interval.ExpressionEvaluator`), and take the
     element-wise min and max. Fast and tight, but only an inner estimate.
 ``"certified"``
-    Guaranteed enclosures, refined by a branch and bound that bisects the boxes
-    whose enclosure reaches more than the tolerance beyond the best known inner
-    estimate. Two enclosures, chosen by asking the system:
+    Guaranteed enclosures, refined by the branch and bound of
+    :mod:`ofrl_drake.branch_and_bound`, which bisects the boxes whose enclosure
+    reaches more than the tolerance beyond the best known inner estimate. Two
+    enclosures, chosen by asking the system:
 
     * a multibody model (``system.multibody_structure()`` is not None, as for
       :meth:`~ofrl_drake.model.ControlAffineSystem.from_multibody`) is enclosed
@@ -32,9 +33,9 @@ Two methods:
       the mean-value form ``h(c) + grad h(X) (X - c)`` and the second-order
       Taylor form, whose overestimation shrinks with the cube of the box width
       (derivatives by forward differentiation on the expression graph,
-      :mod:`ofrl_drake.interval_taylor`); all entries refined by one branch
-      and bound (:mod:`ofrl_drake.symbolic_bounds`). An entry the Taylor form
-      cannot differentiate (``Abs``, ``Min``, ...) gets its own, with the
+      :mod:`ofrl_drake.interval_taylor`); all entries refined together
+      (:mod:`ofrl_drake.symbolic_bounds`). An entry the Taylor form cannot
+      differentiate (``Abs``, ``Min``, ...) is refined alone, with the
       natural and mean-value forms.
 
     An enclosure that is still infinite when the budget (``max_boxes``,
@@ -57,19 +58,18 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression, Jacobian
 
+from ofrl_drake.branch_and_bound import refine
 from ofrl_drake.errors import ModelError, OfrlError, WallTimeExceeded
 from ofrl_drake.interval import (
     ExpressionEvaluator,
     Interval,
     IntervalDomainError,
     UnsupportedExpressionError,
-    bisect_boxes,
-    halve_every_side,
 )
 from ofrl_drake.interval_taylor import TaylorEvaluator
 from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure, certify
-from ofrl_drake.symbolic_bounds import certify_expressions
+from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure
+from ofrl_drake.symbolic_bounds import TaylorEncloser
 
 __all__ = [
     "DEFAULT_TOL",
@@ -101,8 +101,8 @@ STRUCTURE_RTOL = 1e-8
 SYMBOLIC_MAX_CHARS = 100_000
 _POINT_BUDGET = 100_000
 _CHUNK = 20_000
-#: Branch and bound: the most boxes for which every used side is halved at once.
-_BATCH = 256
+#: Branch and bound of one entry: the most values (nodes x boxes) enclosed at once.
+_NODE_VALUES = 2_000_000
 
 
 class BoxError(OfrlError):
@@ -621,16 +621,20 @@ def _range_over_points(
 class _EntryEncloser:
     """Interval enclosure of one Jacobian entry over many boxes at once.
 
-    The entry and its gradient are one evaluator, and the box centres are
-    enclosed as degenerate boxes beside the boxes, so one enclosure is one walk
-    of the expression tree (shared subexpressions evaluated once).
+    An :class:`~ofrl_drake.branch_and_bound.Encloser` with one entry and no
+    ``spread`` (boxes are split along their relatively widest side). The entry
+    and its gradient are one evaluator, and the box centres are enclosed as
+    degenerate boxes beside the boxes, so one enclosure is one walk of the
+    expression tree (shared subexpressions evaluated once).
     """
+
+    n_entries = 1
 
     def __init__(self, expr: Expression, x: np.ndarray) -> None:
         self.value = ExpressionEvaluator([expr], x)
-        self.used = list(self.value.variables_used()[0])
+        self.used = np.array(self.value.variables_used()[0], dtype=int)
         self.with_gradient: ExpressionEvaluator | None = None
-        if self.used:
+        if self.used.size:
             try:
                 grad = Jacobian(np.array([expr]), x[self.used])[0]
                 both = ExpressionEvaluator([expr, *grad], x)
@@ -638,14 +642,17 @@ class _EntryEncloser:
                 both = None  # the natural extension only
             if both is not None and both.supports_intervals:
                 self.with_gradient = both
+        widest = self.value if self.with_gradient is None else self.with_gradient
+        # Boxes and centres side by side: 2 B columns per evaluation.
+        self.chunk = int(np.clip(_NODE_VALUES // (2 * max(widest.node_count, 1)), 64, 4096))
 
-    def _natural(self, lo: np.ndarray, hi: np.ndarray) -> tuple[Interval, Interval]:
+    def _natural(self, lo: np.ndarray, hi: np.ndarray) -> tuple[Interval, Interval, None]:
         natural = self.value.interval(lo, hi)
-        centre = self.value(0.5 * (lo + hi))[0]  # NaN where h is undefined
-        return Interval(natural.lo[0], natural.hi[0]), Interval(centre, centre)
+        centre = self.value(0.5 * (lo + hi))  # NaN where h is undefined
+        return natural, Interval(centre, centre), None
 
-    def enclose(self, lo: np.ndarray, hi: np.ndarray) -> tuple[Interval, Interval]:
-        """Enclosures of ``h`` over the boxes, and of ``h`` at their centres.
+    def enclose(self, lo: np.ndarray, hi: np.ndarray) -> tuple[Interval, Interval, None]:
+        """Enclosures of ``h`` over the boxes, and of ``h`` at their centres (shape (1, B)).
 
         Over a box: the natural extension intersected with the mean-value form
         ``h(c) + grad h(X) (X - c)``. At a centre ``c``: an interval that holds
@@ -659,82 +666,14 @@ class _EntryEncloser:
             both = self.with_gradient.interval(np.hstack([lo, c]), np.hstack([hi, c]))
         except IntervalDomainError:  # the gradient (or h at a centre) is undefined somewhere
             return self._natural(lo, hi)
-        at_c = Interval(both.lo[0, B:], both.hi[0, B:])
+        at_c = Interval(both.lo[:1, B:], both.hi[:1, B:])
         total = at_c
         for r, j in enumerate(self.used):
             step = Interval(np.nextafter(lo[j] - c[j], -np.inf), np.nextafter(hi[j] - c[j], np.inf))
-            total = total + Interval(both.lo[1 + r, :B], both.hi[1 + r, :B]) * step
-        boxes = Interval(np.maximum(both.lo[0, :B], total.lo), np.minimum(both.hi[0, :B], total.hi))
-        return boxes, at_c
-
-
-def _bisect(
-    lo: np.ndarray, hi: np.ndarray, used: np.ndarray, width: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split boxes in two: all of them along the side widest relative to ``width``."""
-    rel = (hi[used] - lo[used]) / width[used, None]
-    return bisect_boxes(lo, hi, used[np.argmax(rel, axis=0)])
-
-
-def _certify_entry(
-    encloser: _EntryEncloser,
-    box: Box,
-    inner_lo: float,
-    inner_hi: float,
-    tol: float,
-    max_boxes: int,
-    rtol: float = 0.0,
-    deadline: float | None = None,
-) -> tuple[float, float, bool]:
-    """Branch and bound for one entry; returns ``(lo, hi, converged)``.
-
-    A box is settled when its enclosure reaches at most
-    ``max(tol, rtol * (inner_hi - inner_lo))`` beyond the inner estimate; the
-    refinement stops unconverged after ``max_boxes`` boxes or at ``deadline``
-    (a ``time.monotonic()``).
-
-    Each step encloses all open boxes in one evaluation, whose cost is mostly
-    per call up to a few hundred boxes. So while the next batch stays within
-    :data:`_BATCH` boxes, every used side of every open box is halved at once
-    (``2**d`` children, ``d`` times fewer steps than bisecting one side);
-    beyond that, each box is bisected along its relatively widest side.
-    """
-    lo = box.lower[:, None].copy()
-    hi = box.upper[:, None].copy()
-    used = np.array(encloser.used, dtype=int)
-    settled_lo, settled_hi = np.inf, -np.inf
-    evaluated = 0
-    while True:
-        enc, at_c = encloser.enclose(lo, hi)
-        evaluated += lo.shape[1]
-        # h(c) lies in [at_c.lo, at_c.hi], so at_c.hi >= min h and at_c.lo <= max h:
-        # inner estimates, conservative by the few ulps of the enclosure.
-        upper_c = at_c.hi[np.isfinite(at_c.hi)]
-        lower_c = at_c.lo[np.isfinite(at_c.lo)]
-        if upper_c.size:
-            inner_lo = min(inner_lo, float(upper_c.min()))
-        if lower_c.size:
-            inner_hi = max(inner_hi, float(lower_c.max()))
-        slack = max(tol, rtol * (inner_hi - inner_lo))
-        active = (enc.lo < inner_lo - slack) | (enc.hi > inner_hi + slack)
-        done = ~active
-        if done.any():
-            settled_lo = min(settled_lo, float(enc.lo[done].min()))
-            settled_hi = max(settled_hi, float(enc.hi[done].max()))
-        n_active = int(active.sum())
-        if not n_active:
-            return settled_lo, settled_hi, True
-        children = 2**used.size if n_active * 2**used.size <= _BATCH else 2
-        late = deadline is not None and time.monotonic() > deadline
-        if late or evaluated + children * n_active > max_boxes:
-            settled_lo = min(settled_lo, float(enc.lo[active].min()))
-            settled_hi = max(settled_hi, float(enc.hi[active].max()))
-            return settled_lo, settled_hi, False
-        lo, hi = lo[:, active], hi[:, active]
-        if children > 2:
-            lo, hi = halve_every_side(lo, hi, used)
-        else:
-            lo, hi = _bisect(lo, hi, used, box.width)
+            total = total + Interval(both.lo[1 + r : 2 + r, :B], both.hi[1 + r : 2 + r, :B]) * step
+        natural = Interval(both.lo[:1, :B], both.hi[:1, :B])
+        boxes = Interval(np.maximum(natural.lo, total.lo), np.minimum(natural.hi, total.hi))
+        return boxes, at_c, None
 
 
 def _taylor_supported(entries: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -767,13 +706,14 @@ def _certify_symbolic(
 ) -> tuple[np.ndarray, np.ndarray, bool, str]:
     """Certified bounds of symbolic Jacobian entries: ``(lo, hi, converged, budget note)``.
 
-    Constant entries are enclosed once. The others are refined together by
-    :func:`ofrl_drake.symbolic_bounds.certify_expressions` (natural, mean-value
+    Constant entries are enclosed once. The others are refined together with a
+    :class:`~ofrl_drake.symbolic_bounds.TaylorEncloser` (natural, mean-value
     and second-order Taylor forms, one branch and bound for all of them);
-    entries the Taylor form cannot differentiate (``Abs``, ``Min``, ...) get
-    their own branch and bound with the natural and mean-value forms
-    (:class:`_EntryEncloser`), as does every entry when an enclosure is
-    undefined on a box (so that the error names the entry).
+    entries the Taylor form cannot differentiate (``Abs``, ``Min``, ...) are
+    refined one by one with the natural and mean-value forms
+    (:class:`_EntryEncloser`), as is every entry when an enclosure is
+    undefined on a box (so that the error names the entry). All three use the
+    one branch and bound, :func:`ofrl_drake.branch_and_bound.refine`.
     """
     c_lo = np.empty_like(s_lo)
     c_hi = np.empty_like(s_hi)
@@ -792,9 +732,8 @@ def _certify_symbolic(
     converged, budget = True, "converged"
     if joint.size:
         try:
-            result = certify_expressions(
-                entries[joint],
-                x,
+            result = refine(
+                TaylorEncloser(entries[joint], x),
                 box.lower,
                 box.upper,
                 s_lo[joint],
@@ -811,17 +750,24 @@ def _certify_symbolic(
             converged = result.converged
             budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
     for e in alone:
-        encloser = _EntryEncloser(entries[e], x)
         try:
-            lo, hi, ok = _certify_entry(
-                encloser, box, s_lo[e], s_hi[e], tol, max_boxes, rtol, deadline
+            one = refine(
+                _EntryEncloser(entries[e], x),
+                box.lower,
+                box.upper,
+                s_lo[e : e + 1],
+                s_hi[e : e + 1],
+                tol=tol,
+                rtol=rtol,
+                max_boxes=max_boxes,
+                deadline=deadline,
             )
         except IntervalDomainError as err:
             raise BoundsError(f"{names[e]}: {err}") from err
-        c_lo[e], c_hi[e] = lo, hi
-        converged = converged and ok
-        if not ok:
-            budget = "max_boxes or max_wall_time reached"
+        c_lo[e], c_hi[e] = one.lo[0], one.hi[0]
+        converged = converged and one.converged
+        if not one.converged:
+            budget = f"{names[e]}: {one.boxes} boxes in {one.seconds:.3g} s, stopped by {one.stop}"
     return c_lo, c_hi, converged, budget
 
 
@@ -957,7 +903,7 @@ def jacobian_bounds(
 
     if structure is not None:
         _check_structure(system, structure, box, seed)
-        result = certify(
+        result = refine(
             MultibodyJacobianEncloser(structure),
             box.lower,
             box.upper,

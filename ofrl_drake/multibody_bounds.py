@@ -35,18 +35,20 @@ enclosures, every ``M`` in ``[M]`` is proved nonsingular by the solver, so
 the enclosures, and so on up the formulas; the mean-value theorem does the
 rest. Every operation is rounded outward.
 
-:func:`certify` refines by branch and bound: boxes whose enclosure of some
-entry reaches more than the tolerance beyond the best inner estimate (sampled
-values plus the values at every centre visited) are bisected, along the used
-variable that adds the most width to the unsettled entries' mean-value forms,
-until no box is left or a budget (boxes, wall time) is spent. The result is
-the hull of the enclosures of the boxes that were settled or left open: always
-a sound enclosure, tight when the refinement converged.
+The bounds come from the one branch and bound,
+:func:`ofrl_drake.branch_and_bound.refine`, with a
+:class:`MultibodyJacobianEncloser`: boxes whose enclosure of some entry reaches
+more than the tolerance beyond the best inner estimate (sampled values plus
+the values at every centre visited) are bisected, along the used variable that
+adds the most width to the unsettled entries' mean-value forms (the encloser's
+``spread``), until no box is left or a budget (boxes, wall time) is spent.
+Every entry is enclosed on every open box to the end. The result is the hull
+of the enclosures of the boxes that were settled or left open: always a sound
+enclosure, tight when the refinement converged.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field, replace
 from itertools import combinations_with_replacement
 from typing import Any
@@ -55,25 +57,15 @@ import numpy as np
 from pydrake.symbolic import Expression
 
 from ofrl_drake.errors import ModelError
-from ofrl_drake.interval import (
-    ExpressionEvaluator,
-    Interval,
-    as_expression,
-    bisect_boxes,
-    halve_every_side,
-)
+from ofrl_drake.interval import ExpressionEvaluator, Interval, as_expression
 from ofrl_drake.interval_linalg import IntervalLinearSystem, interval_matmul
 
 __all__ = [
-    "MultibodyEnclosure",
     "MultibodyJacobianEncloser",
     "MultibodyStructure",
-    "certify",
     "multibody_structure",
 ]
 
-#: While ``boxes * 2**d`` stays within this, every used side is halved at once.
-_BATCH = 256
 #: Boxes enclosed per call: at most this many node values (nodes * boxes) in memory.
 _NODE_VALUES = 2_000_000
 _MIN_CHUNK, _MAX_CHUNK = 64, 4096
@@ -626,155 +618,3 @@ class MultibodyJacobianEncloser:
             spread = H.mag * np.stack([hc.mag for hc in h])[None]
         boxes = Interval(np.maximum(natural.lo, total.lo), np.minimum(natural.hi, total.hi))
         return boxes, at_c, np.where(np.isnan(spread), np.inf, spread)
-
-
-# ------------------------------------------------------------ branch and bound
-@dataclass(frozen=True, eq=False)
-class MultibodyEnclosure:
-    """The outcome of :func:`certify`.
-
-    Attributes
-    ----------
-    lo, hi : ndarray, shape (E,)
-        Sound bounds of each Jacobian entry over the box (possibly infinite when
-        the budget ran out before ``[M]`` could be inverted on every box).
-    converged : bool
-        Every box was settled within the tolerance.
-    stop : str
-        ``"converged"``, ``"max_boxes"`` or ``"max_wall_time"``.
-    boxes : int
-        Boxes enclosed.
-    seconds : float
-        Wall time of the refinement.
-    finest : float
-        The smallest side reached, relative to the box (``1`` = not bisected).
-    """
-
-    lo: np.ndarray
-    hi: np.ndarray
-    converged: bool
-    stop: str
-    boxes: int
-    seconds: float
-    finest: float
-
-
-def _split_side(out: np.ndarray, spread: np.ndarray, slack: np.ndarray, used: np.ndarray):
-    """The side to bisect in each box: the used variable that adds the most width,
-    relative to the tolerance, to the entries that are not settled (``out``)."""
-    share = np.where(out[:, None], spread / slack[:, :, None], 0.0).sum(axis=0)  # (L, B)
-    share = np.where(np.isfinite(share), share, np.finfo(float).max)
-    return used[np.argmax(share, axis=0)]
-
-
-def certify(
-    encloser: MultibodyJacobianEncloser,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    inner_lo: np.ndarray,
-    inner_hi: np.ndarray,
-    *,
-    tol: float,
-    rtol: float,
-    max_boxes: int,
-    deadline: float | None = None,
-) -> MultibodyEnclosure:
-    """Branch and bound on the box ``[lower, upper]`` for every Jacobian entry at once.
-
-    Parameters
-    ----------
-    encloser : MultibodyJacobianEncloser
-        The plant's enclosures.
-    lower, upper : ndarray, shape (n,)
-        The box, in the model's coordinates.
-    inner_lo, inner_hi : ndarray, shape (E,)
-        Inner estimates (sampled minima and maxima); improved with the values
-        at the centres visited.
-    tol, rtol : float
-        A box is settled when no entry's enclosure reaches more than
-        ``max(tol, rtol * (inner_hi - inner_lo))`` beyond the inner estimate.
-    max_boxes : int
-        The most boxes enclosed.
-    deadline : float, optional
-        A ``time.monotonic()`` after which no new batch of boxes is started.
-
-    Returns
-    -------
-    MultibodyEnclosure
-        Always sound: the hull of the enclosures of the settled boxes and of the
-        boxes still open when a budget ran out.
-    """
-    start = time.monotonic()
-    E = encloser.n_entries
-    lower = np.asarray(lower, dtype=float)
-    upper = np.asarray(upper, dtype=float)
-    width = upper - lower
-    used = encloser.used
-    inner_lo = np.array(inner_lo, dtype=float)
-    inner_hi = np.array(inner_hi, dtype=float)
-    settled_lo = np.full(E, np.inf)
-    settled_hi = np.full(E, -np.inf)
-    lo, hi = lower[:, None].copy(), upper[:, None].copy()
-    parents: tuple[np.ndarray, np.ndarray] | None = None  # hull of the boxes being split
-    evaluated = 0
-    finest = 1.0
-
-    def done(converged: bool, stop: str, *extra: tuple[np.ndarray, np.ndarray]):
-        out_lo, out_hi = settled_lo.copy(), settled_hi.copy()
-        for e_lo, e_hi in extra:
-            out_lo, out_hi = np.minimum(out_lo, e_lo), np.maximum(out_hi, e_hi)
-        return MultibodyEnclosure(
-            _frozen(out_lo),
-            _frozen(out_hi),
-            converged,
-            stop,
-            evaluated,
-            time.monotonic() - start,
-            finest,
-        )
-
-    while True:
-        level_lo, level_hi = np.full(E, np.inf), np.full(E, -np.inf)
-        keep_lo, keep_hi, keep_split = [], [], []
-        for s in range(0, lo.shape[1], encloser.chunk):
-            if parents is not None and deadline is not None and time.monotonic() > deadline:
-                # The boxes not enclosed yet lie in their parents: use the parents' hull.
-                return done(False, "max_wall_time", parents, (level_lo, level_hi))
-            b_lo, b_hi = lo[:, s : s + encloser.chunk], hi[:, s : s + encloser.chunk]
-            enc, at_c, spread = encloser.enclose(b_lo, b_hi)
-            evaluated += b_lo.shape[1]
-            # at_c.hi >= J(c) >= min J and at_c.lo <= max J: inner estimates.
-            c_hi = np.where(np.isfinite(at_c.hi), at_c.hi, np.inf).min(axis=1)
-            c_lo = np.where(np.isfinite(at_c.lo), at_c.lo, -np.inf).max(axis=1)
-            inner_lo = np.minimum(inner_lo, c_hi)
-            inner_hi = np.maximum(inner_hi, c_lo)
-            slack = np.maximum(tol, rtol * (inner_hi - inner_lo))[:, None]
-            out = (enc.lo < inner_lo[:, None] - slack) | (enc.hi > inner_hi[:, None] + slack)
-            active = out.any(axis=0)
-            if (~active).any():
-                settled_lo = np.minimum(settled_lo, enc.lo[:, ~active].min(axis=1))
-                settled_hi = np.maximum(settled_hi, enc.hi[:, ~active].max(axis=1))
-            if active.any():
-                level_lo = np.minimum(level_lo, enc.lo[:, active].min(axis=1))
-                level_hi = np.maximum(level_hi, enc.hi[:, active].max(axis=1))
-                keep_lo.append(b_lo[:, active])
-                keep_hi.append(b_hi[:, active])
-                keep_split.append(_split_side(out[:, active], spread[..., active], slack, used))
-        if not keep_lo:
-            return done(True, "converged")
-        if not used.size:  # constant Jacobians: nothing to bisect, rounding is all there is
-            return done(True, "converged", (level_lo, level_hi))
-        lo, hi = np.concatenate(keep_lo, axis=1), np.concatenate(keep_hi, axis=1)
-        split = np.concatenate(keep_split)
-        n_active = lo.shape[1]
-        children = 2**used.size if n_active * 2**used.size <= _BATCH else 2
-        if evaluated + children * n_active > max_boxes:
-            return done(False, "max_boxes", (level_lo, level_hi))
-        if deadline is not None and time.monotonic() > deadline:
-            return done(False, "max_wall_time", (level_lo, level_hi))
-        if children > 2:
-            lo, hi = halve_every_side(lo, hi, used)
-        else:
-            lo, hi = bisect_boxes(lo, hi, split)
-        finest = min(finest, float(((hi[used] - lo[used]) / width[used, None]).min()))
-        parents = (level_lo, level_hi)

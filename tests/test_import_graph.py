@@ -40,6 +40,7 @@ LAYERS = {
         "interval",
         "interval_linalg",
         "interval_taylor",
+        "branch_and_bound",
         "multibody_bounds",
         "symbolic_bounds",
         "jacobian_bounds",

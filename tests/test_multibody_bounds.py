@@ -12,6 +12,7 @@ import pytest
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 
+from ofrl_drake.branch_and_bound import refine
 from ofrl_drake.errors import WallTimeExceeded
 from ofrl_drake.jacobian_bounds import (
     MULTIBODY_RTOL,
@@ -24,7 +25,6 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.multibody_bounds import (
     MultibodyJacobianEncloser,
     MultibodyStructure,
-    certify,
     multibody_structure,
 )
 
@@ -272,7 +272,7 @@ def test_a_budget_stops_early_with_sound_bounds(upright, bounds):
     assert rough.excess.max > converged.excess.max
 
 
-def test_certify_stopped_by_the_clock_is_sound(upright):
+def test_refine_stopped_by_the_clock_is_sound(upright):
     system = upright["cart_double_pendulum"]
     box = Box(*PLANTS["cart_double_pendulum"][2])
     encloser = MultibodyJacobianEncloser(system.multibody_structure())
@@ -289,13 +289,13 @@ def test_certify_stopped_by_the_clock_is_sound(upright):
     import time
 
     deadline = time.monotonic() + 3600.0
-    full = certify(encloser, box.lower, box.upper, inner, inner, tol=1e-3, rtol=0.1,
-                   max_boxes=10**6, deadline=deadline)  # fmt: skip
+    full = refine(encloser, box.lower, box.upper, inner, inner, tol=1e-3, rtol=0.1,
+                  max_boxes=10**6, deadline=deadline)  # fmt: skip
     assert full.converged and full.stop == "converged"
     calls.clear()
     encloser.chunk = 8  # several batches per level, so the clock can stop one midway
-    stopped = certify(encloser, box.lower, box.upper, inner, inner, tol=1e-3, rtol=0.1,
-                      max_boxes=10**6, deadline=time.monotonic() + 0.5)  # fmt: skip
+    stopped = refine(encloser, box.lower, box.upper, inner, inner, tol=1e-3, rtol=0.1,
+                     max_boxes=10**6, deadline=time.monotonic() + 0.5)  # fmt: skip
     assert stopped.stop == "max_wall_time" and not stopped.converged
     assert np.all(stopped.lo <= full.lo) and np.all(full.hi <= stopped.hi)
 

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from pydrake.symbolic import MakeVectorVariable, cos, sin
 
+from ofrl_drake.branch_and_bound import Refinement, refine
 from ofrl_drake.interval import ExpressionEvaluator
-from ofrl_drake.symbolic_bounds import TaylorEncloser, certify_expressions
+from ofrl_drake.symbolic_bounds import TaylorEncloser
 
 X = MakeVectorVariable(3, "x")
 r, p, w = X
@@ -20,6 +21,11 @@ EXPRS = [
 ]
 LO = np.array([-0.3, -0.2, -1.0])
 HI = np.array([0.3, 0.2, 1.0])
+
+
+def certify_expressions(exprs, x, lo, hi, inner_lo, inner_hi, **budget) -> Refinement:
+    """The one branch and bound with the Taylor encloser of ``exprs``."""
+    return refine(TaylorEncloser(exprs, x), lo, hi, inner_lo, inner_hi, **budget)
 
 
 def _samples(n=20000, seed=0):
@@ -59,6 +65,7 @@ def test_a_deadline_that_is_not_reached_changes_no_bound(monkeypatch):
     # _CHUNK_SECONDS; each box is enclosed alone, so the bounds are the same.
     import time
 
+    import ofrl_drake.branch_and_bound as bb
     import ofrl_drake.symbolic_bounds as sb
 
     s_lo, s_hi = _samples()
@@ -70,7 +77,7 @@ def test_a_deadline_that_is_not_reached_changes_no_bound(monkeypatch):
         sizes.append(lower.shape[1])
         return enclose(self, lower, upper)
 
-    monkeypatch.setattr(sb, "_CHUNK_SECONDS", 1e-12)  # one box per call
+    monkeypatch.setattr(bb, "_CHUNK_SECONDS", 1e-12)  # one box per call
     monkeypatch.setattr(sb.TaylorEncloser, "enclose", spy)
     timed = certify_expressions(
         EXPRS, X, LO, HI, s_lo, s_hi, tol=1e-3, rtol=0.0, max_boxes=10**6,
