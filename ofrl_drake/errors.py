@@ -60,7 +60,9 @@ def status_line(err: BaseException) -> str:
     """An error as the one-line status of a run in a sweep.
 
     ``"timeout: <message>"`` for :class:`WallTimeExceeded`, like a run the
-    guard stopped; ``"<ExceptionType>: <message>"`` otherwise.
+    guard stopped; ``"<ExceptionType>: <message>"`` otherwise (the type alone
+    for an empty message, as plants' import errors always read).
     """
     head = "timeout" if isinstance(err, WallTimeExceeded) else type(err).__name__
-    return f"{head}: {' '.join(str(err).split())}"
+    text = " ".join(str(err).split())
+    return f"{head}: {text}" if text else head

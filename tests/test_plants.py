@@ -201,3 +201,12 @@ def test_ablate_on_a_dask_cluster_whose_workers_start_elsewhere(
     (row,) = read_rows(out / "ablation.csv")
     assert row["status"] == "ok"
     assert row["optimal_cost"] > 0  # J* solved by the worker, with the user's plant
+
+
+def test_status_line_names_the_error_on_one_line():
+    from ofrl_drake.errors import WallTimeExceeded, status_line
+
+    assert status_line(ZeroDivisionError("a\n  b")) == "ZeroDivisionError: a b"
+    assert status_line(ImportError()) == "ImportError"  # an empty message: the type alone
+    late = WallTimeExceeded("the LMI ran out", step="LMI solve")
+    assert status_line(late) == "timeout: the LMI ran out"
