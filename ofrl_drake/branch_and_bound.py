@@ -155,6 +155,11 @@ class Refinement:
     open_entries: np.ndarray
     finest: float
 
+    @property
+    def budget(self) -> str:
+        """What the refinement spent and why it stopped, for messages."""
+        return f"{self.boxes} boxes in {self.seconds:.3g} s, stopped by {self.stop}"
+
 
 # Boxes are held column-wise: ``lo``, ``hi`` of shape (d, B) for B boxes.
 def bisect_boxes(

@@ -748,7 +748,7 @@ def _certify_symbolic(
         else:
             c_lo[joint], c_hi[joint] = result.lo, result.hi
             converged = result.converged
-            budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
+            budget = result.budget
     for e in alone:
         try:
             one = refine(
@@ -767,7 +767,7 @@ def _certify_symbolic(
         c_lo[e], c_hi[e] = one.lo[0], one.hi[0]
         converged = converged and one.converged
         if not one.converged:
-            budget = f"{names[e]}: {one.boxes} boxes in {one.seconds:.3g} s, stopped by {one.stop}"
+            budget = f"{names[e]}: {one.budget}"
     return c_lo, c_hi, converged, budget
 
 
@@ -915,7 +915,7 @@ def jacobian_bounds(
             deadline=deadline,
         )
         c_lo, c_hi, converged = np.array(result.lo), np.array(result.hi), result.converged
-        budget = f"{result.boxes} boxes in {result.seconds:.3g} s, stopped by {result.stop}"
+        budget = result.budget
     else:
         assert entries is not None  # no multibody structure: the symbolic Jacobians
         c_lo, c_hi, converged, budget = _certify_symbolic(

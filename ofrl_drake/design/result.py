@@ -445,6 +445,7 @@ class ObserverDesign:
                 raise DesignError(f"{name} must be a finite ({n}, {q}) array; got {G.tolist()}.")
             gains.append(G)
         get_formulation(formulation, sector)
+        time_limit = _check_time_limit(time_limit)  # before any bounds are computed
         box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
         alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
         if P is not None:
@@ -494,5 +495,5 @@ class ObserverDesign:
             backend,
             sector,
             max_gain=None,
-            time_limit=_check_time_limit(time_limit),
+            time_limit=time_limit,
         )
