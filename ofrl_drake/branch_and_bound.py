@@ -14,9 +14,12 @@ function, :func:`refine`, turns any of them into bounds:
 3. Settle, chunk by chunk, every box on which each entry's enclosure reaches at
    most ``slack = max(tol, rtol * (inner_hi - inner_lo))`` beyond the inner
    estimate; its enclosures join the bounds, and the box is dropped.
-4. Split the boxes left: every used side at once while the children stay
-   within :data:`_BATCH` boxes (one evaluation costs about the same for a few
-   hundred boxes), else each box in two, along the variable that adds most
+4. Split the boxes left: every used side at once, as many times over as
+   keeps the children within :data:`_BATCH` boxes (one evaluation costs
+   about the same for a few hundred boxes as for one, so the first level
+   after the whole box goes straight to a grid of up to :data:`_BATCH` boxes
+   instead of passing through 4, 16, 64, ... boxes in 2-d), else each box in
+   two, along the variable that adds most
    width, relative to the slack, to the entries not settled (the encloser's
    ``spread``), or, without a spread, along its side widest relative to the box.
 5. Stop when no box is left (converged), or when the next level would exceed
@@ -66,7 +69,8 @@ __all__ = [
 
 #: Why :func:`refine` stopped.
 STOPS = ("converged", "max_boxes", "max_wall_time")
-#: While ``open boxes * 2**d`` stays within this, every used side is halved at once.
+#: While ``open boxes * 2**d`` stays within this, every used side is halved at once
+#: (as many times over as stays within it).
 _BATCH = 256
 #: Under a deadline, boxes are enclosed in slices of about this many seconds.
 _CHUNK_SECONDS = 0.5
@@ -187,6 +191,17 @@ def halve_every_side(
         hi_left[j] = mid
         lo, hi = np.concatenate([lo, lo_right], axis=1), np.concatenate([hi_left, hi], axis=1)
     return lo, hi
+
+
+def _halvings(n_open: int, d: int, room: int) -> int:
+    """How many times to halve every one of the ``d`` used sides of ``n_open`` boxes.
+
+    The most ``k`` with ``n_open * 2**(k d) <= room`` (0: bisect each box instead).
+    """
+    k = 0
+    while n_open * 2 ** ((k + 1) * d) <= room:
+        k += 1
+    return k
 
 
 def _split_side(
@@ -408,13 +423,15 @@ def refine(
         if not used.size:  # constant entries: nothing to split, rounding is all there is
             return finish(True, "converged", (level_lo, level_hi))
         n_open = lo.shape[1]
-        children = 2**used.size if n_open * 2**used.size <= _BATCH else 2
+        halvings = _halvings(n_open, used.size, min(_BATCH, max_boxes - evaluated))
+        children = 2 ** (halvings * used.size) if halvings else 2
         if evaluated + children * n_open > max_boxes:
             return finish(False, "max_boxes", (level_lo, level_hi))
         if deadline is not None and time.monotonic() > deadline:
             return finish(False, "max_wall_time", (level_lo, level_hi))
-        if children > 2:
-            lo, hi = halve_every_side(lo, hi, used)
+        if halvings:
+            for _ in range(halvings):
+                lo, hi = halve_every_side(lo, hi, used)
         else:
             lo, hi = bisect_boxes(lo, hi, split)
         finest = min(finest, float(((hi[sides] - lo[sides]) / width[sides, None]).min()))

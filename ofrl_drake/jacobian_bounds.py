@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression, Jacobian
 
-from ofrl_drake.branch_and_bound import refine
+from ofrl_drake.branch_and_bound import Refinement, refine
 from ofrl_drake.errors import ModelError, OfrlError, WallTimeExceeded
 from ofrl_drake.interval import (
     ExpressionEvaluator,
@@ -69,7 +69,7 @@ from ofrl_drake.interval import (
 from ofrl_drake.interval_taylor import TaylorEvaluator
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure
-from ofrl_drake.symbolic_bounds import TaylorEncloser
+from ofrl_drake.symbolic_bounds import TaylorEncloser, independent_groups
 
 __all__ = [
     "DEFAULT_TOL",
@@ -692,6 +692,17 @@ def _taylor_supported(entries: np.ndarray, x: np.ndarray) -> np.ndarray:
         return out
 
 
+def _joint_budget(results: list[Refinement]) -> str:
+    """What the refinements of independent groups spent together, for messages."""
+    if len(results) == 1:
+        return results[0].budget
+    stops = [r.stop for r in results if not r.converged] or ["converged"]
+    return (
+        f"{sum(r.boxes for r in results)} boxes in {sum(r.seconds for r in results):.3g} s "
+        f"over {len(results)} independent groups of entries, stopped by {stops[0]}"
+    )
+
+
 def _certify_symbolic(
     entries: np.ndarray,
     x: np.ndarray,
@@ -708,7 +719,10 @@ def _certify_symbolic(
 
     Constant entries are enclosed once. The others are refined together with a
     :class:`~ofrl_drake.symbolic_bounds.TaylorEncloser` (natural, mean-value
-    and second-order Taylor forms, one branch and bound for all of them);
+    and second-order Taylor forms, one branch and bound for all of them; one
+    per group of entries that share no variable with the others, so that each
+    splits only its own variables; each group gets an equal share of the
+    boxes and of the time the groups before it left);
     entries the Taylor form cannot differentiate (``Abs``, ``Min``, ...) are
     refined one by one with the natural and mean-value forms
     (:class:`_EntryEncloser`), as is every entry when an enclosure is
@@ -731,24 +745,37 @@ def _certify_symbolic(
     joint, alone = varying[supported], varying[~supported]
     converged, budget = True, "converged"
     if joint.size:
+        uses = evaluator.variables_used()
+        results: list[Refinement] = []
+        groups = independent_groups([uses[e] for e in joint])
         try:
-            result = refine(
-                TaylorEncloser(entries[joint], x),
-                box.lower,
-                box.upper,
-                s_lo[joint],
-                s_hi[joint],
-                tol=tol,
-                rtol=rtol,
-                max_boxes=max_boxes,
-                deadline=deadline,
-            )
+            for g, group in enumerate(groups):
+                # An equal share of what the groups before have left, of boxes and time.
+                left = len(groups) - g
+                boxes = max(1, (max_boxes - sum(r.boxes for r in results)) // left)
+                share = None
+                if deadline is not None:
+                    now = time.monotonic()
+                    share = now + max(deadline - now, 0.0) / left
+                results.append(
+                    refine(
+                        TaylorEncloser(entries[joint[group]], x),
+                        box.lower,
+                        box.upper,
+                        s_lo[joint[group]],
+                        s_hi[joint[group]],
+                        tol=tol,
+                        rtol=rtol,
+                        max_boxes=boxes,
+                        deadline=share,
+                    )
+                )
+                c_lo[joint[group]], c_hi[joint[group]] = results[-1].lo, results[-1].hi
         except IntervalDomainError:
             alone = varying  # the per-entry refinement names the entry
         else:
-            c_lo[joint], c_hi[joint] = result.lo, result.hi
-            converged = result.converged
-            budget = result.budget
+            converged = all(r.converged for r in results)
+            budget = _joint_budget(results)
     for e in alone:
         try:
             one = refine(

@@ -25,10 +25,17 @@ there join its bound) and the evaluator is rebuilt for the entries left: the
 work per box follows the entries still open, not all of them. The result is
 the hull of each entry's enclosures over boxes that cover the box: always
 sound, tight when the refinement converged.
+
+Entries that share no variable, directly or through other entries, are
+refined apart (:func:`independent_groups`): each group's boxes split only its
+own variables. Refined together, two groups of ``d1`` and ``d2`` variables
+would need the product of their box counts; apart, the sum. (Two copies of
+the paper's plant: 32,529 boxes together against 2 x 229 apart.)
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -36,12 +43,54 @@ import numpy as np
 from ofrl_drake.interval import Interval
 from ofrl_drake.interval_taylor import TaylorEvaluator, taylor_from_jets
 
-__all__ = ["TaylorEncloser"]
+__all__ = ["TaylorEncloser", "independent_groups"]
 
 #: Boxes enclosed per call: at most this many interval values (entries x
 #: derivative rows x boxes) per derivative array.
 _VALUES = 2_000_000
 _MIN_CHUNK, _MAX_CHUNK = 64, 4096
+
+
+def independent_groups(uses: Sequence[Sequence[int]]) -> list[np.ndarray]:
+    """Partition entries into groups that share no variable, directly or through others.
+
+    Parameters
+    ----------
+    uses : sequence of sequence of int
+        For each entry, the indices of the variables it depends on.
+
+    Returns
+    -------
+    list of ndarray of int
+        The entries of each group, ascending; the groups in the order of their
+        first entry. An entry that uses no variable is a group alone.
+
+    Examples
+    --------
+    >>> [g.tolist() for g in independent_groups([(0, 1), (2,), (1,), (), (2, 3)])]
+    [[0, 2], [1, 4], [3]]
+    """
+    group_of_variable: dict[int, int] = {}
+    members: list[list[int]] = []
+    for entry, used in enumerate(uses):
+        joined = sorted({group_of_variable[v] for v in used if v in group_of_variable})
+        if not joined:
+            target = len(members)
+            members.append([])
+        else:
+            target = joined[0]
+            for other in joined[1:]:  # merge: the groups meet at this entry
+                members[target].extend(members[other])
+                members[other] = []
+        members[target].append(entry)
+        for v in used:
+            group_of_variable[v] = target
+        for other in joined[1:]:
+            for v, g in group_of_variable.items():
+                if g == other:
+                    group_of_variable[v] = target
+    groups = [np.array(sorted(m), dtype=int) for m in members if m]
+    return sorted(groups, key=lambda g: int(g[0]))
 
 
 class TaylorEncloser:

@@ -122,3 +122,40 @@ def test_timed_slices_change_no_bound(monkeypatch):
     assert timed.boxes == free.boxes
     np.testing.assert_array_equal(timed.lo, free.lo)
     np.testing.assert_array_equal(timed.hi, free.hi)
+
+
+@pytest.mark.parametrize(("max_boxes", "grid"), [(10**6, 256), (100, 64), (5, 4)])
+def test_the_level_after_the_whole_box_is_the_largest_grid_the_budget_allows(max_boxes, grid):
+    # Two used sides: one enclosure of 256 boxes costs about what one of a box does,
+    # so the whole box is split straight into 16 x 16 (4, 16, 64 skipped), within
+    # what is left of max_boxes.
+    s_lo, s_hi = samples()
+    encloser = Toy(chunk=4096)
+    sizes = []
+    enclose = encloser.enclose
+
+    def counting(lower, upper):
+        sizes.append(lower.shape[1])
+        return enclose(lower, upper)
+
+    encloser.enclose = counting
+    out = refine(encloser, LO, HI, s_lo, s_hi, tol=1e-3, rtol=0.0, max_boxes=max_boxes)
+    assert sizes[:2] == [1, grid] and out.boxes == sum(sizes) <= max_boxes
+    d_lo, d_hi = exact()
+    assert np.all(out.lo <= d_lo) and np.all(d_hi <= out.hi)
+
+
+@pytest.mark.parametrize(
+    ("n_open", "d", "room", "halvings"),
+    [
+        (1, 2, 256, 4),
+        (1, 3, 256, 2),
+        (64, 2, 256, 1),
+        (65, 2, 256, 0),
+        (1, 9, 256, 0),
+        (3, 1, 5, 0),
+    ],
+)
+def test_halvings_keep_the_children_within_the_room(n_open, d, room, halvings):
+    assert bb._halvings(n_open, d, room) == halvings
+    assert n_open * 2 ** (halvings * d) <= room < n_open * 2 ** ((halvings + 1) * d)

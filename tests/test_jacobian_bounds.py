@@ -273,13 +273,17 @@ def test_rtol_loosens_the_tolerance_relative_to_the_sampled_width(two_state, two
 
 def test_max_wall_time_stops_the_refinement_with_sound_bounds(coupled):
     s4 = jacobian_bounds(coupled, BOX4, "sampled")
-    # tol = 1e-9 is out of reach and max_boxes is not binding: only the clock stops it
-    # (the symbolic Jacobians of this n = 4 plant take milliseconds of the 0.5 s).
+    # tol = 1e-15 is out of reach (below the enclosures' own rounding) and max_boxes
+    # is not binding: only the clock stops it (the symbolic Jacobians of this n = 4
+    # plant take milliseconds of the 0.5 s).
     rushed = jacobian_bounds(
-        coupled, BOX4, "certified", tol=1e-9, max_boxes=10**9, max_wall_time=0.5
+        coupled, BOX4, "certified", tol=1e-15, max_boxes=10**9, max_wall_time=0.5
     )
     assert not rushed.excess.converged
     assert rushed.contains(s4)
+    # The two copies are refined apart, each with its share of the time: neither is
+    # left at its first box (whose excess is about 3).
+    assert rushed.excess.max < 1e-2
     with pytest.raises(BoundsError, match=r"max_wall_time must be a positive number.*got 0"):
         jacobian_bounds(coupled, BOX4, "certified", max_wall_time=0)
 
@@ -322,3 +326,21 @@ def test_an_entry_still_infinite_when_the_budget_runs_out_is_named():
     assert issubclass(UncertifiedBoundsError, BoundsError)
     enough = jacobian_bounds(system, box, "certified", tol=1e-2)
     assert enough.excess.converged and np.isfinite(enough.Mf1).all()
+
+
+def test_independent_copies_are_refined_apart_bit_for_bit(two_state_bounds, coupled):
+    # The coupled plant is two copies of the paper's plant joined by a constant
+    # term. Its entries of x1, x2 and of x3, x4 share no variable, so each copy is
+    # refined on its own 2-d boxes: the same boxes, hence the same bounds to the
+    # bit, as the paper's plant alone (refined jointly in 4-d they were not, and
+    # took the product of the two box counts).
+    _, alone = two_state_bounds
+    both = jacobian_bounds(coupled, BOX4, "certified", tol=1e-3)
+    for block in (slice(0, 2), slice(2, 4)):
+        for name in ("Mf1", "Mf2"):
+            got, want = getattr(both, name)[block, block].copy(), getattr(alone, name).copy()
+            got[0, 0] = want[0, 0]  # the coupling's constant -0.1 in rows 1 and 3
+            np.testing.assert_array_equal(got, want)
+        k = 0 if block.start == 0 else 1
+        np.testing.assert_array_equal(both.Mg1[block, block, k], alone.Mg1[:, :, 0])
+        np.testing.assert_array_equal(both.Mg2[block, block, k], alone.Mg2[:, :, 0])

@@ -2,11 +2,13 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from pydrake.symbolic import MakeVectorVariable, cos, sin
 
 from ofrl_drake.branch_and_bound import Refinement, refine
 from ofrl_drake.interval import ExpressionEvaluator
-from ofrl_drake.symbolic_bounds import TaylorEncloser
+from ofrl_drake.symbolic_bounds import TaylorEncloser, independent_groups
 
 X = MakeVectorVariable(3, "x")
 r, p, w = X
@@ -117,3 +119,37 @@ def test_rtol_lets_wide_entries_settle_sooner(rtol):
     assert loose.converged and loose.boxes < tight.boxes
     slack = np.maximum(1e-3, rtol * (s_hi - s_lo))
     assert np.all(loose.lo >= s_lo - slack - 1e-12) and np.all(loose.hi <= s_hi + slack + 1e-12)
+
+
+def test_independent_groups_of_a_block_diagonal_plant():
+    # Two copies of a 2-state plant and a term that joins them late (entry 4).
+    assert [g.tolist() for g in independent_groups([(0, 1), (2, 3), (1,), (3,)])] == [
+        [0, 2],
+        [1, 3],
+    ]
+    joined = independent_groups([(0, 1), (2, 3), (1,), (3,), (0, 3)])
+    assert [g.tolist() for g in joined] == [[0, 1, 2, 3, 4]]
+    assert [g.tolist() for g in independent_groups([(), (0,), ()])] == [[0], [1], [2]]
+    assert independent_groups([]) == []
+
+
+@given(st.lists(st.sets(st.integers(0, 7), max_size=3), max_size=12))
+def test_independent_groups_partition_the_entries_and_share_no_variable(uses):
+    groups = independent_groups([sorted(u) for u in uses])
+    entries = sorted(int(e) for g in groups for e in g)
+    assert entries == list(range(len(uses)))  # a partition
+    variables = [set().union(*(uses[e] for e in g)) for g in groups]
+    for a in range(len(groups)):
+        for b in range(a + 1, len(groups)):
+            assert not variables[a] & variables[b]  # no variable shared across groups
+    for g, used in zip(groups, variables, strict=True):
+        # Within a group, every entry is reached from the first through shared variables.
+        reached, frontier = {int(g[0])}, set(uses[int(g[0])])
+        grew = True
+        while grew:
+            new = {int(e) for e in g if int(e) not in reached and uses[int(e)] & frontier}
+            grew = bool(new)
+            reached |= new
+            for e in new:
+                frontier |= uses[e]
+        assert reached == {int(e) for e in g} and frontier == used
