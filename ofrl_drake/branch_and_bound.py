@@ -15,11 +15,11 @@ function, :func:`refine`, turns any of them into bounds:
    most ``slack = max(tol, rtol * (inner_hi - inner_lo))`` beyond the inner
    estimate; its enclosures join the bounds, and the box is dropped.
 4. Split the boxes left: every used side at once, as many times over as
-   keeps the children within :data:`_BATCH` boxes (one evaluation costs
-   about the same for a few hundred boxes as for one, so the first level
-   after the whole box goes straight to a grid of up to :data:`_BATCH` boxes
-   instead of passing through 4, 16, 64, ... boxes in 2-d), else each box in
-   two, along the variable that adds most
+   keeps the children within :data:`_BATCH` boxes and within what is left of
+   ``max_boxes`` (one evaluation costs about the same for a few hundred boxes
+   as for one, so the first level after the whole box goes straight to a
+   grid of up to :data:`_BATCH` boxes instead of passing through 4, 16, 64,
+   ... boxes in 2-d), else each box in two, along the variable that adds most
    width, relative to the slack, to the entries not settled (the encloser's
    ``spread``), or, without a spread, along its side widest relative to the box.
 5. Stop when no box is left (converged), or when the next level would exceed

@@ -33,7 +33,8 @@ Two methods:
       the mean-value form ``h(c) + grad h(X) (X - c)`` and the second-order
       Taylor form, whose overestimation shrinks with the cube of the box width
       (derivatives by forward differentiation on the expression graph,
-      :mod:`ofrl_drake.interval_taylor`); all entries refined together
+      :mod:`ofrl_drake.interval_taylor`); all entries refined together, one
+      refinement per group of entries that share no state variable
       (:mod:`ofrl_drake.symbolic_bounds`). An entry the Taylor form cannot
       differentiate (``Abs``, ``Min``, ...) is refined alone, with the
       natural and mean-value forms.
@@ -696,10 +697,10 @@ def _joint_budget(results: list[Refinement]) -> str:
     """What the refinements of independent groups spent together, for messages."""
     if len(results) == 1:
         return results[0].budget
-    stops = [r.stop for r in results if not r.converged] or ["converged"]
+    stops = sorted({r.stop for r in results if not r.converged}) or ["converged"]
     return (
         f"{sum(r.boxes for r in results)} boxes in {sum(r.seconds for r in results):.3g} s "
-        f"over {len(results)} independent groups of entries, stopped by {stops[0]}"
+        f"over {len(results)} independent groups of entries, stopped by {' and '.join(stops)}"
     )
 
 
@@ -747,7 +748,12 @@ def _certify_symbolic(
     if joint.size:
         uses = evaluator.variables_used()
         results: list[Refinement] = []
-        groups = independent_groups([uses[e] for e in joint])
+        # The groups with fewest variables first: they settle soonest and leave
+        # the boxes and the time they do not use to the harder ones after them.
+        groups = sorted(
+            independent_groups([uses[e] for e in joint]),
+            key=lambda g: (len(set().union(*(uses[joint[e]] for e in g))), g.size),
+        )
         try:
             for g, group in enumerate(groups):
                 # An equal share of what the groups before have left, of boxes and time.
@@ -849,7 +855,8 @@ def jacobian_bounds(
         alone) for the others.
     max_boxes : int
         Certified only: the most boxes evaluated for all entries together (per
-        entry for those refined alone, module docstring). When it is reached,
+        entry for those refined alone, module docstring; at least one box per
+        group of entries that share no variable). When it is reached,
         the (still guaranteed) enclosure is returned as it is, and
         ``excess.converged`` is False.
     max_wall_time : float, optional

@@ -154,8 +154,12 @@ def test_the_level_after_the_whole_box_is_the_largest_grid_the_budget_allows(max
         (65, 2, 256, 0),
         (1, 9, 256, 0),
         (3, 1, 5, 0),
+        (5, 2, 4, 0),
+        (1, 2, 0, 0),
     ],
 )
 def test_halvings_keep_the_children_within_the_room(n_open, d, room, halvings):
     assert bb._halvings(n_open, d, room) == halvings
-    assert n_open * 2 ** (halvings * d) <= room < n_open * 2 ** ((halvings + 1) * d)
+    assert room < n_open * 2 ** ((halvings + 1) * d)  # one more would not fit
+    if halvings:
+        assert n_open * 2 ** (halvings * d) <= room
