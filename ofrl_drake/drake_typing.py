@@ -10,14 +10,17 @@ such a parameter (numpy types shapes as tuples: ``np.zeros(n)`` is an
 both: :data:`DrakeArray` (float) and :data:`SymbolicArray` (``pydrake.symbolic``
 variables and expressions). Arrays handed to pydrake are typed with them,
 through :func:`drake_array` where they are built, and so are the values of
-vector ports (:func:`vector_value`), whose stub says ``object``.
+vector ports (:func:`vector_value`, or :func:`vector_reader` in a block's
+per-evaluation code), whose stub says ``object``.
 
-Neither changes a value: :func:`drake_array` is ``np.asarray(values,
-dtype=float)``, and :func:`vector_value` is ``port.Eval(context)``.
+None changes a value: :func:`drake_array` is ``np.asarray(values,
+dtype=float)``, :func:`vector_value` is ``port.Eval(context)``, and
+:func:`vector_reader` is ``port.Eval`` itself.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeAlias, cast
 
 import numpy as np
@@ -26,7 +29,7 @@ from numpy.typing import ArrayLike
 if TYPE_CHECKING:  # annotations only
     from pydrake.systems.framework import Context, InputPort, OutputPort
 
-__all__ = ["DrakeArray", "SymbolicArray", "drake_array", "vector_value"]
+__all__ = ["DrakeArray", "SymbolicArray", "drake_array", "vector_reader", "vector_value"]
 
 #: A float array as pydrake's stubs take and give it: any shape (see the module docstring).
 DrakeArray: TypeAlias = np.ndarray[Any, np.dtype[np.float64]]
@@ -46,3 +49,14 @@ def vector_value(port: InputPort | OutputPort, context: Context) -> DrakeArray:
     object); a vector-valued port gives a float array.
     """
     return cast(DrakeArray, port.Eval(context))
+
+
+def vector_reader(port: InputPort | OutputPort) -> Callable[[Context], DrakeArray]:
+    """``port.Eval``, typed as :func:`vector_value` is: bind it once, call it per evaluation.
+
+    A block whose calc runs at every derivative evaluation keeps the bound
+    method and calls it with the context, one call into pydrake with no Python
+    frame or ``cast`` around it (about 0.4 us per read, measured in the paper
+    scenario's loop).
+    """
+    return cast("Callable[[Context], DrakeArray]", port.Eval)

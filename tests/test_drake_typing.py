@@ -1,10 +1,10 @@
-"""ofrl_drake.drake_typing changes types only: drake_array is np.asarray(x, float) and
-vector_value is the port's Eval."""
+"""ofrl_drake.drake_typing changes types only: drake_array is np.asarray(x, float),
+vector_value is the port's Eval, and vector_reader is the port's bound Eval."""
 
 import numpy as np
 from pydrake.systems.primitives import ConstantVectorSource
 
-from ofrl_drake.drake_typing import drake_array, vector_value
+from ofrl_drake.drake_typing import drake_array, vector_reader, vector_value
 
 
 def test_drake_array_is_asarray_as_float():
@@ -23,3 +23,13 @@ def test_vector_value_is_the_ports_value():
     assert isinstance(value, np.ndarray)
     np.testing.assert_array_equal(value, port.Eval(context))
     np.testing.assert_array_equal(value, [0.25, 4.0])
+
+
+def test_vector_reader_is_the_ports_eval_bound_once():
+    source = ConstantVectorSource(np.array([0.25, 4.0]))
+    context = source.CreateDefaultContext()
+    port = source.get_output_port()
+    read = vector_reader(port)
+    np.testing.assert_array_equal(read(context), port.Eval(context))
+    source.get_mutable_source_value(context).SetFromVector([1.0, -2.0])
+    np.testing.assert_array_equal(read(context), [1.0, -2.0])  # reads the context it is given

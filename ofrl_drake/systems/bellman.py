@@ -17,7 +17,7 @@ from pydrake.systems.primitives import Demultiplexer
 
 from ofrl_drake.bellman import BellmanSums, Extrapolator, PointFeatures, learning_condition
 from ofrl_drake.checks import positive_number
-from ofrl_drake.drake_typing import drake_array, vector_value
+from ofrl_drake.drake_typing import drake_array, vector_reader, vector_value
 
 __all__ = ["BellmanExtrapolator"]
 
@@ -39,6 +39,8 @@ class _StackedSums(LeafSystem):
         self._nu_index = self.DeclareNumericParameter(BasicVector(drake_array([extrapolator.nu])))
         self._weights_port = self.DeclareVectorInputPort("weights", size)
         self._policy_port = self.DeclareVectorInputPort("policy_weights", size)
+        self._weights_value = vector_reader(self._weights_port)
+        self._policy_value = vector_reader(self._policy_port)
         inputs = {
             self._weights_port.ticket(),
             self._policy_port.ticket(),
@@ -78,10 +80,10 @@ class _StackedSums(LeafSystem):
         nu = context.get_numeric_parameter(self._nu_index).GetAtIndex(0)
         e = self.extrapolator
         (e if nu == e.nu else self.extrapolator_for(nu)).sums_into(
-            vector_value(self._weights_port, context),
+            self._weights_value(context),
             value[:L],
             value[L:].reshape(L, L),
-            vector_value(self._policy_port, context),
+            self._policy_value(context),
         )
 
     def _calc_learning_condition(self, context, output) -> None:

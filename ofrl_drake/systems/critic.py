@@ -10,7 +10,7 @@ from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSyste
 
 from ofrl_drake.bellman import critic_rate, packed_size
 from ofrl_drake.checks import finite_vector, positive_number
-from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_reader
 
 __all__ = ["CriticWeights"]
 
@@ -61,6 +61,8 @@ class CriticWeights(LeafSystem):
         self._critic_sum_port = self.DeclareVectorInputPort("critic_sum", size)
         self._gamma_port = self.DeclareVectorInputPort("gamma", packed_size(size))
         self._weights_port = self.DeclareStateOutputPort("weights", self._state_index)
+        self._gamma_value = vector_reader(self._gamma_port)
+        self._critic_sum_value = vector_reader(self._critic_sum_port)
 
     def get_critic_sum_input_port(self) -> InputPort:
         """``(1/N) sum omega delta / rho`` (size L)."""
@@ -98,8 +100,8 @@ class CriticWeights(LeafSystem):
         rate = self._rate
         kc = context.get_numeric_parameter(self._kc_index).GetAtIndex(0)
         critic_rate(
-            vector_value(self._gamma_port, context),
-            vector_value(self._critic_sum_port, context),
+            self._gamma_value(context),
+            self._critic_sum_value(context),
             kc,
             rate,
         )

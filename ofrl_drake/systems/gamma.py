@@ -10,7 +10,7 @@ from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSyste
 
 from ofrl_drake.bellman import gamma_rate, pack_symmetric, packed_size
 from ofrl_drake.checks import positive_number, spd_matrix
-from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
+from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_reader
 from ofrl_drake.learning import bounded_forgetting
 
 __all__ = ["GammaGain"]
@@ -103,6 +103,7 @@ class GammaGain(LeafSystem):
             BasicVector(drake_array(np.linalg.inv(G0).ravel()))
         )
         self._gain_sum_port = self.DeclareVectorInputPort("gain_sum", L * L)
+        self._gain_sum_value = vector_reader(self._gain_sum_port)
         self._gamma_port = self.DeclareStateOutputPort("gamma", self._state_index)
 
     def get_gain_sum_input_port(self) -> InputPort:
@@ -161,5 +162,5 @@ class GammaGain(LeafSystem):
             reference = context.get_numeric_parameter(self._reference_index).get_value()
             ratio = float(reference @ gamma[self._full_index]) / self._size
             beta = bounded_forgetting(beta, ratio, bound)
-        gamma_rate(gamma, vector_value(self._gain_sum_port, context), kc, beta, rate)
+        gamma_rate(gamma, self._gain_sum_value(context), kc, beta, rate)
         derivatives.SetFromVector(rate)
