@@ -60,7 +60,13 @@ QUICK = suite.Settings(
     lmi_cases=(("drake", "clarabel"), ("cvxpy", "clarabel")),
     bellman_batches=3,
     bellman_calls=200,
-    scaling=ScalingSettings(point_counts=(100, 1000), duration=0.1, basis_duration=0.02, repeats=1),
+    scaling=ScalingSettings(
+        point_counts=(100, 1000),
+        dimensions=("pendulum_upright", "cart_pole", "planar_quadrotor"),
+        duration=0.1,
+        basis_duration=0.02,
+        repeats=1,
+    ),
     sweep_counts=(1, 2),
     sweep_repeats=1,
 )

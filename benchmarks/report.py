@@ -206,13 +206,15 @@ def _scaling_tables(s: dict[str, list[dict[str, Any]]]) -> str:
         if not rows:
             continue
         lines = [
-            f"| {head} | horizon s | median s | s per simulated s | evals per simulated s "
-            "| us/eval | growth: s per simulated s | growth: evals | growth: us/eval |",
-            "|---|--:|--:|--:|--:|--:|--:|--:|--:|",
+            f"| {head} | horizon s | median s | simulation s | s per simulated s "
+            "| evals per simulated s | us/eval | growth: s per simulated s | growth: evals "
+            "| growth: us/eval |",
+            "|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|",
         ]
         for r in rows:
             lines.append(
                 f"| {label(r)} | {r['duration']:g} | {_seconds(r['median'])} "
+                f"| {_seconds(r['advance']['median'])} "
                 f"| {r['seconds_per_simulated_second']:.3f} "
                 f"| {r['evaluations_per_simulated_second']:.0f} | {r['us_per_evaluation']:.0f} "
                 f"| {r['seconds_per_simulated_second_growth']:.2f}x "

@@ -6,8 +6,12 @@ design, build, simulation, logs), ``repeats`` times after one warm-up:
 * ``points``: the cart-pole with N = 100, 1,000, 10,000 uniformly drawn
   points (its own box and seed);
 * ``basis``: the cart-pole with basis degrees [2] (L = 10) and [2, 4] (L = 45);
-* ``state_dimension``: n = 2, 4, 6 -- the upright pendulum, the cart-pole and
-  the planar quadrotor of ``benchmarks/scenarios/``.
+* ``state_dimension``: n = 2, 4, 6 -- the upright pendulum; the cart-pole and
+  the acrobot; the planar quadrotor of ``benchmarks/scenarios/`` and the
+  cart double pendulum. The two multi-link robots (Drake's multibody plants)
+  take their certified bounds from the mass-matrix structure, which costs
+  seconds, so their whole ``simulate()`` is mostly design at this horizon:
+  each row also gives the simulation alone.
 
 The learning gains of every row are resolved at its scenario's own horizon
 (:func:`~benchmarks.cases.gains_resolved`), then the row runs a shorter
@@ -34,12 +38,16 @@ _ROOT = Path(__file__).resolve().parents[1]
 #: The scenario of the N and L rows.
 CART_POLE = _ROOT / "diagrams" / "cart_pole.yaml"
 
-#: n -> the scenario of the n rows.
+#: Name -> the scenario of an n row, in the table's order (n grows).
 DIMENSION_SCENARIOS = {
-    2: _ROOT / "diagrams" / "pendulum_upright.yaml",
-    4: CART_POLE,
-    6: _ROOT / "benchmarks" / "scenarios" / "planar_quadrotor.yaml",
+    "pendulum_upright": _ROOT / "diagrams" / "pendulum_upright.yaml",
+    "cart_pole": CART_POLE,
+    "acrobot": _ROOT / "diagrams" / "acrobot.yaml",
+    "planar_quadrotor": _ROOT / "benchmarks" / "scenarios" / "planar_quadrotor.yaml",
+    "cart_double_pendulum": _ROOT / "diagrams" / "cart_double_pendulum.yaml",
 }
+#: The n rows whose single run takes seconds (multibody design): fewer repeats.
+_MULTILINK = ("acrobot", "cart_double_pendulum")
 
 
 @dataclass(frozen=True)
@@ -52,8 +60,8 @@ class ScalingSettings:
         N of the ``points`` rows.
     basis_degrees : tuple of tuple of int
         Degrees of the ``basis`` rows.
-    dimensions : tuple of int
-        n of the ``state_dimension`` rows (keys of :data:`DIMENSION_SCENARIOS`).
+    dimensions : tuple of str
+        The ``state_dimension`` rows (keys of :data:`DIMENSION_SCENARIOS`).
     duration : float
         Simulated seconds of the ``points`` and ``state_dimension`` rows.
     basis_duration : float
@@ -61,14 +69,18 @@ class ScalingSettings:
         gains of the quartic basis make the critic stiff (many more steps).
     repeats : int
         Timed runs per row.
+    multilink_repeats : int
+        Timed runs of the acrobot and cart double pendulum rows (at most
+        ``repeats``): one run takes 7 and 30 s at a 2 s horizon.
     """
 
     point_counts: tuple[int, ...] = (100, 1000, 10_000)
     basis_degrees: tuple[tuple[int, ...], ...] = ((2,), (2, 4))
-    dimensions: tuple[int, ...] = (2, 4, 6)
+    dimensions: tuple[str, ...] = tuple(DIMENSION_SCENARIOS)
     duration: float = 2.0
     basis_duration: float = 0.25
     repeats: int = 3
+    multilink_repeats: int = 3
 
 
 def _run(scenario: Scenario, repeats: int) -> dict[str, Any]:
@@ -130,12 +142,16 @@ def scaling_rows(settings: ScalingSettings) -> dict[str, list[dict[str, Any]]]:
         size = PolynomialBasis(len(cart_pole.x0), list(degrees)).size
         row = {"scenario": cart_pole.name, "degrees": list(degrees), "L": size}
         out["basis"].append({**row, **_run(case, settings.repeats)})
-    for n in settings.dimensions:
-        scenario = load_scenario(DIMENSION_SCENARIOS[n])
+    for name in settings.dimensions:
+        scenario = load_scenario(DIMENSION_SCENARIOS[name])
         case = with_duration(gains_resolved(scenario), settings.duration)
+        n = len(scenario.x0)
         size = PolynomialBasis(n, list(scenario.critic.basis_degrees)).size
         row = {"scenario": scenario.name, "n": n, "L": size, "N": _point_count(scenario)}
-        out["state_dimension"].append({**row, **_run(case, settings.repeats)})
+        repeats = settings.repeats
+        if name in _MULTILINK:
+            repeats = min(repeats, settings.multilink_repeats)
+        out["state_dimension"].append({**row, **_run(case, repeats)})
     return {key: _growth(rows) for key, rows in out.items() if rows}
 
 
