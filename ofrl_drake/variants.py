@@ -341,6 +341,9 @@ def three_gain(parts: ClosedLoopParts) -> System:
                 "jacobian_method": o.jacobian_method,
                 "solver": o.solver,
                 "formulation": o.formulation,
+                # No one re-solve may outlast the run's whole budget; one that
+                # would keeps the gains in force and counts as failed.
+                "time_limit": s.simulation.max_wall_time,
             },
             initial_state=s.xhat0,
         )

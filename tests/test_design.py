@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import time
 import warnings
 
 import numpy as np
@@ -586,6 +587,47 @@ def test_csdp_has_no_time_limit_and_is_refused_with_one(two_state, bounds2):
         r"cannot bound the LMI solve; use solver 'clarabel' or 'scs'",
     ):
         design_observer(two_state, BOX2, 3.0, 0.9, bounds=bounds2, solver="csdp", time_limit=5)
+
+
+def test_a_time_limit_bounds_the_bounds_design_observer_computes(two_state, monkeypatch):
+    import ofrl_drake.design.pipeline as pipeline
+
+    budgets, solves = [], []
+    bounds_of = pipeline.jacobian_bounds
+    solve_with = pipeline._solve
+
+    def bounds_spy(*args, **kwargs):
+        budgets.append(kwargs["max_wall_time"])
+        return bounds_of(*args, **kwargs)
+
+    def solve_spy(problem, solver, backend, time_limit):
+        solves.append(time_limit)
+        return solve_with(problem, solver, backend, time_limit)
+
+    monkeypatch.setattr(pipeline, "jacobian_bounds", bounds_spy)
+    monkeypatch.setattr(pipeline, "_solve", solve_spy)
+    assert design_observer(two_state, BOX2, 3.0, 0.9, time_limit=60.0).is_certified
+    # The bounds stop at the budget; the LMI gets what they leave of it.
+    assert budgets == [60.0] and 0.0 < solves[0] < 60.0
+    pinned = design_observer(two_state, BOX2, 3.0, 0.9)
+    assert budgets[-1] is None and solves[-1] is None  # no budget, no limit
+    ObserverDesign.from_gains(
+        two_state, BOX2, 3.0, 0.9, pinned.L, pinned.H, pinned.K, time_limit=60.0
+    )
+    assert budgets[-1] == 60.0 and 0.0 < solves[-1] < 60.0
+
+    def slow_bounds(*args, **kwargs):
+        time.sleep(0.05)
+        return bounds_of(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "jacobian_bounds", slow_bounds)
+    with pytest.raises(
+        WallTimeExceeded,
+        match=r"the observer design's Jacobian bounds took .* s of time_limit = 0\.01 s, "
+        r"leaving nothing for the LMI; allow more time",
+    ) as caught:
+        design_observer(two_state, BOX2, 3.0, 0.9, time_limit=0.01)
+    assert caught.value.step == "Jacobian bounds"
 
 
 def test_a_scenarios_max_wall_time_bounds_its_whole_design(paper_scenario, monkeypatch):

@@ -92,3 +92,25 @@ def test_every_gain_in_force_rechecks_in_numpy_from_the_logs(paper_scenario, pap
         assert recheck.max_eigenvalue == pytest.approx(cert[k], rel=1e-6, abs=1e-9)
         assert cert[k] < 0
     assert len({tuple(row) for row in box}) == 3  # three different boxes were in force
+
+
+def test_each_resolve_is_bounded_by_the_runs_wall_time(paper_scenario, paper_design, monkeypatch):
+    import ofrl_drake.design as design_module
+    from ofrl_drake.errors import WallTimeExceeded
+
+    s = _scheduled(paper_scenario, schedule_period=1.0, schedule_half_width=[1.0, 1.0])
+    s = dataclasses.replace(s, simulation=dataclasses.replace(s.simulation, max_wall_time=120.0))
+    limits = []
+
+    def out_of_time(*args, **kwargs):
+        limits.append(kwargs["time_limit"])
+        raise WallTimeExceeded("the observer LMI ran out of its time limit", step="LMI solve")
+
+    monkeypatch.setattr(design_module, "design_observer", out_of_time)
+    r = simulate(s, design=paper_design, progress=False)
+    # Each re-solve got the run's budget; one that runs out keeps the gains in force
+    # and counts as failed, and the run goes on.
+    assert limits == [120.0, 120.0] and r.status == "ok"
+    assert r.extra["solve_failed"][-1, 0] == 1.0
+    np.testing.assert_array_equal(r.extra["solve_counts"][-1], [2.0, 2.0])
+    np.testing.assert_allclose(r.extra["observer_gains"][-1, :2], paper_design.L.ravel())

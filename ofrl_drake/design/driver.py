@@ -97,6 +97,12 @@ def design_observer(
         ``"paper"`` only: False pins ``H = K = 0`` (a linear Luenberger observer
         checked against (lmi2)). The polytopic formulation always has ``H = K =
         0`` and ignores it.
+    time_limit : float, optional
+        Wall-clock seconds for the whole design: bounds computed here stop
+        their refinement at it (with sound bounds), and the solver gets what
+        they leave as its own time limit (Clarabel ``time_limit``, SCS
+        ``time_limit_secs``, MOSEK ``MSK_DPAR_OPTIMIZER_MAX_TIME``; CSDP has
+        none and is refused with one). Default: no limit.
 
     Returns
     -------
@@ -109,7 +115,8 @@ def design_observer(
     ObserverDesignInfeasible
         If the solver reports infeasibility or the numbers do not certify.
     WallTimeExceeded
-        If the solve ran out of ``time_limit``.
+        If the design ran out of ``time_limit``: the bounds left nothing of it,
+        or the solve ran out of what they left.
     DesignError
         For an unknown solver, backend, objective, sector or formulation, a
         solver that is not usable here (MOSEK without licence), bounds that do
@@ -133,7 +140,7 @@ def design_observer(
     get_formulation(formulation, sector)
     alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
     time_limit = _check_time_limit(time_limit)
-    box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
+    box, bounds, time_limit = _box_and_bounds(system, box, bounds, jacobian_method, time_limit)
     n, q = system.n, system.q
     pinned = None if injection_gains else (np.zeros((n, q)), np.zeros((n, q)))
     problem = _problem(

@@ -16,6 +16,7 @@ Shared by :func:`ofrl_drake.design.design_observer` and
 from __future__ import annotations
 
 import math
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -50,10 +51,34 @@ def _box_and_bounds(
     box: Any,
     bounds: JacobianBounds | None,
     jacobian_method: str,
-) -> tuple[Box, JacobianBounds]:
+    time_limit: float | None = None,
+) -> tuple[Box, JacobianBounds, float | None]:
+    """The design box, its bounds (computed unless given) and the time left of ``time_limit``.
+
+    Bounds computed here get ``time_limit`` as their ``max_wall_time`` (the
+    refinement stops there with sound bounds); the LMI gets what they leave.
+
+    Raises
+    ------
+    WallTimeExceeded
+        If the bounds leave nothing of ``time_limit`` (or their symbolic
+        Jacobians are not done by then).
+    """
     box = Box.coerce(box, system.n)
     if bounds is None:
-        return box, jacobian_bounds(system, box, jacobian_method)
+        start = time.monotonic()
+        bounds = jacobian_bounds(system, box, jacobian_method, max_wall_time=time_limit)
+        if time_limit is None:
+            return box, bounds, None
+        used = time.monotonic() - start
+        if used >= time_limit:
+            raise WallTimeExceeded(
+                f"the observer design's Jacobian bounds took {used:.3g} s of time_limit = "
+                f"{time_limit:g} s, leaving nothing for the LMI; allow more time, shrink "
+                "the box, or pass bounds computed beforehand.",
+                step="Jacobian bounds",
+            )
+        return box, bounds, time_limit - used
     if not isinstance(bounds, JacobianBounds):
         raise DesignError(f"bounds must be a JacobianBounds; got {type(bounds).__name__}.")
     if bounds.Mg1.shape != (system.n, system.n, system.m):
@@ -67,7 +92,7 @@ def _box_and_bounds(
             f"bounds hold on {bounds.box!r}, which does not contain the design "
             f"box {box!r}; recompute them on the design box."
         )
-    return box, bounds
+    return box, bounds, time_limit
 
 
 def _problem(

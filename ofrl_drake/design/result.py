@@ -419,13 +419,14 @@ class ObserverDesign:
         every corner and vertex (``"polytopic"``, where the corners are built
         with the given ``H, K``, so nonzero injection gains are checked
         soundly too), ``L, H, K`` fixed, minimizing ``lambda_max(P)``;
-        ``time_limit`` bounds that solve as in
+        ``time_limit`` bounds the bounds computed here and that solve as in
         :func:`~ofrl_drake.design.design_observer`.
 
         Raises
         ------
         WallTimeExceeded
-            If the solve for ``P`` ran out of ``time_limit``.
+            If the bounds computed here left nothing of ``time_limit``, or the
+            solve for ``P`` ran out of what they left.
         ObserverDesignInfeasible
             If ``P`` is None and no certifying ``P`` is found.
         DesignError
@@ -446,7 +447,7 @@ class ObserverDesign:
             gains.append(G)
         get_formulation(formulation, sector)
         time_limit = _check_time_limit(time_limit)  # before any bounds are computed
-        box, bounds = _box_and_bounds(system, box, bounds, jacobian_method)
+        box, bounds, time_limit = _box_and_bounds(system, box, bounds, jacobian_method, time_limit)
         alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
         if P is not None:
             P = np.asarray(P, dtype=float)

@@ -66,7 +66,9 @@ class ScheduledThreeGainObserver(LeafSystem):
     alpha : float
         Decay rate every re-solve certifies.
     design_options : dict, optional
-        Extra keyword arguments for :func:`ofrl_drake.design.design_observer`.
+        Extra keyword arguments for :func:`ofrl_drake.design.design_observer`;
+        its ``time_limit`` bounds each re-solve (bounds and LMI), and a re-solve
+        that runs out of it counts as failed like any other.
     initial_state : array_like, shape (n,), optional
         Default xhat(0) (zeros if omitted); a run writes its own
         (:meth:`set_estimated_state`).
