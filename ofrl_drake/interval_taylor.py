@@ -64,6 +64,9 @@ __all__ = ["TAYLOR_KINDS", "Jet", "TaylorEvaluator", "taylor_form"]
 _MINUS_ONE = Interval(np.asarray(-1.0), np.asarray(-1.0))
 
 #: The node kinds :class:`TaylorEvaluator` differentiates (``Pow`` with a constant exponent).
+#: Written out rather than derived from the interval kinds, since each needs its own
+#: derivative rule here; tests/test_interval_taylor.py checks it against the kinds whose
+#: derivatives it tests, and that every other interval kind is refused.
 TAYLOR_KINDS = frozenset(
     {
         "Constant",

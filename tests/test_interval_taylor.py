@@ -10,9 +10,11 @@ from pydrake.symbolic import (
     acos,
     asin,
     atan,
+    ceil,
     cos,
     cosh,
     exp,
+    floor,
     log,
     sin,
     sinh,
@@ -20,9 +22,12 @@ from pydrake.symbolic import (
     tan,
     tanh,
 )
+from pydrake.symbolic import max as sym_max
+from pydrake.symbolic import min as sym_min
 
 from ofrl_drake.interval import ExpressionEvaluator, Interval, UnsupportedExpressionError
 from ofrl_drake.interval_taylor import (
+    TAYLOR_KINDS,
     TaylorEvaluator,
     _add,
     _mul,
@@ -160,6 +165,27 @@ def test_boxes_where_a_function_is_not_smooth_get_the_whole_line(expr, lo, hi):
     form = taylor_form(ev, lower, upper)
     assert form.lo[0, 0] == -np.inf and form.hi[0, 0] == np.inf  # not smooth on the first box
     assert np.isfinite(form.lo[0, 1]) and np.isfinite(form.hi[0, 1])  # smooth on the second
+
+
+def test_taylor_kinds_are_the_kinds_whose_derivatives_are_tested():
+    # TAYLOR_KINDS is written out; it must name exactly the kinds of EXPRESSIONS, whose
+    # gradients and Hessians the tests above check against Drake's symbolic ones.
+    kinds = {node.kind for node in ExpressionEvaluator(EXPRESSIONS, X).nodes}
+    assert kinds == TAYLOR_KINDS
+
+
+@pytest.mark.parametrize(
+    "expr",
+    [abs(x0), sym_min(x0, x1), sym_max(x0, x1), ceil(x0), floor(x0)],
+    ids=["Abs", "Min", "Max", "Ceil", "Floor"],
+)
+def test_kinds_outside_taylor_kinds_are_refused(expr):
+    # Interval arithmetic encloses these (not smooth); the Taylor form refuses them.
+    kinds = {node.kind for node in ExpressionEvaluator([expr + x2], X).nodes}
+    assert len(kinds - TAYLOR_KINDS) == 1
+    ExpressionEvaluator([expr + x2], X).interval(LO, HI)
+    with pytest.raises(UnsupportedExpressionError, match=r"Taylor form does not support"):
+        TaylorEvaluator([expr + x2], X, [0, 1, 2])
 
 
 def test_unsupported_kinds_and_variable_exponents_are_refused():
