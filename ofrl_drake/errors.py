@@ -7,6 +7,8 @@ that one type; the command-line tool prints them on one line and exits 2.
 
 from __future__ import annotations
 
+import time
+
 __all__ = [
     "ModelError",
     "OfrlError",
@@ -14,6 +16,7 @@ __all__ = [
     "ScenarioError",
     "SwapError",
     "WallTimeExceeded",
+    "lmi_time_left",
     "status_line",
 ]
 
@@ -54,6 +57,36 @@ class WallTimeExceeded(OfrlError):
     def __init__(self, message: str, *, step: str) -> None:
         super().__init__(message)
         self.step = step
+
+
+def lmi_time_left(budget: float | None, start: float, budget_name: str, fix: str) -> float | None:
+    """Seconds of an observer design's ``budget`` the Jacobian bounds left for its LMI.
+
+    Parameters
+    ----------
+    budget : float or None
+        The whole design's seconds (None: no limit, and None is returned).
+    start : float
+        ``time.monotonic()`` when the bounds began.
+    budget_name, fix : str
+        How the message names the budget (``"time_limit"``, ``"max_wall_time
+        (--max-wall)"``) and what it suggests.
+
+    Raises
+    ------
+    WallTimeExceeded
+        If the bounds used the whole budget (step ``"Jacobian bounds"``).
+    """
+    if budget is None:
+        return None
+    used = time.monotonic() - start
+    if used >= budget:
+        raise WallTimeExceeded(
+            f"the observer design's Jacobian bounds took {used:.3g} s of {budget_name} = "
+            f"{budget:g} s, leaving nothing for the LMI; {fix}.",
+            step="Jacobian bounds",
+        )
+    return budget - used
 
 
 def status_line(err: BaseException) -> str:

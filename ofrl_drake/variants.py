@@ -61,7 +61,7 @@ from ofrl_drake.baselines import (
 )
 from ofrl_drake.bellman import PointFeatures, point_features
 from ofrl_drake.drake_typing import DrakeArray
-from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded
+from ofrl_drake.errors import ModelError, ScenarioError, lmi_time_left
 from ofrl_drake.observer import ObserverGains
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.points import grid_points, uniform_points
@@ -193,18 +193,12 @@ def _time_left(scenario: Scenario, start: float) -> float | None:
     WallTimeExceeded
         If the Jacobian bounds used the whole budget, leaving nothing for the LMI.
     """
-    budget = scenario.simulation.max_wall_time
-    if budget is None:
-        return None
-    used = time.monotonic() - start
-    if used >= budget:
-        raise WallTimeExceeded(
-            f"the observer design's Jacobian bounds took {used:.3g} s of max_wall_time "
-            f"(--max-wall) = {budget:g} s, leaving nothing for the LMI; allow more wall "
-            "time, shrink the observer box, or loosen observer.jacobian_tol.",
-            step="Jacobian bounds",
-        )
-    return budget - used
+    return lmi_time_left(
+        scenario.simulation.max_wall_time,
+        start,
+        "max_wall_time (--max-wall)",
+        "allow more wall time, shrink the observer box, or loosen observer.jacobian_tol",
+    )
 
 
 def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) -> ObserverDesign:

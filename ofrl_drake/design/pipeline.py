@@ -25,7 +25,7 @@ from ofrl_drake.design.backends import get_backend
 from ofrl_drake.design.errors import DesignError, ObserverDesignInaccurate, ObserverDesignInfeasible
 from ofrl_drake.design.formulations import get_formulation
 from ofrl_drake.design.sdp import OBJECTIVES, LmiProblem, SdpSolution
-from ofrl_drake.errors import WallTimeExceeded
+from ofrl_drake.errors import WallTimeExceeded, lmi_time_left
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds, jacobian_bounds
 from ofrl_drake.model import ControlAffineSystem
 
@@ -68,17 +68,13 @@ def _box_and_bounds(
     if bounds is None:
         start = time.monotonic()
         bounds = jacobian_bounds(system, box, jacobian_method, max_wall_time=time_limit)
-        if time_limit is None:
-            return box, bounds, None
-        used = time.monotonic() - start
-        if used >= time_limit:
-            raise WallTimeExceeded(
-                f"the observer design's Jacobian bounds took {used:.3g} s of time_limit = "
-                f"{time_limit:g} s, leaving nothing for the LMI; allow more time, shrink "
-                "the box, or pass bounds computed beforehand.",
-                step="Jacobian bounds",
-            )
-        return box, bounds, time_limit - used
+        left = lmi_time_left(
+            time_limit,
+            start,
+            "time_limit",
+            "allow more time, shrink the box, or pass bounds computed beforehand",
+        )
+        return box, bounds, left
     if not isinstance(bounds, JacobianBounds):
         raise DesignError(f"bounds must be a JacobianBounds; got {type(bounds).__name__}.")
     if bounds.Mg1.shape != (system.n, system.n, system.m):
