@@ -39,6 +39,8 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from ofrl_drake.interval import Interval
 from ofrl_drake.interval_taylor import TaylorEvaluator, taylor_from_jets
@@ -70,26 +72,15 @@ def independent_groups(uses: Sequence[Sequence[int]]) -> list[np.ndarray]:
     >>> [g.tolist() for g in independent_groups([(0, 1), (2,), (1,), (), (2, 3)])]
     [[0, 2], [1, 4], [3]]
     """
-    group_of_variable: dict[int, int] = {}
-    members: list[list[int]] = []
-    for entry, used in enumerate(uses):
-        joined = sorted({group_of_variable[v] for v in used if v in group_of_variable})
-        if not joined:
-            target = len(members)
-            members.append([])
-        else:
-            target = joined[0]
-            for other in joined[1:]:  # merge: the groups meet at this entry
-                members[target].extend(members[other])
-                members[other] = []
-        members[target].append(entry)
-        for v in used:
-            group_of_variable[v] = target
-        for other in joined[1:]:
-            for v, g in group_of_variable.items():
-                if g == other:
-                    group_of_variable[v] = target
-    groups = [np.array(sorted(m), dtype=int) for m in members if m]
+    # Connected components of the graph whose nodes are the entries and the
+    # variables, an edge joining an entry to each variable it uses.
+    E = len(uses)
+    entries = [e for e, used in enumerate(uses) for _ in used]
+    variables = [E + int(v) for used in uses for v in used]
+    nodes = max(variables, default=E - 1) + 1
+    graph = coo_matrix((np.ones(len(entries)), (entries, variables)), shape=(nodes, nodes))
+    _, label = connected_components(graph, directed=False)
+    groups = [np.flatnonzero(label[:E] == c) for c in np.unique(label[:E])]
     return sorted(groups, key=lambda g: int(g[0]))
 
 
