@@ -22,7 +22,7 @@ from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.model import ShiftedSystem
-from ofrl_drake.observer_certificate import certificate_of
+from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
 from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
 from ofrl_drake.scenario import Scenario, abort_box, critic_gains_choice, load_scenario
@@ -403,19 +403,19 @@ def _check_loop_arguments(
 
 
 def _certified_region(
-    loop: ClosedLoop, logs: dict[str, np.ndarray], t: np.ndarray
+    loop: ClosedLoop, cert: ObserverCertificate, logs: dict[str, np.ndarray], t: np.ndarray
 ) -> tuple[tuple[np.ndarray, np.ndarray] | BoxSchedule | None, str | None]:
     """The box x and xhat are checked against, and a note for the report.
 
-    Asked of the observer block through its
-    :meth:`observer_certificate` (:func:`~ofrl_drake.observer_certificate.certificate_of`),
-    whatever its class: a ``"design"`` holds on its fixed box; a
-    ``"scheduled"`` observer is checked, sample by sample, against the box of
-    the design in force, which it logs on ``certified_box``; any other has no
-    certified box, and the note says why.
+    ``cert`` is what the observer block certifies, asked of the block through
+    its :meth:`observer_certificate`
+    (:func:`~ofrl_drake.observer_certificate.certificate_of`), whatever its
+    class: a ``"design"`` holds on its fixed box; a ``"scheduled"`` observer
+    is checked, sample by sample, against the box of the design in force,
+    which it logs on ``certified_box``; any other has no certified box, and
+    the note says why.
     """
     observer: System = loop.blocks["observer"]
-    cert = certificate_of(observer)
     if cert.kind == "scheduled" and "certified_box" in logs:
         schedule = BoxSchedule.from_samples(t, logs["certified_box"])
         note = f"{cert.note} ({schedule.times.size - 1} box changes), not against one fixed box"
@@ -430,13 +430,13 @@ def _certified_region(
     return None, cert.note
 
 
-def _design_dict(loop: ClosedLoop) -> dict[str, Any] | None:
+def _design_dict(loop: ClosedLoop, cert: ObserverCertificate) -> dict[str, Any] | None:
     """The observer's design or local certificate, as reported in ``summary.json``.
 
-    What the observer block certifies; the loop's design when the block
-    certifies nothing (it is still reported, though the block does not run it).
+    What the observer block certifies (``cert``); the loop's design when the
+    block certifies nothing (it is still reported, though the block does not
+    run it).
     """
-    cert = certificate_of(loop.blocks["observer"])
     if cert.design is not None:
         return cert.design
     return loop.design.to_dict() if loop.design is not None else None
@@ -580,7 +580,9 @@ def simulate(
         "smallest_step": _finite(integ.get_smallest_adapted_step_size_taken()),
         "largest_step": _finite(integ.get_largest_step_size_taken()),
     }
-    design_dict = _design_dict(loop)
+    # Asked once: a design's certificate recomputes its corner eigenvalues.
+    cert = certificate_of(loop.blocks["observer"])
+    design_dict = _design_dict(loop, cert)
     result = SimulationResult(
         t=np.asarray(t),
         x=logs["x"],
@@ -626,7 +628,7 @@ def simulate(
         result.xhat[-1],
     )
     result.reports["regulated"] = result.reports["regulation"]["regulated"]
-    box, note = _certified_region(loop, logs, result.t)
+    box, note = _certified_region(loop, cert, logs, result.t)
     result.validity = validity_report(
         result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note
     )
