@@ -150,6 +150,19 @@ def _paper_text(p: dict[str, Any]) -> str:
         f"Fused baseline {_seconds(p['fused']['median'])} s: {p['ratio_fused']:.2f}x whole "
         f"(per-repeat {p['ratio_of_pairs_fused']:.2f}x), "
         f"{p['ratio_simulation_only_fused']:.2f}x simulation alone."
+    ) + _floor_text(p)
+
+
+def _floor_text(p: dict[str, Any]) -> str:
+    floor = p.get("floor")
+    if floor is None:
+        return ""
+    return (
+        f" Floor of the overhead levers (the same loop logged only at 0 and at the horizon, "
+        f"with no run guard, in the same alternation): `AdvanceTo` "
+        f"{_seconds(floor['advance']['median'])} s ({floor['num_derivative_evaluations']} "
+        f"evaluations), so `simulate()` would take {_seconds(floor['whole']['median'])} s "
+        f"whole: {p['ratio_floor']:.2f}x the stronger baseline."
     )
 
 

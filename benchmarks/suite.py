@@ -173,6 +173,52 @@ def _baseline(kind: str, scenario: Scenario, design: Any, times: np.ndarray) -> 
     return lambda: _solve_baseline(kind, scenario, design, times)
 
 
+def _bare(scenario: Scenario, design: Any, into: list[float]) -> Callable[[], int]:
+    """``AdvanceTo`` of the loop with nothing recorded or watched, appended to ``into``.
+
+    The same diagram and integrator as ``simulate()``, but its loggers sample
+    only at 0 and at the horizon (``log_period`` is the horizon) and no run
+    guard is installed. So the run is not cut at every log time and no Python
+    monitor is called after every step: the floor of what logging less, or
+    watching the run more cheaply, could save. Each call returns the
+    derivative evaluations.
+    """
+    from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+
+    from ofrl_drake.diagram import build_closed_loop
+    from ofrl_drake.simulation import simulator_config
+
+    duration = scenario.simulation.duration
+    loop = build_closed_loop(scenario, design=design, log_period=duration)
+
+    def run() -> int:
+        simulator = Simulator(loop.diagram)
+        ApplySimulatorConfig(simulator_config(scenario), simulator)
+        loop.set_initial_values(simulator.get_mutable_context())
+        simulator.Initialize()
+        start = time.perf_counter()
+        simulator.AdvanceTo(duration)
+        into.append(time.perf_counter() - start)
+        return int(simulator.get_integrator().get_num_derivative_evaluations())
+
+    return run
+
+
+def _floor_summary(ours: Timing, advance: list[float], bare: list[float], evals: int) -> dict:
+    """The bare loop's ``AdvanceTo``, and ``simulate()`` whole with it in place of its own.
+
+    Per repeat, the floor is ours whole minus ours' ``AdvanceTo`` plus the
+    bare ``AdvanceTo`` of the same repeat: the design, build and logs as
+    measured, the simulation at its floor.
+    """
+    floor = [w - a + b for w, a, b in zip(ours.runs, advance, bare, strict=True)]
+    return {
+        "advance": Timing(tuple(bare)).to_dict(),
+        "num_derivative_evaluations": evals,
+        "whole": Timing(tuple(floor)).to_dict(),
+    }
+
+
 def _recording(run: Callable[[], Any], into: list[float]) -> Callable[[], Any]:
     """``run`` (a ``simulate()`` call) that also appends each result's ``wall_time`` to ``into``."""
 
@@ -229,23 +275,38 @@ def _baseline_steps(kind: str, scenario: Scenario, design: Any) -> int:
     return int(sol.t.size - 1)
 
 
-def _compare(scenario: Scenario, repeats: int, *, baseline: bool = True) -> dict:
+def _compare(
+    scenario: Scenario, repeats: int, *, baseline: bool = True, bare: bool = False
+) -> dict:
     """Ours (whole ``simulate()``) and, optionally, both baselines, interleaved.
 
     ``ratio`` is ours over the stronger baseline (``precomputed``), medians of
     the interleaved runs; ``ratio_fused`` the same over the fused baseline;
     ``ratio_of_pairs`` and ``ratio_of_pairs_fused`` are the medians of the
-    per-repeat ratios, which a drift in machine load affects less.
+    per-repeat ratios, which a drift in machine load affects less. With
+    ``bare``, the loop without per-step logging or guard (:func:`_bare`) runs
+    in the same alternation: ``floor`` (:func:`_floor_summary`) and, with the
+    baselines, ``ratio_floor``.
     """
     design = _design(scenario)
     ref = reference(scenario, design)
     advance: list[float] = []
     fns: dict[str, Callable[[], Any]] = {"ours": _recording(_ours(scenario), advance)}
+    bare_advance: list[float] = []
+    if bare:
+        fns["bare"] = _bare(scenario, design, bare_advance)
     if baseline:
         for kind in BASELINES:
             fns[kind] = _baseline(kind, scenario, design, ref.times)
     timings, results = interleaved(fns, repeats)
     out = {"ours": _ours_summary(timings["ours"], advance[-repeats:], results["ours"], ref)}
+    if bare:
+        out["floor"] = _floor_summary(
+            timings["ours"], advance[-repeats:], bare_advance[-repeats:], results["bare"]
+        )
+        if baseline:
+            floor = out["floor"]["whole"]["median"]
+            out["ratio_floor"] = floor / timings["precomputed"].median
     if baseline:
         for kind in BASELINES:
             steps = _baseline_steps(kind, scenario, design)
@@ -259,8 +320,12 @@ def _compare(scenario: Scenario, repeats: int, *, baseline: bool = True) -> dict
 
 # ----------------------------------------------------------------- sections
 def paper_end_to_end(scenario: Scenario, settings: Settings) -> dict:
-    """The paper scenario: whole ``simulate()`` against both baselines, interleaved."""
-    out = _compare(scenario, settings.repeats)
+    """The paper scenario: whole ``simulate()`` against both baselines, interleaved.
+
+    The bare loop (:func:`_bare`) runs in the same alternation, for the floor
+    of the overhead levers (``floor``, ``ratio_floor``).
+    """
+    out = _compare(scenario, settings.repeats, bare=True)
     design_timing, _ = measure(lambda: _design(scenario), settings.repeats)
     out["design"] = design_timing.to_dict()
     advance = out["ours"]["advance"]["median"]

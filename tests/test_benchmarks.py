@@ -154,6 +154,24 @@ def test_paper_section_compares_with_both_baselines(results):
     )
 
 
+def test_paper_floor_replaces_only_the_simulation(results):
+    paper = results["paper"]
+    floor = paper["floor"]
+    assert set(floor["advance"]) == TIMING_KEYS
+    assert set(floor["whole"]) == TIMING_KEYS
+    # Logged only at 0 and the horizon, the bare loop integrates the same equations.
+    assert floor["num_derivative_evaluations"] > 0
+    ours, advance = paper["ours"]["runs"], paper["ours"]["advance"]["runs"]
+    np.testing.assert_allclose(
+        floor["whole"]["runs"],
+        np.array(ours) - np.array(advance) + np.array(floor["advance"]["runs"]),
+        rtol=1e-12,
+    )
+    np.testing.assert_allclose(
+        paper["ratio_floor"], floor["whole"]["median"] / paper["precomputed"]["median"]
+    )
+
+
 def test_overhead_section_reports_microseconds(results):
     o = results["overhead"]
     for key in (
