@@ -504,7 +504,8 @@ def test_max_decay_rate_brackets_the_boundary_paper(two_state, bounds2):
     assert best.is_certified and best.gain_norm <= 200.0 * (1 + 1e-6)
     assert best.formulation == "paper"
     assert 0.0 < best.alpha < 8.0
-    with pytest.raises(ObserverDesignInfeasible):
+    # Proven infeasible by the solver, not merely an inaccurate solve.
+    with pytest.raises(ObserverDesignInfeasible, match=r"kInfeasibleConstraints.*a larger max_gain"):
         design_observer(two_state, BOX2, 3.0, best.alpha + 0.1, max_gain=200.0, **kw)
     # Without a cap the rate is higher.
     free = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, **kw).design
@@ -571,7 +572,6 @@ def test_a_time_limit_that_is_met_changes_nothing(two_state, certified2, poly2):
     timed = design_observer(two_state, BOX2, 3.0, 0.9, bounds=certified2, time_limit=600.0)
     np.testing.assert_array_equal(timed.P, poly2.P)
     np.testing.assert_array_equal(timed.L, poly2.L)
-    assert timed.solve_time < 600.0
 
 
 @pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), "10"])

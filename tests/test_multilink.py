@@ -9,7 +9,6 @@ designs the falsifier cannot break, and one of them balances.
 
 import json
 import re
-import time
 
 import numpy as np
 import pytest
@@ -17,7 +16,6 @@ from pydrake.common import FindResourceOrThrow
 from pydrake.common.yaml import yaml_load
 
 from ofrl_drake.design import design_observer
-from ofrl_drake.jacobian_bounds import jacobian_bounds
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.verification import verify_observer
 from tests.cli_helpers import run_cli
@@ -61,16 +59,15 @@ def test_cart_double_pendulum_w0_is_the_lqr_value():
 
 
 def test_cart_double_pendulum_design_is_certified_from_the_cli(tmp_path):
-    start = time.perf_counter()
-    proc = run_cli("design-observer", CDP, "--out", tmp_path / "d.json")
-    elapsed = time.perf_counter() - start
+    # The budget, 5 minutes on the 2-core VM (measured 12 s), as the
+    # tool's own: past it, the design stops with exit 2 and no output.
+    proc = run_cli("design-observer", CDP, "--out", tmp_path / "d.json", "--max-wall", 300)
     assert proc.returncode == 0, proc.stderr
     assert "decay-certified and not falsified" in proc.stdout
     d = json.loads((tmp_path / "d.json").read_text())
     assert d["formulation"] == "structured" and d["is_decay_certified"] is True
     assert d["jacobian_method"] == "certified" and d["bounds_are_guaranteed"] is True
     assert d["gain_norm"] < 1e3 and len(d["tau"]) == 3
-    assert elapsed < 300.0  # the budget: 5 minutes on the 2-core VM (measured 12 s)
     proc = run_cli("verify-observer", CDP, "--samples", "3000")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert re.search(r"not falsified", proc.stdout)
@@ -151,9 +148,7 @@ def test_variants_are_certified_and_not_falsified(tmp_path, name, mass, length):
     path.write_text(variant)
     system = ControlAffineSystem.from_multibody(str(path), C).shifted(x_eq)
     box = (-half, half)
-    start = time.perf_counter()
-    bounds = jacobian_bounds(system, box, "certified")
-    design = design_observer(system, box, b, alpha, bounds=bounds, formulation="structured")
-    assert time.perf_counter() - start < 300.0
+    # Within the budget of 5 minutes, or WallTimeExceeded.
+    design = design_observer(system, box, b, alpha, formulation="structured", time_limit=300.0)
     assert design.is_decay_certified and design.bounds_are_guaranteed
     assert not verify_observer(design, system, samples=1000, seed=0).falsified
