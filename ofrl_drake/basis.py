@@ -189,7 +189,9 @@ class PolynomialBasis:
             return gradient_kernel(X, self._lowered, self._index, self._factor)[:, :, 0]
         return gradient_kernel(np.ascontiguousarray(x), self._lowered, self._index, self._factor)
 
-    def value_gradient(self, x: np.ndarray, W: np.ndarray, out: np.ndarray | None = None):
+    def value_gradient(
+        self, x: np.ndarray, W: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
         """``grad V(x) = grad sigma(x)^T W``, shape ``(n,)``, for one point ``x``.
 
         ``out``, if given (float, shape ``(n,)``), receives the result.

@@ -889,7 +889,7 @@ class ExpressionEvaluator:
         return out
 
 
-def evaluate(expression: Any, variables: Sequence[Variable], points: np.ndarray):
+def evaluate(expression: Any, variables: Sequence[Variable], points: np.ndarray) -> np.ndarray:
     """Evaluate expression(s) at the columns of ``points`` (see ExpressionEvaluator).
 
     Parameters

@@ -34,6 +34,9 @@ from matplotlib.figure import Figure
 if TYPE_CHECKING:  # matplotlib >= 3.10 names the rc keys; the annotation only
     from matplotlib.typing import RcKeyType
 
+    from ofrl_drake.learning_curve import LearningHealth
+    from ofrl_drake.simulation import SimulationResult
+
 __all__ = [
     "numerical_floor",
     "plot_comparison",
@@ -81,17 +84,17 @@ def _math_label(label: str) -> str:
     )
 
 
-def _shown(result, key: str) -> np.ndarray:
+def _shown(result: SimulationResult, key: str) -> np.ndarray:
     """``x``, ``xhat`` or ``u`` in the plant's own coordinates (a run with an equilibrium)."""
     original = getattr(result, "original", None)
     return getattr(result, key) if original is None else original(key)
 
 
-def _equilibrium(result, key: str) -> np.ndarray | None:
+def _equilibrium(result: SimulationResult, key: str) -> np.ndarray | None:
     return getattr(result, f"{key}_equilibrium", None)
 
 
-def _unit(result, key: str, i: int | None = None) -> str:
+def _unit(result: SimulationResult, key: str, i: int | None = None) -> str:
     """`` [m]`` for entry ``i`` of ``x``/``e`` (``key="state"``) or ``u`` (``"input"``).
 
     With ``i`` None, the unit shared by every entry, if there is one. Empty
@@ -104,7 +107,7 @@ def _unit(result, key: str, i: int | None = None) -> str:
     return f" [{chosen.pop()}]" if len(chosen) == 1 and "" not in chosen else ""
 
 
-def transient_end(result, fraction: float = 0.02, minimum: float = 0.5) -> float:
+def transient_end(result: SimulationResult, fraction: float = 0.02, minimum: float = 0.5) -> float:
     """End of the zoomed panel: where x and e have settled.
 
     1.5 times the last time any ``|x_i|`` or ``|e_i|`` is above ``fraction`` of
@@ -213,7 +216,7 @@ def _legend(fig: Figure, axes: Sequence[Axes], *, title: str | None = None) -> N
             fig.legend(handles, labels, loc="outside upper center", ncols=len(handles))
 
 
-def _windows(result, axes: Sequence[Axes]) -> None:
+def _windows(result: SimulationResult, axes: Sequence[Axes]) -> None:
     """Zoom the first axes on the transient; the last shows the whole horizon."""
     horizon = float(result.t[-1]) if result.t.size else 0.0
     zoom = transient_end(result)
@@ -227,7 +230,7 @@ def _windows(result, axes: Sequence[Axes]) -> None:
         ax.set_xlabel(r"time $t$ [s]")
 
 
-def _mark_stop(result, axes: Sequence[Axes]) -> None:
+def _mark_stop(result: SimulationResult, axes: Sequence[Axes]) -> None:
     """A vertical line where the guard stopped the run, with a legend entry."""
     stop = getattr(result, "stop", None)
     if stop is None or stop.ok:
@@ -247,7 +250,7 @@ def _autoscale_visible(ax: Axes, t: np.ndarray, data: np.ndarray, extra: Sequenc
         ax.set_ylim(values.min() - pad, values.max() + pad)
 
 
-def plot_state(result, i: int, box: Box | None = None) -> Figure:
+def plot_state(result: SimulationResult, i: int, box: Box | None = None) -> Figure:
     """``x_i`` and ``xhat_i`` against time (the paper's Figs. 1 and 2), with the box.
 
     Left: the transient; right: the whole run. With an equilibrium, states are
@@ -284,7 +287,7 @@ def plot_state(result, i: int, box: Box | None = None) -> Figure:
     return fig
 
 
-def plot_estimation_error(result) -> Figure:
+def plot_estimation_error(result: SimulationResult) -> Figure:
     """``e = x - xhat`` per component (the paper's Fig. 3): transient and whole run."""
     fig, axes = _figure(2)
     for ax in axes:
@@ -310,7 +313,7 @@ def _log_magnitude(values: np.ndarray) -> np.ndarray:
     return np.where(mags > 0, mags, np.nan)
 
 
-def plot_estimation_error_log(result) -> Figure:
+def plot_estimation_error_log(result: SimulationResult) -> Figure:
     """``|e_i|`` on a log scale over the whole run: the observer's convergence rate.
 
     Exact zeros (a full-state observer) are left out.
@@ -333,7 +336,7 @@ def plot_estimation_error_log(result) -> Figure:
     return fig
 
 
-def plot_weights(result, labels: Sequence[str] | None = None) -> Figure:
+def plot_weights(result: SimulationResult, labels: Sequence[str] | None = None) -> Figure:
     """Critic weights ``W(t)`` (the paper's Fig. 4), legend to the right if many."""
     fig, (ax,) = _figure(1, width=7.0, height=3.2)
     for k in range(result.W.shape[1]):
@@ -347,7 +350,7 @@ def plot_weights(result, labels: Sequence[str] | None = None) -> Figure:
     return fig
 
 
-def _input_levels(result, input_bound: float | None) -> list[float]:
+def _input_levels(result: SimulationResult, input_bound: float | None) -> list[float]:
     """The lines of ``|u - u*| <= lambda_bar`` (``u* = 0`` without an equilibrium)."""
     if input_bound is None:
         return []
@@ -356,14 +359,14 @@ def _input_levels(result, input_bound: float | None) -> list[float]:
     return [float(c + s * input_bound) for c in centers for s in (-1, 1)]
 
 
-def _input_label(result) -> str:
+def _input_label(result: SimulationResult) -> str:
     unit = _unit(result, "input")
     if _equilibrium(result, "u") is None:
         return r"control input $u$" + unit
     return r"input $u$ ($|u - u^*| \leq \bar\lambda$)" + unit
 
 
-def _input_lines(result, ax: Axes, input_bound: float | None) -> None:
+def _input_lines(result: SimulationResult, ax: Axes, input_bound: float | None) -> None:
     u = _shown(result, "u")
     for k in range(u.shape[1]):
         ax.plot(
@@ -386,7 +389,7 @@ def _input_lines(result, ax: Axes, input_bound: float | None) -> None:
         )
 
 
-def plot_input(result, input_bound: float | None = None) -> Figure:
+def plot_input(result: SimulationResult, input_bound: float | None = None) -> Figure:
     """The saturated input ``u(t)`` (the paper's Fig. 5) with ``+-lambda_bar``: transient, run."""
     fig, axes = _figure(2)
     for ax in axes:
@@ -400,7 +403,7 @@ def plot_input(result, input_bound: float | None = None) -> Figure:
     return fig
 
 
-def plot_learning_condition(result) -> Figure:
+def plot_learning_condition(result: SimulationResult) -> Figure:
     """``c(t) = lambda_min((1/N) sum omega omega^T / rho^2)`` (Assumption 2)."""
     fig, (ax,) = _figure(1, width=6.0, height=3.2)
     ax.plot(result.t, result.learning_condition, lw=1.4, color="C3")
@@ -412,7 +415,7 @@ def plot_learning_condition(result) -> Figure:
     return fig
 
 
-def plot_cost(result) -> Figure:
+def plot_cost(result: SimulationResult) -> Figure:
     """Accumulated cost ``J(t)``."""
     fig, (ax,) = _figure(1, width=6.0, height=3.2)
     ax.plot(result.t, result.cost, lw=1.4, color="C4")
@@ -456,7 +459,7 @@ def plot_learning_curve(
     return fig
 
 
-def plot_learning_health(health) -> Figure:
+def plot_learning_health(health: LearningHealth) -> Figure:
     """c(t), Gamma's norm and condition, the value's eigenvalues, the linearized loop.
 
     ``health`` is a :class:`ofrl_drake.learning_curve.LearningHealth`. Policy
@@ -549,7 +552,9 @@ def plot_gain_schedule(t: np.ndarray, gains: np.ndarray, failed: np.ndarray) -> 
     return fig
 
 
-def plot_overview(result, input_bound: float | None = None, box: Box | None = None) -> Figure:
+def plot_overview(
+    result: SimulationResult, input_bound: float | None = None, box: Box | None = None
+) -> Figure:
     """Four panels: states and estimates (transient, with the box), ``|e_i|`` on a log
     scale, critic weights, input (transient, with ``+-lambda_bar``)."""
     with plt.rc_context(_STYLE):
@@ -629,7 +634,7 @@ def plot_overview(result, input_bound: float | None = None, box: Box | None = No
 
 
 def save_figures(
-    result,
+    result: SimulationResult,
     directory: str | Path,
     *,
     input_bound: float | None = None,
@@ -639,7 +644,7 @@ def save_figures(
     learning_curve: Sequence[dict] | None = None,
     optimal_cost: float | None = None,
     lqr_cost: float | None = None,
-    health=None,
+    health: LearningHealth | None = None,
 ) -> list[Path]:
     """Write every figure of ``result`` as PNG into ``directory``; return the paths.
 
