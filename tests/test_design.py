@@ -505,7 +505,8 @@ def test_max_decay_rate_brackets_the_boundary_paper(two_state, bounds2):
     assert best.formulation == "paper"
     assert 0.0 < best.alpha < 8.0
     # Proven infeasible by the solver, not merely an inaccurate solve.
-    with pytest.raises(ObserverDesignInfeasible, match=r"kInfeasibleConstraints.*a larger max_gain"):
+    proven = r"kInfeasibleConstraints.*a larger max_gain"
+    with pytest.raises(ObserverDesignInfeasible, match=proven):
         design_observer(two_state, BOX2, 3.0, best.alpha + 0.1, max_gain=200.0, **kw)
     # Without a cap the rate is higher.
     free = max_decay_rate(two_state, BOX2, 3.0, alpha_max=8.0, tol=0.1, **kw).design

@@ -12,7 +12,6 @@ converges (slow, about 2 minutes).
 """
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -81,12 +80,11 @@ def test_the_quadrotor_is_certified_from_the_cli(tmp_path):
     # verify-observer checks, test_verification.py checks on every shipped
     # scenario, this one included (verify_observer on design_for's design).
     design = tmp_path / "design.json"
-    start = time.perf_counter()
-    proc = run_cli("design-observer", QUADROTOR, "--out", design)
-    elapsed = time.perf_counter() - start
+    # The issue's budget, 5 minutes on the 2-core VM, as the tool's own: past
+    # it, the design stops with exit 2 and no output.
+    proc = run_cli("design-observer", QUADROTOR, "--out", design, "--max-wall", 300)
     assert proc.returncode == 0, proc.stderr
     assert "decay-certified and not falsified" in proc.stdout
-    assert elapsed < 300.0  # the issue's budget: 5 minutes on the 2-core VM
     d = json.loads(design.read_text())
     assert d["formulation"] == "structured_row" and d["is_decay_certified"] is True
     assert d["jacobian_method"] == "certified" and d["bounds_are_guaranteed"] is True
