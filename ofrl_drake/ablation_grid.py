@@ -178,10 +178,13 @@ def sample_initial_states(scenario: Scenario, count: int, seed: int) -> np.ndarr
     Raises
     ------
     AblationError
-        If ``count < 0`` or the initial estimation error is wider than the box.
+        If ``count`` or ``seed`` is not an integer >= 0, or the initial estimation
+        error is wider than the box.
     """
     if int(count) != count or count < 0:
         raise AblationError(f"--initial-states: must be an integer >= 0; got {count!r}.")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise AblationError(f"--seed: must be an integer >= 0; got {seed!r}.")
     x0 = np.asarray(scenario.x0, dtype=float)
     offset = np.asarray(scenario.xhat0, dtype=float) - x0
     lower = np.asarray(scenario.observer.box.lower, dtype=float)

@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import importlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -33,7 +34,7 @@ import threading
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from ofrl_drake import __version__
 from ofrl_drake.atomic import (
@@ -85,7 +86,23 @@ def check_output_directory(target: Path) -> Path:
     ``target`` may be absent, an empty folder, or the output of an earlier
     ``run`` (it holds :data:`OUTPUT_MARKER`).
     """
-    check_output_target(target, folder=True)
+    target = _check_output_place(check_output_target(target, folder=True))
+    check_output_folder(target, marker=OUTPUT_MARKER, command="run")
+    return check_writable(target)
+
+
+def _check_output_place(target: str | Path) -> Path:
+    """Resolve the output folder ``target``; refuse a filesystem root and the current folder.
+
+    Every folder output (``run``, ``ablate``, ``montecarlo``) goes through it:
+    ``--out .`` (or a folder holding the current one) would write into, or
+    replace, the folder the command was started in.
+
+    Raises
+    ------
+    OutputError
+        If ``target`` is a filesystem root, the current folder or one holding it.
+    """
     target = Path(target).expanduser().resolve()
     if target == target.parent:
         raise OutputError(f"--out: {target} is a filesystem root; name an output folder.")
@@ -93,8 +110,7 @@ def check_output_directory(target: Path) -> Path:
         raise OutputError(
             f"--out: {target} is the current folder or holds it; name an output folder below it."
         )
-    check_output_folder(target, marker=OUTPUT_MARKER, command="run")
-    return check_writable(target)
+    return target
 
 
 def _remove_stale_partials(target: Path) -> None:
@@ -463,6 +479,7 @@ def _locked(command: Any) -> Any:
 
     def run(args: argparse.Namespace) -> int:
         out = check_output_target(args.out, folder=True)
+        _check_output_place(out)  # as run does: not the current folder, not a root
         with output_lock(out):
             return command(args)
 
@@ -578,13 +595,31 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _positive_seconds(text: str) -> float:
+    """``--scheduler-timeout``'s value: a finite number of seconds > 0.
+
+    Dask waits without a deadline for ``timeout=0`` and never times out on
+    NaN, so both (and negative or infinite values) are refused while parsing,
+    before any scheduler is contacted.
+    """
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not (seconds > 0 and math.isfinite(seconds)):
+        raise argparse.ArgumentTypeError(
+            f"must be a finite number of seconds > 0 to wait for a worker, e.g. 60; got {text!r}"
+        )
+    return seconds
+
+
 def _scheduler_timeout_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scheduler-timeout",
-        type=float,
+        type=_positive_seconds,
         default=60.0,
         metavar="SECONDS",
-        help="wait at most this long for a worker of --scheduler (default 60)",
+        help="wait at most this long for a worker of --scheduler (seconds > 0; default 60)",
     )
 
 
@@ -598,13 +633,25 @@ def _design_wall_option(command: argparse.ArgumentParser) -> None:
     )
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors are one line, ``error: ...``, and exit 2.
+
+    argparse's own prints the usage (several lines) and ``PROG: error: ...``;
+    every other bad input of ``ofrl-drake`` is one line naming the fix.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        text = " ".join(message.split())
+        self.exit(EXIT_BAD_INPUT, f"error: {text}; see {self.prog} --help\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="ofrl-drake",
         description="Output-feedback model-based RL control as Drake block diagrams.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_OneLineParser)
 
     run = sub.add_parser("run", help="simulate a scenario; write logs, figures and graph")
     run.add_argument("scenario", help="scenario YAML file, e.g. diagrams/two_state_paper.yaml")
@@ -780,10 +827,13 @@ def _sigint_held() -> Iterator[None]:
 def _user_code_frame(err: BaseException) -> Any:
     """The innermost frame of ``err``'s traceback in the user's own code, or None.
 
-    A frame is the user's when its file is neither in ofrl_drake, nor in an
-    installed package (``site-packages``, ``dist-packages``), nor in Python's
-    standard library: e.g. the module of a plant named ``module:callable``,
-    whose ``f`` raised during a run.
+    A frame is the user's when its file is an absolute path to a file that
+    exists, neither in ofrl_drake, nor in an installed package
+    (``site-packages``, ``dist-packages``), nor in Python's standard library:
+    e.g. the module of a plant named ``module:callable``, whose ``f`` raised
+    during a run. Compiled (Cython) frames name their source relative to the
+    package that was built (``numpy/random/bit_generator.pyx``), and
+    ``<frozen ...>`` or ``<string>`` name no file: neither is the user's.
     """
     import sysconfig
     import traceback
@@ -791,7 +841,7 @@ def _user_code_frame(err: BaseException) -> Any:
     package = Path(__file__).resolve().parent
     stdlib = Path(sysconfig.get_paths()["stdlib"]).resolve()
     for frame in reversed(traceback.extract_tb(err.__traceback__)):
-        if frame.filename.startswith("<"):
+        if not os.path.isabs(frame.filename) or not os.path.isfile(frame.filename):
             continue
         path = Path(frame.filename).resolve()
         if package in path.parents or stdlib in path.parents:
