@@ -46,6 +46,7 @@ from numba import njit
 
 from ofrl_drake._jit import JIT
 from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.checks import positive_number, positive_vector
 from ofrl_drake.cost import log_cosh_abs, saturation_cost, state_cost, tanh_abs
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
@@ -465,6 +466,12 @@ class Extrapolator:
         functions (:func:`ofrl_drake.learning.basis_scales`), so that ``rho`` does
         not depend on the units of the state.
 
+    Raises
+    ------
+    ModelError
+        If ``r`` is not m finite numbers > 0, ``input_bound`` or ``nu`` is not
+        a finite number > 0, or ``metric`` is not L finite numbers > 0.
+
     Notes
     -----
     :meth:`sums_into` reuses one per-point scratch array held here (its
@@ -480,13 +487,13 @@ class Extrapolator:
         nu: float,
         metric: np.ndarray | None = None,
     ) -> None:
-        self.features = features
-        self.r = np.asarray(r, dtype=float)
-        self.input_bound = float(input_bound)
-        self.nu = float(nu)
-        self.metric = metric
         inp = np.asarray(features.input, dtype=float)  # (m, L, N)
         m, L, N = inp.shape
+        self.features = features
+        self.r = positive_vector("r", r, m)
+        self.input_bound = positive_number("input_bound", input_bound)
+        self.nu = positive_number("nu", nu)
+        self.metric = metric
         layout = kernel_layout(m, L)
         self._layout = layout
         # D_k = W @ policy_input[k], policy_input = input / (2 lbar r_k).

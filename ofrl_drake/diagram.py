@@ -587,6 +587,11 @@ def build_closed_loop(
         called with the :class:`~ofrl_drake.slots.ClosedLoopParts`; or a
         slot's choice by name, as in the scenario's ``variant`` section
         (``observer="kalman"``, ``points="uniform"``), which it overrides.
+        A swapped block is renamed to its slot (``block.get_name()`` is then
+        ``"critic"``...) and becomes part of the returned diagram: Drake
+        builds a block into one diagram only, so a block cannot be swapped
+        into a second loop, nor into two slots; pass a fresh block each time,
+        or a factory, which builds one per call.
 
     Returns
     -------
@@ -599,7 +604,8 @@ def build_closed_loop(
     Raises
     ------
     SwapError
-        If a swap names an unknown block or slot, or its block's ports do not fit.
+        If a swap names an unknown block or slot, its block's ports do not
+        fit, or its block is already part of a diagram or of another slot.
     ScenarioError
         If the scenario, or a choice given by name, is not valid.
 
@@ -647,8 +653,7 @@ def build_closed_loop(
     )
     built = slot_blocks(choices, parts, swapped)
 
-    builder = DiagramBuilder()
-    blocks: dict[str, System] = {}
+    chosen: dict[str, System] = {}
     for slot in SLOTS:
         swap = given.get(slot)
         if swap is None:
@@ -662,6 +667,13 @@ def build_closed_loop(
                 f"{slot}: a swap must be a Drake System or a factory f(parts) -> System; "
                 f"got {type(swap).__name__}."
             )
+        _check_unused(slot, block, chosen)
+        chosen[slot] = block
+
+    # Every block checked first: a refused swap leaves the user's blocks untouched.
+    builder = DiagramBuilder()
+    blocks: dict[str, System] = {}
+    for slot, block in chosen.items():
         block = _real_world(slot, block, scenario)
         block.set_name(slot)
         blocks[slot] = builder.AddSystem(block)
@@ -687,6 +699,33 @@ def build_closed_loop(
     return ClosedLoop(
         diagram=diagram, parts=parts, blocks=blocks, loggers=loggers, swapped=frozenset(given)
     )
+
+
+def _in_a_diagram(block: System) -> bool:
+    """Whether ``block`` has been built into a diagram (it has a parent).
+
+    Drake's path name of a block is its parents' names and its own, joined by
+    ``::`` (``"::closed_loop_paper::critic"``); a block without a parent has
+    its own name only.
+    """
+    return block.GetSystemPathname() != "::" + block.GetSystemName()
+
+
+def _check_unused(slot: str, block: System, chosen: dict[str, System]) -> None:
+    """Refuse a ``block`` for ``slot`` that another slot (``chosen``) or diagram holds."""
+    fix = "pass a fresh block, or a factory f(parts) -> System that builds a new one each call"
+    other = next((name for name, held in chosen.items() if held is block), None)
+    if other is not None:
+        raise SwapError(
+            f"{slot}: the block is already the {other} block (the same object); a block "
+            f"fills one slot only: {fix}."
+        )
+    if _in_a_diagram(block):
+        raise SwapError(
+            f"{slot}: the block {block.GetSystemPathname()!r} is already part of a diagram "
+            f"(an earlier build_closed_loop, or a diagram of your own), and Drake builds a "
+            f"block into one diagram only: {fix}."
+        )
 
 
 def _connect_by_name(builder: DiagramBuilder, blocks: dict[str, System]) -> None:

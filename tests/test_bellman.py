@@ -376,3 +376,26 @@ def test_kernel_layout_blocks_tile_both_arrays():
             covered.extend(range(size)[block])
         assert sorted(covered) == list(range(size))
     assert layout.data.drift == slice(20, 25) and layout.per_point.omega == slice(4, 9)
+
+
+@pytest.mark.parametrize(
+    ("r", "input_bound", "nu", "message"),
+    [
+        ([1.0], LBAR, -5.0, r"^nu must be > 0; got -5\.0\.$"),
+        ([1.0], LBAR, 0.0, r"^nu must be > 0; got 0\.0\.$"),
+        ([1.0], LBAR, np.nan, r"^nu must be finite; got nan\.$"),
+        ([0.0], LBAR, NU, r"^r must have entries > 0; got \[0\.0\]\.$"),
+        ([-1.0], LBAR, NU, r"^r must have entries > 0; got \[-1\.0\]\.$"),
+        ([np.inf], LBAR, NU, r"^r must be finite; got \[inf\]\.$"),
+        ([1.0, 2.0], LBAR, NU, r"^r must have length 1; got 2\.$"),
+        ([1.0], 0.0, NU, r"^input_bound must be > 0; got 0\.0\.$"),
+        ([1.0], -np.inf, NU, r"^input_bound must be finite; got -inf\.$"),
+    ],
+)
+def test_the_extrapolator_rejects_constants_that_would_give_nan(r, input_bound, nu, message):
+    system = make_system("two_state")
+    F = point_features(system, PolynomialBasis(2), grid_points([-1, -1], [1, 1], [3, 3]), np.eye(2))
+    with pytest.raises(ModelError, match=message):
+        Extrapolator(F, np.asarray(r), input_bound, nu)
+    with pytest.raises(ModelError, match=message):
+        extrapolate(F, np.zeros(3), np.asarray(r), input_bound, nu)

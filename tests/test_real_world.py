@@ -12,7 +12,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 from scipy import stats
 
-from ofrl_drake import build_closed_loop, load_scenario, simulate
+from ofrl_drake import PolynomialBasis, build_closed_loop, load_scenario, simulate
+from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
 from ofrl_drake.monte_carlo import (
     MonteCarloError,
@@ -22,8 +23,8 @@ from ofrl_drake.monte_carlo import (
     write_montecarlo_report,
 )
 from ofrl_drake.scenario import MeasurementConfig, TruthConfig
-from ofrl_drake.systems import ControlAffinePlant
-from ofrl_drake.systems.world import MeasuredPlant
+from ofrl_drake.systems import ControlAffinePlant, SaturatedController
+from ofrl_drake.systems.world import MeasuredPlant, SampledController
 from tests.cli_helpers import run_cli
 
 from .conftest import ROOT
@@ -386,3 +387,70 @@ def test_the_measured_plant_forwards_the_slot_contracts_of_its_plant():
         r"cannot be set; give it one\.$",
     ):
         wrapped.set_state(wrapped.CreateDefaultContext(), [0.3, -0.2])
+
+
+X_MEASURED = [0.4, -0.3, 0.2, 0.1]
+
+
+def _measured_y(plant, seed=4):
+    """``y`` of ``plant`` at ``t = 0`` with its noise drawn from ``seed``, ``u = 0``."""
+    context = plant.CreateDefaultContext()
+    plant.SetRandomContext(context, RandomGenerator(seed))
+    plant.get_u_input_port().FixValue(context, np.zeros(plant.get_u_input_port().size()))
+    plant.set_state(context, X_MEASURED)
+    plant.start_holds(context)
+    return plant.get_y_output_port().Eval(context)
+
+
+def test_the_measured_plant_takes_arrays_as_it_takes_lists():
+    """``coupled_two_state`` has q = m = 2: arrays are not asked for their truth value."""
+    system = make_system("coupled_two_state")
+    listed = MeasuredPlant(
+        ControlAffinePlant(system), noise_std=[0.1, 0.2], period=0.01, disturbance=[0.3, -0.1]
+    )
+    arrays = MeasuredPlant(
+        ControlAffinePlant(system),
+        noise_std=np.array([0.1, 0.2]),
+        period=0.01,
+        disturbance=np.array([0.3, -0.1]),
+    )
+    y = _measured_y(listed)
+    assert np.all(y != system.output_matrix @ X_MEASURED)  # noisy
+    np.testing.assert_array_equal(_measured_y(arrays), y)
+    # Empty arrays, like None and empty lists: no noise, no disturbance.
+    for nothing in (None, [], np.array([])):
+        plain = MeasuredPlant(
+            ControlAffinePlant(system), noise_std=nothing, period=0.01, disturbance=nothing
+        )
+        np.testing.assert_array_equal(_measured_y(plain), system.output_matrix @ X_MEASURED)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"noise_std": np.array([0.1, 0.1, 0.1])}, r"noise_std must have length 2; got 3\.$"),
+        ({"noise_std": np.array([0.1, np.nan])}, r"noise_std must be finite; got \[0\.1, nan\]"),
+        ({"noise_std": np.array([-0.1, 0.1])}, r"noise_std must be >= 0; got \[-0\.1, 0\.1\]"),
+        ({"disturbance": np.array([0.1])}, r"disturbance must have length 2; got 1\.$"),
+        ({"disturbance": [np.inf, 0.0]}, r"disturbance must be finite; got \[inf, 0\.0\]"),
+    ],
+)
+def test_the_measured_plant_names_a_bad_noise_std_or_disturbance(arguments, message):
+    system = make_system("coupled_two_state")
+    with pytest.raises(ModelError, match=rf"^MeasuredPlant: {message}"):
+        MeasuredPlant(ControlAffinePlant(system), period=0.01, **arguments)
+
+
+def test_the_wrappers_accessors_return_their_named_ports():
+    system = make_system("two_state")
+    plant = MeasuredPlant(ControlAffinePlant(system), noise_std=[0.1], period=0.01)
+    assert plant.get_u_input_port().get_name() == "u"
+    assert plant.get_y_output_port().get_name() == "y"
+    assert plant.get_state_output_port().get_name() == "state"
+    assert plant.get_u_input_port() is plant.GetInputPort("u")
+    assert plant.get_y_output_port() is plant.GetOutputPort("y")
+    assert plant.get_state_output_port() is plant.GetOutputPort("state")
+    basis = PolynomialBasis(2)
+    controller = SampledController(SaturatedController(system, basis, np.ones(1), 3.0), 0.01)
+    assert controller.get_u_output_port().get_name() == "u"
+    assert controller.get_u_output_port() is controller.GetOutputPort("u")

@@ -1,5 +1,7 @@
 """Each Drake block: ports, state counts, and derivatives against closed forms."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -22,6 +24,7 @@ from ofrl_drake.systems import (
     GammaGain,
     RunningCost,
     SaturatedController,
+    ScheduledThreeGainObserver,
     ThreeGainObserver,
 )
 from tests.block_helpers import ports, random_gains
@@ -462,3 +465,107 @@ def test_nu_in_the_context_gives_the_sums_of_a_block_built_with_it():
 def test_setters_name_the_bad_value(call, message):
     with pytest.raises(ModelError, match=message):
         call()
+
+
+def _documented_ports(block):
+    """The input and output port names of the ``.. pydrake_system::`` block of its class."""
+    doc = type(block).__doc__
+    lists = re.search(r"input_ports:\n(.*?)output_ports:\n(.*?)\n\n", doc, re.S)
+    assert lists is not None, type(block).__name__
+    return tuple(re.findall(r"^\s*- (\w+)$", text, re.M) for text in lists.groups())
+
+
+def test_docstrings_list_the_ports_in_declaration_order():
+    system = make_system("coupled_two_state")
+    basis = PolynomialBasis(system.n)
+    n = system.n
+    features = point_features(
+        system, basis, grid_points(-np.ones(n), np.ones(n), [2] * n), np.eye(n)
+    )
+    r = np.ones(system.m)
+    blocks = [
+        ControlAffinePlant(system),
+        ThreeGainObserver(system, random_gains(system)),
+        CriticWeights(np.zeros(basis.size), 0.01),
+        GammaGain(np.eye(basis.size), 0.01, 0.2),
+        SaturatedController(system, basis, r, 3.0),
+        BellmanExtrapolator(features, r, 3.0, 0.7),
+        RunningCost(np.eye(system.n), r, 3.0),
+    ]
+    for block in blocks:
+        declared = (
+            [block.get_input_port(i).get_name() for i in range(block.num_input_ports())],
+            [block.get_output_port(i).get_name() for i in range(block.num_output_ports())],
+        )
+        assert _documented_ports(block) == tuple(declared), type(block).__name__
+
+
+def _scheduled_observer(system, design, initial_state):
+    return ScheduledThreeGainObserver(
+        system,
+        design,
+        period=1.0,
+        half_width=[1.0, 1.0],
+        input_bound=3.0,
+        alpha=0.1,
+        initial_state=initial_state,
+    )
+
+
+INITIAL_STATE_BLOCKS = {
+    "ControlAffinePlant": lambda system, design, x0: ControlAffinePlant(system, initial_state=x0),
+    "ThreeGainObserver": lambda system, design, x0: ThreeGainObserver(
+        system, random_gains(system), initial_state=x0
+    ),
+    "ScheduledThreeGainObserver": _scheduled_observer,
+}
+
+
+@pytest.mark.parametrize("owner", sorted(INITIAL_STATE_BLOCKS))
+@pytest.mark.parametrize(
+    ("initial_state", "message"),
+    [
+        ([1.0, 2.0, 3.0], r"initial_state must have length 2; got 3\.$"),
+        ([np.inf, 0.0], r"initial_state must be finite; got \[inf, 0\.0\]\.$"),
+        ([[1.0, 2.0]], r"initial_state must be a non-empty 1-D vector; got shape \(1, 2\)\.$"),
+    ],
+)
+def test_initial_state_is_checked_like_the_state_setters(
+    paper_design, owner, initial_state, message
+):
+    system = make_system("two_state")
+    with pytest.raises(ModelError, match=rf"^{owner}: {message}"):
+        INITIAL_STATE_BLOCKS[owner](system, paper_design, initial_state)
+
+
+@pytest.mark.parametrize("owner", ["ControlAffinePlant", "ThreeGainObserver"])
+def test_a_valid_initial_state_is_the_default_state_and_is_kept_as_given(owner):
+    system = make_system("two_state")
+    block = INITIAL_STATE_BLOCKS[owner](system, None, [0.5, -0.25])
+    assert block.initial_state == [0.5, -0.25]
+    context = block.CreateDefaultContext()
+    np.testing.assert_array_equal(
+        context.get_continuous_state_vector().CopyToVector(), [0.5, -0.25]
+    )
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"nu": -5.0}, r"^nu must be > 0; got -5\.0\.$"),
+        ({"nu": np.inf}, r"^nu must be finite; got inf\.$"),
+        ({"r": [0.0]}, r"^r must have entries > 0; got \[0\.0\]\.$"),
+        ({"r": [1.0, 1.0]}, r"^r must have length 1; got 2\.$"),
+        ({"input_bound": 0.0}, r"^input_bound must be > 0; got 0\.0\.$"),
+        ({"input_bound": np.nan}, r"^input_bound must be finite; got nan\.$"),
+    ],
+)
+def test_bellman_extrapolator_rejects_what_its_setter_would(arguments, message):
+    """Not a block that builds and then outputs NaN: nu, r and lbar are checked up front."""
+    system = make_system("two_state")
+    features = point_features(
+        system, PolynomialBasis(2), grid_points([-1, -1], [1, 1], [3, 3]), np.eye(2)
+    )
+    given = {"r": [1.0], "input_bound": 3.0, "nu": 0.7} | arguments
+    with pytest.raises(ModelError, match=message):
+        BellmanExtrapolator(features, **given)

@@ -2,10 +2,12 @@
 baseline block is right."""
 
 import dataclasses
+import gc
 
 import numpy as np
 import pytest
 import scipy.linalg
+from pydrake.systems.framework import DiagramBuilder
 from scipy.integrate import solve_ivp
 
 from ofrl_drake import ScenarioError, build_closed_loop, load_scenario, simulate
@@ -556,6 +558,24 @@ def test_moving_bellman_block_equals_the_fixed_one_at_shifted_points():
         MovingBellmanExtrapolator(system, basis, np.zeros((3, 4)), Q, r, 3.0, 0.7)
 
 
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"nu": -5.0}, r"^MovingBellmanExtrapolator: nu must be > 0; got -5\.0\.$"),
+        ({"nu": np.inf}, r"^MovingBellmanExtrapolator: nu must be finite; got inf\.$"),
+        ({"r": [0.0]}, r"^MovingBellmanExtrapolator: r must have entries > 0; got \[0\.0\]\.$"),
+        ({"r": [1.0, 1.0]}, r"^MovingBellmanExtrapolator: r must have length 1; got 2\.$"),
+        ({"input_bound": 0.0}, r"^MovingBellmanExtrapolator: input_bound must be > 0; got 0\.0"),
+    ],
+)
+def test_moving_bellman_block_rejects_what_its_setter_would(arguments, message):
+    system, basis = make_system("two_state"), PolynomialBasis(2)
+    given = {"r": [1.0], "input_bound": 3.0, "nu": 0.7} | arguments
+    offsets = grid_points([-1, -1], [1, 1], [3, 3])
+    with pytest.raises(ModelError, match=message):
+        MovingBellmanExtrapolator(system, basis, offsets, np.eye(2), **given)
+
+
 def test_the_variant_section_of_a_scenario_file(tmp_path):
     text = PAPER_SCENARIO.read_text()
     path = tmp_path / "variant.yaml"
@@ -588,3 +608,43 @@ def test_drake_luenberger_variant_simulates_the_linear_observer(paper_scenario):
     sol = solve_ivp(rhs, (0, 1.0), paper_scenario.xhat0, rtol=1e-10, atol=1e-12, max_step=0.01)
     # Linear interpolation of the 10 ms logs of u and y limits the agreement.
     np.testing.assert_allclose(sol.y[:, -1], r.xhat[-1], rtol=0, atol=2e-3)
+
+
+def test_a_swapped_block_is_renamed_to_its_slot_and_fills_one_loop_only(
+    paper_scenario, paper_design
+):
+    block = CriticWeights(np.zeros(3), 0.01)
+    loop = build_closed_loop(paper_scenario, design=paper_design, critic=block)
+    assert loop.critic is block and block.get_name() == "critic"
+    del loop
+    gc.collect()  # the diagram lives on in the block's parent: still a second loop
+    refused = (
+        r"^critic: the block '::closed_loop_two_state_paper::critic' is already part of a "
+        r"diagram \(an earlier build_closed_loop, or a diagram of your own\), and Drake builds "
+        r"a block into one diagram only: pass a fresh block, or a factory f\(parts\) -> "
+        r"System that builds a new one each call\.$"
+    )
+    with pytest.raises(SwapError, match=refused):
+        build_closed_loop(paper_scenario, design=paper_design, critic=block)
+    # A block of a diagram of one's own, too.
+    builder = DiagramBuilder()
+    own = builder.AddNamedSystem("mine", CriticWeights(np.zeros(3), 0.01))
+    builder.Build().set_name("own")
+    with pytest.raises(SwapError, match=r"^critic: the block '::own::mine' is already part"):
+        build_closed_loop(paper_scenario, design=paper_design, critic=own)
+    # The same block in two slots.
+    twice = CriticWeights(np.zeros(3), 0.01)
+    with pytest.raises(
+        SwapError,
+        match=r"^gamma: the block is already the critic block \(the same object\); a block "
+        r"fills one slot only: pass a fresh block, or a factory",
+    ):
+        build_closed_loop(paper_scenario, design=paper_design, critic=twice, gamma=twice)
+    assert twice.get_name() == ""  # refused before any block is renamed or added
+
+    # A factory builds a new block for each loop.
+    def fresh(parts):
+        return CriticWeights(np.zeros(parts.basis.size), 0.01)
+
+    for _ in range(2):
+        assert build_closed_loop(paper_scenario, design=paper_design, critic=fresh).critic

@@ -48,7 +48,7 @@ from ofrl_drake.bellman import (
     learning_condition,
     point_features,
 )
-from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.checks import finite_vector, positive_number, positive_vector
 from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
@@ -351,6 +351,12 @@ class MovingBellmanExtrapolator(LeafSystem):
     metric : array_like, shape (L,), optional
         Diagonal of the metric of rho (default ones, the paper's).
 
+    Raises
+    ------
+    ModelError
+        If ``offsets`` is not of shape (n, N), ``r`` is not m finite numbers
+        > 0, or ``input_bound`` or ``nu`` is not a finite number > 0.
+
     Notes
     -----
     ``gain_sum`` is output row-major, flattened to ``L * L``.
@@ -382,7 +388,9 @@ class MovingBellmanExtrapolator(LeafSystem):
                 f"offsets must have shape (n, N) = ({system.n}, N); got {self._offsets.shape}."
             )
         self._Q = np.asarray(Q, dtype=float)
-        self._r = np.asarray(r, dtype=float)
+        self._r = positive_vector("MovingBellmanExtrapolator: r", r, system.m)
+        positive_number("MovingBellmanExtrapolator: input_bound", input_bound)
+        positive_number("MovingBellmanExtrapolator: nu", nu)
         size = basis.size
         self._nu_index = self.DeclareNumericParameter(BasicVector(drake_array([float(nu)])))
         self._weights_port = self.DeclareVectorInputPort("weights", size)

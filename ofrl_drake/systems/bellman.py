@@ -131,6 +131,13 @@ class BellmanExtrapolator(Diagram):
         Diagonal of the metric of rho (default ones, the paper's; see
         :class:`~ofrl_drake.bellman.Extrapolator`).
 
+    Raises
+    ------
+    ModelError
+        If ``r`` is not m finite numbers > 0, ``input_bound`` or ``nu`` is not
+        a finite number > 0, or ``metric`` is not L finite numbers > 0
+        (checked by :class:`~ofrl_drake.bellman.Extrapolator`).
+
     Notes
     -----
     ``gain_sum`` is output row-major, flattened to ``L * L``.
@@ -158,8 +165,8 @@ class BellmanExtrapolator(Diagram):
         builder.Connect(sums.GetOutputPort("sums"), split.get_input_port())
         builder.ExportInput(sums.GetInputPort("weights"), "weights")
         builder.ExportInput(sums.GetInputPort("policy_weights"), "policy_weights")
-        builder.ExportOutput(split.get_output_port(0), "critic_sum")
-        builder.ExportOutput(split.get_output_port(1), "gain_sum")
+        builder.ExportOutput(split.GetOutputPort("y0"), "critic_sum")
+        builder.ExportOutput(split.GetOutputPort("y1"), "gain_sum")
         builder.ExportOutput(sums.GetOutputPort("learning_condition"), "learning_condition")
         builder.BuildInto(self)
         self._sums = sums

@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.checks import finite_vector
-from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
+from ofrl_drake.drake_typing import DrakeArray, vector_value
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
@@ -50,7 +50,8 @@ class ThreeGainObserver(LeafSystem):
     Raises
     ------
     ModelError
-        If ``design`` is given and its L, H, K differ from ``gains``.
+        If ``design`` is given and its L, H, K differ from ``gains``, or
+        ``initial_state`` is not a finite vector of length n.
 
     See Also
     --------
@@ -71,7 +72,11 @@ class ThreeGainObserver(LeafSystem):
         self.design = design
         if design is not None:
             gains.check_design(design)
-        x0 = drake_array(np.zeros(system.n) if initial_state is None else initial_state)
+        x0: DrakeArray = (
+            np.zeros(system.n)
+            if initial_state is None
+            else finite_vector("ThreeGainObserver: initial_state", initial_state, system.n)
+        )
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._y_port = self.DeclareVectorInputPort("y", system.q)
         self._u_port = self.DeclareVectorInputPort("u", system.m)

@@ -7,7 +7,7 @@ from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.checks import finite_vector
-from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
+from ofrl_drake.drake_typing import DrakeArray, vector_value
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = ["ControlAffinePlant"]
@@ -22,8 +22,8 @@ class ControlAffinePlant(LeafSystem):
         input_ports:
         - u
         output_ports:
-        - y
         - state
+        - y
 
     Parameters
     ----------
@@ -32,6 +32,11 @@ class ControlAffinePlant(LeafSystem):
     initial_state : array_like, shape (n,), optional
         Default value of the continuous state x (zeros if omitted); a run
         writes its own (:meth:`set_state`).
+
+    Raises
+    ------
+    ModelError
+        If ``initial_state`` is not a finite vector of length n.
 
     Notes
     -----
@@ -43,7 +48,11 @@ class ControlAffinePlant(LeafSystem):
         super().__init__()
         self.system = system
         self.initial_state = initial_state
-        x0 = drake_array(np.zeros(system.n) if initial_state is None else initial_state)
+        x0: DrakeArray = (
+            np.zeros(system.n)
+            if initial_state is None
+            else finite_vector("ControlAffinePlant: initial_state", initial_state, system.n)
+        )
         self._C = system.output_matrix
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._u_port = self.DeclareVectorInputPort("u", system.m)

@@ -73,6 +73,12 @@ class ScheduledThreeGainObserver(LeafSystem):
         Default xhat(0) (zeros if omitted); a run writes its own
         (:meth:`set_estimated_state`).
 
+    Raises
+    ------
+    ModelError
+        If ``period`` is not > 0, ``half_width`` does not hold n positive
+        numbers, or ``initial_state`` is not a finite vector of length n.
+
     Notes
     -----
     ``observer_gains`` is ``[vec(L), vec(H), vec(K)]`` (row-major, ``3 n q``
@@ -126,7 +132,11 @@ class ScheduledThreeGainObserver(LeafSystem):
         n, q = system.n, system.q
         self._gain_shape = (n, q)
         gains = ObserverGains.from_design(system, initial_design)
-        x0 = drake_array(np.zeros(n) if initial_state is None else initial_state)
+        x0: DrakeArray = (
+            np.zeros(n)
+            if initial_state is None
+            else finite_vector("ScheduledThreeGainObserver: initial_state", initial_state, n)
+        )
         self._xhat_index = self.DeclareContinuousState(BasicVector(x0))
         self._gains_index = self.DeclareDiscreteState(self._pack_gains(gains))
         self._bounds_index = self.DeclareDiscreteState(self._pack_bounds(gains))

@@ -108,7 +108,7 @@ def _add_symbolic_system(
     mux = builder.AddNamedSystem("stack_inputs", Multiplexer([v.size for _, v in inputs]))
     builder.Connect(mux.get_output_port(), system.get_input_port())
     for i, (port, _) in enumerate(inputs):
-        builder.ExportInput(mux.get_input_port(i), port)
+        builder.ExportInput(mux.GetInputPort(f"u{i}"), port)
     return system
 
 

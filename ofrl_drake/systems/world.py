@@ -16,12 +16,17 @@ at its input's value at ``t = 0``, which depends on them.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.common import RandomDistribution
-from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
+from pydrake.systems.framework import (
+    Context,
+    Diagram,
+    DiagramBuilder,
+    InputPort,
+    OutputPort,
+    System,
+)
 from pydrake.systems.primitives import (
     Adder,
     ConstantVectorSource,
@@ -58,6 +63,17 @@ def start_holds(system: System, context: Context) -> None:
     """
     if isinstance(system, HoldStarter):
         system.start_holds(context)
+
+
+def _optional_vector(name: str, value: ArrayLike | None, size: int) -> np.ndarray:
+    """``value`` as a finite vector of length ``size``; zeros if it is None or empty."""
+    if value is None:
+        return np.zeros(size)
+    try:
+        empty = np.size(value) == 0
+    except ValueError:  # ragged: finite_vector says what is wrong with it
+        empty = False
+    return np.zeros(size) if empty else finite_vector(name, value, size)
 
 
 def _export_other_ports(
@@ -97,11 +113,12 @@ class MeasuredPlant(Diagram):
     plant : System
         The block with ports ``u``, ``y`` and ``state``.
     noise_std : array_like, shape (q,), optional
-        Standard deviations of the measurement noise (none if omitted).
+        Standard deviations of the measurement noise (none if omitted or
+        empty).
     period : float
         Sampling period of ``y`` in seconds (0: continuous; noise needs > 0).
     disturbance : array_like, shape (m,), optional
-        Constant input disturbance (none if omitted).
+        Constant input disturbance (none if omitted or empty).
 
     Raises
     ------
@@ -114,9 +131,9 @@ class MeasuredPlant(Diagram):
         self,
         plant: System,
         *,
-        noise_std: Sequence[float] | None = None,
+        noise_std: ArrayLike | None = None,
         period: float = 0.0,
-        disturbance: Sequence[float] | None = None,
+        disturbance: ArrayLike | None = None,
     ) -> None:
         super().__init__()
         self.plant = plant
@@ -126,22 +143,20 @@ class MeasuredPlant(Diagram):
         q = plant.GetOutputPort("y").size()
         m = plant.GetInputPort("u").size()
         positive_number("MeasuredPlant: period", period, allow_zero=True)
-        std = np.zeros(q) if not noise_std else finite_vector("noise_std", noise_std, q)
+        std = _optional_vector("MeasuredPlant: noise_std", noise_std, q)
         if np.any(std < 0):
             raise ModelError(f"MeasuredPlant: noise_std must be >= 0; got {std.tolist()}.")
         if np.any(std > 0) and period == 0:
             raise ModelError("MeasuredPlant: noise needs a sampling period > 0; got 0.")
-        d: DrakeArray = (
-            np.zeros(m) if not disturbance else finite_vector("disturbance", disturbance, m)
-        )
+        d: DrakeArray = _optional_vector("MeasuredPlant: disturbance", disturbance, m)
         builder = DiagramBuilder()
         inner = builder.AddNamedSystem("plant", plant)
         if np.any(d != 0):
             add_d = builder.AddNamedSystem("add_disturbance", Adder(2, m))
             source = builder.AddNamedSystem("disturbance", ConstantVectorSource(d))
-            builder.Connect(source.get_output_port(), add_d.get_input_port(1))
+            builder.Connect(source.get_output_port(), add_d.GetInputPort("u1"))
             builder.Connect(add_d.get_output_port(), inner.GetInputPort("u"))
-            builder.ExportInput(add_d.get_input_port(0), "u")
+            builder.ExportInput(add_d.GetInputPort("u0"), "u")
         else:
             builder.ExportInput(inner.GetInputPort("u"), "u")
         y = inner.GetOutputPort("y")
@@ -152,9 +167,9 @@ class MeasuredPlant(Diagram):
             )
             scale = builder.AddNamedSystem("noise_std", MatrixGain(np.diag(std)))
             add_v = builder.AddNamedSystem("add_noise", Adder(2, q))
-            builder.Connect(noise.get_output_port(0), scale.get_input_port())
-            builder.Connect(y, add_v.get_input_port(0))
-            builder.Connect(scale.get_output_port(), add_v.get_input_port(1))
+            builder.Connect(noise.GetOutputPort("output"), scale.get_input_port())
+            builder.Connect(y, add_v.GetInputPort("u0"))
+            builder.Connect(scale.get_output_port(), add_v.GetInputPort("u1"))
             y = add_v.get_output_port()
         if period > 0:
             self._hold = ZeroOrderHold(float(period), q)
@@ -165,6 +180,18 @@ class MeasuredPlant(Diagram):
         _export_other_ports(builder, inner, {"u"}, {"y"})
         builder.BuildInto(self)
         self._inner = inner
+
+    def get_u_input_port(self) -> InputPort:
+        """The input ``u`` (size m), before the disturbance is added."""
+        return self.GetInputPort("u")
+
+    def get_y_output_port(self) -> OutputPort:
+        """The measured output ``y``, noisy and sampled (size q)."""
+        return self.GetOutputPort("y")
+
+    def get_state_output_port(self) -> OutputPort:
+        """The inner plant's true state ``x`` (size n)."""
+        return self.GetOutputPort("state")
 
     def initialize_context(self, context: Context) -> None:
         """The inner plant's own initialization (:func:`initialize_context`)."""
@@ -231,6 +258,10 @@ class SampledController(Diagram):
         _export_other_ports(builder, inner, set(), {"u"})
         builder.BuildInto(self)
         self._inner = inner
+
+    def get_u_output_port(self) -> OutputPort:
+        """The held input ``u`` (size m)."""
+        return self.GetOutputPort("u")
 
     def initialize_context(self, context: Context) -> None:
         """The inner controller's own initialization (:func:`initialize_context`)."""
