@@ -490,14 +490,18 @@ class Extrapolator:
         inp = np.asarray(features.input, dtype=float)  # (m, L, N)
         m, L, N = inp.shape
         self.features = features
-        self.r = positive_vector("r", r, m)
-        self.input_bound = positive_number("input_bound", input_bound)
-        self.nu = positive_number("nu", nu)
+        self.r = r
+        self.input_bound = input_bound
+        self.nu = nu
         self.metric = metric
+        # Checked and as floats: the compiled kernels take one signature.
+        self._r = positive_vector("r", r, m)
+        self._input_bound = positive_number("input_bound", input_bound)
+        self._nu = positive_number("nu", nu)
         layout = kernel_layout(m, L)
         self._layout = layout
         # D_k = W @ policy_input[k], policy_input = input / (2 lbar r_k).
-        policy_input = inp / (2.0 * self.input_bound * self.r)[:, None, None]
+        policy_input = inp / (2.0 * self._input_bound * self._r)[:, None, None]
         rows = layout.data
         self._data = np.empty((rows.rows, N))
         self._data[rows.policy_input] = policy_input.reshape(m * L, N)
@@ -507,7 +511,7 @@ class Extrapolator:
         self._metric = np.ones(L) if metric is None else np.asarray(metric, dtype=float)
         if self._metric.shape != (L,) or not np.all(np.isfinite(self._metric) & (self._metric > 0)):
             raise ModelError(f"metric must hold {L} positive finite numbers; got {metric!r}.")
-        self._weight = self.input_bound**2 * self.r
+        self._weight = self._input_bound**2 * self._r
         self._scratch = np.empty((layout.per_point.rows, N))
 
     @property
@@ -530,8 +534,8 @@ class Extrapolator:
             self._data,
             self._layout.num_inputs,
             self._weight,
-            self.input_bound,
-            self.nu,
+            self._input_bound,
+            self._nu,
             self._metric,
             per_point,
             critic_sum,
@@ -575,8 +579,8 @@ class Extrapolator:
             self._data,
             self._layout.num_inputs,
             self._weight,
-            self.input_bound,
-            self.nu,
+            self._input_bound,
+            self._nu,
             self._metric,
             np.empty_like(self._scratch),
             out,
