@@ -70,13 +70,22 @@ from ofrl_drake.ablation_metrics import optimality_ratio
 from ofrl_drake.ablation_tasks import (
     METRICS,
     RunOutcome,
+    _scenario_for,
     failed_optimum,
     run_variant_states,
     solve_optimal_task,
 )
-from ofrl_drake.errors import status_line
-from ofrl_drake.optimal import Mesh, OptimalControlResult, OptimalCostCache, Trajectory
-from ofrl_drake.scenario import Scenario
+from ofrl_drake.checks import positive_number
+from ofrl_drake.errors import OfrlError, status_line
+from ofrl_drake.optimal import (
+    Mesh,
+    OptimalControlResult,
+    OptimalCostCache,
+    Trajectory,
+    checked_mesh,
+    solver_name,
+)
+from ofrl_drake.scenario import Scenario, validate_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
@@ -410,6 +419,38 @@ class _Sweep:
         return rows
 
 
+def _check_sweep(
+    scenario: Scenario,
+    variants: Sequence[Variant],
+    x0: Sequence[float],
+    duration: float | None,
+    mesh: Mesh | None,
+    solver: str | None,
+) -> float | None:
+    """Refuse, before any run, what would fail every run or every ``J*``; return the horizon.
+
+    ``duration`` must be a number > 0, ``mesh`` a :class:`~ofrl_drake.optimal.Mesh`,
+    ``solver`` one of :data:`~ofrl_drake.optimal.SOLVERS`, and the scenario of
+    every variant (its choices, from ``x0``, over the horizon) valid
+    (:func:`~ofrl_drake.scenario.validate_scenario`: e.g. ``controller:
+    constant`` needs ``variant.constant_input``).
+    """
+    try:
+        if duration is not None:
+            duration = positive_number("duration", duration)
+        checked_mesh(mesh)
+        if solver is not None:
+            solver_name(solver)
+    except OfrlError as err:
+        raise AblationError(str(err)) from None
+    for variant in variants:
+        try:
+            validate_scenario(_scenario_for(scenario, variant, x0, duration))
+        except OfrlError as err:
+            raise AblationError(f"variants.{variant.name}: {err}") from None
+    return duration
+
+
 def ablate(
     scenario: Scenario,
     variants: Sequence[Variant] | Mapping[str, Mapping[str, str]] | None = None,
@@ -469,9 +510,16 @@ def ablate(
     Raises
     ------
     AblationError
-        For bad variants or initial states, an existing table without
-        ``resume``, or a ``resume`` whose seed, initial states, variants,
-        scenario or horizon differ from the sweep in ``out`` (named in the message).
+        Before any run: for bad variants (not :class:`Variant` objects or a
+        mapping, an unknown slot or choice, the message listing the valid
+        ones, or a variant whose scenario is invalid, e.g. ``controller:
+        constant`` without ``variant.constant_input``), bad initial states, a
+        ``duration`` that is not a number > 0, a ``mesh`` that is not a
+        :class:`~ofrl_drake.optimal.Mesh`, a ``solver`` not in
+        :data:`~ofrl_drake.optimal.SOLVERS` or not available, an existing
+        table without ``resume``, or a ``resume`` whose seed, initial states,
+        variants, scenario or horizon differ from the sweep in ``out`` (named
+        in the message).
 
     Examples
     --------
@@ -481,13 +529,15 @@ def ablate(
     """
     variants = variant_list(scenario, variants)
     states = initial_states_by_label(scenario, initial_states)
+    x0 = next(iter(states.values())).tolist()
+    duration = _check_sweep(scenario, variants, x0, duration, mesh, solver)
     keys = [(v.name, label) for v in variants for label in states]
 
     sweep = _Sweep(
         scenario=scenario,
         variants={v.name: v for v in variants},
         states=states,
-        duration=None if duration is None else float(duration),
+        duration=duration,
         mesh=mesh,
         solver=solver,
         store=None if out is None else SweepStore(FILES, Path(out)),

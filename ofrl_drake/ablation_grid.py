@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +65,11 @@ class Variant:
 
 
 def _check_choices(name: str, choices: Any) -> dict[str, str]:
+    """``choices`` of the variant ``name``, checked: known slots, known choices.
+
+    The one check of a variant's choices, for ``--variants`` files and the
+    Python API alike.
+    """
     from ofrl_drake.slots import VARIANT_FACTORIES
 
     if not isinstance(choices, Mapping):
@@ -76,7 +81,7 @@ def _check_choices(name: str, choices: Any) -> dict[str, str]:
             raise AblationError(
                 f"variants.{name}.{slot}: unknown slot; slots are {sorted(VARIANT_FACTORIES)}."
             )
-        if choice not in VARIANT_FACTORIES[slot]:
+        if not isinstance(choice, str) or choice not in VARIANT_FACTORIES[slot]:
             raise AblationError(
                 f"variants.{name}.{slot}: unknown choice {choice!r}; choose one of "
                 f"{sorted(VARIANT_FACTORIES[slot])}."
@@ -133,25 +138,57 @@ def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
             f"{path}: expected a mapping of variant name -> {{slot: choice}}; got {data!r}."
         )
     try:
-        return [Variant(str(name), _check_choices(str(name), c or {})) for name, c in data.items()]
+        return _from_mapping(data)
     except AblationError as err:
         raise AblationError(f"{path}: {err}") from None
+
+
+def _from_mapping(data: Mapping[Any, Any]) -> list[Variant]:
+    """Variants from a mapping ``name -> {slot: choice}`` (None: no choice), checked."""
+    return [
+        Variant(str(name), _check_choices(str(name), {} if c is None else c))
+        for name, c in data.items()
+    ]
+
+
+def _checked_variant(index: int, variant: Any) -> Variant:
+    """Item ``index`` of a sequence of variants: a :class:`Variant` with checked choices."""
+    if not isinstance(variant, Variant):
+        raise AblationError(
+            f"variants[{index}]: expected a Variant(name, {{slot: choice}}); got {variant!r}. "
+            "Pass Variant objects, or a mapping name -> {slot: choice}."
+        )
+    if not isinstance(variant.name, str) or not variant.name:
+        raise AblationError(
+            f"variants[{index}]: a variant's name must be a non-empty string; got {variant.name!r}."
+        )
+    return replace(variant, choices=_check_choices(variant.name, variant.choices))
 
 
 def variant_list(scenario: Scenario, variants: Any) -> list[Variant]:
     """The variants of a sweep: ``variants`` (a sequence, or a mapping ``name ->
     {slot: choice}``), or :func:`default_variants` if None.
 
+    Every variant's choices are checked as a ``--variants`` file's are.
+
     Raises
     ------
     AblationError
-        If there is none, or two share a name.
+        If there is none, two share a name, an item is not a :class:`Variant`,
+        or a variant names an unknown slot or choice (the message lists the
+        slots or the slot's choices).
     """
     if variants is None:
         return default_variants(scenario)
     if isinstance(variants, Mapping):
-        variants = [Variant(str(k), dict(v or {})) for k, v in variants.items()]
-    out = list(variants)
+        out = _from_mapping(variants)
+    elif isinstance(variants, (str, bytes)) or not isinstance(variants, Iterable):
+        raise AblationError(
+            "variants: expected a list of Variant or a mapping name -> {slot: choice}; "
+            f"got {variants!r}."
+        )
+    else:
+        out = [_checked_variant(i, v) for i, v in enumerate(variants)]
     names = [v.name for v in out]
     if not out or len(set(names)) != len(names):
         raise AblationError(f"variants: need at least one, with distinct names; got {names}.")

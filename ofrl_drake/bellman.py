@@ -49,7 +49,7 @@ from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.checks import positive_number, positive_vector
 from ofrl_drake.cost import log_cosh_abs, saturation_cost, state_cost, tanh_abs
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 
 __all__ = [
     "BellmanExtrapolation",
@@ -146,10 +146,46 @@ def point_features(
     points: np.ndarray,
     Q: np.ndarray,
 ) -> PointFeatures:
-    """Precompute everything at ``points`` (shape ``(n, N)``) that does not depend on W."""
-    points = np.asarray(points, dtype=float)
-    if points.ndim != 2 or points.shape[0] != system.n:
-        raise ModelError(f"points must have shape (n, N) = ({system.n}, N); got {points.shape}.")
+    """Precompute everything at ``points`` (shape ``(n, N)``) that does not depend on W.
+
+    Raises
+    ------
+    ModelError
+        If ``system`` is not a :class:`ControlAffineSystem`, ``basis`` not a
+        :class:`PolynomialBasis` of its ``n`` states, ``points`` not a finite
+        array of shape ``(n, N)`` or ``Q`` not a finite ``(n, n)`` matrix.
+    """
+    n = require_system(system, "point_features: system").n
+    if not isinstance(basis, PolynomialBasis):
+        raise ModelError(
+            f"point_features: basis must be a PolynomialBasis; got {type(basis).__name__}."
+        )
+    if basis.n != n:
+        raise ModelError(
+            f"point_features: the basis is for n = {basis.n} states but the system "
+            f"{system.name!r} has n = {n}; build it as PolynomialBasis({n}, ...)."
+        )
+    try:
+        points = np.asarray(points, dtype=float)
+        Q_arr = np.asarray(Q, dtype=float)
+    except (TypeError, ValueError):
+        raise ModelError(
+            f"point_features: points and Q must be numeric arrays of shapes (n, N) = ({n}, N) "
+            f"and (n, n) = ({n}, {n}); got {points!r} and {Q!r}."
+        ) from None
+    if points.ndim != 2 or points.shape[0] != n:
+        raise ModelError(f"points must have shape (n, N) = ({n}, N); got {points.shape}.")
+    if not np.isfinite(points).all():
+        column = int(np.flatnonzero(~np.isfinite(points).all(axis=0))[0])
+        raise ModelError(
+            f"point_features: the points must be finite; point {column} is "
+            f"{points[:, column].tolist()}."
+        )
+    if Q_arr.shape != (n, n) or not np.isfinite(Q_arr).all():
+        raise ModelError(
+            f"point_features: Q must be a finite (n, n) = ({n}, {n}) matrix (the state cost "
+            f"x^T Q x); got {Q_arr.tolist()} of shape {Q_arr.shape}."
+        )
     grad = basis.gradient(points)  # (L, n, N)
     f = system.f_batch(points)  # (n, N)
     g = system.g_batch(points)  # (n, m, N)
@@ -159,7 +195,7 @@ def point_features(
         points=points,
         drift=np.ascontiguousarray(drift),
         input=np.ascontiguousarray(inp.transpose(1, 0, 2)),
-        state_cost=state_cost(points, np.asarray(Q, dtype=float)),
+        state_cost=state_cost(points, Q_arr),
     )
 
 

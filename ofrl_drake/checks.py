@@ -1,4 +1,5 @@
-"""Argument checks shared by the blocks: each raises :class:`ModelError`.
+"""Argument checks shared by the blocks: each raises :class:`ModelError`
+(:func:`integer_at_least` the class it is given; :func:`is_real_number` is a test).
 
 Every message names the owner (``"GammaGain: initial_gamma"``), the value it
 got and what would be accepted, so a user can fix the call without reading
@@ -11,10 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.errors import ModelError
+from ofrl_drake.errors import ModelError, OfrlError
 
 __all__ = [
     "finite_vector",
+    "integer_at_least",
+    "is_real_number",
     "nonnegative_matrix",
     "positive_number",
     "positive_vector",
@@ -30,6 +33,34 @@ def _finite_array(name: str, value: Any) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ModelError(f"{name} must be finite; got {arr.tolist()}.")
     return arr
+
+
+def is_real_number(value: Any) -> bool:
+    """Whether ``value`` is one real number: a Python or numpy int or float.
+
+    Not a bool, a string (``"1e-3"``), None or an array: callers that then
+    compare it (``math.isfinite(value) and value > 0``) get no TypeError.
+    """
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+def integer_at_least(
+    name: str, value: Any, least: int = 0, *, error: type[OfrlError] = ModelError
+) -> int:
+    """``value`` as an int, checked to be an integer (not a bool or a float) ``>= least``.
+
+    For seeds (``least = 0``: numpy refuses negative ones) and counts. Raises
+    ``error`` (default :class:`ModelError`), so a module raises its own class.
+    """
+    if (
+        isinstance(value, bool | np.bool_)
+        or not isinstance(value, int | np.integer)
+        or value < least
+    ):
+        raise error(f"{name} must be an integer >= {least}; got {value!r}.")
+    return int(value)
 
 
 def positive_number(name: str, value: Any, *, allow_zero: bool = False) -> float:

@@ -19,8 +19,10 @@ names, e.g. a full-state "observer" may declare an input ``state`` and output
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -39,7 +41,7 @@ from ofrl_drake.contracts import (
     WeightsSetter,
 )
 from ofrl_drake.drake_typing import DrakeArray
-from ofrl_drake.errors import ModelError, ScenarioError, SwapError
+from ofrl_drake.errors import ModelError, ScenarioError, ScenarioTypeError, SwapError
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
     POLICY_PERIOD_FRACTION,
@@ -78,6 +80,7 @@ __all__ = [
     "ClosedLoop",
     "CriticSettings",
     "build_closed_loop",
+    "check_scenario",
     "critic_settings",
     "drake_plant",
     "extrapolation_points",
@@ -559,6 +562,108 @@ def drake_plant(parts: ClosedLoopParts) -> System:
     return DrakePlant(parts.system, initial_state=parts.scenario.x0)
 
 
+def check_scenario(scenario: object, caller: str, *, paths: bool = False) -> None:
+    """Refuse a ``scenario`` argument that is not a :class:`~ofrl_drake.scenario.Scenario`.
+
+    Parameters
+    ----------
+    scenario : object
+        The argument.
+    caller : str
+        Who was given it (``"build_closed_loop"``), for the message.
+    paths : bool, optional
+        Whether ``caller`` also takes the path of a scenario file (it has
+        loaded one before asking), as the message then says.
+
+    Raises
+    ------
+    ScenarioError
+        Naming what was given and :func:`~ofrl_drake.load_scenario` as the
+        fix; it is also a ``TypeError``.
+    """
+    if isinstance(scenario, Scenario):
+        return
+    accepted = "a Scenario or the path of a scenario file" if paths else "a Scenario"
+    if isinstance(scenario, (str, Path)):
+        raise ScenarioTypeError(
+            f"{caller}: scenario must be {accepted}; got the path {str(scenario)!r}. Load "
+            f"it first with ofrl_drake.load_scenario({str(scenario)!r})."
+        )
+    raise ScenarioTypeError(
+        f"{caller}: scenario must be {accepted}; got {type(scenario).__name__}. Load one "
+        "with ofrl_drake.load_scenario(path)."
+    )
+
+
+def _check_design(design: object, scenario: Scenario) -> None:
+    """Refuse a ``design=`` that is not an ``ObserverDesign`` certified for ``scenario``'s inputs.
+
+    The controller saturates at the scenario's ``input_bound``, so a design
+    certified for a smaller one would be claimed where it does not hold.
+    """
+    from ofrl_drake.design import DesignError, ObserverDesign
+
+    if not isinstance(design, ObserverDesign):
+        raise DesignError(
+            f"design: expected an ObserverDesign; got {type(design).__name__}. Make one with "
+            "ofrl_drake.variants.design_for(scenario) or ofrl_drake.design.design_observer, "
+            "or omit design= to use the scenario's own."
+        )
+    if design.input_bound < scenario.input_bound:
+        raise DesignError(
+            f"design: certified for |u_k| <= input_bound = {design.input_bound:g}, but the "
+            f"scenario's controller saturates at input_bound = {scenario.input_bound:g}, "
+            "so the certificate would not hold along the run; design for an input bound of "
+            f"at least {scenario.input_bound:g} (design_for(scenario)), or lower the "
+            "scenario's input_bound."
+        )
+
+
+def _log_period(scenario: Scenario, log_period: float | None) -> float:
+    """The loggers' period: ``scenario.simulation.log_period``, or ``log_period`` if given.
+
+    A given ``log_period`` is checked by the scenario's own rule for
+    ``simulation.log_period`` (:func:`~ofrl_drake.scenario.validate_scenario`).
+    """
+    own = scenario.simulation.log_period
+    if log_period is None:
+        return own
+    simulation = dataclasses.replace(scenario.simulation, log_period=log_period)
+    try:
+        validate_scenario(dataclasses.replace(scenario, simulation=simulation))
+    except ScenarioError as err:
+        raise ScenarioError(
+            f"log_period: {log_period!r} is refused, as in the scenario: {err} Or omit "
+            f"log_period to log every simulation.log_period = {own:g} s."
+        ) from None
+    return float(log_period)
+
+
+def _factory_block(slot: str, factory: Callable[..., Any], parts: ClosedLoopParts) -> System:
+    """The block that a swap's ``factory(parts)`` builds, checked to be a Drake System."""
+    try:
+        inspect.signature(factory).bind(parts)
+    except TypeError:
+        raise SwapError(
+            f"{slot}: the factory {_callable_name(factory)} cannot be called with one "
+            "argument; a factory is f(parts) -> System, called with the ClosedLoopParts."
+        ) from None
+    except ValueError:  # no signature to inspect (some builtins): just call it
+        pass
+    block = factory(parts)
+    if not isinstance(block, System):
+        raise SwapError(
+            f"{slot}: the factory {_callable_name(factory)} returned "
+            f"{type(block).__name__}, not a Drake System; a factory f(parts) must return "
+            "the block for the slot."
+        )
+    return block
+
+
+def _callable_name(factory: Callable[..., Any]) -> str:
+    return getattr(factory, "__qualname__", None) or type(factory).__name__
+
+
 def build_closed_loop(
     scenario: Scenario,
     *,
@@ -578,9 +683,12 @@ def build_closed_loop(
     design : ObserverDesign, optional
         Observer design to use; by default the chosen observer's own
         (:func:`~ofrl_drake.variants.design_for` for ``three_gain``). Not
-        computed at all when the ``observer`` block is swapped.
+        computed at all when the ``observer`` block is swapped. It must be
+        certified for the scenario's inputs: ``design.input_bound >=
+        scenario.input_bound``, where the controller saturates.
     log_period : float, optional
-        Logging period in seconds; defaults to ``scenario.simulation.log_period``.
+        Logging period in seconds; defaults to ``scenario.simulation.log_period``,
+        and is held to its rule (> 0, finite, at most ``simulation.duration``).
     **swaps : System, callable or str
         A block (one of :data:`~ofrl_drake.slots.SLOTS`) replaced by another
         with the same port names, or by a factory ``f(parts) -> System``
@@ -604,10 +712,17 @@ def build_closed_loop(
     Raises
     ------
     SwapError
-        If a swap names an unknown block or slot, its block's ports do not
-        fit, or its block is already part of a diagram or of another slot.
+        If a swap names an unknown block or slot, is neither a System nor a
+        factory, its factory cannot take ``parts`` or returns no System, its
+        block's ports do not fit, or its block is already part of a diagram
+        or of another slot.
     ScenarioError
-        If the scenario, or a choice given by name, is not valid.
+        If ``scenario`` is not a Scenario (a path: load it with
+        :func:`~ofrl_drake.load_scenario`), or it, a choice given by name or
+        ``log_period`` is not valid.
+    DesignError
+        If ``design`` is not an ``ObserverDesign``, or is certified for a
+        smaller input bound than the scenario's ``input_bound``.
 
     Examples
     --------
@@ -615,6 +730,7 @@ def build_closed_loop(
     >>> loop = build_closed_loop(scenario, critic=CriticWeights(W0, kc=0.0))  # doctest: +SKIP
     >>> loop = build_closed_loop(scenario, observer="kalman")     # doctest: +SKIP
     """
+    check_scenario(scenario, "build_closed_loop")
     # Choices by name: values of the str fields of VariantConfig (the keys checked below).
     named: dict[str, Any] = {key: value for key, value in swaps.items() if isinstance(value, str)}
     for key in sorted(named):
@@ -634,6 +750,9 @@ def build_closed_loop(
             scenario, variant=dataclasses.replace(scenario.variant, **named)
         )
     validate_scenario(scenario)
+    period = _log_period(scenario, log_period)
+    if design is not None:
+        _check_design(design, scenario)
     system = resolve_system(scenario)
     basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
     Q = np.asarray(scenario.cost.Q, dtype=float)
@@ -661,7 +780,7 @@ def build_closed_loop(
         elif isinstance(swap, System):
             block = swap
         elif callable(swap):
-            block = swap(parts)
+            block = _factory_block(slot, swap, parts)
         else:
             raise SwapError(
                 f"{slot}: a swap must be a Drake System or a factory f(parts) -> System; "
@@ -680,7 +799,6 @@ def build_closed_loop(
 
     _connect_by_name(builder, blocks)
 
-    period = scenario.simulation.log_period if log_period is None else log_period
     loggers = {}
     for key, signal in LOGGED.items():
         if key in _after_run(blocks):

@@ -44,6 +44,7 @@ import numpy as np
 from pydrake.symbolic import Expression, Jacobian, MakeVectorVariable, Variable
 from pydrake.systems.framework import InputPort, PortDataType, System
 
+from ofrl_drake.checks import integer_at_least
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
 from ofrl_drake.multibody_bounds import MultibodyStructure, multibody_structure
@@ -275,16 +276,17 @@ def extract_drake_system(
     Raises
     ------
     ModelError
-        If ``check_points`` is not a positive integer, the system does not
-        support symbolic scalars, has other kinds of state, time-varying
-        dynamics, no such vector input port, or dynamics that are not affine
-        in ``u`` (the message names the state rows, the tolerance and the
-        number of points).
+        If ``check_points`` is not a positive integer or ``seed`` not an
+        integer >= 0, the system does not support symbolic scalars, has other
+        kinds of state, time-varying dynamics, no such vector input port, or
+        dynamics that are not affine in ``u`` (the message names the state
+        rows, the tolerance and the number of points).
     """
     if not isinstance(system, System):
         raise ModelError(f"from_drake needs a Drake System; got {type(system).__name__}.")
     label = name or _system_label(system)
     _check_points(label, check_points)
+    integer_at_least(f"{label}: seed", seed)
     try:
         symbolic = system.ToSymbolic()
     except Exception as err:
@@ -589,14 +591,15 @@ def extract_multibody(
     Raises
     ------
     ModelError
-        If ``check_points`` is not a positive integer, the model cannot be
-        loaded, the plant is discrete or not finalized, has quaternion
-        (floating) joints, effort limits, no actuators, or the equations
-        disagree with ``EvalTimeDerivatives``.
+        If ``check_points`` is not a positive integer or ``seed`` not an
+        integer >= 0, the model cannot be loaded, the plant is discrete or not
+        finalized, has quaternion (floating) joints, effort limits, no
+        actuators, or the equations disagree with ``EvalTimeDerivatives``.
     """
     plant, path, stem = _load_plant(model)
     label = name or stem
     _check_points(label, check_points)
+    integer_at_least(f"{label}: seed", seed)
     if plant.time_step() != 0.0:
         raise ModelError(
             f"{label}: the plant is discrete (time_step = {plant.time_step()}); "

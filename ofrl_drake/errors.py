@@ -14,6 +14,7 @@ __all__ = [
     "OfrlError",
     "OutputError",
     "ScenarioError",
+    "ScenarioTypeError",
     "SwapError",
     "WallTimeExceeded",
     "lmi_time_left",
@@ -31,6 +32,10 @@ class ModelError(OfrlError):
 
 class ScenarioError(OfrlError):
     """A scenario file or scenario object holds a missing, unknown or bad key."""
+
+
+class ScenarioTypeError(ScenarioError, TypeError):
+    """What was given as a scenario is not one (a path, a dict...): also a ``TypeError``."""
 
 
 class SwapError(OfrlError):

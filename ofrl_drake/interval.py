@@ -613,6 +613,17 @@ class ExpressionEvaluator:
         # by kind; pydrake's stub types it as object.
         raw_args: list[Any]
         _, raw_args = e.Unapply()  # type: ignore[misc]  # pydrake stub: Unapply() -> object
+        if kind == "IfThenElse":
+            raise UnsupportedExpressionError(
+                f"unsupported function IfThenElse, a branch, in expression {key}. In a "
+                "Jacobian of f or g, np.abs, np.maximum, np.minimum or np.sign inside f or g "
+                "create such branches (|x| is not differentiable at 0, so its derivative is a "
+                "branch), while f and g must be continuously differentiable on the box, for "
+                "jacobian_method 'sampled' and 'certified' alike. Write them in a smooth form, "
+                "with a small eps > 0: np.sqrt(x**2 + eps) for |x|, np.tanh(x / eps) for "
+                "sign(x), (a + b + np.sqrt((a - b)**2 + eps)) / 2 for max(a, b); or give "
+                "Jacobian bounds found by hand (design_observer's bounds=JacobianBounds(...))."
+            )
         if kind not in _POINT_KINDS:
             raise UnsupportedExpressionError(
                 f"unsupported function {kind} in expression {key}; supported: "

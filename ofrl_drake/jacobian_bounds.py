@@ -51,6 +51,7 @@ chunks stop at ``max_wall_time``.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -60,6 +61,7 @@ import numpy as np
 from pydrake.symbolic import Expression, Jacobian
 
 from ofrl_drake.branch_and_bound import Refinement, refine
+from ofrl_drake.checks import integer_at_least, is_real_number
 from ofrl_drake.errors import ModelError, OfrlError, WallTimeExceeded
 from ofrl_drake.interval import (
     ExpressionEvaluator,
@@ -68,12 +70,13 @@ from ofrl_drake.interval import (
     UnsupportedExpressionError,
 )
 from ofrl_drake.interval_taylor import TaylorEvaluator
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure
 from ofrl_drake.symbolic_bounds import TaylorEncloser, independent_groups
 
 __all__ = [
     "DEFAULT_TOL",
+    "MAX_POINTS",
     "BoundsError",
     "BoundsExcess",
     "Box",
@@ -472,9 +475,23 @@ def _default_grid(n: int) -> int:
 
 
 def _grid_points(box: Box, dims: tuple[int, ...], grid: int) -> np.ndarray:
-    """A ``grid``-per-axis grid over the axes ``dims``; other axes at the centre."""
+    """A ``grid``-per-axis grid over the axes ``dims``; other axes at the centre.
+
+    Raises
+    ------
+    BoundsError
+        If the grid would have more than :data:`MAX_POINTS` points.
+    """
     if grid == 1 or not dims:
         return box.center[:, None]
+    size = grid ** len(dims)
+    if size > MAX_POINTS:
+        raise BoundsError(
+            f"grid: {grid} points per axis over the {len(dims)} states {list(dims)} that some "
+            f"Jacobian entries depend on make {size:.3g} points, which would need about "
+            f"{size * 8 * (box.n + len(dims)) / 2**30:.3g} GiB; at most {MAX_POINTS}. "
+            "Use a smaller grid (or the default)."
+        )
     axes = [np.linspace(box.lower[i], box.upper[i], grid) for i in dims]
     mesh = np.meshgrid(*axes, indexing="ij")
     G = np.repeat(box.center[:, None], mesh[0].size, axis=1)
@@ -808,6 +825,16 @@ def _certify_symbolic(
 #: The default absolute tolerance of the certified bounds' refinement (``tol``).
 DEFAULT_TOL = 1e-3
 
+#: Most random points (``n_random``) one call draws, and most points of one
+#: grid: the cap of :func:`~ofrl_drake.verification.verify_observer`'s samples
+#: (memory grows with them).
+MAX_POINTS = 10_000_000
+
+
+def _is_whole(value: Any, least: int) -> bool:
+    """Whether ``value`` is a whole number ``>= least``: an int, or a float such as ``1e4``."""
+    return is_real_number(value) and math.isfinite(value) and int(value) == value and value >= least
+
 
 def jacobian_bounds(
     system: ControlAffineSystem,
@@ -875,8 +902,11 @@ def jacobian_bounds(
     Raises
     ------
     BoundsError
-        For an unknown method or bad parameters, if ``f``/``g`` cannot be
-        differentiated symbolically, or a Jacobian entry is not finite.
+        For a ``system`` that is not a :class:`ControlAffineSystem`, an unknown
+        method or bad parameters (``n_random``, or the points of a grid, above
+        :data:`MAX_POINTS`; a negative ``seed``; a string for a number), if
+        ``f``/``g`` cannot be differentiated symbolically, or a Jacobian entry
+        is not finite.
     UncertifiedBoundsError
         If a certified bound is still infinite when ``max_boxes`` or
         ``max_wall_time`` runs out (the message names the entry and the box).
@@ -885,7 +915,9 @@ def jacobian_bounds(
     BoxError
         If ``box`` is malformed or not ``n``-dimensional.
     UnsupportedExpressionError
-        If a Jacobian entry uses a function the evaluator does not support.
+        If a Jacobian entry uses a function the evaluator does not support,
+        such as the branch (``IfThenElse``) that ``np.abs``, ``np.maximum``,
+        ``np.minimum`` or ``np.sign`` in ``f`` or ``g`` put in the Jacobian.
 
     Examples
     --------
@@ -895,6 +927,7 @@ def jacobian_bounds(
     ([-1.0, 1.0], [-1.0, 1.0])
     """
     start = time.monotonic()
+    require_system(system, "jacobian_bounds: system", BoundsError)
     if method not in METHODS:
         raise BoundsError(
             f"method must be one of {METHODS}; got {method!r}. Use 'sampled' for "
@@ -902,17 +935,26 @@ def jacobian_bounds(
         )
     box = Box.coerce(box, system.n)
     n, m = system.n, system.m
-    if grid is not None and (int(grid) != grid or grid < 1):
+    if grid is not None and not _is_whole(grid, 1):
         raise BoundsError(f"grid must be a positive integer; got {grid!r}.")
-    if int(n_random) != n_random or n_random < 0:
+    if not _is_whole(n_random, 0):
         raise BoundsError(f"n_random must be a non-negative integer; got {n_random!r}.")
-    if not (np.isfinite(tol) and tol > 0):
+    if n_random > MAX_POINTS:
+        raise BoundsError(
+            f"n_random: {n_random} would need about {n_random * 8 * 3 * n / 2**30:.3g} GiB "
+            f"for the random points; at most {MAX_POINTS} per call (a finer grid, "
+            "or method 'certified', covers the box more surely)."
+        )
+    integer_at_least("seed", seed, error=BoundsError)
+    if not (is_real_number(tol) and math.isfinite(tol) and tol > 0):
         raise BoundsError(f"tol must be a positive number; got {tol!r}.")
-    if rtol is not None and not (np.isfinite(rtol) and rtol >= 0):
+    if rtol is not None and not (is_real_number(rtol) and math.isfinite(rtol) and rtol >= 0):
         raise BoundsError(f"rtol must be a number >= 0; got {rtol!r}.")
-    if int(max_boxes) != max_boxes or max_boxes < 1:
+    if not _is_whole(max_boxes, 1):
         raise BoundsError(f"max_boxes must be a positive integer; got {max_boxes!r}.")
-    if max_wall_time is not None and not (np.isfinite(max_wall_time) and max_wall_time > 0):
+    if max_wall_time is not None and not (
+        is_real_number(max_wall_time) and math.isfinite(max_wall_time) and max_wall_time > 0
+    ):
         raise BoundsError(
             f"max_wall_time must be a positive number of seconds; got {max_wall_time!r}."
         )

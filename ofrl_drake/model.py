@@ -14,6 +14,7 @@ Write constants that must broadcast over a batch as ``0 * x[0]`` or
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -23,16 +24,17 @@ import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.symbolic import Expression, MakeVectorVariable
 
+from ofrl_drake.checks import is_real_number
 from ofrl_drake.drake_models import (
     AFFINITY_POINTS,
     DrakeDynamics,
     extract_drake_system,
     extract_multibody,
 )
-from ofrl_drake.errors import ModelError
+from ofrl_drake.errors import ModelError, OfrlError
 from ofrl_drake.interval import as_expression
 
-__all__ = ["ControlAffineSystem", "ShiftedSystem", "SymbolicDynamics"]
+__all__ = ["ControlAffineSystem", "ShiftedSystem", "SymbolicDynamics", "require_system"]
 
 #: Largest ``max |f(x*) + g(x*) u*|`` accepted by :meth:`ControlAffineSystem.shifted`.
 EQUILIBRIUM_TOL = 1e-8
@@ -56,6 +58,20 @@ def _check_output_columns(label: str, C: Any, n: int) -> None:
             f"{label}: C has {shape[1]} columns but the system has n = {n} states; "
             f"give C one column per state (shape (q, {n}))."
         )
+
+
+def _real_array(value: Any, expected: str, fix: str) -> np.ndarray:
+    """``value`` as a new float array, else a :class:`ModelError` saying what was ``expected``.
+
+    Ragged nesting, strings and complex numbers (numpy would drop the
+    imaginary part with a warning) are refused.
+    """
+    try:
+        if np.iscomplexobj(value):
+            raise TypeError("complex")
+        return np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ModelError(f"{expected}; got {value!r}. {fix}") from None
 
 
 def _to_expressions(values: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -131,9 +147,10 @@ class ControlAffineSystem:
 
     Raises
     ------
-    ValueError
-        If ``C`` is not a finite 2-D array, or ``f``/``g`` return values of the
-        wrong shape or non-finite values at the probe point.
+    ModelError
+        If ``C`` is not a finite 2-D array of real numbers (ragged rows,
+        strings and complex entries are refused), or ``f``/``g`` return values
+        of the wrong shape or non-finite values at the probe point.
 
     Examples
     --------
@@ -166,7 +183,11 @@ class ControlAffineSystem:
         self.state_units = state_units
         self.input_units = input_units
 
-        C_arr = np.asarray(C, dtype=float)
+        C_arr = _real_array(
+            C,
+            "C must be a 2-D array of real numbers, shape (q, n)",
+            "Pass C as a list of rows of equal length, e.g. [[0.0, 1.0]].",
+        )
         if C_arr.ndim != 2 or C_arr.shape[0] < 1 or C_arr.shape[1] < 1:
             raise ModelError(
                 f"C must be a 2-D array of shape (q, n); got shape {C_arr.shape}. "
@@ -413,8 +434,9 @@ class ControlAffineSystem:
         Raises
         ------
         ModelError
-            If ``x_eq`` or ``u_eq`` has the wrong length or is not finite, or
-            ``(x*, u*)`` is not an equilibrium to within ``tol``.
+            If ``x_eq`` or ``u_eq`` is not real, has the wrong length or is not
+            finite, ``tol`` is not a finite number >= 0, or ``(x*, u*)`` is not
+            an equilibrium to within ``tol``.
 
         Examples
         --------
@@ -434,6 +456,36 @@ class ControlAffineSystem:
         return f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, q={self.q})"
 
 
+def require_system(
+    value: Any, what: str, error: type[OfrlError] = ModelError
+) -> ControlAffineSystem:
+    """``value`` if it is a :class:`ControlAffineSystem`, else ``error`` naming ``what``.
+
+    For functions that take a model: a name such as ``"two_state"`` or None
+    would otherwise fail on its first attribute (``'str' object has no
+    attribute 'n'``).
+
+    Raises
+    ------
+    OfrlError
+        ``error`` (default :class:`ModelError`), if ``value`` is not a model.
+    """
+    if isinstance(value, ControlAffineSystem):
+        return value
+    shown = repr(value) if isinstance(value, str | int | float) or value is None else ""
+    got = f"{type(value).__name__} {shown}".rstrip()
+    hint = (
+        f"; for the registered example, pass ofrl_drake.examples.make_system({value!r})"
+        if isinstance(value, str)
+        else ""
+    )
+    raise error(
+        f"{what} must be a ControlAffineSystem; got {got}{hint}. Build a model with "
+        "ControlAffineSystem(f, g, C), ControlAffineSystem.from_drake(system, C) or "
+        "ofrl_drake.examples.make_system(name)."
+    )
+
+
 def _from_dynamics(dynamics: DrakeDynamics, C: Any) -> ControlAffineSystem:
     """The :class:`ControlAffineSystem` of extracted Drake dynamics, measured by ``C``."""
     _check_output_columns(dynamics.name, C, dynamics.n)
@@ -449,10 +501,7 @@ def _from_dynamics(dynamics: DrakeDynamics, C: Any) -> ControlAffineSystem:
 
 
 def _as_vector(value: Any, size: int, what: str, fix: str) -> np.ndarray:
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ModelError(f"{what} must be a list of {size} numbers; got {value!r}. {fix}") from None
+    arr = _real_array(value, f"{what} must be a list of {size} numbers", fix)
     if arr.shape != (size,):
         raise ModelError(
             f"{what} must have length {size}; got shape {arr.shape} ({value!r}). {fix}"
@@ -510,8 +559,11 @@ class ShiftedSystem(ControlAffineSystem):
         self.x_eq = _as_vector(x_eq, base.n, "equilibrium x", fix)
         u = np.zeros(base.m) if u_eq is None else u_eq
         self.u_eq = _as_vector(u, base.m, "equilibrium u", fix)
-        if not (np.isfinite(tol) and tol >= 0):
-            raise ModelError(f"tol must be a non-negative number; got {tol!r}.")
+        if not (is_real_number(tol) and math.isfinite(tol) and tol >= 0):
+            raise ModelError(
+                f"{base.name}: shifted: tol must be a finite number >= 0 (the largest accepted "
+                f"|f(x*) + g(x*) u*|, default {EQUILIBRIUM_TOL:g}); got {tol!r}."
+            )
         residual = np.asarray(base.f(self.x_eq), dtype=float) + np.asarray(
             base.g(self.x_eq), dtype=float
         ) @ np.asarray(self.u_eq)

@@ -37,6 +37,7 @@ import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_file, atomic_write_text
+from ofrl_drake.checks import is_real_number
 from ofrl_drake.errors import OfrlError, status_line
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
@@ -259,7 +260,8 @@ def montecarlo(
     progress : bool, optional
         A bar of finished runs on stderr (default: only on a terminal).
     optimal_cost : float, optional
-        ``J*`` of the nominal problem; solved here when omitted.
+        ``J*`` of the nominal problem (a number >= 0, or NaN if unknown);
+        solved here when omitted.
 
     Returns
     -------
@@ -269,15 +271,25 @@ def montecarlo(
     Raises
     ------
     MonteCarloError
-        For bad arguments, an existing table without ``resume``, or a
-        ``resume`` of a different sweep (the first differing key named).
+        Before any run: for bad arguments (``runs``, ``seed``, a
+        ``mass_spread`` that is not a number in ``[0, 1)``, an
+        ``optimal_cost`` that is not a number >= 0 or NaN), an existing table
+        without ``resume``, or a ``resume`` of a different sweep (the first
+        differing key named).
     """
     if not isinstance(runs, (int, np.integer)) or isinstance(runs, bool) or runs < 1:
         raise MonteCarloError(f"--runs: must be an integer >= 1; got {runs!r}.")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise MonteCarloError(f"--seed: must be an integer >= 0; got {seed!r}.")
-    if not (math.isfinite(mass_spread) and 0 <= mass_spread < 1):
-        raise MonteCarloError(f"--mass-spread: must be in [0, 1); got {mass_spread}.")
+    if not (is_real_number(mass_spread) and math.isfinite(mass_spread) and 0 <= mass_spread < 1):
+        raise MonteCarloError(f"--mass-spread: must be in [0, 1); got {mass_spread!r}.")
+    if optimal_cost is not None and not (
+        is_real_number(optimal_cost) and (math.isnan(optimal_cost) or 0 <= optimal_cost < math.inf)
+    ):
+        raise MonteCarloError(
+            "optimal_cost: must be J* of the nominal problem, a number >= 0 (NaN if unknown), "
+            f"or None to solve it here; got {optimal_cost!r}."
+        )
     if mass_spread > 0:
         _bodies(scenario)  # refuse a truth without bodies before any run
     store = None if out is None else SweepStore(FILES, Path(out))

@@ -54,6 +54,7 @@ import hashlib
 import json
 import math
 import os
+import reprlib
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -68,10 +69,16 @@ from pydrake.systems.primitives import SymbolicVectorSystem
 from pydrake.trajectories import PiecewisePolynomial
 
 from ofrl_drake.atomic import atomic_file
+from ofrl_drake.checks import (
+    is_real_number,
+    nonnegative_matrix,
+    positive_number,
+    positive_vector,
+)
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.plants import resolve_system
-from ofrl_drake.scenario import Scenario
+from ofrl_drake.scenario import Scenario, validate_scenario
 
 __all__ = [
     "SOLVERS",
@@ -79,10 +86,12 @@ __all__ = [
     "OptimalControlResult",
     "OptimalCostCache",
     "Trajectory",
+    "checked_mesh",
     "cost_augmented_plant",
     "optimal_control",
     "problem_key",
     "solve_optimal_control",
+    "solver_name",
 ]
 
 #: Nonlinear-programming solvers tried, by name.
@@ -109,7 +118,8 @@ class Mesh:
 
     def __post_init__(self) -> None:
         ok = (
-            math.isfinite(self.initial_step)
+            all(is_real_number(v) for v in (self.initial_step, self.growth, self.max_step))
+            and math.isfinite(self.initial_step)
             and self.initial_step > 0
             and math.isfinite(self.growth)
             and self.growth >= 1
@@ -118,8 +128,8 @@ class Mesh:
         )
         if not ok:
             raise OfrlError(
-                f"mesh: need initial_step > 0, growth >= 1 and max_step >= initial_step; "
-                f"got {self}."
+                "mesh: need initial_step > 0, growth >= 1 and max_step >= initial_step, "
+                f"all numbers; got {self}."
             )
 
     def steps(self, duration: float) -> np.ndarray:
@@ -137,6 +147,24 @@ class Mesh:
             h = min(self.max_step, h * self.growth)
         out = np.asarray(steps, dtype=float)
         return out * (duration / out.sum())
+
+
+def checked_mesh(mesh: Any) -> Mesh:
+    """``mesh``, or the default :class:`Mesh` for None.
+
+    Raises
+    ------
+    OfrlError
+        If ``mesh`` is neither None nor a :class:`Mesh`.
+    """
+    if mesh is None:
+        return Mesh()
+    if not isinstance(mesh, Mesh):
+        raise OfrlError(
+            f"optimal control: mesh must be a Mesh(initial_step, growth, max_step) or None "
+            f"(the default {Mesh()}); got {reprlib.repr(mesh)}."
+        )
+    return mesh
 
 
 @dataclass(frozen=True)
@@ -263,12 +291,54 @@ def _solver(name: str | None) -> Any:
     if name is None:
         name = "snopt" if SnoptSolver().available() and SnoptSolver().enabled() else "ipopt"
     makers = {"snopt": SnoptSolver, "ipopt": IpoptSolver}
-    if name not in makers:
-        raise OfrlError(f"optimal control: solver must be one of {SOLVERS}; got {name!r}.")
+    if not isinstance(name, str) or name not in makers:
+        raise OfrlError(
+            f"optimal control: solver must be one of {SOLVERS}; got {reprlib.repr(name)}."
+        )
     solver = makers[name]()
     if not (solver.available() and solver.enabled()):
         raise OfrlError(f"optimal control: solver {name!r} is not available in this Drake.")
     return name, solver
+
+
+def solver_name(solver: str | None) -> str:
+    """The solver ``solver`` names (None: SNOPT if available, else IPOPT).
+
+    Raises
+    ------
+    OfrlError
+        If ``solver`` is not one of :data:`SOLVERS` or is not available in this Drake.
+    """
+    name: str = _solver(solver)[0]
+    return name
+
+
+def _check_warm_start(warm_start: Any, n: int, m: int) -> None:
+    """Refuse a warm start that is not a :class:`Trajectory` of ``n`` states and ``m`` inputs."""
+    if warm_start is None:
+        return
+    if not isinstance(warm_start, Trajectory):
+        raise OfrlError(
+            "optimal control: warm_start must be a Trajectory (e.g. "
+            f"Trajectory.from_result(simulate(...))) or None; got {reprlib.repr(warm_start)}."
+        )
+    try:
+        t, x, u, cost = (
+            np.asarray(getattr(warm_start, k), dtype=float) for k in ("t", "x", "u", "cost")
+        )
+    except (TypeError, ValueError):
+        raise OfrlError(
+            "optimal control: warm_start must hold numeric arrays t, x, u and cost; got "
+            f"{reprlib.repr(warm_start)}."
+        ) from None
+    T = t.shape[0] if t.ndim == 1 else -1
+    ok = T >= 2 and x.shape == (T, n) and (u.size == 0 or u.shape == (T, m)) and cost.shape == (T,)
+    if not ok:
+        raise OfrlError(
+            f"optimal control: warm_start must have t of shape (T,) with T >= 2, x (T, {n}), "
+            f"u (T, {m}) and cost (T,); got t {t.shape}, x {x.shape}, u {u.shape}, "
+            f"cost {cost.shape}."
+        )
 
 
 def _default_guess(x0: np.ndarray, duration: float, time_constant: float) -> Trajectory:
@@ -345,18 +415,34 @@ def solve_optimal_control(
     Raises
     ------
     OfrlError
-        For bad arguments (shapes, an unknown or unavailable solver).
+        For bad arguments: ``x0``, a ``mesh`` that is not a :class:`Mesh`, a
+        ``warm_start`` that is not a :class:`Trajectory` of the system's
+        dimensions, an unknown or unavailable solver, ``input_margin``.
+    ModelError
+        If ``Q`` is not a finite symmetric positive semidefinite ``n x n``
+        matrix, ``r`` not ``m`` finite entries > 0, or ``input_bound`` or
+        ``duration`` not a finite number > 0.
     """
-    mesh = mesh or Mesh()
+    mesh = checked_mesh(mesh)
     name, nlp = _solver(solver)
-    x0 = np.asarray(x0, dtype=float)
-    if x0.shape != (system.n,) or not np.all(np.isfinite(x0)):
-        raise OfrlError(f"optimal control: x0 must be {system.n} finite numbers; got {x0}.")
+    n, m = system.n, system.m
+    try:
+        x0 = np.asarray(x0, dtype=float)
+    except (TypeError, ValueError):
+        raise OfrlError(
+            f"optimal control: x0 must be {n} finite numbers; got {reprlib.repr(x0)}."
+        ) from None
+    if x0.shape != (n,) or not np.all(np.isfinite(x0)):
+        raise OfrlError(f"optimal control: x0 must be {n} finite numbers; got {x0}.")
+    Q = nonnegative_matrix("optimal control: Q", Q, n)
+    r = positive_vector("optimal control: r", r, m)
+    input_bound = positive_number("optimal control: input_bound", input_bound)
+    duration = positive_number("optimal control: duration", duration)
+    _check_warm_start(warm_start, n, m)
     steps = mesh.steps(duration)
     plant = cost_augmented_plant(system, Q, r, input_bound)
-    n, m = system.n, system.m
 
-    if not (0 < input_margin < 1):
+    if not (is_real_number(input_margin) and 0 < input_margin < 1):
         raise OfrlError(f"optimal control: input_margin must be in (0, 1); got {input_margin!r}.")
     u_max = input_bound * (1.0 - input_margin)
     attempts = [("warm start", warm_start)] if warm_start is not None else []
@@ -429,7 +515,21 @@ def optimal_control(
     mesh: Mesh | None = None,
     solver: str | None = None,
 ) -> OptimalControlResult:
-    """``J*`` of ``scenario`` from ``x0`` (default: the scenario's own) over its horizon."""
+    """``J*`` of ``scenario`` from ``x0`` (default: the scenario's own) over its horizon.
+
+    The scenario is validated first (:func:`~ofrl_drake.scenario.validate_scenario`);
+    the rest is :func:`solve_optimal_control`'s.
+
+    Raises
+    ------
+    ScenarioError
+        If a value of ``scenario`` is bad (e.g. ``cost.R`` not ``m`` entries > 0,
+        a non-finite ``cost.Q`` or ``input_bound``), named in the message.
+    OfrlError
+        For bad ``x0``, ``warm_start``, ``mesh`` or ``solver``
+        (:func:`solve_optimal_control`).
+    """
+    validate_scenario(scenario)
     system = resolve_system(scenario)
     return solve_optimal_control(
         system,
@@ -453,8 +553,13 @@ def problem_key(
     when given), ``Q``, ``R``, ``lambda_bar`` and the horizon;
     the key also covers the mesh and the solver, so a change to either is not
     served from a stale cache.
+
+    Raises
+    ------
+    OfrlError
+        If ``mesh`` is not a :class:`Mesh` or ``solver`` not an available solver.
     """
-    mesh = mesh or Mesh()
+    mesh = checked_mesh(mesh)
     payload = {
         "system": scenario.system,
         "Q": np.asarray(scenario.cost.Q, dtype=float).tolist(),
@@ -483,6 +588,11 @@ class OptimalCostCache:
     solver : str, optional
         Part of the key (see :func:`problem_key`).
 
+    Raises
+    ------
+    OfrlError
+        If ``mesh`` is not a :class:`Mesh` or ``solver`` not an available solver.
+
     Notes
     -----
     Only converged results are stored, so a failure is retried next time.
@@ -493,6 +603,9 @@ class OptimalCostCache:
     def __init__(
         self, directory: str | os.PathLike[str], mesh: Mesh | None = None, solver: str | None = None
     ) -> None:
+        checked_mesh(mesh)
+        if solver is not None:
+            solver_name(solver)
         self.directory = directory
         self.mesh = mesh
         self.solver = solver

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ofrl_drake.checks import integer_at_least
 from ofrl_drake.errors import ModelError
 
 __all__ = ["grid_points", "uniform_points"]
@@ -33,22 +34,34 @@ def grid_points(lower: ArrayLike, upper: ArrayLike, counts: Sequence[int]) -> np
 
     The paper's 100 points are ``grid_points([-1, -1], [1, 1], [10, 10])``.
     Points are ordered with the first coordinate varying slowest.
+
+    Raises
+    ------
+    ModelError
+        If ``lower`` and ``upper`` are not finite vectors of one length n with
+        ``lower < upper``, or ``counts`` is not n integers >= 1.
     """
     lo, hi = _check_box(lower, upper)
-    counts = [int(c) for c in counts]
-    if len(counts) != lo.size or min(counts) < 1:
-        raise ModelError(
-            f"points.counts must hold {lo.size} positive integers; got {list(counts)}."
-        )
-    axes = [np.linspace(a, b, c) for a, b, c in zip(lo, hi, counts, strict=True)]
+    given = list(counts) if isinstance(counts, (Sequence, np.ndarray)) else None
+    if given is None or len(given) != lo.size:
+        raise ModelError(f"points.counts must hold {lo.size} positive integers; got {counts!r}.")
+    sizes = [integer_at_least(f"points.counts[{j}]", c, 1) for j, c in enumerate(given)]
+    axes = [np.linspace(a, b, c) for a, b, c in zip(lo, hi, sizes, strict=True)]
     mesh = np.meshgrid(*axes, indexing="ij")
     return np.stack([m.ravel() for m in mesh], axis=0)
 
 
 def uniform_points(lower: ArrayLike, upper: ArrayLike, number: int, seed: int) -> np.ndarray:
-    """``number`` points drawn uniformly in the box from ``numpy`` generator ``seed``."""
+    """``number`` points drawn uniformly in the box from ``numpy`` generator ``seed``.
+
+    Raises
+    ------
+    ModelError
+        If ``lower`` and ``upper`` are not finite vectors of one length with
+        ``lower < upper``, ``number`` is not an integer >= 1 or ``seed`` not an
+        integer >= 0.
+    """
     lo, hi = _check_box(lower, upper)
-    if int(number) < 1:
-        raise ModelError(f"points.number must be a positive integer; got {number}.")
-    rng = np.random.default_rng(seed)
-    return lo[:, None] + (hi - lo)[:, None] * rng.random((lo.size, int(number)))
+    count = integer_at_least("points.number", number, 1)
+    rng = np.random.default_rng(integer_at_least("points.seed", seed, 0))
+    return lo[:, None] + (hi - lo)[:, None] * rng.random((lo.size, count))

@@ -5,7 +5,8 @@ Drake's :func:`pydrake.common.yaml.yaml_load_typed` into the dataclasses
 below. Before that, the raw YAML is walked against the schema so that unknown
 keys, missing keys and values of the wrong type are reported with their full
 key path (``critic.kc``). :func:`validate_scenario` then checks values and
-dimensions against the named system.
+dimensions against the named system, after holding the dataclasses to the same
+schema (so does a scenario built or changed in Python).
 
 Keys marked *optional* in a dataclass docstring may be omitted; every other key
 is required.
@@ -342,30 +343,46 @@ def _strip_optional(tp: Any) -> tuple[Any, bool]:
     return tp, False
 
 
-def _check_value(path: str, tp: Any, value: Any) -> None:
+#: The exact Python types a list item of the schema type may have without further checks.
+_PLAIN_TYPES: dict[Any, tuple[type, ...]] = {float: (float, int), int: (int,), str: (str,)}
+
+
+def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None:
+    """Check ``value`` against the schema type ``tp``, naming ``path`` when it does not fit.
+
+    ``typed=False`` checks raw YAML data (a dataclass is a mapping of keys);
+    ``typed=True`` checks the objects of a scenario built in Python (a
+    dataclass is an instance of it, see :func:`_check_fields`).
+    """
     tp, nullable = _strip_optional(tp)
     if value is None:
         if nullable:
             return
-        raise ScenarioError(f"{path}: a value is required; got null.")
+        raise ScenarioError(f"{path}: a value is required; got {'None' if typed else 'null'}.")
     if isinstance(tp, type) and dataclasses.is_dataclass(tp):
-        _check_mapping(path, tp, value)
+        if typed:
+            _check_fields(path, tp, value)
+        else:
+            _check_mapping(path, tp, value)
         return
     origin = typing.get_origin(tp)
     if origin is dict:
         if not isinstance(value, dict):
-            raise ScenarioError(f"{path}: expected a mapping; got {value!r}.")
+            raise ScenarioError(f"{path}: expected a mapping; got {_shown(value)}.")
         key_tp, item_tp = typing.get_args(tp)
         for key, item in value.items():
-            _check_value(f"{path}.{key}", key_tp, key)
-            _check_value(f"{path}.{key}", item_tp, item)
+            _check_value(f"{path}.{key}", key_tp, key, typed=typed)
+            _check_value(f"{path}.{key}", item_tp, item, typed=typed)
         return
     if origin is list:
         if not isinstance(value, list):
-            raise ScenarioError(f"{path}: expected a list; got {value!r}.")
+            raise ScenarioError(f"{path}: expected a list; got {_shown(value)}.")
         (item_tp,) = typing.get_args(tp)
+        plain = _PLAIN_TYPES.get(item_tp)
+        if plain is not None and all(type(item) in plain for item in value):
+            return  # the common case, fast for a large Gamma0
         for i, item in enumerate(value):
-            _check_value(f"{path}[{i}]", item_tp, item)
+            _check_value(f"{path}[{i}]", item_tp, item, typed=typed)
         return
     if tp is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
@@ -379,7 +396,23 @@ def _check_value(path: str, tp: Any, value: Any) -> None:
     else:  # pragma: no cover - schema types are all listed above
         ok, kind = True, str(tp)
     if not ok:
-        raise ScenarioError(f"{path}: expected {kind}; got {value!r}.")
+        raise ScenarioError(f"{path}: expected {kind}; got {_shown(value)}.")
+
+
+def _shown(value: Any) -> str:
+    """``value`` for an error message, with the fix when it is a numpy array or scalar."""
+    if isinstance(value, np.ndarray):
+        return (
+            f"a numpy array of shape {value.shape}; pass a list (e.g. array.tolist()): a "
+            "scenario holds plain lists, which it writes to YAML and JSON"
+        )
+    if isinstance(value, np.generic):
+        plain = type(value.item()).__name__
+        return f"the numpy scalar {value!r}; pass a plain Python {plain} (e.g. value.item())"
+    if isinstance(value, tuple):
+        return f"the tuple {value!r}; pass a list"
+    text = repr(value)
+    return text if len(text) <= 200 else text[:200] + "..."
 
 
 def _check_mapping(path: str, schema: type, data: Any) -> None:
@@ -400,6 +433,27 @@ def _check_mapping(path: str, schema: type, data: Any) -> None:
                 raise ScenarioError(f"{prefix}{name}: missing required key in {where}.")
             continue
         _check_value(prefix + name, hints[name], data[name])
+
+
+def _check_fields(path: str, schema: type, obj: Any) -> None:
+    """The schema check of :func:`_check_mapping`, on a dataclass built in Python.
+
+    Every field of ``obj`` is checked against its type annotation, so that a
+    scenario made with ``dataclasses.replace`` is held to the types a YAML file
+    is held to.
+    """
+    where = path or "scenario"
+    if not isinstance(obj, schema):
+        keys = ", ".join(f"{f.name}=..." for f in dataclasses.fields(schema))
+        raise ScenarioError(
+            f"{where}: expected an instance of {schema.__name__}; got {_shown(obj)}; pass "
+            f"ofrl_drake.scenario.{schema.__name__}({keys}) (mappings of keys are read from "
+            "YAML files only)."
+        )
+    hints = typing.get_type_hints(schema)
+    prefix = f"{path}." if path else ""
+    for f in dataclasses.fields(schema):
+        _check_value(prefix + f.name, hints[f.name], getattr(obj, f.name), typed=True)
 
 
 # --------------------------------------------------------------------------
@@ -458,10 +512,19 @@ def integration_schemes() -> list[str]:
 def validate_scenario(scenario: Scenario) -> None:
     """Check every value of ``scenario`` against its system's dimensions.
 
+    First every field is checked against the type the schema gives it, as a
+    YAML file's keys are: a scenario built or changed in Python (with
+    ``dataclasses.replace``) must hold lists where the schema has lists (not
+    numpy arrays: ``Q.tolist()``), integers where it has integers (``points.seed``,
+    ``points.counts``, ``measurement.seed``) and the config dataclasses where it
+    has them (not mappings). ``scenario`` is not changed.
+
     Raises
     ------
     ScenarioError
-        Naming the first bad key, its value and what is expected.
+        Naming the first bad key, its value and what is expected: a value of
+        the wrong type, a wrong size or a value out of range, a basis without
+        an even degree.
     """
     # Imported here: the registry imports model code, the scenario does not need it
     # for parsing.
@@ -470,6 +533,7 @@ def validate_scenario(scenario: Scenario) -> None:
     from ofrl_drake.jacobian_bounds import METHODS
     from ofrl_drake.plants import resolve_system
 
+    _check_fields("", Scenario, scenario)
     if len(scenario.name) > MAX_NAME_LENGTH:
         raise ScenarioError(
             f"name: {len(scenario.name)} characters; a name is at most {MAX_NAME_LENGTH} "
@@ -498,6 +562,12 @@ def validate_scenario(scenario: Scenario) -> None:
         basis = PolynomialBasis(n, c.basis_degrees)
     except ValueError as err:
         raise ScenarioError(f"critic.basis_degrees: {err}") from None
+    if not any(d % 2 == 0 for d in c.basis_degrees):
+        raise ScenarioError(
+            f"critic.basis_degrees: {c.basis_degrees} holds only odd degrees, so "
+            "V(x) = W^T sigma(x) is odd (V(-x) = -V(x)) and can never be positive definite; "
+            "add an even degree, e.g. [2] or [2, 3]."
+        )
     L = basis.size
     _vector("critic.W0", c.W0, L)
     if c.law not in CRITIC_LAWS:

@@ -16,10 +16,11 @@ import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
 from pydrake.systems.framework import Context, System
 
-from ofrl_drake.atomic import atomic_file
+from ofrl_drake.atomic import atomic_file, ensure_parent
 from ofrl_drake.bellman import unpack_symmetric
-from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
-from ofrl_drake.errors import ScenarioError, SwapError
+from ofrl_drake.checks import positive_number
+from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop, check_scenario
+from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.model import ShiftedSystem
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
@@ -33,9 +34,11 @@ if TYPE_CHECKING:  # annotations only
 
 __all__ = [
     "EXTRA_LOGS_FILE",
+    "ORIGINAL_KEYS",
     "RUN_CRITIC_VALUES",
     "RUN_MEASUREMENT_VALUES",
     "RUN_VALUES",
+    "SAMPLED_KEYS",
     "TRAJECTORY_KEYS",
     "SimulationResult",
     "simulate",
@@ -57,6 +60,11 @@ TRAJECTORY_KEYS = (
 
 #: File written by :meth:`SimulationResult.save` when there are extra logs.
 EXTRA_LOGS_FILE = "extra_logs.npz"
+
+#: Keys :meth:`SimulationResult.original` shifts back to the plant's own coordinates.
+ORIGINAL_KEYS = ("x", "xhat", "u")
+#: Keys :meth:`SimulationResult.at` reads: the logged arrays and the estimation error.
+SAMPLED_KEYS = (*TRAJECTORY_KEYS, "e")
 
 
 @dataclass
@@ -84,8 +92,9 @@ class SimulationResult:
         Integrator settings and statistics.
     validity : ValidityReport
         When x or xhat left the certified box in force or ``|u_k|`` exceeded
-        lambda_bar; its ``box_check`` and ``note`` say which box applied, or
-        why none did.
+        lambda_bar (or the smaller input bound the observer's design is
+        certified for); its ``box_check`` and ``note`` say which box applied,
+        or why none did.
     design : dict or None
         The observer design as a JSON-ready dict, with its certificate.
     extra : dict of ndarray
@@ -133,7 +142,18 @@ class SimulationResult:
     input_units: tuple[str, ...] | None = None
 
     def original(self, key: str) -> np.ndarray:
-        """``x``, ``xhat`` or ``u`` in the plant's own coordinates (``+ x*``, ``+ u*``)."""
+        """``x``, ``xhat`` or ``u`` in the plant's own coordinates (``+ x*``, ``+ u*``).
+
+        Raises
+        ------
+        ModelError
+            If ``key`` is not one of :data:`ORIGINAL_KEYS`.
+        """
+        if key not in ORIGINAL_KEYS:
+            raise ModelError(
+                f"SimulationResult.original: no log {key!r} has the plant's own coordinates; "
+                f"choose one of {list(ORIGINAL_KEYS)} (the others are read as result.{{key}})."
+            )
         offset = self.u_equilibrium if key == "u" else self.x_equilibrium
         data = getattr(self, key)
         return data if offset is None else data + offset
@@ -165,13 +185,21 @@ class SimulationResult:
 
         Raises
         ------
-        ValueError
-            If no sample lies within half a log period of ``time``.
+        ModelError
+            If ``key`` is not one of :data:`SAMPLED_KEYS`, ``time`` is not a
+            finite number ``>= 0``, or no sample lies within half a log period
+            of ``time``. (A ``ValueError``, as before.)
         """
+        if key not in SAMPLED_KEYS:
+            raise ModelError(
+                f"SimulationResult.at: no log {key!r}; choose one of {list(SAMPLED_KEYS)} "
+                "(further logs are in result.extra)."
+            )
+        time = positive_number("SimulationResult.at: time", time, allow_zero=True)
         i = int(np.argmin(np.abs(self.t - time)))
         spacing = np.min(np.diff(self.t)) if self.t.size > 1 else 0.0
         if abs(self.t[i] - time) > 0.5 * spacing + 1e-9:
-            raise ValueError(f"no sample of {key!r} at t = {time}; the log ends at {self.t[-1]}.")
+            raise ModelError(f"no sample of {key!r} at t = {time}; the log ends at {self.t[-1]}.")
         return getattr(self, key)[i]
 
     def solve_counts(self) -> dict[str, Any] | None:
@@ -276,9 +304,15 @@ class SimulationResult:
 
         Each file is written to a temporary file in ``directory`` and renamed
         into place, so none is ever left half-written.
+
+        Raises
+        ------
+        OutputError
+            If ``directory`` (or a folder above it) is a file, or cannot be
+            created or written.
         """
         directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
+        ensure_parent(directory / "trajectories.npz", "SimulationResult.save: directory")
         with atomic_file(directory / "trajectories.npz", "wb") as fh:
             arrays = {k: getattr(self, k) for k in TRAJECTORY_KEYS}
             if self.x_equilibrium is not None:
@@ -402,6 +436,45 @@ def _check_loop_arguments(
         )
 
 
+def _check_parameters(loop: ClosedLoop, parameters: object) -> None:
+    """Refuse ``parameters`` that are not a root context of ``loop.diagram``.
+
+    Drake copies parameters only between contexts of the same diagram (it
+    aborts the interpreter otherwise), so this is checked first.
+    """
+    fix = (
+        "pass loop.diagram.CreateDefaultContext() (with the gains set through the blocks' "
+        "setters), or omit parameters= to run at the loop's own gains"
+    )
+    if not isinstance(parameters, Context):
+        raise SwapError(
+            f"parameters: expected a Context of loop.diagram; got {type(parameters).__name__}; "
+            f"{fix}."
+        )
+    try:
+        loop.diagram.ValidateContext(parameters)
+    except RuntimeError:
+        raise SwapError(
+            f"parameters: the context is not a root context of this loop's diagram "
+            f"{loop.diagram.get_name()!r} (a context of another loop or system, or a block's "
+            f"subcontext); {fix}."
+        ) from None
+
+
+def _certified_input_bound(scenario: Scenario, cert: ObserverCertificate) -> float:
+    """The bound ``|u_k|`` is checked against: the scenario's, or the certificate's if smaller.
+
+    The observer's certificate (``cert``) holds only for ``|u_k| <=`` its
+    design's ``input_bound`` (``cert.design["input_bound"]``, when it has one).
+    """
+    bound = scenario.input_bound
+    certified = (cert.design or {}).get("input_bound")
+    if certified is None:
+        return bound
+    certified = positive_number("observer_certificate().design['input_bound']", certified)
+    return min(certified, bound)
+
+
 def _certified_region(
     loop: ClosedLoop, cert: ObserverCertificate, logs: dict[str, np.ndarray], t: np.ndarray
 ) -> tuple[tuple[np.ndarray, np.ndarray] | BoxSchedule | None, str | None]:
@@ -495,24 +568,33 @@ def simulate(
     Returns
     -------
     SimulationResult
-        Its ``validity`` always checks ``|u_k| <= lambda_bar``; x and xhat
-        are checked against the certified box when the observer has one (see
-        :mod:`ofrl_drake.validity`).
+        Its ``validity`` always checks ``|u_k| <= lambda_bar`` (or the
+        smaller input bound of the observer's design, which the note then
+        names); x and xhat are checked against the certified box when the
+        observer has one (see :mod:`ofrl_drake.validity`).
 
     Raises
     ------
     SwapError
-        If ``loop`` is given together with ``design`` or a swap.
+        If ``loop`` is not a ClosedLoop, or is given together with ``design``
+        or a swap; if ``parameters`` is given without ``loop``, or is not a
+        context of ``loop.diagram``.
     ScenarioError
-        If ``loop`` was built from a scenario that differs from ``scenario``
-        in more than the values a run writes into the context.
+        If ``scenario`` is neither a Scenario nor a path (also a
+        ``TypeError``), or ``loop`` was built from a scenario that differs
+        from ``scenario`` in more than the values a run writes into the
+        context.
+    DesignError
+        If ``design`` is not an ``ObserverDesign`` certified for the
+        scenario's ``input_bound`` (see :func:`~ofrl_drake.build_closed_loop`).
     """
     if isinstance(scenario, (str, Path)):
         scenario = load_scenario(scenario)
-    if not isinstance(scenario, Scenario):
-        raise TypeError(
-            f"simulate: scenario must be a Scenario or the path of a scenario file; got "
-            f"{type(scenario).__name__}. Load one with ofrl_drake.load_scenario(path)."
+    check_scenario(scenario, "simulate", paths=True)
+    if loop is not None and not isinstance(loop, ClosedLoop):
+        raise SwapError(
+            f"loop: expected a ClosedLoop; got {type(loop).__name__}. Build one with "
+            "build_closed_loop(scenario), or omit loop= to build it here."
         )
     if loop is None:
         if parameters is not None:
@@ -523,6 +605,8 @@ def simulate(
         loop = build_closed_loop(scenario, design=design, **swaps)
     else:
         _check_loop_arguments(scenario, loop, design, swaps)
+        if parameters is not None:
+            _check_parameters(loop, parameters)
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(simulator_config(scenario), simulator)
     seeds = _initialize_context(loop, scenario, simulator.get_mutable_context(), parameters)
@@ -629,8 +713,15 @@ def simulate(
     )
     result.reports["regulated"] = result.reports["regulation"]["regulated"]
     box, note = _certified_region(loop, cert, logs, result.t)
+    input_bound = _certified_input_bound(scenario, cert)
+    if input_bound != scenario.input_bound:
+        bound_note = (
+            f"|u_k| checked against the observer design's input_bound = {input_bound:g}, "
+            f"below the scenario's input_bound = {scenario.input_bound:g}"
+        )
+        note = bound_note if note is None else f"{note}; {bound_note}"
     result.validity = validity_report(
-        result.t, result.x, result.xhat, result.u, box, scenario.input_bound, note=note
+        result.t, result.x, result.xhat, result.u, box, input_bound, note=note
     )
     return result
 

@@ -267,6 +267,59 @@ def test_ablate_rejects_bad_input(paper_scenario, tmp_path):
         ablate(paper_scenario, [Variant("a")], out=tmp_path)
 
 
+SLOTS = r"slots are \['controller', 'gamma', 'observer', 'points'\]"
+OBSERVERS = r"choose one of \['drake_luenberger', 'kalman', 'linear_luenberger', 'three_gain'"
+
+
+@pytest.mark.parametrize(
+    ("variants", "match"),
+    [
+        ({"kal": {"obsrver": "kalman"}}, r"^variants\.kal\.obsrver: unknown slot; " + SLOTS),
+        ([Variant("k", {"obs": "kalman"})], r"^variants\.k\.obs: unknown slot; " + SLOTS),
+        (
+            {"k": {"observer": "kalmn"}},
+            r"variants\.k\.observer: unknown choice 'kalmn'; " + OBSERVERS,
+        ),
+        ([Variant("k", {"observer": ["kalman"]})], r"unknown choice \['kalman'\]; " + OBSERVERS),
+        (
+            ["baseline"],
+            r"^variants\[0\]: expected a Variant\(name, \{slot: choice\}\); got 'baseline'",
+        ),
+        ("baseline", r"^variants: expected a list of Variant or a mapping .*; got 'baseline'"),
+        ({"b": "kalman"}, r"^variants\.b: expected a mapping of slot: choice; got 'kalman'"),
+        ([Variant(3, {})], r"^variants\[0\]: a variant's name must be a non-empty string; got 3"),
+        (
+            {"held": {"controller": "constant"}},
+            r"^variants\.held: variant\.constant_input: expected 1 entries; got 0",
+        ),
+    ],
+)
+def test_ablate_refuses_a_bad_variant_before_any_run(paper_scenario, tmp_path, variants, match):
+    """Checked as a --variants file is, the slot or choices listed; nothing is run or written."""
+    out = tmp_path / "sweep"
+    with pytest.raises(AblationError, match=match):
+        ablate(paper_scenario, variants, out=out, progress=False)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"duration": 0}, r"^duration must be > 0; got 0\.0"),
+        ({"duration": math.nan}, r"^duration must be finite; got nan"),
+        ({"solver": "ipop"}, r"solver must be one of \('snopt', 'ipopt'\); got 'ipop'"),
+        ({"mesh": "x"}, r"mesh must be a Mesh\(initial_step, growth, max_step\) or None .*got 'x'"),
+    ],
+)
+def test_ablate_refuses_a_bad_horizon_mesh_or_solver_before_any_run(
+    paper_scenario, tmp_path, options, match
+):
+    out = tmp_path / "sweep"
+    with pytest.raises(AblationError, match=match):
+        ablate(paper_scenario, [Variant("baseline")], out=out, progress=False, **options)
+    assert not out.exists()
+
+
 def test_ablate_never_writes_into_a_folder_it_did_not_create(paper_scenario, tmp_path):
     foreign = tmp_path / "mine"
     (foreign / "figures").mkdir(parents=True)

@@ -90,3 +90,56 @@ def test_symbolic_monomials_equal_the_numeric_basis():
     point = np.array([0.7, -1.3, 0.4])
     values = Evaluate(basis.expressions(x).reshape(-1, 1), dict(zip(x, point, strict=True))).ravel()
     np.testing.assert_allclose(values, basis(point), rtol=1e-15, atol=0)
+
+
+@pytest.mark.parametrize(
+    ("x", "W", "out", "match"),
+    [
+        ([1.0, 2.0], np.ones(1), None, r".* W shape \(L,\) = \(8,\); got \(2,\) and \(1,\)"),
+        ([1.0, 2.0, 3.0], np.ones(8), None, r"x must have shape \(n,\) = \(2,\).*got \(3,\)"),
+        ([1.0, 2.0], np.ones(8), np.empty(2, dtype=int), r"out must be a writable float64.*int64"),
+        ([1.0, 2.0], np.ones(8), np.empty(3), r"out must be .* shape \(n,\) = \(2,\).*\(3,\)"),
+        ("ab", np.ones(8), None, r"x and W must be numeric arrays.*got 'ab'"),
+    ],
+)
+def test_value_gradient_refuses_arrays_of_the_wrong_shape(x, W, out, match):
+    # The compiled kernel read past arrays of the wrong size and returned garbage.
+    with pytest.raises(ModelError, match=r"PolynomialBasis\.value_gradient: " + match):
+        PolynomialBasis(2, [2, 4]).value_gradient(x, W, out)
+
+
+@pytest.mark.parametrize("method", ["gradient", "__call__"])
+@pytest.mark.parametrize(
+    ("x", "shape"), [([1.0, 2.0], r"\(2,\)"), (np.ones((3, 2, 2)), r"\(3, 2, 2\)"), (1.0, r"\(\)")]
+)
+def test_gradient_and_values_refuse_points_of_the_wrong_dimension(method, x, shape):
+    with pytest.raises(
+        ModelError,
+        match=rf"PolynomialBasis\.{method}: x must have shape \(n,\) = \(3,\) or "
+        rf"\(n, N\) = \(3, N\), one column per point; got shape {shape}",
+    ):
+        getattr(PolynomialBasis(3), method)(x)
+
+
+@pytest.mark.parametrize(
+    ("n", "degrees", "match"),
+    [
+        (2, 2, r"degrees must be a sequence of integers >= 2, e\.g\. \[2\] or \[2, 4\]; got 2"),
+        (2, None, r"degrees must be a sequence of integers >= 2.*got None"),
+        (True, [2], r"n must be a positive integer; got True"),
+        (30, [5], r"n = 30 and degrees \[5\] give 278256 monomials; at most 100000"),
+    ],
+)
+def test_bad_n_and_degree_types_raise(n, degrees, match):
+    with pytest.raises(ModelError, match=r"PolynomialBasis: " + match):
+        PolynomialBasis(n, degrees)
+
+
+@pytest.mark.parametrize("names", [["a"], ["a", "b", "c"], 5])
+def test_labels_need_one_name_per_state(names):
+    with pytest.raises(
+        ModelError,
+        match=r"PolynomialBasis\.labels: names must give one name per state \(2 in all\)",
+    ):
+        PolynomialBasis(2).labels(names)
+    assert PolynomialBasis(2).labels(["p", "q"]) == ["p^2", "p q", "q^2"]

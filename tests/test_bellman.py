@@ -399,3 +399,51 @@ def test_the_extrapolator_rejects_constants_that_would_give_nan(r, input_bound, 
         Extrapolator(F, np.asarray(r), input_bound, nu)
     with pytest.raises(ModelError, match=message):
         extrapolate(F, np.zeros(3), np.asarray(r), input_bound, nu)
+
+
+_X = np.array([[0.5, -0.5, 0.0], [0.25, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        (
+            ("two_state", PolynomialBasis(2), _X, np.eye(2)),
+            r"point_features: system must be a ControlAffineSystem; got str 'two_state'",
+        ),
+        (
+            (None, np.eye(2), _X, np.eye(2)),
+            r"point_features: system must be a ControlAffineSystem; got NoneType None",
+        ),
+        ((make_system("two_state"), np.eye(2), _X, np.eye(2)), r"basis must be a .*got ndarray"),
+        (
+            (make_system("two_state"), PolynomialBasis(3), _X, np.eye(2)),
+            r"the basis is for n = 3 states but the system 'two_state' has n = 2; build it as "
+            r"PolynomialBasis\(2, \.\.\.\)",
+        ),
+        (
+            (make_system("two_state"), PolynomialBasis(2), _X, np.eye(3)),
+            r"Q must be a finite \(n, n\) = \(2, 2\) matrix .*of shape \(3, 3\)",
+        ),
+        (
+            (make_system("two_state"), PolynomialBasis(2), _X, 5.0),
+            r"Q must be a finite \(n, n\) = \(2, 2\) matrix .*got 5\.0 of shape \(\)",
+        ),
+        (
+            (make_system("two_state"), PolynomialBasis(2), _X, np.diag([1.0, np.nan])),
+            r"Q must be a finite .*got \[\[1\.0, 0\.0\], \[0\.0, nan\]\]",
+        ),
+        (
+            (make_system("two_state"), PolynomialBasis(2), _X * [[1.0, np.nan, 1.0]], np.eye(2)),
+            r"point_features: the points must be finite; point 1 is \[nan, nan\]",
+        ),
+        (
+            (make_system("two_state"), PolynomialBasis(2), [["a"], ["b"]], np.eye(2)),
+            r"points and Q must be numeric arrays of shapes \(n, N\) = \(2, N\)",
+        ),
+    ],
+)
+def test_point_features_raise_on_bad_arguments(args, match):
+    # Before: broadcast or matmul ValueErrors, AttributeErrors, or NaN features.
+    with pytest.raises(ModelError, match=match):
+        point_features(*args)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from ofrl_drake import SimulationResult, SwapError, build_closed_loop, simulate
+from ofrl_drake import ScenarioError, SimulationResult, SwapError, build_closed_loop, simulate
 from ofrl_drake.diagram import INITIAL_VALUES, LOGGED, ClosedLoop, initial_value_setter
 from ofrl_drake.slots import SLOTS
 from ofrl_drake.systems import CriticWeights, PolicyPassThrough
@@ -231,6 +231,77 @@ def test_bad_swaps_raise(paper_scenario, paper_design):
         )
     with pytest.raises(SwapError, match=r"must be a Drake System or a factory"):
         build_closed_loop(paper_scenario, design=paper_design, critic=42)
+
+
+def test_a_factory_must_take_the_parts_and_return_a_system(paper_scenario, paper_design):
+    with pytest.raises(
+        SwapError,
+        match=r"^critic: the factory .*<lambda> returned int, not a Drake System; a factory "
+        r"f\(parts\) must return the block",
+    ):
+        build_closed_loop(paper_scenario, design=paper_design, critic=lambda parts: 3)
+    with pytest.raises(
+        SwapError,
+        match=r"^critic: the factory .*<lambda> cannot be called with one argument; a factory "
+        r"is f\(parts\) -> System",
+    ):
+        build_closed_loop(paper_scenario, design=paper_design, critic=lambda: None)
+
+
+@pytest.mark.parametrize(
+    ("scenario", "got"),
+    [
+        (
+            "x.yaml",
+            r"got the path 'x\.yaml'\. Load it first with "
+            r"ofrl_drake\.load_scenario\('x\.yaml'\)",
+        ),
+        (None, r"got NoneType\. Load one with ofrl_drake\.load_scenario\(path\)"),
+        ({"name": "paper"}, r"got dict\. Load one with ofrl_drake\.load_scenario\(path\)"),
+    ],
+)
+def test_build_refuses_what_is_not_a_scenario(scenario, got):
+    with pytest.raises(
+        ScenarioError, match=r"^build_closed_loop: scenario must be a Scenario; " + got
+    ):
+        build_closed_loop(scenario, observer="kalman")  # a choice by name replaces a field
+
+
+def test_build_refuses_a_design_that_is_not_one_or_is_certified_for_smaller_inputs(
+    paper_scenario,
+):
+    from ofrl_drake.design import DesignError, design_observer
+    from ofrl_drake.examples import make_system
+
+    with pytest.raises(DesignError, match=r"^design: expected an ObserverDesign; got str\."):
+        build_closed_loop(paper_scenario, design="x")
+    small = design_observer(make_system("two_state"), ([-1.0, -1.0], [1.0, 1.0]), 0.1, 0.1)
+    # The controller saturates at the scenario's bound, 3: |u| would reach past 0.1.
+    with pytest.raises(
+        DesignError,
+        match=r"^design: certified for \|u_k\| <= input_bound = 0\.1, but the scenario's "
+        r"controller saturates at input_bound = 3, .*design for an input bound of at least 3",
+    ):
+        simulate(paper_scenario, design=small, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("period", "why"),
+    [
+        (-1, r"must be > 0; got -1\."),
+        (0, r"must be > 0; got 0\."),
+        (float("nan"), r"must be > 0; got nan\."),
+        (float("inf"), r"must be > 0; got inf\."),
+        ("0.1", r"expected a number; got '0\.1'\."),
+        (100.0, r"100\.0 s is longer than the horizon simulation\.duration = 30\.0 s"),
+    ],
+)
+def test_log_period_is_checked_as_the_scenario_s(paper_scenario, paper_design, period, why):
+    with pytest.raises(
+        ScenarioError,
+        match=rf"^log_period: .* is refused, as in the scenario: simulation\.log_period: {why}",
+    ):
+        build_closed_loop(paper_scenario, design=paper_design, log_period=period)
 
 
 def test_sound_scenario_is_decay_certified_and_stays_in_the_box():

@@ -784,3 +784,38 @@ def test_pinned_gains_that_fail_say_so(two_state, bounds2):
             bounds=bounds2,
             formulation="paper",
         )
+
+
+@pytest.mark.parametrize(
+    ("system", "got"),
+    [
+        (
+            "two_state",
+            r"got str 'two_state'; for the registered example, pass "
+            r"ofrl_drake\.examples\.make_system\('two_state'\)\.",
+        ),
+        (None, r"got NoneType None\. Build a model with ControlAffineSystem\(f, g, C\)"),
+    ],
+)
+def test_design_observer_argument_not_a_model_raises_design_error(system, got):
+    # Before: AttributeError "'str' object has no attribute 'n'".
+    with pytest.raises(
+        DesignError, match=r"the observer design's system must be a ControlAffineSystem; " + got
+    ):
+        design_observer(system, BOX2, 3.0, 0.5)
+
+
+@pytest.mark.parametrize("max_gain", ["5", True, 0.0, float("inf")])
+def test_design_observer_max_gain_argument_raises_design_error(two_state, bounds2, max_gain):
+    # Before: TypeError from math.isfinite("5"); True was taken as 1.
+    with pytest.raises(
+        DesignError,
+        match=rf"max_gain must be a positive number \(a bound on \|\|L\|\|_2\) or None; "
+        rf"got {max_gain!r}\.",
+    ):
+        design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, max_gain=max_gain)
+
+
+def test_from_gains_names_a_system_that_is_not_a_model(poly2):
+    with pytest.raises(DesignError, match=r"system must be a ControlAffineSystem; got str"):
+        ObserverDesign.from_gains("two_state", BOX2, 3.0, 0.9, poly2.L, poly2.H, poly2.K)

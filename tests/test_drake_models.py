@@ -274,6 +274,17 @@ def test_check_points_must_be_a_positive_integer(points):
         ControlAffineSystem.from_multibody(CART_POLE, check_points=points)
 
 
+@pytest.mark.parametrize("seed", [-1, 1.5, "0", None])
+def test_seed_must_be_a_nonnegative_integer(seed):
+    # numpy's "expected non-negative integer" (or a TypeError) came from deep inside.
+    with pytest.raises(
+        ModelError, match=rf"PendulumPlant: seed must be an integer >= 0; got {seed!r}\."
+    ):
+        ControlAffineSystem.from_drake(PendulumPlant(), [[1.0, 0.0]], seed=seed)
+    with pytest.raises(ModelError, match=r"cart_pole: seed must be an integer >= 0"):
+        ControlAffineSystem.from_multibody(CART_POLE, seed=seed)
+
+
 def test_from_drake_refuses_a_system_whose_double_derivatives_always_fail():
     with pytest.raises(
         ModelError,

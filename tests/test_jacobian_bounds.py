@@ -235,6 +235,61 @@ def test_bad_arguments_raise(two_state):
         )
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"seed": -1}, r"seed must be an integer >= 0; got -1\."),
+        ({"seed": 2.5}, r"seed must be an integer >= 0; got 2\.5\."),
+        ({"tol": "1e-3"}, r"tol must be a positive number; got '1e-3'\."),
+        ({"rtol": "0.1"}, r"rtol must be a number >= 0; got '0\.1'\."),
+        ({"max_wall_time": "5"}, r"max_wall_time must be a positive number of seconds; got '5'"),
+        ({"grid": "abc"}, r"grid must be a positive integer; got 'abc'\."),
+        ({"n_random": None}, r"n_random must be a non-negative integer; got None\."),
+        ({"max_boxes": "many"}, r"max_boxes must be a positive integer; got 'many'\."),
+        (
+            {"n_random": 10**12},
+            r"n_random: 1000000000000 would need about 4\.47e\+04 GiB for the random points; "
+            r"at most 10000000 per call",
+        ),
+        (
+            {"grid": 10**6},
+            r"grid: 1000000 points per axis over the 2 states \[0, 1\] that some Jacobian "
+            r"entries depend on make 1e\+12 points, .* GiB; at most 10000000\.",
+        ),
+    ],
+)
+def test_bad_argument_types_and_sizes_raise_bounds_error(two_state, kwargs, match):
+    # Before: numpy's ValueError for the seed, TypeError for strings, MemoryError for sizes.
+    with pytest.raises(BoundsError, match=match):
+        jacobian_bounds(two_state, BOX2, "certified", **kwargs)
+
+
+@pytest.mark.parametrize(("system", "got"), [("two_state", "str 'two_state'"), (None, "None")])
+def test_a_system_that_is_not_a_model_raises_bounds_error(system, got):
+    with pytest.raises(
+        BoundsError, match=rf"jacobian_bounds: system must be a ControlAffineSystem; got .*{got}"
+    ):
+        jacobian_bounds(system, BOX2)
+
+
+def test_abs_in_f_is_reported_as_not_differentiable():
+    # The message listed Abs as supported and never said why the Jacobian branches.
+    system = ControlAffineSystem(
+        f=lambda x: np.array([np.abs(x[0]) - x[1], -x[1]]),
+        g=lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        C=[[0.0, 1.0]],
+    )
+    for method in ("sampled", "certified"):
+        with pytest.raises(
+            UnsupportedExpressionError,
+            match=r"IfThenElse, a branch.*np\.abs, np\.maximum, np\.minimum or np\.sign inside "
+            r"f or g create such branches \(\|x\| is not differentiable at 0.*continuously "
+            r"differentiable on the box.*np\.sqrt\(x\*\*2 \+ eps\) for \|x\|",
+        ) as caught:
+            jacobian_bounds(system, BOX2, method)
+        assert "supported: Abs" not in str(caught.value)
+
+
 def test_unsupported_jacobian_entry_names_the_function():
     # Drake differentiates abs into if-then-else, which neither evaluator handles.
     system = ControlAffineSystem(

@@ -6,7 +6,7 @@ from pydrake.autodiffutils import ExtractGradient, InitializeAutoDiff
 from pydrake.symbolic import Expression, MakeVectorVariable
 
 from ofrl_drake import ControlAffineSystem
-from ofrl_drake.errors import ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError
 from ofrl_drake.examples import EXAMPLES, make_system
 
 
@@ -116,3 +116,39 @@ def test_bad_models_raise(f, g, C, match):
 def test_unknown_example_names_choices():
     with pytest.raises(ScenarioError, match=r"unknown example 'nope'.*two_state"):
         make_system("nope")
+
+
+@pytest.mark.parametrize(
+    ("C", "shown"),
+    [
+        ([[1.0], [1.0, 0.0]], r"\[\[1\.0\], \[1\.0, 0\.0\]\]"),
+        ("abc", "'abc'"),
+        ([[1.0, 2j]], r"\[\[1\.0, 2j\]\]"),
+        (np.array([[1.0, 2j]]), r"array\(\[\[1\.\+0\.j, 0\.\+2\.j\]\]\)"),
+    ],
+)
+def test_output_matrix_of_ragged_rows_strings_or_complex_numbers_raises(C, shown):
+    # numpy raised its own ValueError/TypeError, or dropped the imaginary part.
+    with pytest.raises(
+        ModelError,
+        match=rf"C must be a 2-D array of real numbers, shape \(q, n\); got {shown}\. "
+        r"Pass C as a list of rows of equal length",
+    ):
+        ControlAffineSystem(_f, _g, C)
+
+
+def test_complex_equilibrium_raises():
+    system = ControlAffineSystem(_f, _g, [[1.0, 0.0]])
+    with pytest.raises(ModelError, match=r"equilibrium x must be a list of 2 numbers; got array"):
+        system.shifted(np.array([1j, 0.0]))
+
+
+@pytest.mark.parametrize("tol", [None, "1e-3", True, -1.0, float("nan")])
+def test_shifted_tol_must_be_a_finite_nonnegative_number(tol):
+    system = ControlAffineSystem(_f, _g, [[1.0, 0.0]], name="osc")
+    with pytest.raises(
+        ModelError,
+        match=rf"osc: shifted: tol must be a finite number >= 0 \(the largest accepted "
+        rf"\|f\(x\*\) \+ g\(x\*\) u\*\|, default 1e-08\); got {tol!r}",
+    ):
+        system.shifted([0.0, 0.0], tol=tol)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from ofrl_drake import OfrlError
+from ofrl_drake import ModelError, OfrlError, ScenarioError
 from ofrl_drake.cost import stage_cost
 from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
@@ -16,6 +16,7 @@ from ofrl_drake.optimal import (
     Mesh,
     OptimalControlResult,
     OptimalCostCache,
+    Trajectory,
     cost_augmented_plant,
     optimal_control,
     problem_key,
@@ -138,6 +139,60 @@ def test_bad_arguments_raise(two_state):
         Mesh(initial_step=0.0)
     with pytest.raises(OfrlError, match=r"the horizon must be a positive number"):
         Mesh().steps(-1.0)
+
+
+def _with_cost(scenario, **changes):
+    return dataclasses.replace(scenario, cost=dataclasses.replace(scenario.cost, **changes))
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"R": [1.0, 1.0]}, r"^cost\.R: expected 1 entries; got 2"),
+        ({"R": [0.0]}, r"^cost\.R: entries must be > 0; got \[0\.0\]"),
+        ({"Q": [[math.nan, 0.0], [0.0, 1.0]]}, r"^cost\.Q: entries must be finite"),
+        ({"Q": [[1.0]]}, r"^cost\.Q: expected a 2x2 matrix; got 1x1"),
+        ({"input_bound": math.nan}, r"^input_bound: must be > 0; got nan"),
+    ],
+)
+def test_optimal_control_validates_the_scenario(paper_scenario, change, match):
+    """A bad scenario is named, not solved ("ok" with R = [1, 1]) nor a Drake error."""
+    if "input_bound" in change:
+        bad = dataclasses.replace(paper_scenario, **change)
+    else:
+        bad = _with_cost(paper_scenario, **change)
+    with pytest.raises(ScenarioError, match=match):
+        optimal_control(bad)
+
+
+def test_optimal_control_refuses_a_bad_mesh_warm_start_or_solver(paper_scenario, tmp_path):
+    with pytest.raises(OfrlError, match=r"mesh must be a Mesh\(initial_step, .*; got 'x'"):
+        optimal_control(paper_scenario, mesh="x")
+    with pytest.raises(OfrlError, match=r"warm_start must be a Trajectory .* or None; got 'x'"):
+        optimal_control(paper_scenario, warm_start="x")
+    t = np.linspace(0.0, 1.0, 5)
+    wrong = Trajectory(t=t, x=np.zeros((5, 3)), u=np.zeros((5, 1)), cost=np.zeros(5))
+    with pytest.raises(OfrlError, match=r"warm_start must have .* x \(T, 2\).*got .* x \(5, 3\)"):
+        optimal_control(paper_scenario, warm_start=wrong)
+    with pytest.raises(OfrlError, match=r"solver must be one of .*; got \['snopt'\]"):
+        optimal_control(paper_scenario, solver=["snopt"])
+    with pytest.raises(OfrlError, match=r"need initial_step > 0, .*all numbers; got .*'0\.05'"):
+        Mesh("0.05")
+    with pytest.raises(OfrlError, match=r"mesh must be a Mesh.*; got 'x'"):
+        problem_key(paper_scenario, np.array([-1.0, 1.0]), mesh="x")
+    with pytest.raises(OfrlError, match=r"solver must be one of .*; got 'ipop'"):
+        OptimalCostCache(tmp_path, solver="ipop")
+
+
+def test_solve_optimal_control_checks_the_problem_data(two_state):
+    with pytest.raises(ModelError, match=r"optimal control: Q must be finite; got \[\[nan"):
+        solve_optimal_control(two_state, [1.0, 0.0], [[math.nan, 0.0], [0.0, 1.0]], R, LBAR, 5.0)
+    with pytest.raises(ModelError, match=r"optimal control: r must have entries > 0; got \[0\.0\]"):
+        solve_optimal_control(two_state, [1.0, 0.0], Q, [0.0], LBAR, 5.0)
+    with pytest.raises(ModelError, match=r"optimal control: input_bound must be finite; got nan"):
+        solve_optimal_control(two_state, [1.0, 0.0], Q, R, math.nan, 5.0)
+    with pytest.raises(OfrlError, match=r"x0 must be 2 finite numbers; got 'ab'"):
+        solve_optimal_control(two_state, "ab", Q, R, LBAR, 5.0)
 
 
 def test_mesh_covers_the_horizon_exactly():

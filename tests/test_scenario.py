@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
-from ofrl_drake import ScenarioError, load_scenario
+from ofrl_drake import ModelError, ScenarioError, load_scenario
+from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import BoxConfig, abort_box, dump_scenario
 
 from .conftest import MIMO_SCENARIO, PAPER_SCENARIO
@@ -188,3 +189,141 @@ def test_the_tolerances_of_the_certified_bounds_reach_them(tmp_path):
     # d f2 / d x1 of the two-state plant: each end may lie half its sampled width beyond.
     assert (loose_b.Mf2 - loose_b.Mf1)[1, 0] > (tight_b.Mf2 - tight_b.Mf1)[1, 0] + 0.1
     assert loose_b.excess.converged and tight_b.excess.converged
+
+
+def _replace(scenario, path, value):
+    """``scenario`` with the field at dotted ``path`` set to ``value`` (nothing else changed)."""
+    head, _, rest = path.partition(".")
+    if not rest:
+        return dataclasses.replace(scenario, **{head: value})
+    return dataclasses.replace(scenario, **{head: _replace(getattr(scenario, head), rest, value)})
+
+
+# A scenario built in Python is held to the schema a YAML file is held to.
+BAD_FIELDS = [
+    (
+        "cost.Q",
+        np.eye(2),
+        r"cost\.Q: expected a list; got a numpy array of shape \(2, 2\); .*tolist",
+    ),
+    ("critic.Gamma0", 50 * np.eye(3), r"critic\.Gamma0: expected a list; got a numpy array"),
+    ("observer.L", np.zeros((2, 1)), r"observer\.L: expected a list; got a numpy array"),
+    ("observer.schedule_half_width", np.ones(2), r"observer\.schedule_half_width: expected a list"),
+    ("x0", np.array([-1.0, 1.0]), r"x0: expected a list; got a numpy array of shape \(2,\)"),
+    ("x0", ["a", "b"], r"x0\[0\]: expected a number; got 'a'"),
+    ("x0", (-1.0, 1.0), r"x0: expected a list; got the tuple \(-1\.0, 1\.0\); pass a list"),
+    ("x0", [np.float32(-1.0), 1.0], r"x0\[0\]: expected a number; got the numpy scalar"),
+    ("simulation.duration", None, r"simulation\.duration: a value is required; got None"),
+    ("simulation.duration", "1", r"simulation\.duration: expected a number; got '1'"),
+    ("input_bound", None, r"input_bound: a value is required; got None"),
+    ("observer.alpha", None, r"observer\.alpha: a value is required; got None"),
+    ("observer.jacobian_tol", "1e-3", r"observer\.jacobian_tol: expected a number; got '1e-3'"),
+    (
+        "simulation.regulation_tolerance",
+        "0.1",
+        r"simulation\.regulation_tolerance: expected a number; got '0\.1'",
+    ),
+    ("name", None, r"name: a value is required; got None"),
+    (
+        "observer.box",
+        {"lower": [-2.0, -2.0], "upper": [2.0, 2.0]},
+        r"observer\.box: expected an instance of BoxConfig; got \{.*BoxConfig\(lower=\.\.\., upper",
+    ),
+    (
+        "cost",
+        {"Q": [[5.0, 0.0], [0.0, 5.0]], "R": [1.0]},
+        r"cost: expected an instance of CostConfig",
+    ),
+    ("variant", {}, r"variant: expected an instance of VariantConfig; got \{\}"),
+    ("equilibrium", {"x": [0.0, 0.0]}, r"equilibrium: expected an instance of EquilibriumConfig"),
+    ("points.seed", 1.5, r"points\.seed: expected an integer; got 1\.5"),
+    ("points.seed", True, r"points\.seed: expected an integer; got True"),
+    ("points.seed", np.int64(1), r"points\.seed: expected an integer; got the numpy scalar"),
+    ("points.counts", [2.5, 10], r"points\.counts\[0\]: expected an integer; got 2\.5"),
+    ("points.number", 2.5, r"points\.number: expected an integer; got 2\.5"),
+]
+
+
+@pytest.mark.parametrize(("path", "value", "match"), BAD_FIELDS)
+def test_a_scenario_built_in_python_is_held_to_the_schema(paper_scenario, path, value, match):
+    from ofrl_drake.scenario import validate_scenario
+
+    bad = _replace(paper_scenario, path, value)
+    with pytest.raises(ScenarioError, match=match):
+        validate_scenario(bad)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("period", None, r"measurement\.period: a value is required; got None"),
+        ("seed", 1.5, r"measurement\.seed: expected an integer; got 1\.5"),
+    ],
+)
+def test_measurement_fields_are_held_to_the_schema(paper_scenario, field, value, match):
+    from ofrl_drake.scenario import MeasurementConfig, validate_scenario
+
+    bad = dataclasses.replace(paper_scenario, measurement=MeasurementConfig(**{field: value}))
+    with pytest.raises(ScenarioError, match=match):
+        validate_scenario(bad)
+
+
+def test_validation_leaves_a_python_built_scenario_unchanged(paper_scenario):
+    from ofrl_drake.scenario import MeasurementConfig, validate_scenario
+
+    good = dataclasses.replace(
+        paper_scenario, x0=[-1, 1], measurement=MeasurementConfig(seed=3, period=0.01)
+    )
+    before = dataclasses.asdict(good)
+    validate_scenario(good)
+    assert dataclasses.asdict(good) == before
+
+
+@pytest.mark.parametrize("degrees", [[3], [3, 5]])
+def test_a_basis_of_odd_degrees_only_is_refused(tmp_path, degrees):
+    from ofrl_drake.basis import PolynomialBasis
+
+    size = PolynomialBasis(2, degrees).size
+
+    def edit(d):
+        d["critic"].update(basis_degrees=degrees, W0=[0.0] * size)
+        d["critic"]["Gamma0"] = np.eye(size).tolist()
+
+    with pytest.raises(
+        ScenarioError, match=r"critic\.basis_degrees: \[3.*only odd degrees.*add an even degree"
+    ):
+        load_scenario(_write(tmp_path, edit))
+
+
+def test_a_basis_with_an_even_degree_and_odd_ones_is_accepted(tmp_path):
+    def edit(d):
+        d["critic"].update(basis_degrees=[2, 3], W0=[0.4, 0.2, 0.8] + [0.0] * 4)
+        d["critic"]["Gamma0"] = (50 * np.eye(7)).tolist()
+
+    assert load_scenario(_write(tmp_path, edit)).critic.basis_degrees == [2, 3]
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda: grid_points([-1, -1], [1, 1], [2.5, 10]), r"points\.counts\[0\] .*integer.*2\.5"),
+        (lambda: grid_points([-1, -1], [1, 1], [0, 10]), r"points\.counts\[0\] .*>= 1; got 0"),
+        (lambda: grid_points([-1, -1], [1, 1], [True, 3]), r"points\.counts\[0\] .*got True"),
+        (lambda: grid_points([-1, -1], [1, 1], 10), r"points\.counts must hold 2 .*got 10"),
+        (lambda: uniform_points([-1], [1], 2.5, 0), r"points\.number .*integer >= 1; got 2\.5"),
+        (lambda: uniform_points([-1], [1], 3, 1.5), r"points\.seed .*integer >= 0; got 1\.5"),
+        (lambda: uniform_points([-1], [1], 3, -1), r"points\.seed .*integer >= 0; got -1"),
+    ],
+)
+def test_point_counts_and_seeds_must_be_integers(call, match):
+    with pytest.raises(ModelError, match=match):
+        call()
+
+
+def test_point_counts_and_seeds_accept_numpy_integers():
+    np.testing.assert_array_equal(
+        grid_points([-1, -1], [1, 1], np.array([2, 3])), grid_points([-1, -1], [1, 1], [2, 3])
+    )
+    np.testing.assert_array_equal(
+        uniform_points([-1], [1], np.int64(3), np.int64(2)), uniform_points([-1], [1], 3, 2)
+    )

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ofrl_drake import ScenarioError, SimulationResult, SwapError, build_closed_loop, simulate
+from ofrl_drake import (
+    ModelError,
+    OutputError,
+    ScenarioError,
+    SimulationResult,
+    SwapError,
+    build_closed_loop,
+    simulate,
+)
 from ofrl_drake.simulation import EXTRA_LOGS_FILE, TRAJECTORY_KEYS
 from ofrl_drake.systems import CriticWeights
 from ofrl_drake.systems.baselines import FullStateObserver
@@ -87,6 +95,26 @@ def test_loop_built_from_another_scenario_raises_naming_the_difference(short_sce
     renamed = dataclasses.replace(short_scenario, name="other", input_bound=2.0)
     with pytest.raises(ScenarioError, match=r"differs in input_bound, name\)"):
         simulate(renamed, loop=short_loop, progress=False)
+
+
+@pytest.mark.parametrize("scenario", [{}, None, 42])
+def test_simulate_refuses_what_is_neither_a_scenario_nor_a_path(scenario):
+    with pytest.raises(
+        ScenarioError,
+        match=r"^simulate: scenario must be a Scenario or the path of a scenario file; got "
+        rf"{type(scenario).__name__}\. Load one with ofrl_drake\.load_scenario\(path\)\.$",
+    ) as err:
+        simulate(scenario)
+    assert isinstance(err.value, TypeError)  # what simulate raised before
+
+
+def test_loop_must_be_a_built_loop(short_scenario):
+    with pytest.raises(
+        SwapError,
+        match=r"^loop: expected a ClosedLoop; got str\. Build one with "
+        r"build_closed_loop\(scenario\), or omit loop=",
+    ):
+        simulate(short_scenario, loop="x", progress=False)
 
 
 def test_loop_with_an_equal_scenario_runs(short_scenario, short_loop):
@@ -264,6 +292,33 @@ def test_parameters_need_a_loop(short_scenario, short_loop):
         simulate(short_scenario, parameters=context)
 
 
+def test_parameters_must_be_a_root_context_of_the_loops_diagram(short_scenario, short_loop):
+    from pydrake.systems.primitives import Adder
+
+    with pytest.raises(
+        SwapError,
+        match=r"^parameters: expected a Context of loop\.diagram; got int; pass "
+        r"loop\.diagram\.CreateDefaultContext\(\)",
+    ):
+        simulate(short_scenario, loop=short_loop, parameters=3, progress=False)
+    own = short_loop.diagram.CreateDefaultContext()
+    others = {
+        "another system's": Adder(2, 1).CreateDefaultContext(),  # Drake aborted on it
+        "another loop's": build_closed_loop(
+            short_scenario, observer="kalman"
+        ).diagram.CreateDefaultContext(),  # silently taken
+        "a block's": short_loop.critic.GetMyContextFromRoot(own),
+    }
+    for name, context in others.items():
+        with pytest.raises(
+            SwapError,
+            match=r"^parameters: the context is not a root context of this loop's diagram "
+            r"'closed_loop_two_state_paper' .*; pass loop\.diagram\.CreateDefaultContext\(\)",
+        ):
+            simulate(short_scenario, loop=short_loop, parameters=context, progress=False)
+            pytest.fail(f"{name} context taken")
+
+
 class _PlantWithoutSetter(LeafSystem):
     """The paper's plant with no ``set_state``: it starts from its own default state."""
 
@@ -397,6 +452,34 @@ def test_observer_that_ignores_the_design_gets_no_box_check(paper_scenario, pape
         "box checks not applicable; only |u_k| <= lambda_bar was checked"
     )
     assert v.state_outside is None and v.input_exceeded is False
+
+
+def test_the_input_bound_checked_is_the_one_of_the_design_the_observer_runs(paper_scenario):
+    from ofrl_drake.design import design_observer
+    from ofrl_drake.observer import ObserverGains
+    from ofrl_drake.systems import ThreeGainObserver
+
+    s = _short(paper_scenario, duration=1.0)
+    small_box = ([-1.0, -1.0], [1.0, 1.0])
+
+    def observer(parts):
+        small = design_observer(parts.system, small_box, 0.1, 0.1)  # |u_k| <= 0.1 only
+        gains = ObserverGains.from_design(parts.system, small)
+        return ThreeGainObserver(parts.system, gains, design=small)
+
+    r = simulate(s, observer=observer, progress=False)
+    assert r.design["input_bound"] == 0.1
+    assert np.max(np.abs(r.u)) > 1.0  # the controller saturates at 3, not 0.1
+    v = r.validity
+    assert v.input_exceeded is True and not v.valid  # was reported within the bound
+    assert v.note == (
+        "|u_k| checked against the observer design's input_bound = 0.1, below the "
+        "scenario's input_bound = 3"
+    )
+    expected = validity_report(
+        r.t, r.x, r.xhat, r.u, tuple(map(np.asarray, small_box)), 0.1, note=v.note
+    )
+    assert v == expected
 
 
 # ----------------------------------------------------------- scheduled observer
@@ -561,6 +644,38 @@ def test_solve_counts_read_the_last_sample_and_the_first_failure():
     }
     assert _synthetic([[0, 0], [1, 0]]).summary()["failed_solves"] == 0
     assert _synthetic([[0, 0], [1, 0]]).solve_counts()["first_failure_logged_at"] is None
+
+
+def test_at_and_original_refuse_a_bad_key_or_time():
+    r = _synthetic([[0, 0], [1, 0], [2, 1]])  # samples at t = 0, 1, 2
+    np.testing.assert_array_equal(r.at("x", 1.0), [0.0])
+    for time, why in (
+        (float("nan"), r"SimulationResult\.at: time must be finite; got nan\."),
+        (-1.0, r"SimulationResult\.at: time must be >= 0; got -1\.0\."),
+        (5.0, r"no sample of 'x' at t = 5\.0; the log ends at 2\.0\."),
+    ):
+        with pytest.raises(ModelError, match=rf"^{why}$"):
+            r.at("x", time)
+    with pytest.raises(ModelError, match=r"^SimulationResult\.at: no log 'foo'; choose one of "):
+        r.at("foo", 0.1)
+    with pytest.raises(
+        ModelError,
+        match=r"^SimulationResult\.original: no log 'foo' has the plant's own coordinates; "
+        r"choose one of \['x', 'xhat', 'u'\]",
+    ):
+        r.original("foo")
+
+
+def test_save_into_a_file_raises_an_output_error(tmp_path):
+    target = tmp_path / "taken"
+    target.write_text("not a folder")
+    with pytest.raises(
+        OutputError,
+        match=r"^SimulationResult\.save: directory: .*taken is a file, so .*trajectories\.npz "
+        r"cannot be created; choose another path\.$",
+    ):
+        _synthetic([[0, 0], [1, 0]]).save(target)
+    assert target.read_text() == "not a folder"
 
 
 def test_save_replaces_files_atomically(tmp_path):

@@ -1,4 +1,4 @@
-"""The sweep engine and the sweep's folder, shared by ablate and montecarlo (no Drake)."""
+"""The sweep engine and the sweep's folder, shared by ablate and montecarlo (no Drake run)."""
 
 import io
 import json
@@ -188,3 +188,25 @@ def test_worker_threads_without_a_cluster_or_with_one_that_cannot_tell():
     assert worker_threads(None) == 1
     assert worker_threads(Client()) == 5
     assert worker_threads(Broken()) == 1
+
+
+# -------------------------------------------------------------- montecarlo
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"mass_spread": "0.1"}, r"^--mass-spread: must be in \[0, 1\); got '0\.1'"),
+        ({"mass_spread": None}, r"^--mass-spread: must be in \[0, 1\); got None"),
+        ({"optimal_cost": "1"}, r"^optimal_cost: must be J\* .*a number >= 0 .*; got '1'"),
+        ({"optimal_cost": -1.0}, r"^optimal_cost: .*; got -1\.0"),
+        ({"optimal_cost": math.inf}, r"^optimal_cost: .*; got inf"),
+    ],
+)
+def test_montecarlo_refuses_a_bad_spread_or_optimal_cost_before_any_run(
+    paper_scenario, tmp_path, options, match
+):
+    from ofrl_drake.monte_carlo import MonteCarloError, montecarlo
+
+    out = tmp_path / "mc"
+    with pytest.raises(MonteCarloError, match=match):
+        montecarlo(paper_scenario, 1, out=out, progress=False, **{"optimal_cost": 1.0, **options})
+    assert not out.exists()

@@ -558,6 +558,19 @@ def test_moving_bellman_block_equals_the_fixed_one_at_shifted_points():
         MovingBellmanExtrapolator(system, basis, np.zeros((3, 4)), Q, r, 3.0, 0.7)
 
 
+def test_moving_bellman_block_at_a_diverged_estimate_gives_nan_sums_not_an_error():
+    # A diverged run is the run guard's to report; the block must not raise.
+    system, basis = make_system("two_state"), PolynomialBasis(2)
+    offsets = grid_points([-1, -1], [1, 1], [3, 3])
+    block = MovingBellmanExtrapolator(system, basis, offsets, np.eye(2), np.array([1.0]), 3.0, 0.7)
+    context = block.CreateDefaultContext()
+    block.get_weights_input_port().FixValue(context, np.ones(3))
+    block.get_policy_weights_input_port().FixValue(context, np.ones(3))
+    block.get_estimated_state_input_port().FixValue(context, np.array([np.nan, 0.0]))
+    assert np.all(np.isnan(block.get_critic_sum_output_port().Eval(context)))
+    assert np.all(np.isnan(block.get_gain_sum_output_port().Eval(context)))
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [

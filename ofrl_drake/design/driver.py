@@ -18,6 +18,7 @@ from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import get_formulation
 from ofrl_drake.design.pipeline import (
     _box_and_bounds,
+    _check_max_gain,
     _check_numbers,
     _check_time_limit,
     _finish,
@@ -140,6 +141,7 @@ def design_observer(
     get_formulation(formulation, sector)
     alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
     time_limit = _check_time_limit(time_limit)
+    max_gain = _check_max_gain(max_gain)  # before the bounds, which can take seconds
     box, bounds, time_limit = _box_and_bounds(system, box, bounds, jacobian_method, time_limit)
     n, q = system.n, system.q
     pinned = None if injection_gains else (np.zeros((n, q)), np.zeros((n, q)))

@@ -21,13 +21,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ofrl_drake.checks import is_real_number
 from ofrl_drake.design.backends import get_backend
 from ofrl_drake.design.errors import DesignError, ObserverDesignInaccurate, ObserverDesignInfeasible
 from ofrl_drake.design.formulations import get_formulation
 from ofrl_drake.design.sdp import OBJECTIVES, LmiProblem, SdpSolution
 from ofrl_drake.errors import WallTimeExceeded, lmi_time_left
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds, jacobian_bounds
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 
 if TYPE_CHECKING:
     from ofrl_drake.design.result import ObserverDesign
@@ -39,9 +40,7 @@ def _check_numbers(alpha: float, input_bound: float, margin: float) -> tuple[flo
         ("input_bound", input_bound),
         ("margin", margin),
     ):
-        if not isinstance(value, int | float | np.floating | np.integer) or not (
-            math.isfinite(value) and value >= 0
-        ):
+        if not (is_real_number(value) and math.isfinite(value) and value >= 0):
             raise DesignError(f"{name} must be a finite number >= 0; got {value!r}.")
     return float(alpha), float(input_bound), float(margin)
 
@@ -63,7 +62,11 @@ def _box_and_bounds(
     WallTimeExceeded
         If the bounds leave nothing of ``time_limit`` (or their symbolic
         Jacobians are not done by then).
+    DesignError
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`,
+        or ``bounds`` are not :class:`JacobianBounds` of the system and box.
     """
+    require_system(system, "the observer design's system", DesignError)
     box = Box.coerce(box, system.n)
     if bounds is None:
         start = time.monotonic()
@@ -108,11 +111,21 @@ def _problem(
     form = get_formulation(formulation, sector)
     if objective not in OBJECTIVES:
         raise DesignError(f"objective must be one of {OBJECTIVES}; got {objective!r}.")
-    if max_gain is not None and not (math.isfinite(max_gain) and max_gain > 0):
-        raise DesignError(f"max_gain must be a positive number; got {max_gain!r}.")
+    max_gain = _check_max_gain(max_gain)
     return form.problem(
         C, bounds, input_bound, alpha, margin, objective, max_gain, sector, L=L, HK=HK
     )
+
+
+def _check_max_gain(max_gain: float | None) -> float | None:
+    """``max_gain`` as a float (None: no bound), else a :class:`DesignError`."""
+    if max_gain is None:
+        return None
+    if not (is_real_number(max_gain) and math.isfinite(max_gain) and max_gain > 0):
+        raise DesignError(
+            f"max_gain must be a positive number (a bound on ||L||_2) or None; got {max_gain!r}."
+        )
+    return float(max_gain)
 
 
 def _relax_hint(max_gain: float | None, inaccurate: bool) -> str:
@@ -134,9 +147,7 @@ def _smaller_lmi(formulation: str) -> str:
 def _check_time_limit(time_limit: float | None) -> float | None:
     if time_limit is None:
         return None
-    if not isinstance(time_limit, int | float | np.floating | np.integer) or not (
-        math.isfinite(time_limit) and time_limit > 0
-    ):
+    if not (is_real_number(time_limit) and math.isfinite(time_limit) and time_limit > 0):
         raise DesignError(
             f"time_limit must be a positive number of seconds or None; got {time_limit!r}."
         )

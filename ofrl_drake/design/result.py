@@ -21,7 +21,7 @@ from ofrl_drake.design.pipeline import (
 from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds
 from ofrl_drake.lmi import LmiError, decay_certificate
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 from ofrl_drake.structured_lmi import DeltaCheck, StructuredLmi, delta_check
 
 __all__ = ["ObserverDesign"]
@@ -430,11 +430,13 @@ class ObserverDesign:
         ObserverDesignInfeasible
             If ``P`` is None and no certifying ``P`` is found.
         DesignError
-            For gains of the wrong shape or a bad formulation, solver or backend,
+            For a ``system`` that is not a ControlAffineSystem, gains of the
+            wrong shape or a bad formulation, solver or backend,
             or (``P`` None) too many corners for the polytopic formulation.
         LmiError
             If ``P`` is given and the polytopic corner enumeration is too large.
         """
+        require_system(system, "the observer design's system", DesignError)
         C = system.output_matrix
         n, q = system.n, system.q
         gains = []

@@ -460,6 +460,11 @@ class MovingBellmanExtrapolator(LeafSystem):
     def _calc_extrapolation(self, context, value) -> None:
         W = vector_value(self._weights_port, context)
         xhat = vector_value(self._xhat_port, context)
+        if not np.all(np.isfinite(xhat)):
+            # A diverged estimate is the run's outcome, for the run guard to
+            # report, not bad input: NaN sums, as the arithmetic would give.
+            value.set_value(self._undefined())
+            return
         features = point_features(self.system, self.basis, xhat[:, None] + self._offsets, self._Q)
         value.set_value(
             extrapolate(
@@ -471,6 +476,19 @@ class MovingBellmanExtrapolator(LeafSystem):
                 W_policy=vector_value(self._policy_port, context),
                 metric=self.metric,
             )
+        )
+
+    def _undefined(self) -> BellmanExtrapolation:
+        """Every field NaN: the extrapolation at a non-finite estimate."""
+        L, N, m = self.basis.size, self._offsets.shape[1], self.system.m
+        return BellmanExtrapolation(
+            critic_sum=np.full(L, np.nan),
+            gain_sum=np.full((L, L), np.nan),
+            D=np.full((m, N), np.nan),
+            u=np.full((m, N), np.nan),
+            omega=np.full((L, N), np.nan),
+            delta=np.full(N, np.nan),
+            rho=np.full(N, np.nan),
         )
 
     def _calc_critic_sum(self, context, output) -> None:
