@@ -85,7 +85,7 @@ from ofrl_drake.optimal import (
     checked_mesh,
     solver_name,
 )
-from ofrl_drake.scenario import Scenario, validate_scenario
+from ofrl_drake.scenario import Scenario, check_scenario, validate_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
@@ -443,6 +443,11 @@ def _check_sweep(
             solver_name(solver)
     except OfrlError as err:
         raise AblationError(str(err)) from None
+    try:  # the scenario and the horizon themselves, before any variant is blamed
+        validate_scenario(_scenario_for(scenario, Variant("scenario"), x0, duration))
+    except OfrlError as err:
+        where = "scenario" if duration is None else f"scenario over duration = {duration:g} s"
+        raise AblationError(f"{where}: {err}") from None
     for variant in variants:
         try:
             validate_scenario(_scenario_for(scenario, variant, x0, duration))
@@ -527,6 +532,7 @@ def ablate(
     ...               [[-1.0, 1.0], [0.5, -0.5]])                         # doctest: +SKIP
     >>> [(r["variant"], r["optimality_ratio"]) for r in rows]             # doctest: +SKIP
     """
+    check_scenario(scenario, "ablate")
     variants = variant_list(scenario, variants)
     states = initial_states_by_label(scenario, initial_states)
     x0 = next(iter(states.values())).tolist()

@@ -62,6 +62,7 @@ __all__ = [
     "bellman_kernel",
     "critic_rate",
     "extrapolate",
+    "features_at",
     "gamma_rate",
     "kernel_layout",
     "learning_condition",
@@ -186,6 +187,20 @@ def point_features(
             f"point_features: Q must be a finite (n, n) = ({n}, {n}) matrix (the state cost "
             f"x^T Q x); got {Q_arr.tolist()} of shape {Q_arr.shape}."
         )
+    return features_at(system, basis, points, Q_arr)
+
+
+def features_at(
+    system: ControlAffineSystem, basis: PolynomialBasis, points: np.ndarray, Q: np.ndarray
+) -> PointFeatures:
+    """:func:`point_features` without its argument checks, for a caller that made them once.
+
+    ``points`` (float, ``(n, N)``) and ``Q`` (float, ``(n, n)``) as
+    :func:`point_features` leaves them after its checks: what a block that
+    moves its points every evaluation calls
+    (:class:`~ofrl_drake.systems.baselines.MovingBellmanExtrapolator`).
+    Non-finite points give non-finite features.
+    """
     grad = basis.gradient(points)  # (L, n, N)
     f = system.f_batch(points)  # (n, N)
     g = system.g_batch(points)  # (n, m, N)
@@ -195,7 +210,7 @@ def point_features(
         points=points,
         drift=np.ascontiguousarray(drift),
         input=np.ascontiguousarray(inp.transpose(1, 0, 2)),
-        state_cost=state_cost(points, Q_arr),
+        state_cost=state_cost(points, Q),
     )
 
 

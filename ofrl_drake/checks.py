@@ -64,7 +64,12 @@ def integer_at_least(
 
 
 def positive_number(name: str, value: Any, *, allow_zero: bool = False) -> float:
-    """``value`` as a float, checked finite and ``> 0`` (``>= 0`` with ``allow_zero``)."""
+    """``value`` as a float, checked finite and ``> 0`` (``>= 0`` with ``allow_zero``).
+
+    A string (``"10"``) or a bool is refused, not read as a number.
+    """
+    if isinstance(value, str | bytes | bool | np.bool_):
+        raise ModelError(f"{name} must be a number; got {value!r}.")
     arr = _finite_array(name, value)
     if arr.ndim != 0:
         raise ModelError(f"{name} must be a number; got shape {arr.shape}.")

@@ -22,7 +22,6 @@ import dataclasses
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,6 +31,7 @@ from pydrake.systems.primitives import LogVectorOutput, VectorLogSink
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import Extrapolator, PointFeatures, point_features
+from ofrl_drake.checks import positive_number
 from ofrl_drake.contracts import (
     EstimateSetter,
     InitialGammaSetter,
@@ -41,7 +41,7 @@ from ofrl_drake.contracts import (
     WeightsSetter,
 )
 from ofrl_drake.drake_typing import DrakeArray
-from ofrl_drake.errors import ModelError, ScenarioError, ScenarioTypeError, SwapError
+from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
     POLICY_PERIOD_FRACTION,
@@ -55,6 +55,7 @@ from ofrl_drake.plants import resolve_system, resolve_truth
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import (
     Scenario,
+    check_scenario,
     critic_gains_choice,
     manual_gains,
     validate_scenario,
@@ -80,7 +81,6 @@ __all__ = [
     "ClosedLoop",
     "CriticSettings",
     "build_closed_loop",
-    "check_scenario",
     "critic_settings",
     "drake_plant",
     "extrapolation_points",
@@ -562,39 +562,6 @@ def drake_plant(parts: ClosedLoopParts) -> System:
     return DrakePlant(parts.system, initial_state=parts.scenario.x0)
 
 
-def check_scenario(scenario: object, caller: str, *, paths: bool = False) -> None:
-    """Refuse a ``scenario`` argument that is not a :class:`~ofrl_drake.scenario.Scenario`.
-
-    Parameters
-    ----------
-    scenario : object
-        The argument.
-    caller : str
-        Who was given it (``"build_closed_loop"``), for the message.
-    paths : bool, optional
-        Whether ``caller`` also takes the path of a scenario file (it has
-        loaded one before asking), as the message then says.
-
-    Raises
-    ------
-    ScenarioError
-        Naming what was given and :func:`~ofrl_drake.load_scenario` as the
-        fix; it is also a ``TypeError``.
-    """
-    if isinstance(scenario, Scenario):
-        return
-    accepted = "a Scenario or the path of a scenario file" if paths else "a Scenario"
-    if isinstance(scenario, (str, Path)):
-        raise ScenarioTypeError(
-            f"{caller}: scenario must be {accepted}; got the path {str(scenario)!r}. Load "
-            f"it first with ofrl_drake.load_scenario({str(scenario)!r})."
-        )
-    raise ScenarioTypeError(
-        f"{caller}: scenario must be {accepted}; got {type(scenario).__name__}. Load one "
-        "with ofrl_drake.load_scenario(path)."
-    )
-
-
 def _check_design(design: object, scenario: Scenario) -> None:
     """Refuse a ``design=`` that is not an ``ObserverDesign`` certified for ``scenario``'s inputs.
 
@@ -628,7 +595,11 @@ def _log_period(scenario: Scenario, log_period: float | None) -> float:
     own = scenario.simulation.log_period
     if log_period is None:
         return own
-    simulation = dataclasses.replace(scenario.simulation, log_period=log_period)
+    try:  # a number first (numpy scalars too), then the scenario's rule for it
+        period = positive_number("log_period", log_period)
+    except ModelError as err:
+        raise ScenarioError(f"{err} Or omit log_period to log every {own:g} s.") from None
+    simulation = dataclasses.replace(scenario.simulation, log_period=period)
     try:
         validate_scenario(dataclasses.replace(scenario, simulation=simulation))
     except ScenarioError as err:
@@ -636,7 +607,7 @@ def _log_period(scenario: Scenario, log_period: float | None) -> float:
             f"log_period: {log_period!r} is refused, as in the scenario: {err} Or omit "
             f"log_period to log every simulation.log_period = {own:g} s."
         ) from None
-    return float(log_period)
+    return period
 
 
 def _factory_block(slot: str, factory: Callable[..., Any], parts: ClosedLoopParts) -> System:

@@ -559,10 +559,11 @@ class ShiftedSystem(ControlAffineSystem):
         self.x_eq = _as_vector(x_eq, base.n, "equilibrium x", fix)
         u = np.zeros(base.m) if u_eq is None else u_eq
         self.u_eq = _as_vector(u, base.m, "equilibrium u", fix)
-        if not (is_real_number(tol) and math.isfinite(tol) and tol >= 0):
+        if not (is_real_number(tol) and not math.isnan(tol) and tol >= 0):
             raise ModelError(
-                f"{base.name}: shifted: tol must be a finite number >= 0 (the largest accepted "
-                f"|f(x*) + g(x*) u*|, default {EQUILIBRIUM_TOL:g}); got {tol!r}."
+                f"{base.name}: shifted: tol must be a number >= 0 (the largest accepted "
+                f"|f(x*) + g(x*) u*|, default {EQUILIBRIUM_TOL:g}; inf checks nothing); "
+                f"got {tol!r}."
             )
         residual = np.asarray(base.f(self.x_eq), dtype=float) + np.asarray(
             base.g(self.x_eq), dtype=float

@@ -37,9 +37,9 @@ import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_file, atomic_write_text
-from ofrl_drake.checks import is_real_number
+from ofrl_drake.checks import integer_at_least, is_real_number
 from ofrl_drake.errors import OfrlError, status_line
-from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig
+from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
 
@@ -277,10 +277,9 @@ def montecarlo(
         without ``resume``, or a ``resume`` of a different sweep (the first
         differing key named).
     """
-    if not isinstance(runs, (int, np.integer)) or isinstance(runs, bool) or runs < 1:
-        raise MonteCarloError(f"--runs: must be an integer >= 1; got {runs!r}.")
-    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
-        raise MonteCarloError(f"--seed: must be an integer >= 0; got {seed!r}.")
+    check_scenario(scenario, "montecarlo")
+    integer_at_least("--runs:", runs, 1, error=MonteCarloError)
+    integer_at_least("--seed:", seed, 0, error=MonteCarloError)
     if not (is_real_number(mass_spread) and math.isfinite(mass_spread) and 0 <= mass_spread < 1):
         raise MonteCarloError(f"--mass-spread: must be in [0, 1); got {mass_spread!r}.")
     if optimal_cost is not None and not (

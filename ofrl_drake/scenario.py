@@ -25,7 +25,7 @@ import numpy as np
 from pydrake.common.yaml import yaml_dump_typed, yaml_load, yaml_load_typed
 from pydrake.systems.analysis import GetIntegrationSchemes
 
-from ofrl_drake.errors import ScenarioError
+from ofrl_drake.errors import ScenarioError, ScenarioTypeError
 
 __all__ = [
     "ABORT_BOX_FACTOR",
@@ -47,6 +47,7 @@ __all__ = [
     "TruthConfig",
     "VariantConfig",
     "abort_box",
+    "check_scenario",
     "critic_gains_choice",
     "dump_scenario",
     "load_scenario",
@@ -509,6 +510,39 @@ def integration_schemes() -> list[str]:
     return sorted(set(GetIntegrationSchemes()) - set(UNSUPPORTED_SCHEMES))
 
 
+def check_scenario(scenario: object, caller: str, *, paths: bool = False) -> None:
+    """Refuse a ``scenario`` argument that is not a :class:`~ofrl_drake.scenario.Scenario`.
+
+    Parameters
+    ----------
+    scenario : object
+        The argument.
+    caller : str
+        Who was given it (``"build_closed_loop"``), for the message.
+    paths : bool, optional
+        Whether ``caller`` also takes the path of a scenario file (it has
+        loaded one before asking), as the message then says.
+
+    Raises
+    ------
+    ScenarioError
+        Naming what was given and :func:`~ofrl_drake.load_scenario` as the
+        fix; it is also a ``TypeError``.
+    """
+    if isinstance(scenario, Scenario):
+        return
+    accepted = "a Scenario or the path of a scenario file" if paths else "a Scenario"
+    if isinstance(scenario, (str, Path)):
+        raise ScenarioTypeError(
+            f"{caller}: scenario must be {accepted}; got the path {str(scenario)!r}. Load "
+            f"it first with ofrl_drake.load_scenario({str(scenario)!r})."
+        )
+    raise ScenarioTypeError(
+        f"{caller}: scenario must be {accepted}; got {type(scenario).__name__}. Load one "
+        "with ofrl_drake.load_scenario(path)."
+    )
+
+
 def validate_scenario(scenario: Scenario) -> None:
     """Check every value of ``scenario`` against its system's dimensions.
 
@@ -533,6 +567,7 @@ def validate_scenario(scenario: Scenario) -> None:
     from ofrl_drake.jacobian_bounds import METHODS
     from ofrl_drake.plants import resolve_system
 
+    check_scenario(scenario, "validate_scenario")
     _check_fields("", Scenario, scenario)
     if len(scenario.name) > MAX_NAME_LENGTH:
         raise ScenarioError(

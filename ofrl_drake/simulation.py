@@ -19,14 +19,20 @@ from pydrake.systems.framework import Context, System
 from ofrl_drake.atomic import atomic_file, ensure_parent
 from ofrl_drake.bellman import unpack_symmetric
 from ofrl_drake.checks import positive_number
-from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop, check_scenario
+from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.model import ShiftedSystem
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
 from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
-from ofrl_drake.scenario import Scenario, abort_box, critic_gains_choice, load_scenario
+from ofrl_drake.scenario import (
+    Scenario,
+    abort_box,
+    check_scenario,
+    critic_gains_choice,
+    load_scenario,
+)
 from ofrl_drake.validity import BoxSchedule, ValidityReport, validity_report
 
 if TYPE_CHECKING:  # annotations only

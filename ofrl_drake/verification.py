@@ -47,7 +47,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ofrl_drake.errors import OfrlError
-from ofrl_drake.jacobian_bounds import Box, symbolic_jacobians
+from ofrl_drake.jacobian_bounds import MAX_POINTS, Box, symbolic_jacobians
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_batch
 from ofrl_drake.sector import input_vertices
@@ -518,8 +518,9 @@ def _refine(
 
 
 # ---------------------------------------------------------------- verifier
-#: Most samples :func:`verify_observer` draws in one call (memory grows with them).
-MAX_SAMPLES = 10_000_000
+#: Most samples :func:`verify_observer` draws in one call (memory grows with them):
+#: the one cap on points drawn at once, :data:`~ofrl_drake.jacobian_bounds.MAX_POINTS`.
+MAX_SAMPLES = MAX_POINTS
 
 
 def verify_observer(

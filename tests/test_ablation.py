@@ -309,6 +309,10 @@ def test_ablate_refuses_a_bad_variant_before_any_run(paper_scenario, tmp_path, v
         ({"duration": math.nan}, r"^duration must be finite; got nan"),
         ({"solver": "ipop"}, r"solver must be one of \('snopt', 'ipopt'\); got 'ipop'"),
         ({"mesh": "x"}, r"mesh must be a Mesh\(initial_step, growth, max_step\) or None .*got 'x'"),
+        (  # the horizon's fault, not the first variant's
+            {"duration": 0.01},
+            r"^scenario over duration = 0\.01 s: simulation\.log_period: 0\.02 s is longer",
+        ),
     ],
 )
 def test_ablate_refuses_a_bad_horizon_mesh_or_solver_before_any_run(
@@ -318,6 +322,13 @@ def test_ablate_refuses_a_bad_horizon_mesh_or_solver_before_any_run(
     with pytest.raises(AblationError, match=match):
         ablate(paper_scenario, [Variant("baseline")], out=out, progress=False, **options)
     assert not out.exists()
+
+
+def test_ablate_names_a_path_given_as_the_scenario(tmp_path):
+    from ofrl_drake import ScenarioError
+
+    with pytest.raises(ScenarioError, match=r"^ablate: scenario must be a Scenario; got the path"):
+        ablate("diagrams/two_state_paper.yaml", out=tmp_path / "sweep", progress=False)
 
 
 def test_ablate_never_writes_into_a_folder_it_did_not_create(paper_scenario, tmp_path):

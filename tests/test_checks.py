@@ -32,7 +32,7 @@ def test_accepted_values_come_back_as_float_arrays():
         (lambda: positive_number("k", -1e-9, allow_zero=True), r"k must be >= 0"),
         (lambda: positive_number("k", [1.0, 2.0]), r"k must be a number; got shape \(2,\)"),
         (lambda: positive_number("k", np.inf), r"k must be finite"),
-        (lambda: positive_number("k", "fast"), r"k must be numeric; got 'fast'"),
+        (lambda: positive_number("k", "fast"), r"k must be a number; got 'fast'"),
         (
             lambda: finite_vector("w", [], None),
             r"w must be a non-empty 1-D vector; got shape",
@@ -60,3 +60,9 @@ def test_gram_matrices_pass_and_their_negations_fail(A):
     np.testing.assert_allclose(spd_matrix("M", M), M, rtol=0, atol=0)
     with pytest.raises(ModelError, match="positive definite"):
         spd_matrix("M", -M)
+
+
+@pytest.mark.parametrize("value", ["10", b"10", True, np.bool_(True)])
+def test_a_string_or_bool_is_not_a_positive_number(value):
+    with pytest.raises(ModelError, match=r"^x must be a number; got"):
+        positive_number("x", value)

@@ -144,11 +144,18 @@ def test_complex_equilibrium_raises():
 
 
 @pytest.mark.parametrize("tol", [None, "1e-3", True, -1.0, float("nan")])
-def test_shifted_tol_must_be_a_finite_nonnegative_number(tol):
+def test_shifted_tol_must_be_a_nonnegative_number(tol):
     system = ControlAffineSystem(_f, _g, [[1.0, 0.0]], name="osc")
     with pytest.raises(
         ModelError,
-        match=rf"osc: shifted: tol must be a finite number >= 0 \(the largest accepted "
-        rf"\|f\(x\*\) \+ g\(x\*\) u\*\|, default 1e-08\); got {tol!r}",
+        match=rf"osc: shifted: tol must be a number >= 0 \(the largest accepted "
+        rf"\|f\(x\*\) \+ g\(x\*\) u\*\|, default 1e-08; inf checks nothing\); got {tol!r}",
     ):
         system.shifted([0.0, 0.0], tol=tol)
+
+
+def test_shifted_with_an_infinite_tol_checks_nothing():
+    # What plants.resolve_truth asks for a truth whose equilibrium is the model's.
+    system = ControlAffineSystem(_f, _g, [[1.0, 0.0]], name="osc")
+    shifted = system.shifted([0.3, 0.0], tol=float("inf"))  # not an equilibrium of osc
+    np.testing.assert_allclose(shifted.x_eq, [0.3, 0.0])

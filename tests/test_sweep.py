@@ -210,3 +210,11 @@ def test_montecarlo_refuses_a_bad_spread_or_optimal_cost_before_any_run(
     with pytest.raises(MonteCarloError, match=match):
         montecarlo(paper_scenario, 1, out=out, progress=False, **{"optimal_cost": 1.0, **options})
     assert not out.exists()
+
+
+def test_montecarlo_names_a_path_given_as_the_scenario(tmp_path):
+    from ofrl_drake import ScenarioError
+    from ofrl_drake.monte_carlo import montecarlo
+
+    with pytest.raises(ScenarioError, match=r"^montecarlo: scenario must be a Scenario; got the"):
+        montecarlo("diagrams/two_state_paper.yaml", 1, out=tmp_path / "mc", progress=False)

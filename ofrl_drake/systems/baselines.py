@@ -45,6 +45,7 @@ from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import (
     BellmanExtrapolation,
     extrapolate,
+    features_at,
     learning_condition,
     point_features,
 )
@@ -388,6 +389,9 @@ class MovingBellmanExtrapolator(LeafSystem):
                 f"offsets must have shape (n, N) = ({system.n}, N); got {self._offsets.shape}."
             )
         self._Q = np.asarray(Q, dtype=float)
+        # The system, basis, offsets and Q checked once here (at xhat = 0), so
+        # that each evaluation computes its features without re-checking them.
+        point_features(system, basis, self._offsets, self._Q)
         self._r = positive_vector("MovingBellmanExtrapolator: r", r, system.m)
         positive_number("MovingBellmanExtrapolator: input_bound", input_bound)
         positive_number("MovingBellmanExtrapolator: nu", nu)
@@ -465,7 +469,7 @@ class MovingBellmanExtrapolator(LeafSystem):
             # report, not bad input: NaN sums, as the arithmetic would give.
             value.set_value(self._undefined())
             return
-        features = point_features(self.system, self.basis, xhat[:, None] + self._offsets, self._Q)
+        features = features_at(self.system, self.basis, xhat[:, None] + self._offsets, self._Q)
         value.set_value(
             extrapolate(
                 features,
