@@ -149,13 +149,19 @@ def test_duplicate_keys_are_refused_with_both_lines(tmp_path):
     _one_line(proc, 2, r"key 'name' appears twice in one mapping \(lines \d+ and \d+\)")
 
 
-def test_an_alias_bomb_is_refused_at_once(tmp_path):
+def _alias_bomb(tmp_path):
+    """A YAML file of nine nested aliases, 9^9 values once expanded ("billion laughs")."""
     rows = ['a: &a ["x","x","x","x","x","x","x","x","x"]']
     for prev, name in zip("abcdefgh", "bcdefghi", strict=True):
         rows.append(f"{name}: &{name} [{','.join([f'*{prev}'] * 9)}]")
     rows.append("name: *i")
     path = tmp_path / "bomb.yaml"
     path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_an_alias_bomb_is_refused_at_once(tmp_path):
+    path = _alias_bomb(tmp_path)
     proc = run_cli("run", path, "--out", tmp_path / "o")
     _one_line(proc, 2, r"expands to more than 100000 values")
 
@@ -170,12 +176,7 @@ def test_an_alias_bomb_is_refused_before_any_loader_expands_it(tmp_path, monkeyp
 
     monkeypatch.setattr(scenario_module, "yaml_load", expand)
     monkeypatch.setattr(scenario_module, "yaml_load_typed", expand)
-    rows = ['a: &a ["x","x","x","x","x","x","x","x","x"]']
-    for prev, name in zip("abcdefgh", "bcdefghi", strict=True):
-        rows.append(f"{name}: &{name} [{','.join([f'*{prev}'] * 9)}]")
-    rows.append("name: *i")
-    path = tmp_path / "bomb.yaml"
-    path.write_text("\n".join(rows) + "\n")
+    path = _alias_bomb(tmp_path)
     with pytest.raises(scenario_module.ScenarioError, match=r"expands to more than 100000 values"):
         scenario_module.load_scenario(path)
 
