@@ -8,8 +8,9 @@
 * each block of the loop alone, in its own context with its inputs fixed at
   the values they have in the diagram: for a block with state, setting its
   state and computing its derivatives; for a block without, writing a new
-  value into its fixed first input and evaluating its first output. The
-  block's *work* is that minus the same invalidation alone;
+  value into one of its fixed inputs and evaluating its output, both chosen
+  by signal name (:func:`timed_signals`). The block's *work* is that minus
+  the same invalidation alone;
 * one whole ``simulate()``, whose ``AdvanceTo`` time over its derivative
   evaluations, minus the diagram's evaluation, is what the integrator, the
   logging and the run guard cost per evaluation.
@@ -31,16 +32,39 @@ import numpy as np
 from benchmarks.timing import interleaved
 from ofrl_drake.scenario import Scenario
 
-__all__ = ["evaluation_profile"]
+__all__ = ["evaluation_profile", "timed_signals"]
 
 
-def _block_batches(block: Any, root: Any, calls: int) -> tuple[Callable, Callable]:
-    """``(work, invalidation)``: two batches of ``calls`` on ``block`` alone."""
+def timed_signals(slot: str, block: Any) -> tuple[str, str]:
+    """``(input, output)``: the ports, by signal name, that time a block without state.
+
+    The output is the slot's own signal, the first that :data:`SIGNALS` has
+    the slot provide (the bellman block's ``critic_sum``, the policy's
+    ``policy_weights``); the input the first signal of :data:`SIGNALS` that
+    the block reads (``weights`` for both). So the ports timed do not depend
+    on the order in which a block declares them.
+    """
+    from ofrl_drake.diagram import SIGNALS
+
+    output = next(signal for signal, provider in SIGNALS.items() if provider == slot)
+    read = [signal for signal in SIGNALS if block.HasInputPort(signal)]
+    if not read:
+        raise ValueError(
+            f"{slot}: the block {type(block).__name__} reads no signal of the loop, so "
+            "no input can invalidate its output; it cannot be timed alone."
+        )
+    return read[0], output
+
+
+def _block_batches(
+    slot: str, block: Any, root: Any, calls: int
+) -> tuple[Callable[[], None], Callable[[], None]]:
+    """``(work, invalidation)``: two batches of ``calls`` on the ``slot`` block alone."""
     context = block.CreateDefaultContext()
     mine = block.GetMyContextFromRoot(root)
     ports = [block.get_input_port(i) for i in range(block.num_input_ports())]
-    values = [port.Eval(mine) for port in ports]
-    fixed = [port.FixValue(context, value) for port, value in zip(ports, values, strict=True)]
+    values = {port.get_name(): port.Eval(mine) for port in ports}
+    fixed = {port.get_name(): port.FixValue(context, values[port.get_name()]) for port in ports}
     if context.num_continuous_states():
         derivatives = block.AllocateTimeDerivatives()
         x0 = context.get_continuous_state_vector().CopyToVector()
@@ -56,21 +80,22 @@ def _block_batches(block: Any, root: Any, calls: int) -> tuple[Callable, Callabl
                 context.SetContinuousState(states[k & 1])
 
         return work, invalidation
-    # A new value of the fixed first input, written in place (a new FixValue
-    # would allocate each time): asking for the mutable data invalidates what
+    # A new value of the fixed input, written in place (a new FixValue would
+    # allocate each time): asking for the mutable data invalidates what
     # depends on it.
-    first = fixed[0]
-    output = block.get_output_port(0)
-    inputs = (values[0], values[0] + 1e-9)
+    signal_in, signal_out = timed_signals(slot, block)
+    written = fixed[signal_in]
+    output = block.GetOutputPort(signal_out)
+    inputs = (values[signal_in], values[signal_in] + 1e-9)
 
     def work() -> None:
         for k in range(calls):
-            first.GetMutableData().get_mutable_value().SetFromVector(inputs[k & 1])
+            written.GetMutableData().get_mutable_value().SetFromVector(inputs[k & 1])
             output.Eval(context)
 
     def invalidation() -> None:
         for k in range(calls):
-            first.GetMutableData().get_mutable_value().SetFromVector(inputs[k & 1])
+            written.GetMutableData().get_mutable_value().SetFromVector(inputs[k & 1])
 
     return work, invalidation
 
@@ -112,7 +137,7 @@ def evaluation_profile(scenario: Scenario, calls: int, batches: int) -> dict[str
 
     fns = {"diagram": whole, "set_state": set_state}
     for slot, block in loop.blocks.items():
-        work, invalidation = _block_batches(block, root, calls)
+        work, invalidation = _block_batches(slot, block, root, calls)
         fns[f"{slot}:work"] = work
         fns[f"{slot}:invalidation"] = invalidation
     timings, _ = interleaved(fns, batches)

@@ -1,6 +1,9 @@
 """The tasks of an ablation: one variant from many initial states, and ``J*`` from one state.
 
-Each task runs inside a worker (:mod:`ofrl_drake.sweep`) and never raises. It
+Each task runs inside a worker (:mod:`ofrl_drake.sweep`) and does not raise
+for a run or a solve that fails (:func:`solve_optimal_task` only refuses a
+``warm`` of the wrong kind, with an
+:class:`~ofrl_drake.ablation_grid.AblationError`). It
 carries only picklable data (the :class:`~ofrl_drake.scenario.Scenario`
 dataclass, the :class:`~ofrl_drake.ablation_grid.Variant`, the initial states)
 and builds its Drake diagram where it runs. :func:`run_variant_states` builds
@@ -25,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.ablation_grid import Variant, initial_state_label
+from ofrl_drake.ablation_grid import AblationError, Variant, initial_state_label
 from ofrl_drake.ablation_metrics import run_metrics
 from ofrl_drake.errors import status_line
 from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
@@ -239,10 +242,15 @@ def solve_optimal_task(
     mesh: Mesh | None = None,
     solver: str | None = None,
 ) -> OptimalControlResult:
-    """``J*`` from ``x0``, warm-started from a run; never raises.
+    """``J*`` from ``x0``, warm-started from a run; a failed solve is returned, not raised.
 
     ``warm`` is that run, or the runs of a :func:`run_variant_states` task
     (the one from ``x0`` is used), or a trajectory, or None.
+
+    Raises
+    ------
+    AblationError
+        If ``warm`` is none of these (a call to fix, not a solve that failed).
     """
     if isinstance(warm, (list, tuple)):
         label = initial_state_label(x0)
@@ -254,8 +262,11 @@ def solve_optimal_task(
         )
     warm_start = warm.warm_start() if isinstance(warm, RunOutcome) else warm
     if not (warm_start is None or isinstance(warm_start, Trajectory)):
-        raise TypeError(
-            f"warm: expected runs, a run, a Trajectory or None; got {type(warm).__name__}"
+        raise AblationError(
+            f"solve_optimal_task: warm must be a RunOutcome, the runs of a "
+            f"run_variant_states task, an optimal.Trajectory or None; got "
+            f"{type(warm).__name__} {warm!r:.80}. Pass the run to warm-start from, or None "
+            "for a cold start."
         )
     try:
         return optimal_control(scenario, x0, warm_start=warm_start, mesh=mesh, solver=solver)

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from ofrl_drake.errors import ModelError
+
 __all__ = [
     "FRAMES_PER_SECOND",
     "MeshcatUnavailable",
@@ -65,8 +67,9 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     ------
     MeshcatUnavailable
         If Meshcat cannot start.
-    ValueError
-        If ``q`` does not have one column per position of the model.
+    ModelError
+        If ``q`` does not have one column per position of the model, or ``t``
+        not one time per row of ``q``.
     """
     from pydrake.geometry import GeometrySet, Meshcat, MeshcatVisualizer, Role
     from pydrake.multibody.parsing import Parser
@@ -84,9 +87,17 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     if scene_graph.model_inspector().NumGeometriesWithRole(Role.kIllustration) == 0:
         return None
     q = np.asarray(q, dtype=float)
-    if q.ndim != 2 or q.shape[1] != plant.num_positions():
-        raise ValueError(
-            f"q must have shape (T, {plant.num_positions()}) for {text}; got {q.shape}."
+    if q.ndim != 2 or q.shape[1] != plant.num_positions() or q.shape[0] == 0:
+        raise ModelError(
+            f"q must have shape (T, {plant.num_positions()}), T >= 1, for {text}; got "
+            f"{q.shape}. Pass one row per time and one column per position of the model "
+            f"(the first {plant.num_positions()} states, in the plant's own coordinates)."
+        )
+    t = np.asarray(t, dtype=float)
+    if t.shape != (q.shape[0],):
+        raise ModelError(
+            f"t must have shape (T,) = ({q.shape[0]},), one time per row of q; got "
+            f"{t.shape}. Pass the run's sample times with its positions."
         )
     logger = logging.getLogger("drake")  # Drake's C++ log follows this logger's level
     previous = logger.level
@@ -110,7 +121,7 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     sizes = np.array([_radius(inspector.GetShape(g)) for g in geometries])
     centres = []
     visualizer.StartRecording(set_transforms_while_recording=False)
-    for i in frame_samples(np.asarray(t, dtype=float)):
+    for i in frame_samples(t):
         context.SetTime(float(t[i]))
         plant.SetPositions(plant_context, q[i])
         visualizer.ForcedPublish(visualizer_context)

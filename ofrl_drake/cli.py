@@ -32,7 +32,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -78,6 +78,22 @@ VALIDITY_DOCS = "(why: docs/theory.md, 'Where the certificate holds')"
 
 #: The learning-health series of a run (:class:`ofrl_drake.learning_curve.LearningHealth`).
 LEARNING_HEALTH_FILE = "learning_health.npz"
+
+#: Most ``run --checkpoints``: each checkpoint is one more closed-loop simulation over the
+#: whole horizon (milliseconds to seconds each), so 10^4 already take minutes to hours,
+#: against a default of 10. Refused while parsing: a billion would allocate 8 GB for the
+#: checkpoint times alone, and ``--max-wall`` does not bound the learning curve.
+MAX_CHECKPOINTS = 10_000
+
+#: Most ``ablate --initial-states``: each state adds a run of every variant and a
+#: direct-collocation ``J*`` solve (seconds), so 10^4 states are about a day of CPU,
+#: far above the handful a sweep uses.
+MAX_INITIAL_STATES = 10_000
+
+#: Most ``montecarlo --runs``: each run is a closed-loop simulation (about a second on the
+#: cart-pole) and a file in ``runs/``, and the envelope figure holds every run's trajectory
+#: in memory (10^4 cart-pole runs: about 0.4 GB), far above the tens a study uses.
+MAX_RUNS = 10_000
 
 
 def check_output_directory(target: Path) -> Path:
@@ -421,34 +437,49 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _dask_client(
-    scheduler: str | None, workers: int | None, wait: float = 60.0
+    scheduler: str | None,
+    workers: int | None,
+    wait: float = 60.0,
+    error: type[OfrlError] = OfrlError,
 ) -> Iterator[object]:
     """A client of the cluster at ``scheduler``, or of an embedded ``LocalCluster``.
 
-    A scheduler with no worker is waited for at most ``wait`` seconds
-    (``--scheduler-timeout``); then the command stops with exit 2.
+    ``wait`` seconds (``--scheduler-timeout``) bound both the connection to
+    ``scheduler`` and, with what is left of them, the wait for its first
+    worker; then the command stops with exit 2.
+
+    Raises
+    ------
+    OfrlError
+        (``error``: the command's own class) If ``scheduler`` is not an address,
+        cannot be reached within ``wait`` seconds, or has no worker by then.
     """
     import logging
 
     from distributed import Client, LocalCluster
 
-    from ofrl_drake.ablation_grid import AblationError
-
     if scheduler:
+        deadline = time.monotonic() + wait
         try:
-            client = Client(scheduler, timeout="30s")
+            client = Client(scheduler, timeout=wait)
         except (OSError, TimeoutError) as err:
-            raise AblationError(f"--scheduler: cannot connect to {scheduler}: {err}") from None
+            raise error(
+                f"--scheduler: cannot connect to {scheduler} within --scheduler-timeout "
+                f"{wait:g} s ({err}); start a dask scheduler there, check the address, or "
+                "raise --scheduler-timeout."
+            ) from None
         except (ValueError, TypeError) as err:
-            raise AblationError(
+            raise error(
                 f"--scheduler: {scheduler!r} is not a scheduler address ({err}); give "
                 "tcp://HOST:PORT of a running dask scheduler."
             ) from None
         with client:
             try:
-                client.wait_for_workers(1, timeout=wait)
+                # Dask waits forever for timeout=0: at least a moment, which finds a worker
+                # already there.
+                client.wait_for_workers(1, timeout=max(deadline - time.monotonic(), 0.01))
             except TimeoutError:
-                raise AblationError(
+                raise error(
                     f"--scheduler: no worker joined {scheduler} within {wait:g} s; start one "
                     f"(dask worker {scheduler}) or raise --scheduler-timeout."
                 ) from None
@@ -487,24 +518,29 @@ def _locked(command: Any) -> Any:
     return run
 
 
-def _run_sweep(args: argparse.Namespace, sweep: Any, table: Path) -> list[dict] | int:
+def _run_sweep(
+    args: argparse.Namespace, sweep: Any, table: Path, error: type[OfrlError]
+) -> list[dict] | int:
     """``sweep(client)``: serially with ``--workers 0``, else on Dask; its rows.
 
     An interrupt (SIGINT, SIGTERM) keeps the rows finished in ``table`` and
-    returns the exit code, after one line saying how to resume.
+    returns the exit code, after one line saying how to resume. ``error`` is
+    the command's exception class, for a scheduler that cannot be used
+    (:func:`_dask_client`).
     """
     try:
         if args.workers == 0 and not args.scheduler:
             return sweep(None)
-        with _dask_client(args.scheduler, args.workers, args.scheduler_timeout) as client:
+        with _dask_client(args.scheduler, args.workers, args.scheduler_timeout, error) as client:
             return sweep(client)
     except KeyboardInterrupt as err:
         what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
-        print(
-            f"error: {what}; finished rows are in {table}; rerun with --resume to complete "
-            "the sweep",
-            file=sys.stderr,
+        kept = (
+            f"finished rows are in {table}; rerun with --resume to complete the sweep"
+            if table.exists()
+            else "no output written"  # stopped before the sweep wrote anything
         )
+        print(f"error: {what}; {kept}", file=sys.stderr)
         return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
 
 
@@ -539,6 +575,7 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         args,
         lambda client: ablate(scenario, variants, states, client, **options),
         out / "ablation.csv",
+        AblationError,
     )
     if isinstance(rows, int):
         return rows
@@ -582,6 +619,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         args,
         lambda client: montecarlo(scenario, args.runs, args.seed, client=client, **options),
         out / "montecarlo.csv",
+        MonteCarloError,
     )
     if isinstance(rows, int):
         return rows
@@ -611,6 +649,27 @@ def _positive_seconds(text: str) -> float:
             f"must be a finite number of seconds > 0 to wait for a worker, e.g. 60; got {text!r}"
         )
     return seconds
+
+
+def _count_at_most(most: int, fix: str) -> Callable[[str], int]:
+    """An argparse type: a whole number of at most ``most``, refused while parsing.
+
+    A huge count (``--runs 1000000000``) would allocate gigabytes, or run for
+    days, before anything is written; it is refused in one line naming the
+    value, the limit and ``fix``. Not-a-number reads as argparse's own
+    ``invalid int value``; the lower bound is each command's own check.
+    """
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+        if value > most:
+            raise argparse.ArgumentTypeError(f"{value} is more than the limit of {most}; {fix}")
+        return value
+
+    return parse
 
 
 def _scheduler_timeout_option(parser: argparse.ArgumentParser) -> None:
@@ -666,11 +725,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--checkpoints",
-        type=int,
+        type=_count_at_most(
+            MAX_CHECKPOINTS, "a learning curve needs far fewer checkpoints (default 10)"
+        ),
         default=10,
         metavar="K",
         help="evaluate the policy in force at K + 1 times 0, T/K, ..., T, true state fed "
-        "back, for the learning curve (default 10; 0 switches it off)",
+        f"back, for the learning curve (default 10; 0 switches it off; at most {MAX_CHECKPOINTS})",
     )
     run.add_argument(
         "--optimal",
@@ -713,10 +774,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     ab.add_argument(
         "--initial-states",
-        type=int,
+        type=_count_at_most(
+            MAX_INITIAL_STATES,
+            "split the sweep into several --out folders with other --seed values",
+        ),
         default=0,
         metavar="K",
-        help="states sampled in the observer box, besides the scenario's x0 (default 0)",
+        help="states sampled in the observer box, besides the scenario's x0 (default 0; "
+        f"at most {MAX_INITIAL_STATES})",
     )
     ab.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the samples")
     ab.add_argument(
@@ -752,7 +817,16 @@ def _parser() -> argparse.ArgumentParser:
         help="run a scenario under N noise seeds (and sampled truths); success rate and statistics",
     )
     mc.add_argument("scenario", help="scenario YAML file")
-    mc.add_argument("--runs", type=int, required=True, metavar="N", help="number of runs")
+    mc.add_argument(
+        "--runs",
+        type=_count_at_most(
+            MAX_RUNS,
+            "split the sweep into several --out folders (--seed S runs seeds S, S + 1, ...)",
+        ),
+        required=True,
+        metavar="N",
+        help=f"number of runs (at most {MAX_RUNS})",
+    )
     mc.add_argument(
         "--seed", type=int, default=0, metavar="S", help="run k uses measurement seed S + k"
     )
@@ -852,6 +926,29 @@ def _user_code_frame(err: BaseException) -> Any:
     return None
 
 
+def _user_frame_behind(err: BaseException) -> Any:
+    """The innermost frame of the user's own code behind ``err``, or None.
+
+    ``err`` is an ofrl_drake error that may wrap one raised in the user's code
+    (``system: 'rp.py:make_plant' raised ModelError: f(x) failed at the probe
+    point ...``): the wrapped exceptions are its ``__cause__`` and its
+    ``__context__`` (kept by ``raise ... from None``, which only hides it from
+    tracebacks). The deepest one with a frame of the user's
+    (:func:`_user_code_frame`) names it: the line that failed, or the line of
+    the user's code that called ofrl_drake with the bad value.
+    """
+    chain: list[BaseException] = []
+    current: BaseException | None = err
+    while current is not None and all(current is not seen for seen in chain):
+        chain.append(current)
+        current = current.__cause__ or current.__context__
+    for exc in reversed(chain):
+        frame = _user_code_frame(exc)
+        if frame is not None:
+            return frame
+    return None
+
+
 @contextlib.contextmanager
 def _drake_warnings_only() -> Iterator[None]:
     """Drake's log at WARNING while a command runs, unless configured otherwise.
@@ -889,7 +986,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _drake_warnings_only():
             return args.func(args)
     except OfrlError as err:
-        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
+        frame = _user_frame_behind(err)
+        where = "" if frame is None else f" (at {frame.filename}:{frame.lineno}, in {frame.name})"
+        print(f"error: {' '.join(str(err).split())}{where}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Terminated:
         print("error: terminated (SIGTERM); no output written", file=sys.stderr)

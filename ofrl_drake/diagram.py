@@ -45,6 +45,7 @@ from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
     POLICY_PERIOD_FRACTION,
+    CriticSettings,  # defined with the gains it holds; public here too (__all__)
     LearningGains,
     auto_gains,
     basis_scales,
@@ -139,29 +140,6 @@ INITIAL_VALUES = {
     "policy": ("set_policy_weights", "W0"),
     "gamma": ("set_initial_gamma", "Gamma0"),
 }
-
-
-@dataclass(frozen=True)
-class CriticSettings:
-    """The critic's learning law and gains in force (:func:`critic_settings`).
-
-    Attributes
-    ----------
-    law : str
-        ``policy_iteration`` or ``paper`` (:mod:`ofrl_drake.learning`).
-    gains : LearningGains
-        As given (``critic.gains: manual``) or derived (``auto``).
-    metric : ndarray or None
-        The diagonal of the metric of ``rho`` (None: the paper's identity).
-    linearization : tuple of ndarray or None
-        ``(A, B)`` at the target, for the policy acceptance test and the
-        learning-health logs; None if it cannot be computed.
-    """
-
-    law: str
-    gains: LearningGains
-    metric: np.ndarray | None
-    linearization: tuple[np.ndarray, np.ndarray] | None
 
 
 @dataclass
@@ -518,10 +496,13 @@ def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
     return True
 
 
-def _real_world(slot: str, block: System, scenario: Scenario) -> System:
-    """``block`` as the scenario's sensors and actuators see it.
+def _real_world(slot: str, scenario: Scenario) -> Callable[[System], System] | None:
+    """What wraps ``slot``'s block as the scenario's sensors and actuators see it; None: nothing.
 
-    See :mod:`ofrl_drake.systems.world`.
+    :class:`~ofrl_drake.systems.world.MeasuredPlant` for the plant (noise,
+    sampling or a disturbance), :class:`~ofrl_drake.systems.world.SampledController`
+    for a sampled controller; see :mod:`ofrl_drake.systems.world`. The ports
+    that a wrapper reads from its block are :func:`_check_ports`' to check.
     """
     meas, act = scenario.measurement, scenario.actuation
     if slot == "plant":
@@ -529,10 +510,46 @@ def _real_world(slot: str, block: System, scenario: Scenario) -> System:
         period = meas.period if meas is not None else 0.0
         disturbance = list(act.disturbance) if act is not None else []
         if any(noise) or period > 0 or any(disturbance):
-            return MeasuredPlant(block, noise_std=noise, period=period, disturbance=disturbance)
+            return lambda block: MeasuredPlant(
+                block, noise_std=noise, period=period, disturbance=disturbance
+            )
     if slot == "controller" and act is not None and act.period > 0:
-        return SampledController(block, act.period)
-    return block
+        hold = act.period
+        return lambda block: SampledController(block, hold)
+    return None
+
+
+#: Input ports that a wrapper of :func:`_real_world` reads from the block it wraps,
+#: beyond the slot's outputs of :data:`SIGNALS`: the plant's ``u`` (plus the disturbance).
+_WRAPPED_INPUTS = {"plant": ("u",)}
+
+
+def _check_ports(slot: str, block: System, wrapped: bool) -> None:
+    """Refuse a ``block`` for ``slot`` without a port that the loop reads from it.
+
+    Every output of :data:`SIGNALS` that ``slot`` provides, and, when
+    ``wrapped`` (:func:`_real_world`), the inputs :data:`_WRAPPED_INPUTS` that the
+    wrapper feeds. Checked on every block before any is wrapped or built in,
+    where Drake would only raise its ``RuntimeError``.
+    """
+    name = type(block).__name__
+    if block.get_name():
+        name += f" {block.get_name()!r}"
+    for signal, provider in SIGNALS.items():
+        if provider == slot and not block.HasOutputPort(signal):
+            have = [block.get_output_port(i).get_name() for i in range(block.num_output_ports())]
+            raise SwapError(
+                f"{slot}: the block must have an output port named {signal!r}; {name} has "
+                f"none (its output ports: {have}). Name the port {signal!r}."
+            )
+    for port in _WRAPPED_INPUTS.get(slot, ()) if wrapped else ():
+        if not block.HasInputPort(port):
+            have = [block.get_input_port(i).get_name() for i in range(block.num_input_ports())]
+            raise SwapError(
+                f"{slot}: the block must have an input port named {port!r}, which the "
+                f"scenario's measurement and actuation feed; {name} has none (its input "
+                f"ports: {have}). Name the port {port!r}, or drop those keys."
+            )
 
 
 def _after_run(blocks: dict[str, System]) -> set[str]:
@@ -685,8 +702,10 @@ def build_closed_loop(
     SwapError
         If a swap names an unknown block or slot, is neither a System nor a
         factory, its factory cannot take ``parts`` or returns no System, its
-        block's ports do not fit, or its block is already part of a diagram
-        or of another slot.
+        block's ports do not fit (an output of :data:`SIGNALS` missing, or,
+        when the scenario's ``measurement`` or ``actuation`` wraps the plant,
+        its input ``u``), or its block is already part of a diagram or of
+        another slot.
     ScenarioError
         If ``scenario`` is not a Scenario (a path: load it with
         :func:`~ofrl_drake.load_scenario`), or it, a choice given by name or
@@ -760,11 +779,17 @@ def build_closed_loop(
         _check_unused(slot, block, chosen)
         chosen[slot] = block
 
-    # Every block checked first: a refused swap leaves the user's blocks untouched.
+    # Every block checked first: a refused swap leaves the user's blocks untouched
+    # (a wrapper of the real world would build the block into itself).
+    wrappers = {slot: _real_world(slot, scenario) for slot in chosen}
+    for slot, block in chosen.items():
+        _check_ports(slot, block, wrapped=wrappers[slot] is not None)
     builder = DiagramBuilder()
     blocks: dict[str, System] = {}
     for slot, block in chosen.items():
-        block = _real_world(slot, block, scenario)
+        wrap = wrappers[slot]
+        if wrap is not None:
+            block = wrap(block)
         block.set_name(slot)
         blocks[slot] = builder.AddSystem(block)
 
@@ -818,13 +843,10 @@ def _check_unused(slot: str, block: System, chosen: dict[str, System]) -> None:
 
 
 def _connect_by_name(builder: DiagramBuilder, blocks: dict[str, System]) -> None:
-    for signal, source_slot in SIGNALS.items():
-        source = blocks[source_slot]
-        if not source.HasOutputPort(signal):
-            raise SwapError(
-                f"{source_slot}: the block must have an output port named {signal!r}; "
-                f"{source.get_name()} has none."
-            )
+    """Feed every input port of ``blocks`` from the output of its name (:data:`SIGNALS`).
+
+    The outputs are there: :func:`_check_ports` checked them before the build.
+    """
     for slot, block in blocks.items():
         for i in range(block.num_input_ports()):
             port = block.get_input_port(i)

@@ -98,6 +98,11 @@ class DrakeSystemSource:
     fixed_inputs: dict[str, np.ndarray] = field(default_factory=dict)
     state_size: int = 0
 
+    @property
+    def multibody_plant(self) -> None:
+        """None: a Drake system is not a multibody plant (see :class:`MultibodySource`)."""
+        return None
+
 
 @dataclass(frozen=True, eq=False)
 class MultibodySource:
@@ -124,6 +129,16 @@ class MultibodySource:
     velocity_names: tuple[str, ...] = ()
     actuator_names: tuple[str, ...] = ()
     structure: MultibodyStructure | None = None
+
+    @property
+    def multibody_plant(self) -> Any:
+        """:attr:`plant`: what a model's source gives when asked for its ``MultibodyPlant``.
+
+        Every source answers (:class:`DrakeSystemSource` with None), so a
+        caller asks ``ControlAffineSystem.multibody_plant`` instead of testing
+        the source's class.
+        """
+        return self.plant
 
 
 @dataclass(frozen=True, eq=False)
@@ -278,7 +293,8 @@ def extract_drake_system(
     ModelError
         If ``check_points`` is not a positive integer or ``seed`` not an
         integer >= 0, the system does not support symbolic scalars, has other
-        kinds of state, time-varying dynamics, no such vector input port, or
+        kinds of state, time-varying dynamics, no such vector input port (in
+        the system, or by name in its ``ToSymbolic()`` version), or
         dynamics that are not affine in ``u`` (the message names the state
         rows, the tolerance and the number of points).
     """
@@ -312,12 +328,24 @@ def extract_drake_system(
     t = Variable("t")
     context.SetTime(Expression(t))
     context.SetContinuousState([Expression(v) for v in x])  # type: ignore[arg-type]  # pydrake array stub
-    sym_port = symbolic.get_input_port(int(port.get_index()))
+    # By name: the converted system need not declare its ports in the same order.
+    if not symbolic.HasInputPort(port.get_name()):
+        converted = [
+            symbolic.get_input_port(i).get_name() for i in range(symbolic.num_input_ports())
+        ]
+        raise ModelError(
+            f"{label}: the system's symbolic version (ToSymbolic()) has no input port "
+            f"{port.get_name()!r}, only {converted}; its scalar conversion must keep the "
+            "names of the input ports."
+        )
+    sym_port = symbolic.GetInputPort(port.get_name())
     sym_port.FixValue(context, [Expression(v) for v in u])
     fixed: dict[str, np.ndarray] = {}
     for i in range(symbolic.num_input_ports()):
         other = symbolic.get_input_port(i)
-        if i == port.get_index() or other.get_data_type() != PortDataType.kVectorValued:
+        if other.get_name() == port.get_name() or (
+            other.get_data_type() != PortDataType.kVectorValued
+        ):
             continue
         fixed[other.get_name()] = np.zeros(other.size())
         other.FixValue(context, np.zeros(other.size()))

@@ -54,11 +54,12 @@ nonlinear plant is not the value of its linearization.
 
 **Gains from the plant and the points** (``critic.gains: auto``,
 :func:`auto_gains`): ``nu`` makes the median ``nu omega_i^T M omega_i`` one at
-``W0``; ``Gamma0 = (beta / k_c) S0^{-1}``, the steady state of (gamma) for the
-gain sum ``S0`` at ``W0``, so that the critic converges at rate ``beta`` in
-every direction (a Gauss-Newton step); ``beta = 5 / policy_period``, so each
-evaluation settles to ``e^-5`` before the next improvement; ``policy_period``
-is a tenth of the horizon.
+``W0``; ``policy_period`` is a tenth of the horizon and ``beta = 5 /
+policy_period``; ``Gamma0 = (beta / k_c) S0^{-1}``, the steady state of (gamma)
+at a constant ``beta`` for the gain sum ``S0 = (1/N) sum omega_i omega_i^T /
+rho_i^2`` at ``W0``. The weights then settle at the rates ``beta eig(S0^{-1}
+S1)`` (``S1`` has one ``rho_i`` where ``S0`` has two): at least ``beta``, and
+unequal across directions (see :func:`auto_gains`).
 
 Everything here is numpy; the blocks are :class:`~ofrl_drake.systems.GammaGain`
 and :class:`~ofrl_drake.systems.PolicyGate`.
@@ -76,6 +77,7 @@ from ofrl_drake.errors import ModelError
 
 __all__ = [
     "LAWS",
+    "CriticSettings",
     "LearningGains",
     "PolicyCheck",
     "auto_gains",
@@ -351,6 +353,29 @@ class LearningGains:
     gamma_bound: float | None = None
 
 
+@dataclass(frozen=True)
+class CriticSettings:
+    """The critic's learning law and gains in force (:func:`ofrl_drake.diagram.critic_settings`).
+
+    Attributes
+    ----------
+    law : str
+        ``policy_iteration`` or ``paper`` (:data:`LAWS`).
+    gains : LearningGains
+        As given (``critic.gains: manual``) or derived (``auto``).
+    metric : ndarray or None
+        The diagonal of the metric of ``rho`` (None: the paper's identity).
+    linearization : tuple of ndarray or None
+        ``(A, B)`` at the target, for the policy acceptance test and the
+        learning-health logs; None if it cannot be computed.
+    """
+
+    law: str
+    gains: LearningGains
+    metric: np.ndarray | None
+    linearization: tuple[np.ndarray, np.ndarray] | None
+
+
 def auto_gains(
     gain_sum_at: Callable[[float], np.ndarray],
     rho_terms: np.ndarray,
@@ -381,6 +406,24 @@ def auto_gains(
     ------
     ModelError
         If every ``omega_i`` vanishes at ``W0`` (no point excites the critic).
+
+    Notes
+    -----
+    ``Gamma0`` is the steady state of (gamma) at the constant ``beta`` for the
+    gain sum ``S0``, but the critic's weights do not converge at rate ``beta``
+    in every direction. With the policy held fixed, ``critic_sum`` is affine
+    in ``W`` with slope ``S1 = (1/N) sum omega_i omega_i^T / rho_i`` (one
+    ``rho_i``, where ``S0`` has two), so at ``Gamma = Gamma0`` the weights
+    settle at the rates ``beta eig(S0^{-1} S1)``: at least ``beta`` since
+    ``rho_i >= 1`` (where the floor above is not active), and unequal across
+    directions (at ``W0``: 1.57 to 4.27 ``beta`` on ``pendulum_upright``, 1.37
+    to 4.91 ``beta`` on ``cart_pole``). With bounded forgetting
+    (``policy_iteration``, ``gamma_bound = k0 = 10``) the forgetting factor
+    is ``0.9 beta`` at ``Gamma0``, so Gamma settles near ``k0 / (k0 + 1)
+    Gamma0 ~ 0.91 Gamma0``, not at ``Gamma0``. ``beta = 5 / policy_period``
+    aims at an evaluation settled to ``e^-5`` before the next improvement;
+    that argument is conservative whenever the smallest ``eig(S0^{-1} S1)``
+    exceeds ``(k0 + 1) / k0``, as on those plants.
     """
     terms = np.asarray(rho_terms, dtype=float)
     typical = float(np.median(terms[np.isfinite(terms)])) if terms.size else 0.0

@@ -24,7 +24,9 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder, EventStatus
 from pydrake.systems.primitives import ConstantVectorSource
 
+from ofrl_drake.checks import integer_at_least
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
+from ofrl_drake.errors import ScenarioError
 from ofrl_drake.learning import (
     linear_policy_gain,
     spectral_abscissa,
@@ -225,9 +227,19 @@ def learning_curve(
         a stopped run has none after its stop), ``policy_cost``,
         ``optimality_ratio`` (None without ``J*``), ``final_state_norm`` and
         ``status`` of the evaluation.
+
+    Raises
+    ------
+    ScenarioError
+        If ``checkpoints`` is not an integer >= 1.
     """
-    if checkpoints < 1:
-        raise ValueError(f"checkpoints must be >= 1; got {checkpoints}.")
+    integer_at_least(
+        "learning_curve: checkpoints (the intervals between checkpoints; "
+        "learning_report(checkpoints=0) switches the curve off)",
+        checkpoints,
+        1,
+        error=ScenarioError,
+    )
     horizon = float(loop.parts.scenario.simulation.duration)
     evaluate = PolicyEvaluator(loop) if evaluator is None else evaluator
     entries = []
@@ -440,7 +452,19 @@ def learning_report(
     checkpoints: int = DEFAULT_CHECKPOINTS,
     optimal_cost: float | None = None,
 ) -> LearningReport:
-    """The learning curve (``checkpoints`` intervals; 0 switches it off) and health of a run."""
+    """The learning curve (``checkpoints`` intervals; 0 switches it off) and health of a run.
+
+    Raises
+    ------
+    ScenarioError
+        If ``checkpoints`` is not an integer >= 0.
+    """
+    integer_at_least(
+        "learning_report: checkpoints (0 switches the learning curve off)",
+        checkpoints,
+        0,
+        error=ScenarioError,
+    )
     curve = None
     lqr_cost = None
     if checkpoints > 0:

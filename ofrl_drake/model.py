@@ -18,7 +18,7 @@ import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -33,6 +33,9 @@ from ofrl_drake.drake_models import (
 )
 from ofrl_drake.errors import ModelError, OfrlError
 from ofrl_drake.interval import as_expression
+
+if TYPE_CHECKING:  # annotations only
+    from pydrake.multibody.plant import MultibodyPlant
 
 __all__ = ["ControlAffineSystem", "ShiftedSystem", "SymbolicDynamics", "require_system"]
 
@@ -143,7 +146,9 @@ class ControlAffineSystem:
         calling ``f`` and ``g`` on a probe point.
     vectorized : bool
         True if ``f`` and ``g`` accept a batch ``(n, N)`` of states. If not, the
-        batch methods fall back to a (slower) loop and a warning is issued.
+        batch methods fall back to a (slower) loop and a warning is issued; a
+        block that would run that loop at every evaluation refuses such a
+        model with :meth:`require_vectorized`.
 
     Raises
     ------
@@ -258,6 +263,66 @@ class ControlAffineSystem:
                 stacklevel=3,
             )
         return ok
+
+    def require_vectorized(self, owner: str) -> None:
+        """Refuse the model for ``owner`` unless ``f`` and ``g`` accept batches.
+
+        For a block that calls :meth:`f_batch` and :meth:`g_batch` at every
+        evaluation (points that move with the estimate): with a model that is
+        not :attr:`vectorized` each call would loop over the points in
+        Python, a run that crawls where the construction only warned.
+
+        Parameters
+        ----------
+        owner : str
+            Who needs the batches, named in the message
+            (``"MovingBellmanExtrapolator"``).
+
+        Raises
+        ------
+        ModelError
+            If :attr:`vectorized` is False; the message names the model and
+            how to write ``f`` and ``g`` so that they broadcast.
+        """
+        if not self.vectorized:
+            raise ModelError(
+                f"{owner}: the model {self.name!r} evaluates f and g at every step over a "
+                "batch of points, but its f and g do not accept a batch of states of shape "
+                "(n, N) (vectorized = False), so each evaluation would loop over the points "
+                "in Python. Write constants as 0 * x[0] or np.zeros_like(x[0]) so they "
+                "broadcast, and index states as x[i] (not float(x[i]) or math.* functions)."
+            )
+
+    # ------------------------------------------------------------ coordinates
+    @property
+    def is_shifted(self) -> bool:
+        """Whether the model is seen from an equilibrium (a :class:`ShiftedSystem`).
+
+        Then its states and inputs are offsets from :attr:`equilibrium`, and
+        results are mapped back to the plant's own coordinates; False here.
+        """
+        return False
+
+    @property
+    def equilibrium(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(x*, u*)``: where the origin of the model's coordinates sits, as read-only arrays.
+
+        The state ``x*`` (shape ``(n,)``) and input ``u*`` (shape ``(m,)``)
+        that ``z = 0`` and ``v = 0`` stand for: zeros for a model in the
+        plant's own coordinates, a :class:`ShiftedSystem`'s equilibrium (in
+        the coordinates of its ``base``) otherwise.
+        """
+        return _frozen(np.zeros(self.n)), _frozen(np.zeros(self.m))
+
+    @property
+    def multibody_plant(self) -> MultibodyPlant | None:
+        """The ``MultibodyPlant`` the model was built from, else None.
+
+        Asked of :attr:`source` (its ``multibody_plant``): the plant of a
+        model from :meth:`from_multibody` (shifted or not), None for a
+        hand-written model or one from :meth:`from_drake`.
+        """
+        return getattr(self.source, "multibody_plant", None)
 
     # --------------------------------------------------------------- evaluate
     @property
@@ -428,8 +493,9 @@ class ControlAffineSystem:
         Returns
         -------
         ShiftedSystem
-            A :class:`ControlAffineSystem` (same ``C``) that keeps ``x_eq``,
-            ``u_eq``, the unshifted ``base`` and the ``residual``.
+            A :class:`ControlAffineSystem` (same ``C``) that keeps ``x_eq`` and
+            ``u_eq`` as given, the unshifted ``base``, the ``residual`` and,
+            as float arrays, the ``equilibrium`` ``(x*, u*)``.
 
         Raises
         ------
@@ -500,6 +566,12 @@ def _from_dynamics(dynamics: DrakeDynamics, C: Any) -> ControlAffineSystem:
     )
 
 
+def _frozen(arr: np.ndarray) -> np.ndarray:
+    """``arr``, made read-only."""
+    arr.setflags(write=False)
+    return arr
+
+
 def _as_vector(value: Any, size: int, what: str, fix: str) -> np.ndarray:
     arr = _real_array(value, f"{what} must be a list of {size} numbers", fix)
     if arr.shape != (size,):
@@ -508,8 +580,7 @@ def _as_vector(value: Any, size: int, what: str, fix: str) -> np.ndarray:
         )
     if not np.all(np.isfinite(arr)):
         raise ModelError(f"{what} must be finite; got {arr.tolist()}. {fix}")
-    arr.setflags(write=False)
-    return arr
+    return _frozen(arr)
 
 
 class ShiftedSystem(ControlAffineSystem):
@@ -534,10 +605,13 @@ class ShiftedSystem(ControlAffineSystem):
 
     Attributes
     ----------
-    x_eq, u_eq : ndarray
-        The equilibrium as float arrays (read-only).
+    base, tol
+        As given.
+    x_eq, u_eq
+        As given (``u_eq`` None when omitted); :attr:`equilibrium` is the
+        pair as read-only float arrays, ``u*`` zeros when omitted.
     residual : ndarray, shape (n,)
-        ``f(x*) + g(x*) u*`` at construction (within ``tol`` of zero).
+        ``f(x*) + g(x*) u*`` at construction (within ``tol`` of zero), read-only.
 
     Raises
     ------
@@ -554,30 +628,32 @@ class ShiftedSystem(ControlAffineSystem):
         tol: float = EQUILIBRIUM_TOL,
     ) -> None:
         self.base = base
+        self.x_eq = x_eq
+        self.u_eq = u_eq
         self.tol = tol
         fix = "Give the equilibrium in the system's original coordinates."
-        self.x_eq = _as_vector(x_eq, base.n, "equilibrium x", fix)
+        self._x_eq = _as_vector(x_eq, base.n, "equilibrium x", fix)
         u = np.zeros(base.m) if u_eq is None else u_eq
-        self.u_eq = _as_vector(u, base.m, "equilibrium u", fix)
+        self._u_eq = _as_vector(u, base.m, "equilibrium u", fix)
         if not (is_real_number(tol) and not math.isnan(tol) and tol >= 0):
             raise ModelError(
                 f"{base.name}: shifted: tol must be a number >= 0 (the largest accepted "
                 f"|f(x*) + g(x*) u*|, default {EQUILIBRIUM_TOL:g}; inf checks nothing); "
                 f"got {tol!r}."
             )
-        residual = np.asarray(base.f(self.x_eq), dtype=float) + np.asarray(
-            base.g(self.x_eq), dtype=float
-        ) @ np.asarray(self.u_eq)
-        self.residual = residual
+        residual = np.asarray(base.f(self._x_eq), dtype=float) + np.asarray(
+            base.g(self._x_eq), dtype=float
+        ) @ np.asarray(self._u_eq)
+        self._residual = _frozen(residual)
         worst = int(np.argmax(np.abs(residual)))
         if not abs(residual[worst]) <= tol:
             raise ModelError(
-                f"{base.name}: (x*, u*) = ({self.x_eq.tolist()}, {self.u_eq.tolist()}) is "
+                f"{base.name}: (x*, u*) = ({self._x_eq.tolist()}, {self._u_eq.tolist()}) is "
                 f"not an equilibrium: f(x*) + g(x*) u* = {residual.tolist()}, whose row "
                 f"{worst} is {residual[worst]:.3g} (tolerance {tol:g}); choose x* and u* "
                 "with f(x*) + g(x*) u* = 0, e.g. solve for u* given x*."
             )
-        self._zero_input = not np.any(self.u_eq)
+        self._zero_input = not np.any(self._u_eq)
         super().__init__(
             self._shifted_f,
             self._shifted_g,
@@ -588,38 +664,53 @@ class ShiftedSystem(ControlAffineSystem):
             input_units=base.input_units,
         )
 
+    @property
+    def residual(self) -> np.ndarray:
+        """``f(x*) + g(x*) u*`` at construction, shape ``(n,)`` (read-only)."""
+        return self._residual
+
+    @property
+    def is_shifted(self) -> bool:
+        """True: states and inputs are offsets from :attr:`equilibrium`."""
+        return True
+
+    @property
+    def equilibrium(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(x*, u*)`` as read-only float arrays (``u*`` zeros when omitted)."""
+        return self._x_eq, self._u_eq
+
     def _column(self, vector: np.ndarray, z: np.ndarray) -> np.ndarray:
         return vector.reshape((-1,) + (1,) * (np.ndim(z) - 1))
 
     def _shifted_f(self, z: Any) -> Any:
         z = np.asarray(z)
-        x = z + self._column(self.x_eq, z)
+        x = z + self._column(self._x_eq, z)
         fx = np.asarray(self.base.f(x))
         if self._zero_input:
             return fx
         gx = np.asarray(self.base.g(x))
-        u = self.u_eq.reshape((1, -1) + (1,) * (gx.ndim - 2))
+        u = self._u_eq.reshape((1, -1) + (1,) * (gx.ndim - 2))
         return fx + (gx * u).sum(axis=1)
 
     def _shifted_g(self, z: Any) -> Any:
         z = np.asarray(z)
-        return self.base.g(z + self._column(self.x_eq, z))
+        return self.base.g(z + self._column(self._x_eq, z))
 
     def multibody_structure(self) -> Any:
         """The base model's multibody structure seen from ``(x*, u*)``, or None."""
         structure = self.base.multibody_structure()
-        return None if structure is None else structure.shifted(self.x_eq, self.u_eq)
+        return None if structure is None else structure.shifted(self._x_eq, self._u_eq)
 
     def to_original_state(self, z: np.ndarray) -> np.ndarray:
         """``x = z + x*`` for ``z`` of shape ``(n,)`` or ``(..., n)`` (time first)."""
-        return np.asarray(z, dtype=float) + self.x_eq
+        return np.asarray(z, dtype=float) + self._x_eq
 
     def to_original_input(self, v: np.ndarray) -> np.ndarray:
         """``u = v + u*`` for ``v`` of shape ``(m,)`` or ``(..., m)`` (time first)."""
-        return np.asarray(v, dtype=float) + self.u_eq
+        return np.asarray(v, dtype=float) + self._u_eq
 
     def __repr__(self) -> str:
         return (
             f"ShiftedSystem(name={self.name!r}, n={self.n}, m={self.m}, q={self.q}, "
-            f"x_eq={self.x_eq.tolist()}, u_eq={self.u_eq.tolist()})"
+            f"x_eq={self._x_eq.tolist()}, u_eq={self._u_eq.tolist()})"
         )

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ofrl_drake.drake_models import MultibodySource
-from ofrl_drake.model import ControlAffineSystem, ShiftedSystem
+from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.points import uniform_points
+
+if TYPE_CHECKING:  # annotations only
+    from pydrake.multibody.plant import MultibodyPlant
 
 __all__ = ["ModelMismatch", "model_mismatch"]
 
@@ -64,22 +66,22 @@ class ModelMismatch:
 
 
 def _multibody_dynamics(
-    truth: ControlAffineSystem, body_mass_scale: Mapping[str, float], X: np.ndarray
+    truth: ControlAffineSystem,
+    plant: MultibodyPlant,
+    body_mass_scale: Mapping[str, float],
+    X: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``f`` and ``g`` of a multibody truth at the columns of ``X``, masses scaled.
 
-    The truth's own ``MultibodyPlant`` (``EvalTimeDerivatives`` at ``u*`` and
-    at each unit input), in the shifted coordinates of ``truth``.
+    The truth's own ``plant`` (``truth.multibody_plant``; ``EvalTimeDerivatives``
+    at ``u*`` and at each unit input), in the shifted coordinates of ``truth``.
     """
-    source: MultibodySource = truth.source
-    plant = source.plant
     context = plant.CreateDefaultContext()
     for body, scale in body_mass_scale.items():
         rigid = plant.GetBodyByName(body)
         rigid.SetMass(context, rigid.default_mass() * float(scale))
     n, m = truth.n, truth.m
-    x_eq = truth.x_eq if isinstance(truth, ShiftedSystem) else np.zeros(n)
-    u_eq = truth.u_eq if isinstance(truth, ShiftedSystem) else np.zeros(m)
+    x_eq, u_eq = truth.equilibrium
     port = plant.get_actuation_input_port()
     f = np.empty_like(X)
     g = np.empty((n, m, X.shape[1]))
@@ -124,8 +126,9 @@ def model_mismatch(
     drawn = uniform_points(lower, upper, samples, seed)
     X = np.concatenate([np.zeros((model.n, 1)), drawn], axis=1)
     f_model, g_model = model.f_batch(X), model.g_batch(X)
-    if body_mass_scale and isinstance(getattr(truth, "source", None), MultibodySource):
-        f_true, g_true = _multibody_dynamics(truth, body_mass_scale, X)
+    plant = truth.multibody_plant
+    if body_mass_scale and plant is not None:
+        f_true, g_true = _multibody_dynamics(truth, plant, body_mass_scale, X)
     else:
         f_true, g_true = truth.f_batch(X), truth.g_batch(X)
     return ModelMismatch(

@@ -24,10 +24,12 @@ and ``runs/`` keeps each run's trajectories for the envelope figure
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
 import os
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -208,6 +210,34 @@ def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) 
     return FILES.read(path, repair=repair)
 
 
+def _absent_paths(store: SweepStore | None) -> list[Path]:
+    """What of ``store``'s folder does not exist yet: of the folder, plan, table and ``runs/``."""
+    if store is None:
+        return []
+    paths = [store.folder, store.folder / FILES.plan, store.table, store.runs]
+    return [p for p in paths if not (p.exists() or p.is_symlink())]
+
+
+def _remove_created(store: SweepStore | None, created: Sequence[Path]) -> None:
+    """Remove what a sweep created of ``store``'s folder (``created``, :func:`_absent_paths`).
+
+    A sweep that stops before its first row (an error, an interrupt) leaves
+    nothing to resume, so nothing of it stays: not a folder holding only
+    ``montecarlo.json``. ``runs/`` goes with its files; the folder itself only
+    if it is then empty.
+    """
+    if store is None:
+        return
+    for path in reversed(created):  # deepest first
+        with contextlib.suppress(OSError):
+            if path == store.runs:
+                shutil.rmtree(path)
+            elif path == store.folder:
+                path.rmdir()
+            else:
+                path.unlink()
+
+
 def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[str, Any]:
     return {
         "scenario": scenario.name,
@@ -254,7 +284,8 @@ def montecarlo(
         Run on this Dask cluster; without one, serially in this process.
     out : str or Path, optional
         Folder for ``montecarlo.csv`` (streamed), ``montecarlo.json`` and
-        ``runs/``.
+        ``runs/``. A sweep that stops before its first row (an error, an
+        interrupt) removes what it created there, so nothing half-written stays.
     resume : bool
         Keep the rows already in ``out`` and run only the missing seeds.
     progress : bool, optional
@@ -275,7 +306,10 @@ def montecarlo(
         ``mass_spread`` that is not a number in ``[0, 1)``, an
         ``optimal_cost`` that is not a number >= 0 or NaN), an existing table
         without ``resume``, or a ``resume`` of a different sweep (the first
-        differing key named).
+        differing key named); during the sweep, for a task that failed
+        outside its own guard (a worker lost).
+    OutputError
+        If ``out`` cannot be written.
     """
     check_scenario(scenario, "montecarlo")
     integer_at_least("--runs:", runs, 1, error=MonteCarloError)
@@ -292,53 +326,64 @@ def montecarlo(
     if mass_spread > 0:
         _bodies(scenario)  # refuse a truth without bodies before any run
     store = None if out is None else SweepStore(FILES, Path(out))
+    created = _absent_paths(store)
+    recorded = 0  # rows this call wrote into the folder
     done: list[dict] = []
-    if store is not None:
-        plan = _plan(scenario, runs, seed, mass_spread)
-        done = store.open(plan, resume=resume, mismatch=_resume_mismatch)
-    if optimal_cost is None:
-        from ofrl_drake.optimal import optimal_control
-
-        solved = optimal_control(scenario)
-        optimal_cost = solved.cost if solved.converged else math.nan
-    finished = {r["seed"]: r for r in done}
-    todo = [k for k in range(runs) if str(seed + k) not in finished]
-
-    parts = max(worker_threads(client), -(-len(todo) // RUNS_PER_TASK))
-
-    def submit(engine: Any) -> dict[Any, tuple[int, ...]]:
-        return {
-            engine.submit(run_seeds, scenario, seed, tuple(ks), mass_spread): tuple(ks)
-            for ks in split_consecutive(todo, parts)
-        }
-
-    def record(value: dict[str, Any]) -> dict:
-        row = value["row"]
-        row["optimal_cost"] = float(optimal_cost)
-        row["optimality_ratio"] = (
-            row["cost"] / optimal_cost
-            if math.isfinite(row["cost"]) and math.isfinite(optimal_cost) and optimal_cost > 0
-            else math.nan
-        )
-        if store is not None:
-            if value["logs"]:
-                store.save_run(f"seed_{row['seed']}.npz", value["logs"])
-            store.write(row)
-        finished[row["seed"]] = row
-        return row
-
-    def finish(ks: tuple[int, ...], value: Any, err: BaseException | None) -> list[dict]:
-        if err is not None:  # the task guards itself; a worker lost is recorded too
-            raise MonteCarloError(f"a Monte Carlo task failed (runs {list(ks)}): {err}")
-        return [record(run) for run in value]
-
-    if store is not None:
-        store.start()
     try:
-        execute(submit, finish, client=client, total=runs, done=runs - len(todo), progress=progress)
-    finally:
         if store is not None:
-            store.close()
+            plan = _plan(scenario, runs, seed, mass_spread)
+            done = store.open(plan, resume=resume, mismatch=_resume_mismatch)
+        if optimal_cost is None:
+            from ofrl_drake.optimal import optimal_control
+
+            solved = optimal_control(scenario)
+            optimal_cost = solved.cost if solved.converged else math.nan
+        finished = {r["seed"]: r for r in done}
+        todo = [k for k in range(runs) if str(seed + k) not in finished]
+
+        parts = max(worker_threads(client), -(-len(todo) // RUNS_PER_TASK))
+
+        def submit(engine: Any) -> dict[Any, tuple[int, ...]]:
+            return {
+                engine.submit(run_seeds, scenario, seed, tuple(ks), mass_spread): tuple(ks)
+                for ks in split_consecutive(todo, parts)
+            }
+
+        def record(value: dict[str, Any]) -> dict:
+            nonlocal recorded
+            row = value["row"]
+            row["optimal_cost"] = float(optimal_cost)
+            row["optimality_ratio"] = (
+                row["cost"] / optimal_cost
+                if math.isfinite(row["cost"]) and math.isfinite(optimal_cost) and optimal_cost > 0
+                else math.nan
+            )
+            if store is not None:
+                if value["logs"]:
+                    store.save_run(f"seed_{row['seed']}.npz", value["logs"])
+                store.write(row)
+                recorded += 1
+            finished[row["seed"]] = row
+            return row
+
+        def finish(ks: tuple[int, ...], value: Any, err: BaseException | None) -> list[dict]:
+            if err is not None:  # the task guards itself; a worker lost is recorded too
+                raise MonteCarloError(f"a Monte Carlo task failed (runs {list(ks)}): {err}")
+            return [record(run) for run in value]
+
+        if store is not None:
+            store.start()
+        try:
+            execute(
+                submit, finish, client=client, total=runs, done=runs - len(todo), progress=progress
+            )
+        finally:
+            if store is not None:
+                store.close()
+    except BaseException:
+        if not recorded:  # nothing to resume: the folder is left as it was found
+            _remove_created(store, created)
+        raise
     return [finished[str(seed + k)] for k in range(runs)]
 
 

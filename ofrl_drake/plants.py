@@ -331,7 +331,7 @@ def resolve_system(scenario: Any) -> ControlAffineSystem:
     Every module that needs the scenario's plant (validation, observer design,
     diagram, optimal cost) calls this. With ``scenario.equilibrium`` it is the
     shifted system (a :class:`~ofrl_drake.model.ShiftedSystem`, whose
-    ``x_eq``/``u_eq`` map results back to the plant's coordinates).
+    ``equilibrium`` maps results back to the plant's coordinates).
 
     Raises
     ------
@@ -351,14 +351,11 @@ def resolve_system(scenario: Any) -> ControlAffineSystem:
 
 def multibody_body_names(system: ControlAffineSystem | None) -> list[str] | None:
     """The body names of a model built from a multibody plant; None for any other (or None)."""
-    from ofrl_drake.drake_models import MultibodySource
-
-    source = getattr(system, "source", None)
-    if not isinstance(source, MultibodySource):
+    plant = None if system is None else system.multibody_plant
+    if plant is None:
         return None
     from pydrake.multibody.tree import BodyIndex
 
-    plant = source.plant
     return [plant.get_body(BodyIndex(i)).name() for i in range(plant.num_bodies())]
 
 

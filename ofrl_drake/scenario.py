@@ -4,9 +4,11 @@ A scenario is a YAML file (see ``diagrams/two_state_paper.yaml``) loaded with
 Drake's :func:`pydrake.common.yaml.yaml_load_typed` into the dataclasses
 below. Before that, the raw YAML is walked against the schema so that unknown
 keys, missing keys and values of the wrong type are reported with their full
-key path (``critic.kc``). :func:`validate_scenario` then checks values and
-dimensions against the named system, after holding the dataclasses to the same
-schema (so does a scenario built or changed in Python).
+key path (``critic.kc``); numbers such as ``1e-2``, which PyYAML's YAML 1.1
+rules read as strings, count as the numbers YAML 1.2 reads.
+:func:`validate_scenario` then checks values and dimensions against the named
+system, after holding the dataclasses to the same schema (so does a scenario
+built or changed in Python).
 
 Keys marked *optional* in a dataclass docstring may be omitted; every other key
 is required.
@@ -15,6 +17,7 @@ is required.
 # No "from __future__ import annotations": Drake reads the field types at run time.
 
 import dataclasses
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -22,7 +25,8 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
-from pydrake.common.yaml import yaml_dump_typed, yaml_load, yaml_load_typed
+import yaml
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.systems.analysis import GetIntegrationSchemes
 
 from ofrl_drake.errors import ScenarioError, ScenarioTypeError
@@ -385,19 +389,42 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         for i, item in enumerate(value):
             _check_value(f"{path}[{i}]", item_tp, item, typed=typed)
         return
+    fix = ""
     if tp is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        # A plain 1e-2 is a number (YAML 1.2); Drake's typed loader reads it with float().
+        ok = isinstance(value, _ExponentNumber) or (
+            isinstance(value, (int, float)) and not isinstance(value, bool)
+        )
         kind = "a number"
+        if isinstance(value, str) and _is_float_text(value):
+            fix = " (a quoted string); write the number without quotes"
     elif tp is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
         kind = "an integer"
+        fix = _integer_fix(value)
     elif tp is str:
         ok = isinstance(value, str)
         kind = "a string"
     else:  # pragma: no cover - schema types are all listed above
         ok, kind = True, str(tp)
     if not ok:
-        raise ScenarioError(f"{path}: expected {kind}; got {_shown(value)}.")
+        raise ScenarioError(f"{path}: expected {kind}; got {_shown(value)}{fix}.")
+
+
+def _is_float_text(text: str) -> bool:
+    """Whether ``text`` is a decimal number as YAML 1.2 writes one (``0.01``, ``1e-2``, ``3``)."""
+    return _NUMBER_TEXT.fullmatch(text) is not None
+
+
+def _integer_fix(value: Any) -> str:
+    """How to write ``value`` as the integer it means, if it is a whole number in another form."""
+    if isinstance(value, _ExponentNumber):
+        value = float(value)
+    elif not isinstance(value, float):
+        return ""
+    if not value.is_integer() or abs(value) > 2**53:
+        return ""
+    return f"; write it as the integer {int(value)} (digits only, no decimal point or exponent)"
 
 
 def _shown(value: Any) -> str:
@@ -558,7 +585,9 @@ def validate_scenario(scenario: Scenario) -> None:
     ScenarioError
         Naming the first bad key, its value and what is expected: a value of
         the wrong type, a wrong size or a value out of range, a basis without
-        an even degree.
+        an even degree, a ``simulation.log_period`` so small that the logs
+        would take more than :data:`MAX_LOG_BYTES` (naming the smallest period
+        that fits).
     """
     # Imported here: the registry imports model code, the scenario does not need it
     # for parsing.
@@ -746,6 +775,7 @@ def validate_scenario(scenario: Scenario) -> None:
             f"simulation.duration = {s.duration} s, so nothing after t = 0 would be logged; "
             "use a log period below the horizon."
         )
+    _check_log_size(s, n, m, L)
     if s.blocks not in BLOCK_KINDS:
         raise ScenarioError(
             f"simulation.blocks: unknown kind {s.blocks!r}; choose one of {list(BLOCK_KINDS)}."
@@ -761,6 +791,27 @@ def validate_scenario(scenario: Scenario) -> None:
     if s.max_wall_time is not None:
         _positive("simulation.max_wall_time", s.max_wall_time)
     _positive("simulation.regulation_tolerance", s.regulation_tolerance)
+
+
+def _check_log_size(s: SimulationConfig, n: int, m: int, L: int) -> None:
+    """Refuse a ``log_period`` whose logs would outgrow :data:`MAX_LOG_BYTES`.
+
+    A run logs ``duration / log_period`` samples of x, xhat (n each), the
+    critic's and the policy's weights (L each), Gamma (``L (L + 1) / 2``), u
+    (m) and a few scalars and time stamps.
+    """
+    samples = s.duration / s.log_period
+    per_sample = 8.0 * (2 * n + 2 * L + L * (L + 1) // 2 + m + _LOG_SCALARS)
+    need = samples * per_sample
+    if need > MAX_LOG_BYTES:
+        least = s.duration * per_sample / MAX_LOG_BYTES
+        raise ScenarioError(
+            f"simulation.log_period: {s.log_period:g} s over simulation.duration = "
+            f"{s.duration:g} s logs {samples:.3g} samples, about {need / 2**30:.3g} GiB "
+            f"({per_sample / 8:.0f} numbers each: x, xhat, W, Gamma, u, ...); the logs may "
+            f"take at most {MAX_LOG_BYTES / 2**30:g} GiB. Use a log_period above {least:.3g} s "
+            "(or a shorter duration)."
+        )
 
 
 def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
@@ -899,16 +950,26 @@ def _locate_files(scenario: Scenario, folder: Path) -> None:
     A ``system: "module:callable"`` whose module lies beside the scenario file
     becomes ``"/abs/module.py:callable"``, which any process (a Dask worker
     started elsewhere) can import; so do ``plant.drake_system`` and a relative
-    ``plant.multibody`` file.
+    ``plant.multibody`` file, and the same keys under ``truth``.
+    """
+    _locate_plant(scenario, folder.resolve(), "")
+    if scenario.truth is not None:
+        _locate_plant(scenario.truth, folder.resolve(), "truth.")
+
+
+def _locate_plant(owner: Scenario | TruthConfig, folder: Path, prefix: str) -> None:
+    """:func:`_locate_files` for the ``system`` and ``plant`` of ``owner``, in place.
+
+    ``prefix`` (``""`` or ``"truth."``) completes the key names of messages.
     """
     from ofrl_drake.plants import locate_model_file, locate_system_entry
 
-    scenario.system = locate_system_entry(scenario.system, folder.resolve())
-    if scenario.plant is not None:
-        scenario.plant.drake_system = locate_system_entry(
-            scenario.plant.drake_system, folder.resolve(), key="plant.drake_system"
+    owner.system = locate_system_entry(owner.system, folder, key=f"{prefix}system")
+    if owner.plant is not None:
+        owner.plant.drake_system = locate_system_entry(
+            owner.plant.drake_system, folder, key=f"{prefix}plant.drake_system"
         )
-        scenario.plant.multibody = locate_model_file(scenario.plant.multibody, folder.resolve())
+        owner.plant.multibody = locate_model_file(owner.plant.multibody, folder)
 
 
 #: Largest ``input_bound``: the sector bounds multiply it with Jacobian bounds and
@@ -917,6 +978,18 @@ MAX_INPUT_BOUND = 1e12
 
 #: Largest memory the extrapolation points may take, in bytes.
 MAX_POINT_BYTES = 2 * 2**30
+
+#: Largest memory the logs of a run may take, in bytes: ``duration / log_period``
+#: samples of x, xhat, W, the policy's weights, Gamma (``L (L + 1) / 2`` entries),
+#: u and a few scalars (:func:`validate_scenario` estimates it). About ten million
+#: samples of the paper's two-state example (27 numbers each), 80,000 of the
+#: quadrotor (L = 78: 3,275 numbers): far above any real run (the shipped ones log
+#: 600 to 3,000 samples); a ``log_period`` of 1e-12 s would otherwise fill the memory.
+MAX_LOG_BYTES = 2 * 2**30
+
+#: Numbers per logged sample besides the vectors: the running cost, the learning
+#: condition, the policy updates and every logger's time stamps.
+_LOG_SCALARS = 10
 
 #: Longest ``name``, in characters (it labels files, figures and the diagram).
 MAX_NAME_LENGTH = 200
@@ -927,6 +1000,68 @@ MAX_SCENARIO_BYTES = 1_000_000
 #: Most YAML nodes a scenario may expand to (aliases included): a bound on
 #: "billion laughs" files, far above any real scenario.
 MAX_YAML_NODES = 100_000
+
+
+_MANTISSA = r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)"
+#: A decimal number of the YAML 1.2 core schema (an integer or a float, not .inf or .nan).
+_NUMBER_TEXT = re.compile(_MANTISSA + r"(?:[eE][-+]?[0-9]+)?")
+#: The same with an exponent: ``1e-2``, ``5.0e0``, ``1E3``, ``1.0e-4``.
+_EXPONENT_TEXT = re.compile(_MANTISSA + r"[eE][-+]?[0-9]+$")
+
+
+class _ExponentNumber(str):
+    """A plain (unquoted) YAML scalar in exponent form that YAML 1.1 reads as a string.
+
+    PyYAML, and so Drake's loader, follow YAML 1.1: an exponent makes a float
+    only with a decimal point and a signed exponent (``1.0e-2``), so ``1e-2``,
+    ``1e1`` and ``5.0e0`` are strings. YAML 1.2 reads them as the numbers they
+    are, and so does the schema check: it accepts one where a float is
+    expected (Drake's typed loader, which builds the :class:`Scenario`, then
+    converts it with Python's ``float``), keeps it as written where a string
+    is (``name: 1e3``), and refuses it, with the integer to write, where an
+    integer is.
+    """
+
+    def __repr__(self) -> str:  # as written, unquoted: messages show what the file holds
+        return str(self)
+
+
+class _RawLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, marking the plain exponent numbers as :class:`_ExponentNumber`."""
+
+
+_EXPONENT_TAG = "tag:ofrl_drake,2025:exponent_number"
+# Appended after YAML 1.1's own resolvers: 1.0e-4 stays the float they make of it.
+_RawLoader.add_implicit_resolver(_EXPONENT_TAG, _EXPONENT_TEXT, list("-+0123456789."))
+_RawLoader.add_constructor(
+    _EXPONENT_TAG, lambda loader, node: _ExponentNumber(loader.construct_scalar(node))
+)
+
+
+def _not_yaml(path: Path, err: Exception) -> ScenarioError:
+    """The error for a file PyYAML refuses, on one line (its marks name lines of ``path``)."""
+    text = " ".join(str(err).replace('in "<unicode string>", ', "").split())
+    return ScenarioError(f"{path}: not valid YAML: {text[:300]}")
+
+
+def _raw_yaml(path: Path, text: str) -> Any:
+    """The data of a scenario file, as Drake's ``yaml_load`` gives it, with exponent numbers marked.
+
+    Root keys that begin with an underscore (YAML anchors, templates) are
+    dropped, as Drake's loader drops them.
+
+    Raises
+    ------
+    ScenarioError
+        If the file cannot be constructed (an unknown tag, ...).
+    """
+    try:
+        raw = yaml.load(text, Loader=_RawLoader)  # a SafeLoader: no arbitrary objects
+    except yaml.YAMLError as err:
+        raise _not_yaml(path, err) from None
+    if isinstance(raw, dict):
+        raw = {k: v for k, v in raw.items() if not (isinstance(k, str) and k.startswith("_"))}
+    return raw
 
 
 def _check_yaml(path: Path, text: str) -> None:
@@ -941,12 +1076,10 @@ def _check_yaml(path: Path, text: str) -> None:
     ------
     ScenarioError
     """
-    import yaml
-
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as err:
-        raise ScenarioError(f"{path}: not valid YAML: {' '.join(str(err).split())[:300]}") from None
+        raise _not_yaml(path, err) from None
     stack = [] if root is None else [root]
     expanded = 0
     checked: set[int] = set()
@@ -1010,7 +1143,19 @@ def load_scenario(path: str | Path) -> Scenario:
     Raises
     ------
     ScenarioError
-        If the file is missing or unreadable, or a key is unknown, missing or bad.
+        If the file is missing or unreadable, or a key is unknown, missing or
+        bad: an integer key written with a decimal point or an exponent
+        (``1e3``, naming the integer to write), a quoted number (``"0.01"``),
+        a module or model file of ``system``, ``plant`` or ``truth`` that
+        cannot be found, ... (see :func:`validate_scenario`).
+
+    Notes
+    -----
+    Numbers are read as YAML 1.2 reads them: a plain ``1e-2``, ``1e1`` or
+    ``5.0e0`` (strings to PyYAML's YAML 1.1 rules) is the float Python's
+    ``float`` makes of it wherever the schema expects a float. Modules and
+    relative model files named by ``system``, ``plant`` and ``truth`` are
+    found beside the file and made absolute.
     """
     path = Path(path)
     if not path.is_file():
@@ -1026,10 +1171,7 @@ def load_scenario(path: str | Path) -> Scenario:
     except (OSError, UnicodeDecodeError) as err:
         raise ScenarioError(f"{path}: cannot be read ({err}).") from None
     _check_yaml(path, text)
-    try:
-        raw = yaml_load(filename=str(path))
-    except Exception as err:
-        raise ScenarioError(f"{path}: not valid YAML: {err}".replace("\n", " ")) from None
+    raw = _raw_yaml(path, text)
     try:
         _check_mapping("", Scenario, raw)
     except ScenarioError as err:

@@ -22,7 +22,6 @@ from ofrl_drake.checks import positive_number
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
-from ofrl_drake.model import ShiftedSystem
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
 from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
@@ -576,8 +575,9 @@ def simulate(
     SimulationResult
         Its ``validity`` always checks ``|u_k| <= lambda_bar`` (or the
         smaller input bound of the observer's design, which the note then
-        names); x and xhat are checked against the certified box when the
-        observer has one (see :mod:`ofrl_drake.validity`).
+        names); x, xhat and, when H or K is nonzero, the injection points
+        ``xhat + H ytil`` and ``xhat + K ytil`` are checked against the
+        certified box when the observer has one (see :mod:`ofrl_drake.validity`).
 
     Raises
     ------
@@ -694,9 +694,10 @@ def simulate(
         provenance=origin,
     )
     system = loop.parts.system
-    if isinstance(system, ShiftedSystem):
-        result.x_equilibrium = np.asarray(system.x_eq, float)
-        result.u_equilibrium = np.asarray(system.u_eq, float)
+    if system.is_shifted:  # recorded even at x* = 0, u* = 0: the scenario gave one
+        x_eq, u_eq = system.equilibrium
+        result.x_equilibrium = np.asarray(x_eq, float)
+        result.u_equilibrium = np.asarray(u_eq, float)
     if loop.parts.truth is not None:
         from ofrl_drake.model_error import model_mismatch
 
@@ -726,10 +727,48 @@ def simulate(
             f"below the scenario's input_bound = {scenario.input_bound:g}"
         )
         note = bound_note if note is None else f"{note}; {bound_note}"
+    gains = _injection_gains(loop, cert, logs)
     result.validity = validity_report(
-        result.t, result.x, result.xhat, result.u, box, input_bound, note=note
+        result.t,
+        result.x,
+        result.xhat,
+        result.u,
+        box,
+        input_bound,
+        note=note,
+        C=gains.get("C"),
+        H=gains.get("H"),
+        K=gains.get("K"),
     )
     return result
+
+
+def _injection_gains(
+    loop: ClosedLoop, cert: ObserverCertificate, logs: dict[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """``C``, ``H`` and ``K`` for the validity report's injection points; empty: none apply.
+
+    A ``"design"`` certificate's fixed gains; a ``"scheduled"`` observer's gains
+    in force at each sample, from its ``observer_gains`` log (``[vec(L), vec(H),
+    vec(K)]``, row-major). Any other certificate has no box to check them against.
+    """
+    C = np.asarray(loop.parts.system.output_matrix, dtype=float)
+    q, n = C.shape
+    if cert.kind == "scheduled" and "observer_gains" in logs:
+        gains = np.asarray(logs["observer_gains"], dtype=float)
+        k = n * q
+        return {
+            "C": C,
+            "H": gains[:, k : 2 * k].reshape(-1, n, q),
+            "K": gains[:, 2 * k :].reshape(-1, n, q),
+        }
+    if cert.kind == "design" and cert.design is not None:
+        return {
+            "C": np.asarray(cert.design.get("C", C), dtype=float),
+            "H": np.asarray(cert.design["H"], dtype=float),
+            "K": np.asarray(cert.design["K"], dtype=float),
+        }
+    return {}
 
 
 def _initialize_context(

@@ -37,11 +37,11 @@ import ofrl_drake.variants as variants
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.bellman import PointFeatures
 from ofrl_drake.errors import ScenarioError, SwapError
+from ofrl_drake.learning import CriticSettings
 from ofrl_drake.model import ControlAffineSystem
 
 if TYPE_CHECKING:  # annotations only: the scenario and the wiring import this module
     from ofrl_drake.design import ObserverDesign
-    from ofrl_drake.diagram import CriticSettings
     from ofrl_drake.scenario import Scenario
 
 __all__ = [

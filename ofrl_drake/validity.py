@@ -2,7 +2,12 @@
 
 The Jacobian bounds, and so the LMI certificate, are valid only while both x
 and xhat stay in the box they were computed on and the input stays within its
-bound. :func:`validity_report` checks the logged trajectories against that.
+bound. When the injection gains H or K are nonzero, the mean-value argument
+behind the certificate evaluates f at ``xhat + H ytil`` and g at
+``xhat + K ytil`` (``ytil = C (x - xhat)``), so those *injection points* must
+stay in the box too (:mod:`ofrl_drake.lmi`). :func:`validity_report` checks
+the logged trajectories against all of that; the injection points are
+checked when it is given the observer's ``C``, ``H`` and ``K``.
 
 Which box applies depends on the observer:
 
@@ -18,16 +23,34 @@ Which box applies depends on the observer:
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from ofrl_drake.checks import _finite_array
 from ofrl_drake.errors import ModelError
 
-__all__ = ["BOX_CHECKS", "BoxSchedule", "ValidityReport", "validity_report"]
+__all__ = [
+    "BOX_CHECKS",
+    "INJECTION_CHECKS",
+    "POINTS",
+    "BoxSchedule",
+    "ValidityReport",
+    "validity_report",
+]
 
 #: Values of :attr:`ValidityReport.box_check`.
 BOX_CHECKS = ("fixed", "scheduled", "not_applicable")
+
+#: Values of :attr:`ValidityReport.injection_check`.
+INJECTION_CHECKS = ("checked", "zero_gains", "no_gains", "not_applicable")
+
+#: Names of the points checked against the box, the keys of
+#: :attr:`ValidityReport.box_excursions`: the state, the estimate and the two
+#: injection points (the last two only when their gain is nonzero).
+POINTS = ("x", "xhat", "xhat + H ytil", "xhat + K ytil")
 
 
 @dataclass(frozen=True)
@@ -104,8 +127,9 @@ class ValidityReport:
     Attributes
     ----------
     first_exit_time : float or None
-        First logged time at which a checked condition was violated (x or
-        xhat outside the box in force, or some ``|u_k| > lbar``); None if never.
+        First logged time at which a checked condition was violated (x, xhat
+        or a checked injection point outside the box in force, or some
+        ``|u_k| > lbar``); None if never.
     fraction_outside : float
         Fraction of the horizon (by log samples, time-weighted) with some
         checked condition violated.
@@ -118,6 +142,26 @@ class ValidityReport:
         Which box x and xhat were checked against, one of :data:`BOX_CHECKS`.
     note : str or None
         What was checked beyond the defaults, or why the box was not checked.
+    injection_h_outside, injection_k_outside : bool or None
+        Whether ``xhat + H ytil``, resp. ``xhat + K ytil`` (``ytil = C (x -
+        xhat)``), left the box in force at least once; None if that point was
+        not checked: no box, no gains given, or a zero gain (the point is then
+        xhat itself).
+    injection_check : str
+        Whether the injection points were checked, one of
+        :data:`INJECTION_CHECKS`: ``"checked"`` (H or K nonzero),
+        ``"zero_gains"`` (H = K = 0: nothing beyond xhat to check),
+        ``"no_gains"`` (C, H, K not given: the injection points were *not*
+        checked), ``"not_applicable"`` (no certified box).
+    box_excursions : dict or None
+        Per checked point (keys from :data:`POINTS`; the injection points
+        only when ``injection_check == "checked"`` and their gain is
+        nonzero): ``outside`` (bool, with the slack ``tol``),
+        ``first_exit_time`` (float or None), ``worst_excursion`` (the largest
+        distance, max-norm, from the point to the box in force; 0 if it never
+        left), ``worst_time`` and ``worst_point`` (when, and where, that
+        distance was reached; None if it never left). None if the box was
+        not checked.
     """
 
     first_exit_time: float | None
@@ -127,13 +171,21 @@ class ValidityReport:
     input_exceeded: bool
     box_check: str = "fixed"
     note: str | None = None
+    injection_h_outside: bool | None = None
+    injection_k_outside: bool | None = None
+    injection_check: str = "no_gains"
+    box_excursions: dict[str, dict[str, Any]] | None = field(default=None, hash=False)
 
     @property
     def valid(self) -> bool:
         """True if no *checked* condition was violated at any logged sample.
 
         With ``box_check == "not_applicable"`` only the input bound was
-        checked; see :attr:`box_checked`.
+        checked; see :attr:`box_checked`. The injection points ``xhat + H
+        ytil``, ``xhat + K ytil`` count only if checked: with
+        ``injection_check == "no_gains"`` (no C, H, K given) they were not, and
+        True does not mean the certificate's hypotheses held for an observer
+        with nonzero H or K.
         """
         return self.first_exit_time is None
 
@@ -160,6 +212,8 @@ class ValidityReport:
             for name, flag in (
                 ("x", self.state_outside),
                 ("xhat", self.estimate_outside),
+                ("xhat + H ytil", self.injection_h_outside),
+                ("xhat + K ytil", self.injection_k_outside),
                 ("|u|", self.input_exceeded),
             )
             if flag
@@ -182,6 +236,77 @@ class ValidityReport:
         return out
 
 
+def _injection_points(
+    x: ArrayLike,
+    xhat: ArrayLike,
+    C: ArrayLike | None,
+    H: ArrayLike | None,
+    K: ArrayLike | None,
+) -> dict[str, np.ndarray]:
+    """``xhat + H ytil`` and ``xhat + K ytil`` at every sample, ``ytil = C (x - xhat)``.
+
+    Only the points whose gain is nonzero at some sample, keyed as in
+    :data:`POINTS`; an empty dict when both gains are zero. ``H`` and ``K``
+    are ``(n, q)``, or ``(T, n, q)`` with the gains in force at each sample
+    (a re-designed observer's log). Raises :class:`ModelError` as
+    :func:`validity_report` says.
+    """
+    if C is None or H is None or K is None:
+        missing = [name for name, v in (("C", C), ("H", H), ("K", K)) if v is None]
+        raise ModelError(
+            "validity_report: C, H and K go together (the injection points xhat + H ytil and "
+            f"xhat + K ytil need all three); {' and '.join(missing)} missing. Pass the "
+            "observer's output matrix and both gains (zeros for a gain it does not have), "
+            "or none of C, H, K."
+        )
+    xa, xh = np.asarray(x, dtype=float), np.asarray(xhat, dtype=float)
+    if xa.ndim != 2 or xh.shape != xa.shape:
+        raise ModelError(
+            "validity_report: x and xhat must both have shape (T, n) to check the injection "
+            f"points; got {xa.shape} and {xh.shape}."
+        )
+    T, n = xa.shape
+    Cm = _finite_array("validity_report: C", C)
+    if Cm.ndim != 2 or Cm.shape[0] == 0 or Cm.shape[1] != n:
+        raise ModelError(
+            f"validity_report: C must have shape (q, n) with n = {n} (the columns of x) and "
+            f"q >= 1; got {Cm.shape}."
+        )
+    q = Cm.shape[0]
+    ytil = (xa - xh) @ Cm.T  # (T, q)
+    points: dict[str, np.ndarray] = {}
+    for name, gain in (("H", H), ("K", K)):
+        G = _finite_array(f"validity_report: {name}", gain)
+        if G.shape not in ((n, q), (T, n, q)):
+            raise ModelError(
+                f"validity_report: {name} must have shape (n, q) = {(n, q)}, or {(T, n, q)} "
+                f"with the gain in force at each of the T samples; got {G.shape}."
+            )
+        if not np.any(G):
+            continue  # the point is xhat itself
+        step = ytil @ G.T if G.ndim == 2 else np.einsum("tiq,tq->ti", G, ytil)
+        points[f"xhat + {name} ytil"] = xh + step
+    return points
+
+
+def _excursion(
+    t: np.ndarray, z: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Samples where ``z`` (T, n) is outside the box in force, and their summary."""
+    distance = np.max(np.maximum(lower - z, z - upper), axis=1, initial=-np.inf)
+    out = np.any((z < lower - tol) | (z > upper + tol), axis=1)
+    worst = int(np.argmax(distance)) if distance.size else 0
+    left = bool(distance.size) and distance[worst] > 0
+    summary = {
+        "outside": bool(out.any()),
+        "first_exit_time": float(t[np.argmax(out)]) if out.any() else None,
+        "worst_excursion": float(distance[worst]) if left else 0.0,
+        "worst_time": float(t[worst]) if left else None,
+        "worst_point": z[worst].tolist() if left else None,
+    }
+    return out, summary
+
+
 def validity_report(
     t: np.ndarray,
     x: np.ndarray,
@@ -192,6 +317,9 @@ def validity_report(
     *,
     tol: float = 1e-9,
     note: str | None = None,
+    C: ArrayLike | None = None,
+    H: ArrayLike | None = None,
+    K: ArrayLike | None = None,
 ) -> ValidityReport:
     """Check logged trajectories (time first) against the certified region.
 
@@ -210,17 +338,39 @@ def validity_report(
     note : str, optional
         Stored in the report; with ``box=None`` it should say why no box
         applies (a generic reason is used if omitted).
+    C : array_like, shape (q, n), optional
+        The output matrix of the observer's model.
+    H, K : array_like, shape (n, q) or (T, n, q), optional
+        The observer's injection gains, fixed or in force at each sample (a
+        re-designed observer). Given together with ``C`` (or none of the
+        three), the injection points ``xhat + H ytil`` and ``xhat + K ytil``,
+        ``ytil = C (x - xhat)``, are checked against the box too when their
+        gain is nonzero; without them they are not checked
+        (``injection_check == "no_gains"``).
 
     Returns
     -------
     ValidityReport
+
+    Raises
+    ------
+    ModelError
+        If only some of ``C``, ``H``, ``K`` are given, if they are not finite,
+        or if their shapes do not fit ``x`` (``C`` (q, n), ``H`` and ``K``
+        (n, q) or (T, n, q)); if x and xhat do not both have shape (T, n)
+        when the gains are given.
     """
     t = np.asarray(t, dtype=float)
+    given = not (C is None and H is None and K is None)
+    injection = _injection_points(x, xhat, C, H, K) if given else None
     u_out = np.any(np.abs(np.asarray(u, dtype=float)) > input_bound + tol, axis=1)
+    excursions: dict[str, dict[str, Any]] | None = None
     if box is None:
         check = "not_applicable"
         note = note or "no certified box given: box checks not applicable"
         x_out = xhat_out = None
+        injection_check = "not_applicable"
+        point_out: dict[str, np.ndarray] = {}
         bad = u_out
     else:
         if isinstance(box, BoxSchedule):
@@ -229,13 +379,19 @@ def validity_report(
         else:
             check = "fixed"
             lower, upper = (np.asarray(b, dtype=float) for b in box)
-
-        def outside(z: np.ndarray) -> np.ndarray:
-            return np.any((z < lower - tol) | (z > upper + tol), axis=1)
-
-        x_out = outside(np.asarray(x, dtype=float))
-        xhat_out = outside(np.asarray(xhat, dtype=float))
-        bad = x_out | xhat_out | u_out
+        points = {"x": np.asarray(x, dtype=float), "xhat": np.asarray(xhat, dtype=float)}
+        if injection is None:
+            injection_check = "no_gains"
+        else:
+            injection_check = "checked" if injection else "zero_gains"
+            points.update(injection)
+        excursions, point_out = {}, {}
+        for name, z in points.items():
+            point_out[name], excursions[name] = _excursion(t, z, lower, upper, tol)
+        x_out, xhat_out = point_out["x"], point_out["xhat"]
+        bad = u_out
+        for flags in point_out.values():
+            bad = bad | flags
     if t.size > 1:
         dt = np.diff(t)
         weights = np.concatenate([dt, dt[-1:]])
@@ -243,6 +399,10 @@ def validity_report(
     else:
         fraction = float(bad.mean()) if bad.size else 0.0
     first = float(t[np.argmax(bad)]) if bad.any() else None
+
+    def flag(name: str) -> bool | None:
+        return bool(point_out[name].any()) if name in point_out else None
+
     return ValidityReport(
         first_exit_time=first,
         fraction_outside=fraction,
@@ -251,4 +411,8 @@ def validity_report(
         input_exceeded=bool(u_out.any()),
         box_check=check,
         note=note,
+        injection_h_outside=flag("xhat + H ytil"),
+        injection_k_outside=flag("xhat + K ytil"),
+        injection_check=injection_check,
+        box_excursions=excursions,
     )

@@ -16,3 +16,25 @@ def run_cli(*args, cwd=None, timeout=1200):
         cwd=cwd,
         timeout=timeout,
     )
+
+
+#: A dask scheduler address where nothing listens (port 1).
+UNREACHABLE_SCHEDULER = "tcp://127.0.0.1:1"
+
+
+def run_sweep_against_unreachable_scheduler(command, scenario, out, timeout_option, timeout):
+    """``ablate`` or ``montecarlo`` (one run) of ``scenario`` into ``out``, with
+    ``--scheduler`` where nothing listens and ``--scheduler-timeout timeout_option``."""
+    runs = ("--runs", 1) if command == "montecarlo" else ()
+    return run_cli(
+        command,
+        scenario,
+        *runs,
+        "--out",
+        out,
+        "--scheduler",
+        UNREACHABLE_SCHEDULER,
+        "--scheduler-timeout",
+        timeout_option,
+        timeout=timeout,
+    )

@@ -15,6 +15,7 @@ from ofrl_drake.animation import (
     camera_window,
     frame_samples,
 )
+from ofrl_drake.errors import ModelError
 
 CART_POLE_SDF = "package://drake/examples/multibody/cart_pole/cart_pole.sdf"
 
@@ -49,9 +50,19 @@ def test_the_page_holds_the_recording_of_the_given_positions():
     np.testing.assert_allclose(frames / clips["Cart"]["fps"], t[kept], atol=1 / FRAMES_PER_SECOND)
 
 
-def test_positions_of_the_wrong_size_are_refused():
-    with pytest.raises(ValueError, match=r"q must have shape \(T, 2\)"):
-        animation_html(CART_POLE_SDF, np.array([0.0]), np.zeros((1, 4)))
+@pytest.mark.parametrize(
+    ("t", "q", "match"),
+    [
+        ([0.0], np.zeros((1, 4)), r"q must have shape \(T, 2\), T >= 1, for .*; got \(1, 4\)"),
+        ([], np.zeros((0, 2)), r"q must have shape \(T, 2\), T >= 1, for .*; got \(0, 2\)"),
+        ([0.0, 0.1], np.zeros((3, 2)), r"t must have shape \(T,\) = \(3,\), one time per row"),
+        ([[0.0, 0.1]], np.zeros((2, 2)), r"t must have shape \(T,\) = \(2,\).*got \(1, 2\)"),
+    ],
+)
+def test_positions_and_times_of_the_wrong_size_are_refused(t, q, match):
+    # Before: a bare ValueError for q, and an IndexError from deep inside for t.
+    with pytest.raises(ModelError, match=match):
+        animation_html(CART_POLE_SDF, np.asarray(t), q)
 
 
 def test_a_model_without_geometry_has_no_animation(tmp_path):

@@ -447,3 +447,104 @@ def test_point_features_raise_on_bad_arguments(args, match):
     # Before: broadcast or matmul ValueErrors, AttributeErrors, or NaN features.
     with pytest.raises(ModelError, match=match):
         point_features(*args)
+
+
+def _sums_block(nu=NU):
+    from ofrl_drake.systems import BellmanExtrapolator
+
+    features = point_features(
+        make_system("two_state"),
+        PolynomialBasis(2),
+        grid_points([-1, -1], [1, 1], [4, 3]),
+        np.eye(2),
+    )
+    return BellmanExtrapolator(features, np.array([1.0]), LBAR, nu)
+
+
+def _fixed(block, W, Wp):
+    context = block.CreateDefaultContext()
+    block.get_weights_input_port().FixValue(context, W)
+    block.get_policy_weights_input_port().FixValue(context, Wp)
+    return context
+
+
+def test_two_contexts_at_two_nu_share_one_block_without_writing_to_it(monkeypatch):
+    """The nu of each context is its own: interleaved evaluations give two built blocks' bits."""
+    block, at_02, at_03 = _sums_block(), _sums_block(0.2), _sums_block(0.3)
+    W, Wp = np.array([0.4, 0.2, 0.8]), np.array([0.5, 0.1, 0.7])
+    first, second = _fixed(block, W, Wp), _fixed(block, W, Wp)
+    block.set_nu(first, 0.2)
+    block.set_nu(second, 0.3)
+    ref_02, ref_03 = _fixed(at_02, W, Wp), _fixed(at_03, W, Wp)
+    sums = block.GetSubsystemByName("sums")
+    attributes = dict(vars(sums))
+    built = []
+    original = Extrapolator.__init__
+
+    def counted(self, *args, **kwargs):
+        built.append(args[3])
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Extrapolator, "__init__", counted)
+    for k in range(3):  # interleaved, with new weights each time
+        Wk = W * (1 + k)
+        for b, c in ((block, first), (block, second), (at_02, ref_02), (at_03, ref_03)):
+            b.get_weights_input_port().FixValue(c, Wk)
+        for name in ("critic_sum", "gain_sum", "learning_condition"):
+            np.testing.assert_array_equal(
+                block.GetOutputPort(name).Eval(first), at_02.GetOutputPort(name).Eval(ref_02)
+            )
+            np.testing.assert_array_equal(
+                block.GetOutputPort(name).Eval(second), at_03.GetOutputPort(name).Eval(ref_03)
+            )
+    # A calc writes nothing to the system; each context keeps its nu's extrapolator.
+    assert dict(vars(sums)) == attributes
+    assert sorted(built) == [0.2, 0.3]
+    np.testing.assert_array_equal(
+        block.learning_condition_of(np.array([W, Wp]), second),
+        at_03.learning_condition_of(np.array([W, Wp])),
+    )
+    assert sorted(built) == [0.2, 0.3]  # read from the context's cache, not rebuilt
+    assert sums.extrapolator.nu == NU  # the block's own stays the default's
+    # A clone keeps its own nu and sums, whatever the original's context does next.
+    clone = second.Clone()
+    block.set_nu(second, 0.2)
+    np.testing.assert_array_equal(
+        block.get_critic_sum_output_port().Eval(clone),
+        at_03.get_critic_sum_output_port().Eval(ref_03),
+    )
+    np.testing.assert_array_equal(
+        block.get_critic_sum_output_port().Eval(second),
+        at_02.get_critic_sum_output_port().Eval(ref_02),
+    )
+
+
+def test_bellman_block_accessors_keep_their_port_handles(monkeypatch):
+    """No lookup by name per call: the ports are kept when the diagram is built."""
+    from pydrake.systems.framework import Diagram
+
+    block = _sums_block()
+    context = _fixed(block, np.array([0.4, 0.2, 0.8]), np.array([0.5, 0.1, 0.7]))
+
+    def by_name(self, name):
+        raise AssertionError(f"port {name!r} looked up by name")
+
+    for cls in (Diagram, type(block), type(block.GetSubsystemByName("sums"))):
+        monkeypatch.setattr(cls, "GetInputPort", by_name, raising=False)
+        monkeypatch.setattr(cls, "GetOutputPort", by_name, raising=False)
+    ports = (
+        block.get_weights_input_port(),
+        block.get_policy_weights_input_port(),
+        block.get_critic_sum_output_port(),
+        block.get_gain_sum_output_port(),
+        block.get_learning_condition_output_port(),
+    )
+    assert [p.get_name() for p in ports] == [
+        "weights",
+        "policy_weights",
+        "critic_sum",
+        "gain_sum",
+        "learning_condition",
+    ]
+    sums = block.extrapolation(context)
+    np.testing.assert_array_equal(sums.critic_sum, ports[2].Eval(context))

@@ -1,19 +1,22 @@
 """The ofrl-drake command line: outputs, exit codes, and no partial files."""
 
 import json
+import math
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+import types
 
 import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
-from tests.cli_helpers import run_cli
+from tests.cli_helpers import run_cli, run_sweep_against_unreachable_scheduler
 
 from .conftest import PAPER_SCENARIO
 
@@ -378,3 +381,141 @@ def test_run_scenario_yaml_reproduces_the_run_bit_for_bit(tmp_path):
         for key in a.files:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert (again / "scenario.yaml").read_text() == (first / "scenario.yaml").read_text()
+
+
+# ------------------------------------------------------------ bounded inputs
+HUGE_COUNTS = [
+    ("run", "--checkpoints", "MAX_CHECKPOINTS", ()),
+    ("ablate", "--initial-states", "MAX_INITIAL_STATES", ("--workers", "0")),
+    ("montecarlo", "--runs", "MAX_RUNS", ("--workers", "0")),
+]
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "limit", "extra"), HUGE_COUNTS, ids=[c for c, *_ in HUGE_COUNTS]
+)
+def test_a_huge_count_is_refused_while_parsing_naming_the_limit(
+    tmp_path, capsys, command, option, limit, extra
+):
+    # A billion checkpoints, initial states or runs took gigabytes (or a MemoryError, with a
+    # folder holding only montecarlo.json) before anything was written.
+    from ofrl_drake import cli
+
+    most = getattr(cli, limit)
+    assert 1000 <= most < 1_000_000_000
+    out = tmp_path / "o"
+    args = [command, str(PAPER_SCENARIO), *extra, "--out", str(out)]
+    huge = [*args, option, "1000000000"]
+    pattern = (
+        rf"^error: argument {option}: 1000000000 is more than the limit of {most}; .+; "
+        rf"see ofrl-drake {command} --help$"
+    )
+    with pytest.raises(SystemExit) as stop:
+        cli._parser().parse_args(huge)
+    assert stop.value.code == 2
+    assert re.match(pattern, capsys.readouterr().err.strip())
+    # The limit itself parses (and so does an ordinary count).
+    dest = option.lstrip("-").replace("-", "_")
+    assert getattr(cli._parser().parse_args([*args, option, str(most)]), dest) == most
+    assert getattr(cli._parser().parse_args([*args, option, "3"]), dest) == 3
+    # As a user runs it: one line, exit 2, nothing written.
+    proc = run_cli(*huge, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert re.match(pattern, proc.stderr.strip()), proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["ablate", "montecarlo"])
+def test_an_unreachable_scheduler_is_given_up_after_scheduler_timeout(tmp_path, command):
+    # The connection used to wait a fixed 30 s whatever --scheduler-timeout said.
+    proc = run_sweep_against_unreachable_scheduler(
+        command, PAPER_SCENARIO, tmp_path / "o", "0.5", timeout=300
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert re.match(
+        r"^error: --scheduler: cannot connect to tcp://127\.0\.0\.1:1 within "
+        r"--scheduler-timeout 0\.5 s \(.*after 0\.5 s\); start a dask scheduler there",
+        proc.stderr,
+    ), proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+# Mocks, not functions of this file: a frame of this file would read as the user's own code.
+STOPS = {
+    "J*": ("ofrl_drake.optimal.optimal_control", MemoryError, 1, r"^internal error: MemoryError:"),
+    "task": (
+        "ofrl_drake.monte_carlo.run_seeds",
+        RuntimeError("the worker was lost"),
+        2,
+        r"^error: a Monte Carlo task failed \(runs \[0, 1\]\): the worker was lost$",
+    ),
+    "interrupt": (
+        "ofrl_drake.monte_carlo.run_seeds",
+        KeyboardInterrupt,
+        130,
+        r"^error: interrupted; no output written$",
+    ),
+}
+
+
+@pytest.mark.parametrize("stop", list(STOPS))
+def test_montecarlo_leaves_nothing_when_it_stops_before_its_first_run(
+    tmp_path, capsys, monkeypatch, stop
+):
+    # A montecarlo that failed before its first run left a folder holding only
+    # montecarlo.json (and the table's header): half-written output.
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+
+    target, raised, code, message = STOPS[stop]
+    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    monkeypatch.setattr(target, mock.Mock(side_effect=raised))
+    out = tmp_path / "sub" / "mc"
+    args = ["montecarlo", str(PAPER_SCENARIO), "--runs", "2", "--workers", "0", "--out", str(out)]
+    assert main(args) == code
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert re.match(message, err.strip()), err
+    assert not out.exists()
+    # An empty folder that was there before is left as it was found: empty.
+    out.mkdir()
+    assert main(args) == code
+    assert list(out.iterdir()) == []
+
+
+def test_an_error_in_the_users_plant_names_its_file_line_and_function(tmp_path):
+    source = tmp_path / "rp.py"
+    source.write_text(
+        "import numpy as np\n"
+        "from ofrl_drake import ControlAffineSystem\n"
+        "\n"
+        "\n"
+        "def f(x):\n"
+        "    return np.array([x[1], undefined_name * x[0]])  # noqa: F821\n"
+        "\n"
+        "\n"
+        "def g(x):\n"
+        "    return np.array([[0 * x[0]], [1 + 0 * x[0]]])\n"
+        "\n"
+        "\n"
+        "def make_fraise():\n"
+        "    return ControlAffineSystem(f, g, C=[[0.0, 1.0]], name='fraise')\n"
+    )
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["system"] = f"{source}:make_fraise"
+    scenario = tmp_path / "fr.yaml"
+    scenario.write_text(yaml_dump(data))
+    proc = run_cli("run", scenario, "--out", tmp_path / "o")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert re.search(
+        r"system: '.*rp\.py:make_fraise' raised ModelError: f\(x\) failed at the probe point "
+        rf"x = \[.*\]: name 'undefined_name' is not defined \(at {re.escape(str(source))}:6, "
+        r"in f\)$",
+        proc.stderr.strip(),
+    ), proc.stderr
+    assert not (tmp_path / "o").exists()

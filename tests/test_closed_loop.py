@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from pydrake.systems.primitives import ConstantVectorSource
 from scipy.integrate import solve_ivp
 
 from ofrl_drake import ScenarioError, SimulationResult, SwapError, build_closed_loop, simulate
@@ -231,6 +232,69 @@ def test_bad_swaps_raise(paper_scenario, paper_design):
         )
     with pytest.raises(SwapError, match=r"must be a Drake System or a factory"):
         build_closed_loop(paper_scenario, design=paper_design, critic=42)
+
+
+def _sampled(scenario):
+    """``scenario`` with a sampled measurement and a digital (sample-and-hold) controller."""
+    import dataclasses
+
+    from ofrl_drake.scenario import ActuationConfig, MeasurementConfig
+
+    return dataclasses.replace(
+        scenario,
+        measurement=MeasurementConfig(period=0.01),
+        actuation=ActuationConfig(period=0.01),
+    )
+
+
+def _unactuated_plant():
+    """A plant with the outputs ``y`` and ``state`` but no input ``u``."""
+    from pydrake.systems.framework import LeafSystem
+
+    plant = LeafSystem()
+    plant.DeclareVectorOutputPort("y", 1, lambda context, out: out.SetFromVector([0.0]))
+    plant.DeclareVectorOutputPort("state", 2, lambda context, out: out.SetFromVector([0.0, 0.0]))
+    return plant
+
+
+@pytest.mark.parametrize(
+    ("slot", "make", "message"),
+    [
+        (
+            "plant",
+            lambda: ConstantVectorSource(np.zeros(2)),
+            r"^plant: the block must have an output port named 'y'; ConstantVectorSource "
+            r"has none \(its output ports: \['y0'\]\)",
+        ),
+        (
+            "plant",
+            _unactuated_plant,
+            r"^plant: the block must have an input port named 'u', which the scenario's "
+            r"measurement and actuation feed; LeafSystem has none \(its input ports: \[\]\)",
+        ),
+        (
+            "controller",
+            lambda: ConstantVectorSource(np.zeros(1)),
+            r"^controller: the block must have an output port named 'u'; ConstantVectorSource "
+            r"has none \(its output ports: \['y0'\]\)",
+        ),
+        (
+            "controller",
+            lambda: CriticWeights([0.0, 0.0, 0.0], 0.1),
+            r"^controller: the block must have an output port named 'u'; CriticWeights has "
+            r"none \(its output ports: \['weights'\]\)",
+        ),
+    ],
+)
+def test_swaps_into_a_sampled_loop_are_checked_before_they_are_wrapped(
+    paper_scenario, paper_design, slot, make, message
+):
+    """A sampled measurement wraps the plant, a digital controller the controller
+    (:mod:`ofrl_drake.systems.world`): a missing port is a SwapError, not Drake's RuntimeError."""
+    block = make()
+    with pytest.raises(SwapError, match=message):
+        build_closed_loop(_sampled(paper_scenario), design=paper_design, **{slot: block})
+    assert block.GetSystemPathname() == "::" + block.GetSystemName()  # not built into anything
 
 
 def test_a_factory_must_take_the_parts_and_return_a_system(paper_scenario, paper_design):

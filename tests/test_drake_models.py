@@ -102,10 +102,70 @@ def test_from_drake_non_affine_leaf_system_names_its_row():
         ControlAffineSystem.from_drake(_Quadratic_[float](), C=[[1.0, 0.0]])
 
 
+@TemplateSystem.define("_Reordered_")
+def _Reordered_(T):
+    class Impl(LeafSystem_[T]):
+        """x' = -x + u + 2 d; the symbolic version declares its ports in another order."""
+
+        def _construct(self, converter=None, renamed=False):
+            LeafSystem_[T].__init__(self, converter)
+            self._renamed = renamed
+            self.DeclareContinuousState(1)
+            symbolic = T == Expression
+            u_name = "v" if renamed and symbolic else "u"
+            names = (u_name, "d") if symbolic else ("d", u_name)
+            ports = {name: self.DeclareVectorInputPort(name, 1) for name in names}
+            self._u, self._d = ports[u_name], ports["d"]
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, converter=converter, renamed=other._renamed)
+
+        def DoCalcTimeDerivatives(self, context, derivatives):
+            x = context.get_continuous_state_vector().CopyToVector()
+            u, d = self._u.Eval(context), self._d.Eval(context)
+            derivatives.get_mutable_vector().SetFromVector([-x[0] + u[0] + 2 * d[0]])
+
+    return Impl
+
+
+@pytest.mark.parametrize("input_port", ["u", 1])
+def test_from_drake_finds_u_by_name_in_the_symbolic_system(input_port):
+    # Before: the port's index was reused on ToSymbolic(), whose port 1 is d, not u.
+    system = _Reordered_[float]()
+    assert system.get_input_port(1).get_name() == "u"
+    assert system.ToSymbolic().get_input_port(1).get_name() == "d"
+    model = ControlAffineSystem.from_drake(system, C=[[1.0]], input_port=input_port)
+    np.testing.assert_array_equal(model.g(np.array([0.3])), [[1.0]])
+    np.testing.assert_array_equal(model.f(np.array([0.3])), [-0.3])
+    assert model.source.input_port == "u"
+    assert list(model.source.fixed_inputs) == ["d"]
+
+
+def test_from_drake_refuses_a_symbolic_version_without_the_input_port():
+    # Before: Drake's RuntimeError (no port 'v' on the double system) from deep inside.
+    system = _Reordered_[float](renamed=True)
+    with pytest.raises(
+        ModelError,
+        match=r"symbolic version \(ToSymbolic\(\)\) has no input port 'u', only \['v', 'd'\]; "
+        r"its scalar conversion must keep the names of the input ports",
+    ):
+        ControlAffineSystem.from_drake(system, C=[[1.0]], input_port="u")
+
+
+def test_a_model_s_source_gives_its_multibody_plant_or_none():
+    # Before: callers tested isinstance(source, MultibodySource).
+    pendulum = ControlAffineSystem.from_drake(PendulumPlant(), C=[[1.0, 0.0]])
+    assert pendulum.source.multibody_plant is None and pendulum.multibody_plant is None
+    cart_pole = ControlAffineSystem.from_multibody(CART_POLE)
+    plant = cart_pole.source.plant
+    assert cart_pole.source.multibody_plant is plant and cart_pole.multibody_plant is plant
+    assert cart_pole.shifted([0.0, np.pi, 0.0, 0.0]).multibody_plant is plant
+
+
 def _check_against_system(model, plant, X, U):
     """f(x) = xdot(x, 0) and f(x) + g(x) u = xdot(x, u), the system's own derivatives."""
     context = plant.CreateDefaultContext()
-    port = plant.get_input_port(0)
+    port = plant.GetInputPort(model.source.input_port)  # the port that is u, by name
     fX, gX = model.f_batch(X), model.g_batch(X)
     for k in range(X.shape[1]):
         context.SetContinuousState(X[:, k])

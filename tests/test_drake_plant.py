@@ -60,10 +60,59 @@ def test_drake_plant_errors():
     with pytest.raises(ModelError, match=r"has none \(source = DrakeSystemSource\)"):
         DrakePlant(pendulum)
     system = ControlAffineSystem.from_multibody(CART_POLE)
-    with pytest.raises(ModelError, match=r"initial_state must have length n = 4"):
+    with pytest.raises(ModelError, match=r"cart_pole: initial_state must have length 4; got 2"):
         DrakePlant(system, initial_state=[0.0, 0.1])
     with pytest.raises(ModelError, match=r"body_mass_scale names 'Pendulum', which is not a body"):
         DrakePlant(system, body_mass_scale={"Pendulum": 2.0})
+
+
+@pytest.mark.parametrize(
+    ("initial_state", "match"),
+    [
+        ([0.0, np.nan, 0.0, 0.0], r"cart_pole: initial_state must be finite; got \[0\.0, nan,"),
+        ([0.0, np.inf, 0.0, 0.0], r"cart_pole: initial_state must be finite; got \[0\.0, inf,"),
+        ([[0.0, 0.1, 0.0, 0.0]], r"initial_state must be a non-empty 1-D vector; got shape"),
+        (["a", 0.0, 0.0, 0.0], r"cart_pole: initial_state must be numeric; got \['a'"),
+    ],
+)
+def test_drake_plant_refuses_a_non_finite_initial_state(initial_state, match):
+    # Before: Drake's SetDefaultPositions aborted on NaN; set_state already refused it.
+    system = ControlAffineSystem.from_multibody(CART_POLE).shifted(UPRIGHT)
+    with pytest.raises(ModelError, match=match):
+        DrakePlant(system, initial_state=initial_state)
+
+
+class _PlantSource:
+    """A model source of another class than MultibodySource that still has a plant."""
+
+    def __init__(self, plant):
+        self.multibody_plant = plant
+
+
+def test_drake_plant_asks_the_model_for_its_plant_and_equilibrium():
+    """Any source that gives a plant will do; unshifted, the plant runs at its own origin."""
+    # Before: only a MultibodySource was accepted (isinstance), and a ShiftedSystem's x_eq.
+    from ofrl_drake.plants import multibody_body_names
+
+    model = ControlAffineSystem.from_multibody(CART_POLE, C=[[1, 0, 0, 0], [0, 1, 0, 0]])
+    system = ControlAffineSystem(
+        model.f, model.g, model.C, name="cart_pole", source=_PlantSource(model.source.plant)
+    )
+    assert system.multibody_plant is model.source.plant
+    assert multibody_body_names(system) == multibody_body_names(model)
+    assert "Pole" in multibody_body_names(system)
+    z0 = [0.1, 0.2, 0.0, 0.0]
+    for block, x_star in (
+        (DrakePlant(system, initial_state=z0), np.zeros(4)),
+        (DrakePlant(system.shifted(UPRIGHT), initial_state=z0), np.asarray(UPRIGHT)),
+    ):
+        context = block.CreateDefaultContext()
+        block.initialize_context(context)
+        plant_context = block.GetSubsystemContext(block.plant, context)
+        np.testing.assert_array_equal(
+            block.plant.GetPositionsAndVelocities(plant_context), x_star + z0
+        )
+        np.testing.assert_allclose(block.get_state_output_port().Eval(context), z0, atol=1e-15)
 
 
 def _run_initialized(block, u, duration=1.0):

@@ -275,10 +275,11 @@ def test_acrobot_drake_system_builds_its_model(acrobot_scenario):
     plant = AcrobotPlant()
     context = plant.CreateDefaultContext()
     rng = np.random.default_rng(4)
+    x_eq, u_eq = system.equilibrium
     for _ in range(10):
         z, v = rng.uniform(-1.0, 1.0, 4), rng.uniform(-5.0, 5.0, 1)
-        context.SetContinuousState(z + system.x_eq)
-        plant.get_input_port().FixValue(context, v + system.u_eq)
+        context.SetContinuousState(z + x_eq)
+        plant.get_input_port().FixValue(context, v + u_eq)
         xdot = plant.EvalTimeDerivatives(context).CopyToVector()
         np.testing.assert_allclose(system.f(z) + system.g(z) @ v, xdot, rtol=1e-9, atol=1e-12)
 

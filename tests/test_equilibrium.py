@@ -203,3 +203,25 @@ def test_ablate_reports_states_relative_to_the_equilibrium(folder, tmp_path):
     assert row["initial_state"] == "[0.3, 0.0]"  # x0 - x*, as in the scenario
     md = (out / "ablation.md").read_text()
     assert f"relative to the equilibrium x* = {X_EQ}" in md
+
+
+def test_an_equilibrium_at_the_origin_without_u_is_kept_as_given_and_recorded(folder):
+    """x* = 0 with no u: the model keeps u_eq = None, and the run still records (0, 0)."""
+    # Before: the shifted system replaced u_eq by zeros and had no equilibrium accessor.
+    import dataclasses
+
+    from ofrl_drake import simulate
+
+    scenario = load_scenario(_write(folder, equilibrium={"x": [0.0, 0.0]}))
+    system = resolve_system(scenario)
+    assert system.is_shifted and system.x_eq == [0.0, 0.0] and system.u_eq is None
+    x_eq, u_eq = system.equilibrium
+    np.testing.assert_array_equal(x_eq, [0.0, 0.0])
+    np.testing.assert_array_equal(u_eq, [0.0])
+    short = dataclasses.replace(
+        scenario, simulation=dataclasses.replace(scenario.simulation, duration=0.2)
+    )
+    result = simulate(short, progress=False)
+    np.testing.assert_array_equal(result.x_equilibrium, [0.0, 0.0])
+    np.testing.assert_array_equal(result.u_equilibrium, [0.0])
+    assert result.summary()["equilibrium"] == {"x": [0.0, 0.0], "u": [0.0]}

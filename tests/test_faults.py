@@ -20,7 +20,7 @@ from pydrake.common.yaml import yaml_dump, yaml_load
 
 from ofrl_drake.atomic import atomic_write_text, output_lock
 from ofrl_drake.errors import OutputError
-from tests.cli_helpers import run_cli
+from tests.cli_helpers import run_cli, run_sweep_against_unreachable_scheduler
 
 from .conftest import PAPER_SCENARIO, ROOT
 
@@ -168,13 +168,13 @@ def test_an_alias_bomb_is_refused_at_once(tmp_path):
 
 def test_an_alias_bomb_is_refused_before_any_loader_expands_it(tmp_path, monkeypatch):
     # Expanding it took 123 s and 11.5 GB: the walk over the composed nodes
-    # refuses it, and Drake's expanding loaders are never called.
+    # refuses it, and the expanding loaders (PyYAML's, Drake's) are never called.
     import ofrl_drake.scenario as scenario_module
 
     def expand(*args, **kwargs):
         raise AssertionError("an expanding YAML loader was called")
 
-    monkeypatch.setattr(scenario_module, "yaml_load", expand)
+    monkeypatch.setattr(scenario_module, "_raw_yaml", expand)
     monkeypatch.setattr(scenario_module, "yaml_load_typed", expand)
     path = _alias_bomb(tmp_path)
     with pytest.raises(scenario_module.ScenarioError, match=r"expands to more than 100000 values"):
@@ -492,18 +492,8 @@ def test_a_scheduler_timeout_that_never_expires_is_refused_before_connecting(
 ):
     # Dask waits forever for timeout=0 and never times out on NaN: refused while parsing,
     # so no scheduler is contacted (nothing listens on port 1).
-    runs = ("--runs", 1) if command == "montecarlo" else ()
-    proc = run_cli(
-        command,
-        PAPER_SCENARIO,
-        *runs,
-        "--out",
-        tmp_path / "o",
-        "--scheduler",
-        "tcp://127.0.0.1:1",
-        "--scheduler-timeout",
-        value,
-        timeout=120,
+    proc = run_sweep_against_unreachable_scheduler(
+        command, PAPER_SCENARIO, tmp_path / "o", value, timeout=120
     )
     _one_line(
         proc,

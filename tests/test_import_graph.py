@@ -1,8 +1,9 @@
 """The package's imports run one way: model and math, blocks, wiring, studies, CLI.
 
 Parsed with ``ast`` from the sources (imports inside functions included; those
-under ``if TYPE_CHECKING:`` are annotations only and are skipped), so the test
-needs no import side effects. ``from package import name`` imports the
+under ``if TYPE_CHECKING:`` are annotations only and are skipped; relative
+imports resolved against the importing module), so the test needs no import
+side effects. ``from package import name`` imports the
 package (its ``__init__`` runs and is read for ``name``), and the submodule
 too when ``name`` is one.
 """
@@ -51,18 +52,18 @@ LAYERS = {
         "verification",
         "unobservable",
         "validity",
-        "guard",
         "provenance",
         "learning",
-        "progress",
-        "sweep",
-        "sweep_store",
         "model_error",
     },
     1: {"systems"},  # Drake blocks, thin wrappers over the math
     2: {"variants", "slots", "scenario", "diagram"},  # wiring
     3: {  # studies and what presents them
         "simulation",
+        "guard",  # the Simulator monitor of simulate
+        "progress",  # the progress bar of runs and sweeps
+        "sweep",  # the parallel runs of ablate and montecarlo
+        "sweep_store",  # and their results on disk
         "ablation",
         "ablation_grid",
         "ablation_tasks",
@@ -114,19 +115,44 @@ def _resolve(target: str, modules: set[str]) -> str:
     return name
 
 
-def imports_of(tree: ast.AST, modules: set[str]) -> set[str]:
-    """The ofrl_drake modules that the source ``tree`` imports at run time."""
+def _absolute(node: ast.ImportFrom, package: str) -> str | None:
+    """The module that ``from ... import`` names, a relative one resolved against ``package``.
+
+    ``package`` is the ofrl_drake package of the importing module (``""`` for
+    the top level, ``"design"`` for ``design.driver`` and ``design/__init__``):
+    ``from .sdp import x`` there is ``ofrl_drake.design.sdp``, ``from .. import
+    diagram`` is ``ofrl_drake``.
+    """
+    if node.level == 0:
+        return node.module
+    parts = ["ofrl_drake", *filter(None, package.split("."))]
+    if node.level > len(parts):
+        raise AssertionError(
+            f"a relative import of level {node.level} in ofrl_drake.{package or '__init__'} "
+            "reaches above the package"
+        )
+    base = parts[: len(parts) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imports_of(tree: ast.AST, modules: set[str], package: str = "") -> set[str]:
+    """The ofrl_drake modules that the source ``tree`` imports at run time.
+
+    ``package`` is the package of the module ``tree`` is the source of, for its
+    relative imports (:func:`_absolute`).
+    """
     skipped = _type_checking_nodes(tree)
     targets: set[str] = set()
     for node in ast.walk(tree):
         if id(node) in skipped:
             continue
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            if node.module == "ofrl_drake" or node.module.startswith("ofrl_drake."):
-                base = _resolve(node.module, modules)
+        if isinstance(node, ast.ImportFrom):
+            name = _absolute(node, package)
+            if name and (name == "ofrl_drake" or name.startswith("ofrl_drake.")):
+                base = _resolve(name, modules)
                 targets.add(base)  # its __init__ runs, and is read for the names
                 for alias in node.names:  # "from pkg import submodule" imports that too
-                    sub = f"{node.module}.{alias.name}".removeprefix("ofrl_drake.")
+                    sub = f"{name}.{alias.name}".removeprefix("ofrl_drake.")
                     if sub in modules:
                         targets.add(sub)
         elif isinstance(node, ast.Import):
@@ -143,7 +169,8 @@ def import_graph() -> dict[str, set[str]]:
     graph: dict[str, set[str]] = {}
     for module, path in files.items():
         tree = ast.parse(path.read_text(), filename=str(path))
-        graph[module] = imports_of(tree, modules) - {module}
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        graph[module] = imports_of(tree, modules, package) - {module}
     return graph
 
 
@@ -249,6 +276,29 @@ def test_from_a_package_import_reads_the_package():
     assert imports_of(ast.parse(lazy), modules) == {"examples"}
     hidden = "if TYPE_CHECKING:\n    from ofrl_drake.systems import world\n"
     assert imports_of(ast.parse(hidden), modules) == set()
+
+
+def test_relative_imports_are_resolved_against_the_importing_module():
+    modules = {"", "diagram", "systems", "systems.world", "systems.critic", "design"}
+    modules |= {"design.sdp", "design.driver"}
+
+    def targets(source, package):
+        return imports_of(ast.parse(source), modules, package)
+
+    # In systems/critic.py (package "systems"), and in systems/__init__.py (likewise).
+    assert targets("from .world import MeasuredPlant", "systems") == {"systems.world"}
+    assert targets("from . import world", "systems") == {"systems", "systems.world"}
+    assert targets("from ..diagram import SIGNALS", "systems") == {"diagram"}
+    assert targets("from .. import diagram", "systems") == {"", "diagram"}
+    assert targets("def f():\n    from ..design import sdp\n", "systems") == {
+        "design",
+        "design.sdp",
+    }
+    # In a top-level module (package ""): its siblings.
+    assert targets("from .diagram import SIGNALS", "") == {"diagram"}
+    assert targets("if TYPE_CHECKING:\n    from .diagram import SIGNALS\n", "") == set()
+    with pytest.raises(AssertionError, match=r"level 3 in ofrl_drake\.systems reaches above"):
+        targets("from ...elsewhere import x", "systems")
 
 
 def _import_order(modules: set[str]) -> list[str]:

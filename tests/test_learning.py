@@ -23,6 +23,8 @@ from ofrl_drake.learning import (
 )
 from ofrl_drake.points import grid_points
 
+from .conftest import ROOT
+
 # A double integrator: x1' = x2, x2' = u.
 A = np.array([[0.0, 1.0], [0.0, 0.0]])
 B = np.array([[0.0], [1.0]])
@@ -231,6 +233,70 @@ def test_auto_gains_put_gamma_at_the_steady_state_of_its_law():
     # Gamma0 is the fixed point of Gamma' = beta Gamma - kc Gamma S Gamma.
     G = gains.Gamma0
     np.testing.assert_allclose(gains.beta * G - gains.kc * G @ S @ G, 0, atol=1e-12)
+
+
+def test_auto_gains_rates_are_beta_times_eig_of_S0_inverse_S1_at_least_beta():
+    """What the docs of ``auto_gains`` say, on ``pendulum_upright`` at ``W0``.
+
+    With the policy held at ``W0``, ``critic_sum`` is affine in ``W`` with slope
+    ``S1 = (1/N) sum omega omega^T / rho`` (one rho), so ``W`` settles at the rates
+    ``eig(kc Gamma0 S1) = beta eig(S0^{-1} S1)``: at least beta (rho >= 1), unequal.
+    Under bounded forgetting Gamma settles at ``k0 / (k0 + 1) Gamma0``, not Gamma0.
+    """
+    from scipy.integrate import solve_ivp
+
+    from ofrl_drake import load_scenario
+    from ofrl_drake.diagram import critic_settings, extrapolation_points
+    from ofrl_drake.plants import resolve_system
+
+    scenario = load_scenario(ROOT / "diagrams" / "pendulum_upright.yaml")
+    system = resolve_system(scenario)
+    basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
+    Q, r = np.asarray(scenario.cost.Q, float), np.asarray(scenario.cost.R, float)
+    features = point_features(system, basis, extrapolation_points(scenario), Q)
+    critic = critic_settings(scenario, system, basis, features, r)
+    g, W0 = critic.gains, np.asarray(scenario.critic.W0, float)
+    assert critic.law == "policy_iteration" and g.gamma_bound == 10.0
+    extrapolator = Extrapolator(features, r, scenario.input_bound, g.nu, critic.metric)
+    at_W0 = extrapolator(W0, W0)
+    N = at_W0.omega.shape[1]
+    S1 = (at_W0.omega / at_W0.rho) @ at_W0.omega.T / N
+    # The slope of critic_sum in W, the policy held at W0, is S1 (central differences).
+    h = 1e-3
+    slope = np.column_stack(
+        [
+            (
+                extrapolator.sums(W0 + h * e, W0).critic_sum
+                - extrapolator.sums(W0 - h * e, W0).critic_sum
+            )
+            / (2 * h)
+            for e in np.eye(basis.size)
+        ]
+    )
+    np.testing.assert_allclose(slope, S1, rtol=1e-9, atol=1e-9 * np.abs(S1).max())
+    rates = np.linalg.eigvals(g.kc * g.Gamma0 @ S1)
+    np.testing.assert_allclose(rates.imag, 0.0, atol=1e-9 * g.beta)
+    relative = np.sort(rates.real) / g.beta
+    np.testing.assert_allclose(relative[[0, -1]], [1.57, 4.27], atol=0.005)  # the docs' numbers
+    S0 = at_W0.gain_sum
+    np.testing.assert_allclose(
+        np.sort(np.linalg.eigvals(np.linalg.solve(S0, S1)).real), relative, rtol=1e-6
+    )
+    # Bounded forgetting: 0.9 beta at Gamma0, and Gamma settles at k0 / (k0 + 1) Gamma0.
+    k0, L = g.gamma_bound, basis.size
+    G0inv = np.linalg.inv(g.Gamma0)
+    assert bounded_forgetting(g.beta, 1.0, k0) == pytest.approx(0.9 * g.beta)
+
+    def gamma_rate(_, z):
+        G = z.reshape(L, L)
+        forgetting = bounded_forgetting(g.beta, np.trace(G0inv @ G) / L, k0)
+        return (forgetting * G - g.kc * G @ S0 @ G).ravel()
+
+    settled = solve_ivp(gamma_rate, (0, 20 / g.beta), g.Gamma0.ravel(), rtol=1e-10, atol=1e-14)
+    G = settled.y[:, -1].reshape(L, L)
+    np.testing.assert_allclose(
+        G, k0 / (k0 + 1) * g.Gamma0, rtol=1e-6, atol=1e-9 * np.abs(g.Gamma0).max()
+    )
 
 
 def test_auto_gains_refuse_points_that_excite_nothing():

@@ -327,3 +327,45 @@ def test_run_writes_the_derived_gains_and_its_scenario_yaml_reproduces_the_run(t
     assert [e["t"] for e in summary["learning_curve"]] == pytest.approx([0.0, 5.0, 10.0])
     assert summary["learning_health"]["policy_updates_accepted"] == 0  # LQR is in force
     assert summary["learning_health"]["policy_updates_rejected"] == 9
+
+
+@pytest.mark.parametrize("checkpoints", [0, -1, 1.5, "3", True, None])
+def test_a_learning_curve_needs_a_whole_number_of_checkpoints(checkpoints):
+    # Before: a bare ValueError (0, -1), or a TypeError/AttributeError from deep inside.
+    from ofrl_drake.errors import ScenarioError
+    from ofrl_drake.learning_curve import learning_curve
+
+    with pytest.raises(
+        ScenarioError,
+        match=r"learning_curve: checkpoints \(the intervals between checkpoints; "
+        rf"learning_report\(checkpoints=0\) switches the curve off\) must be an integer "
+        rf">= 1; got {checkpoints!r}",
+    ):
+        learning_curve(None, None, checkpoints=checkpoints)
+
+
+@pytest.mark.parametrize("checkpoints", [-1, 2.0, "3"])
+def test_a_learning_report_needs_checkpoints_of_zero_or_more(checkpoints):
+    # Before: -1 switched the curve off silently; 2.0 and "3" failed deep inside.
+    from ofrl_drake.errors import ScenarioError
+    from ofrl_drake.learning_curve import learning_report
+
+    with pytest.raises(
+        ScenarioError,
+        match=r"learning_report: checkpoints \(0 switches the learning curve off\) must be "
+        rf"an integer >= 0; got {checkpoints!r}",
+    ):
+        learning_report(None, None, checkpoints=checkpoints)
+
+
+def test_an_optimal_task_names_a_warm_start_of_the_wrong_kind():
+    # Before: a TypeError, where every other bad argument is the project's error.
+    from ofrl_drake.ablation_grid import AblationError
+    from ofrl_drake.ablation_tasks import solve_optimal_task
+
+    with pytest.raises(
+        AblationError,
+        match=r"solve_optimal_task: warm must be a RunOutcome, the runs of a run_variant_states "
+        r"task, an optimal.Trajectory or None; got str 'last run'\. Pass the run",
+    ):
+        solve_optimal_task(load_scenario(PAPER), [0.1, 0.2], "last run")

@@ -159,3 +159,27 @@ def test_shifted_with_an_infinite_tol_checks_nothing():
     system = ControlAffineSystem(_f, _g, [[1.0, 0.0]], name="osc")
     shifted = system.shifted([0.3, 0.0], tol=float("inf"))  # not an equilibrium of osc
     np.testing.assert_allclose(shifted.x_eq, [0.3, 0.0])
+
+
+def test_a_model_in_its_own_coordinates_has_its_equilibrium_at_zero():
+    # Before: no equilibrium accessor; callers tested isinstance(system, ShiftedSystem).
+    system = ControlAffineSystem(_f, _g, [[1.0, 0.0]], name="osc")
+    assert system.is_shifted is False
+    x_eq, u_eq = system.equilibrium
+    np.testing.assert_array_equal(x_eq, [0.0, 0.0])
+    np.testing.assert_array_equal(u_eq, [0.0])
+    assert not x_eq.flags.writeable and not u_eq.flags.writeable
+    assert system.multibody_plant is None  # a hand-written model: no plant to run
+
+
+def test_a_loop_over_points_at_every_evaluation_is_refused_where_it_would_run():
+    # Before: only the construction's warning; a block moving its points looped every step.
+    with pytest.warns(UserWarning, match="do not accept a batch"):
+        looping = ControlAffineSystem(_f, lambda x: np.array([[0.0], [1.0]]), [[1.0, 0.0]])
+    with pytest.raises(
+        ModelError,
+        match=r"MovingBellmanExtrapolator: the model 'control_affine_system' evaluates f and "
+        r"g at every step .* \(vectorized = False\).* Write constants as 0 \* x\[0\]",
+    ):
+        looping.require_vectorized("MovingBellmanExtrapolator")
+    ControlAffineSystem(_f, _g, [[1.0, 0.0]]).require_vectorized("MovingBellmanExtrapolator")

@@ -51,7 +51,8 @@ def test_w0_is_the_lqr_value_of_the_linearization(scenario):
     plant = QuadrotorPlant()
     context = plant.CreateDefaultContext()
     context.SetContinuousState(scenario.equilibrium.x)
-    plant.get_input_port(0).FixValue(context, scenario.equilibrium.u)
+    u_port = resolve_system(scenario).source.input_port  # the port the model took as u
+    plant.GetInputPort(u_port).FixValue(context, scenario.equilibrium.u)
     lin = Linearize(plant, context)
     _, P = LinearQuadraticRegulator(
         lin.A(), lin.B(), np.asarray(scenario.cost.Q), np.diag(scenario.cost.R)

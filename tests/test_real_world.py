@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from pydrake.common import RandomGenerator
 from pydrake.common.yaml import yaml_dump, yaml_load
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
@@ -15,6 +16,7 @@ from scipy import stats
 from ofrl_drake import PolynomialBasis, build_closed_loop, load_scenario, simulate
 from ofrl_drake.errors import ModelError
 from ofrl_drake.examples import make_system
+from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.monte_carlo import (
     MonteCarloError,
     montecarlo,
@@ -25,6 +27,7 @@ from ofrl_drake.monte_carlo import (
 from ofrl_drake.scenario import MeasurementConfig, TruthConfig
 from ofrl_drake.systems import ControlAffinePlant, SaturatedController
 from ofrl_drake.systems.world import MeasuredPlant, SampledController
+from ofrl_drake.variants import kalman
 from tests.cli_helpers import run_cli
 
 from .conftest import ROOT
@@ -174,7 +177,11 @@ def test_a_truth_with_unit_mass_scale_runs_the_model(tmp_path):
     )
     truth = dataclasses.replace(base, truth=TruthConfig(body_mass_scale={"Pole": 1.0}))
     loop = build_closed_loop(truth)
-    assert type(loop.plant).__name__ == "DrakePlant"
+    # The plant block runs the model's own MultibodyPlant (a clone), the pole's mass scaled.
+    model_plant = loop.parts.truth.multibody_plant
+    assert isinstance(loop.plant.plant, MultibodyPlant) and loop.plant.plant is not model_plant
+    assert loop.plant.plant.num_positions() == model_plant.num_positions()
+    assert loop.plant.body_mass_scale == {"Pole": 1.0}
     a, b = simulate(base, progress=False), simulate(truth, loop=loop, progress=False)
     # Drake's plant against the model's f and g: the same loop to the integrator's accuracy.
     np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-5)
@@ -185,6 +192,31 @@ def test_a_truth_with_unit_mass_scale_runs_the_model(tmp_path):
     assert max(error["max_f_error"]) < 1e-10 and np.max(error["max_g_error"]) < 1e-10
 
 
+class _PlantSource:
+    """A model source of another class than MultibodySource that still has a plant."""
+
+    def __init__(self, plant):
+        self.multibody_plant = plant
+
+
+def test_the_model_error_of_a_mass_scaled_truth_asks_the_truth_for_its_plant():
+    # Before: only a MultibodySource counted, so this truth's masses were silently unscaled.
+    from ofrl_drake.model_error import model_mismatch
+
+    url = "package://drake/examples/multibody/cart_pole/cart_pole.sdf"
+    upright = ([0.0, np.pi, 0.0, 0.0], [0.0])
+    base = ControlAffineSystem.from_multibody(url)
+    model = base.shifted(*upright)
+    truth = ControlAffineSystem(
+        base.f, base.g, base.C, source=_PlantSource(base.source.plant)
+    ).shifted(*upright)
+    box = ([-0.2] * 4, [0.2] * 4)
+    same = model_mismatch(model, truth, box, body_mass_scale={"Pole": 1.0}, samples=20)
+    heavy = model_mismatch(model, truth, box, body_mass_scale={"Pole": 1.5}, samples=20)
+    assert max(same.max_f_error) < 1e-10 and max(same.equilibrium_residual) < 1e-10
+    assert max(heavy.max_f_error) > 1e-2
+
+
 def test_kalman_observer_regulates_the_real_world_cart_pole(real):
     scenario = dataclasses.replace(
         real, variant=dataclasses.replace(real.variant, observer="kalman")
@@ -192,7 +224,9 @@ def test_kalman_observer_regulates_the_real_world_cart_pole(real):
     r = simulate(scenario, progress=False)
     assert r.status == "ok"
     assert abs(r.x[-1, 1]) < 0.02 and abs(r.x[-1, 0]) < 0.1
-    assert type(build_closed_loop(scenario).observer).__name__ == "LinearizedLuenbergerObserver"
+    # The loop's observer is the one the kalman variant builds: Drake's steady-state gain.
+    loop = build_closed_loop(scenario)
+    np.testing.assert_array_equal(loop.observer.gain, kalman(loop.parts).gain)
 
 
 def test_without_real_world_keys_nothing_changes(paper_result, paper_scenario):
@@ -201,7 +235,7 @@ def test_without_real_world_keys_nothing_changes(paper_result, paper_scenario):
     assert "model_error" not in paper_result.summary()
     quiet = dataclasses.replace(paper_scenario, measurement=MeasurementConfig())
     loop = build_closed_loop(quiet)
-    assert type(loop.plant).__name__ != "MeasuredPlant"
+    assert not isinstance(loop.plant, MeasuredPlant)
 
 
 # ----------------------------------------------------------------- montecarlo

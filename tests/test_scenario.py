@@ -1,16 +1,20 @@
 """Scenario files: the paper's parameters, and every bad input named by its key."""
 
 import dataclasses
+import re
+import shutil
 
 import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
 from ofrl_drake import ModelError, ScenarioError, load_scenario
+from ofrl_drake.plants import resolve_truth
 from ofrl_drake.points import grid_points, uniform_points
 from ofrl_drake.scenario import BoxConfig, abort_box, dump_scenario
 
-from .conftest import MIMO_SCENARIO, PAPER_SCENARIO
+from .conftest import MIMO_SCENARIO, PAPER_SCENARIO, ROOT
+from .test_plants import USER_PLANT
 
 
 def test_paper_scenario_holds_every_parameter_of_notes(paper_scenario):
@@ -36,10 +40,11 @@ def test_mimo_scenario_loads(mimo_scenario):
     assert len(mimo_scenario.critic.W0) == 10
 
 
-def _write(tmp_path, edit):
-    data = yaml_load(data=PAPER_SCENARIO.read_text())
+def _write(folder, edit, source=PAPER_SCENARIO, name="bad.yaml"):
+    """``source`` changed in place by ``edit(data)``, written to ``folder / name``."""
+    data = yaml_load(data=source.read_text())
     edit(data)
-    path = tmp_path / "bad.yaml"
+    path = folder / name
     path.write_text(yaml_dump(data))
     return path
 
@@ -327,3 +332,221 @@ def test_point_counts_and_seeds_accept_numpy_integers():
     np.testing.assert_array_equal(
         uniform_points([-1], [1], np.int64(3), np.int64(2)), uniform_points([-1], [1], 3, 2)
     )
+
+
+# --------------------------------------------------------------------------
+# truth: entries are found beside the scenario file, as the model's are.
+# --------------------------------------------------------------------------
+#: A Drake System factory a user writes beside the scenario, for truth.plant.drake_system.
+USER_DRAKE_PLANT = """
+from pydrake.examples import PendulumPlant
+
+
+def make_pendulum():
+    return PendulumPlant()
+"""
+
+
+def _truth_scenario(folder, source, truth):
+    """``source`` (a shipped scenario) written into ``folder`` with ``truth`` added."""
+
+    def edit(data):
+        data["truth"] = truth
+        data["simulation"]["duration"] = 0.2
+
+    return _write(folder, edit, ROOT / "diagrams" / source, "scenario.yaml")
+
+
+@pytest.fixture
+def truth_folder(tmp_path):
+    """A folder holding a user's plant module, a Drake plant module and a model file."""
+    folder = tmp_path / "experiment"
+    (folder / "models").mkdir(parents=True)
+    (folder / "users_plant.py").write_text(USER_PLANT)
+    (folder / "users_pendulum.py").write_text(USER_DRAKE_PLANT)
+    shutil.copy(ROOT / "diagrams" / "models" / "cart_double_pendulum.urdf", folder / "models")
+    (tmp_path / "elsewhere").mkdir()
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("source", "truth", "key", "file"),
+    [
+        (
+            "two_state_paper.yaml",
+            {"system": "users_plant:make_plant"},
+            "system",
+            "users_plant.py:make_plant",
+        ),
+        (
+            "pendulum_upright.yaml",
+            {"plant": {"drake_system": "users_pendulum:make_pendulum", "C": [[1.0, 0.0]]}},
+            "plant.drake_system",
+            "users_pendulum.py:make_pendulum",
+        ),
+        (
+            "cart_double_pendulum.yaml",
+            {"plant": {"multibody": "models/cart_double_pendulum.urdf"}},
+            "plant.multibody",
+            "models/cart_double_pendulum.urdf",
+        ),
+    ],
+)
+def test_truth_entries_are_found_beside_the_scenario_from_another_cwd(
+    truth_folder, monkeypatch, source, truth, key, file
+):
+    path = _truth_scenario(truth_folder, source, truth)
+    monkeypatch.chdir(truth_folder.parent / "elsewhere")
+    scenario = load_scenario(path)
+    value = scenario.truth.system if key == "system" else getattr(scenario.truth.plant, key[6:])
+    assert value == str(truth_folder.resolve() / file)
+    assert resolve_truth(scenario) is not None
+
+
+def test_a_missing_truth_module_file_is_named_beside_the_scenario(truth_folder, monkeypatch):
+    path = _truth_scenario(truth_folder, "two_state_paper.yaml", {"system": "gone.py:make_plant"})
+    monkeypatch.chdir(truth_folder.parent / "elsewhere")
+    gone = re.escape(str((truth_folder / "gone.py").resolve()))
+    with pytest.raises(
+        ScenarioError, match=rf"truth\.system: '{gone}:make_plant': no such module file {gone}\."
+    ):
+        load_scenario(path)
+
+
+def test_a_run_with_a_truth_beside_its_scenario_writes_a_scenario_yaml_that_reloads(
+    truth_folder, tmp_path, monkeypatch
+):
+    from ofrl_drake.cli import main
+
+    path = _truth_scenario(
+        truth_folder, "two_state_paper.yaml", {"system": "users_plant:make_plant"}
+    )
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    out = tmp_path / "out"
+    assert main(["run", str(path), "--out", str(out), "--quiet", "--checkpoints", "0"]) == 0
+    monkeypatch.chdir(ROOT)  # as a later run, or a Dask worker, starts elsewhere
+    again = load_scenario(out / "scenario.yaml")
+    assert again.truth.system == f"{(truth_folder / 'users_plant.py').resolve()}:make_plant"
+    assert resolve_truth(again).name == "users_plant"
+
+
+# --------------------------------------------------------------------------
+# Numbers in exponent form: YAML 1.2 numbers where a float is expected.
+# --------------------------------------------------------------------------
+def _write_text(tmp_path, old, new):
+    """The paper scenario with the line text ``old`` replaced by ``new``, as written."""
+    text = PAPER_SCENARIO.read_text()
+    assert text.count(old) == 1, old
+    path = tmp_path / "edited.yaml"
+    path.write_text(text.replace(old, new))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "get", "expected"),
+    [
+        ("kc: 0.01", "kc: 1e-2", lambda s: s.critic.kc, float("1e-2")),
+        ("duration: 30.0", "duration: 1e1", lambda s: s.simulation.duration, 10.0),
+        ("duration: 30.0", "duration: 5.0e0", lambda s: s.simulation.duration, 5.0),
+        ("duration: 30.0", "duration: 3E+1", lambda s: s.simulation.duration, 30.0),
+        ("accuracy: 1.0e-4", "accuracy: 1e-4", lambda s: s.simulation.accuracy, 1e-4),
+        ("x0: [-1.0, 1.0]", "x0: [-1e0, .5e1]", lambda s: s.x0, [-1.0, 5.0]),
+        (
+            "Gamma0: [[50.0, 0.0, 0.0]",
+            "Gamma0: [[5e1, 0e0, 0.0]",
+            lambda s: s.critic.Gamma0[0],
+            [50.0, 0.0, 0.0],
+        ),
+    ],
+)
+def test_numbers_in_exponent_form_are_read_as_python_reads_them(tmp_path, old, new, get, expected):
+    value = get(load_scenario(_write_text(tmp_path, old, new)))
+    assert value == expected
+    assert all(type(v) is float for v in (value if isinstance(value, list) else [value]))
+
+
+def test_an_exponent_where_a_string_is_expected_stays_as_written(tmp_path):
+    path = _write_text(tmp_path, "kc: 0.01", "kc: 1e-2")
+    path.write_text(path.read_text().replace("name: two_state_paper", "name: 1e3"))
+    scenario = load_scenario(path)
+    assert scenario.name == "1e3"
+    assert scenario.critic.kc == 0.01  # and where a number is, the number (as 1.0e-2 gives)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "match"),
+    [
+        (
+            "counts: [10, 10]",
+            "counts: [1e1, 10]",
+            r"points\.counts\[0\]: expected an integer; got 1e1; write it as the integer 10 ",
+        ),
+        (
+            "counts: [10, 10]",
+            "counts: [1.0e+1, 10]",
+            r"points\.counts\[0\]: expected an integer; got 10\.0; write it as the integer 10 ",
+        ),
+        (
+            "counts: [10, 10]",
+            "counts: [2.5e0, 10]",
+            r"points\.counts\[0\]: expected an integer; got 2\.5e0\.$",
+        ),
+        (
+            "basis_degrees: [2]",
+            "basis_degrees: [2e0]",
+            r"critic\.basis_degrees\[0\]: expected an integer; got 2e0; write it as the integer 2",
+        ),
+        (
+            "kc: 0.01",
+            'kc: "1e-2"',
+            r"critic\.kc: expected a number; got '1e-2' \(a quoted string\); write the number "
+            "without quotes",
+        ),
+        (
+            "kc: 0.01",
+            "kc: '0.01'",
+            r"critic\.kc: expected a number; got '0\.01' \(a quoted string\)",
+        ),
+    ],
+)
+def test_integers_in_exponent_form_and_quoted_numbers_are_refused_naming_the_fix(
+    tmp_path, old, new, match
+):
+    with pytest.raises(ScenarioError, match=match):
+        load_scenario(_write_text(tmp_path, old, new))
+
+
+def test_an_unknown_yaml_tag_is_refused_naming_its_line(tmp_path):
+    path = _write_text(tmp_path, "input_bound: 3.0", "input_bound: !Big 3.0")
+    with pytest.raises(ScenarioError, match=r"edited\.yaml: not valid YAML: .*'!Big'.* line 7,"):
+        load_scenario(path)
+
+
+# --------------------------------------------------------------------------
+# The logs of a run are bounded: a tiny log_period is refused, not run out of memory.
+# --------------------------------------------------------------------------
+def test_a_log_period_whose_logs_would_not_fit_in_memory_is_refused(tmp_path):
+    path = _write_text(tmp_path, "log_period: 0.02", "log_period: 1.0e-12")
+    with pytest.raises(
+        ScenarioError,
+        match=r"simulation\.log_period: 1e-12 s over simulation\.duration = 30 s logs 3e\+13 "
+        r"samples, about .* GiB \(27 numbers each: x, xhat, W, Gamma, u, \.\.\.\); the logs may "
+        r"take at most 2 GiB\. Use a log_period above 3\.02e-06 s",
+    ):
+        load_scenario(path)
+
+
+def test_the_log_cap_passes_fine_log_periods_and_refuses_just_above_it(paper_scenario):
+    from ofrl_drake.scenario import MAX_LOG_BYTES, validate_scenario
+
+    fine = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, log_period=1e-5)
+    )
+    validate_scenario(fine)  # 3 million samples of the two-state example
+    # Just above the cap (27 numbers of 8 bytes per sample): refused.
+    period = 30.0 * 27 * 8 / MAX_LOG_BYTES / 1.001
+    tight = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, log_period=period)
+    )
+    with pytest.raises(ScenarioError, match=r"simulation\.log_period: .* at most 2 GiB"):
+        validate_scenario(tight)

@@ -114,3 +114,67 @@ def test_each_resolve_is_bounded_by_the_runs_wall_time(paper_scenario, paper_des
     assert r.extra["solve_failed"][-1, 0] == 1.0
     np.testing.assert_array_equal(r.extra["solve_counts"][-1], [2.0, 2.0])
     np.testing.assert_allclose(r.extra["observer_gains"][-1, :2], paper_design.L.ravel())
+
+
+def _observer(design, **given):
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.systems import ScheduledThreeGainObserver
+
+    arguments = {"period": 1.0, "half_width": [1.0, 1.0], "input_bound": 3.0, "alpha": 0.5}
+    return ScheduledThreeGainObserver(make_system("two_state"), design, **(arguments | given))
+
+
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        ({"period": np.inf}, r"^ScheduledThreeGainObserver: period must be finite; got inf\."),
+        ({"period": np.nan}, r"^ScheduledThreeGainObserver: period must be finite; got nan\."),
+        ({"period": 0.0}, r"^ScheduledThreeGainObserver: period must be > 0; got 0\.0\."),
+        ({"period": "1"}, r"^ScheduledThreeGainObserver: period must be a number; got '1'\."),
+        (
+            {"half_width": [np.nan, 1.0]},
+            r"^ScheduledThreeGainObserver: half_width must be finite; got \[nan, 1\.0\]\.",
+        ),
+        (
+            {"half_width": [np.inf, 1.0]},
+            r"^ScheduledThreeGainObserver: half_width must be finite; got \[inf, 1\.0\]\.",
+        ),
+        (
+            {"half_width": [1.0, -1.0]},
+            r"^ScheduledThreeGainObserver: half_width must have entries > 0; got \[1\.0, -1\.0\]",
+        ),
+        (
+            {"half_width": [1.0, 1.0, 1.0]},
+            r"^ScheduledThreeGainObserver: half_width must have length 2; got 3\.",
+        ),
+        (
+            {"half_width": "wide"},
+            r"^ScheduledThreeGainObserver: half_width must be numeric; got 'wide'\.",
+        ),
+        ({"alpha": -0.5}, r"^ScheduledThreeGainObserver: alpha must be >= 0; got -0\.5\."),
+        ({"alpha": "0.5"}, r"^ScheduledThreeGainObserver: alpha must be a number; got '0\.5'\."),
+        (
+            {"input_bound": np.inf},
+            r"^ScheduledThreeGainObserver: input_bound must be finite; got inf\.",
+        ),
+        (
+            {"design_options": {"solvr": "scs"}},
+            r"^ScheduledThreeGainObserver: design_options has unknown key 'solvr'; "
+            r"use keyword arguments of design_observer: .*'solver'",
+        ),
+        (
+            {"design_options": {"alpha": 1.0}},
+            r"^ScheduledThreeGainObserver: design_options has unknown key 'alpha'; ",
+        ),
+        (
+            {"design_options": [("solver", "scs")]},
+            r"^ScheduledThreeGainObserver: design_options must be a dict of keyword arguments",
+        ),
+    ],
+)
+def test_bad_arguments_are_named_up_front(paper_design, given, message):
+    """Not a block that re-solves forever on a bad box, nor fails every re-solve quietly."""
+    from ofrl_drake.errors import ModelError
+
+    with pytest.raises(ModelError, match=message):
+        _observer(paper_design, **given)

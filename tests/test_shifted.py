@@ -124,3 +124,22 @@ def test_not_an_equilibrium_names_the_residual_and_the_fix():
 def test_bad_equilibrium_is_named(x_eq, u_eq, match):
     with pytest.raises(ModelError, match=match):
         BASE.shifted(x_eq, u_eq)
+
+
+def test_shifted_stores_its_arguments_as_given_and_its_arrays_apart():
+    # Before: x_eq and u_eq were replaced by float arrays (u_eq zeros for None).
+    x_eq = np.array([np.pi / 2, 0.0])
+    s = BASE.shifted(x_eq, tol=0.5)  # sin(pi/2) = 1 cancels the bias: u* = 0 (omitted)
+    assert s.x_eq is x_eq and s.u_eq is None and s.tol == 0.5
+    assert s.is_shifted is True
+    x_star, u_star = s.equilibrium
+    np.testing.assert_array_equal(x_star, [np.pi / 2, 0.0])
+    np.testing.assert_array_equal(u_star, [0.0])
+    assert not x_star.flags.writeable and not u_star.flags.writeable
+    assert not s.residual.flags.writeable
+    before = s.f(np.array([0.1, 0.2]))
+    x_eq[0] = 0.0  # the caller's array changes; the model, built from a copy, does not
+    np.testing.assert_array_equal(s.f(np.array([0.1, 0.2])), before)
+    np.testing.assert_array_equal(s.equilibrium[0], [np.pi / 2, 0.0])
+    np.testing.assert_array_equal(s.to_original_state(np.zeros(2)), [np.pi / 2, 0.0])
+    assert "x_eq=[1.5707963267948966, 0.0]" in repr(s)

@@ -46,7 +46,12 @@ class _Constant(LeafSystem):
     def __init__(self, name, value):
         super().__init__()
         value = np.atleast_1d(np.asarray(value, float))
-        self.DeclareVectorOutputPort(name, value.size, lambda _c, out: out.SetFromVector(value))
+        self.DeclareVectorOutputPort(
+            name,
+            value.size,
+            lambda _c, out: out.SetFromVector(value),
+            prerequisites_of_calc={self.nothing_ticket()},  # a constant depends on nothing
+        )
 
 
 # --------------------------------------------------------- simulate(loop=...)
@@ -372,6 +377,7 @@ def test_swapped_blocks_keep_their_own_initial_values(short_scenario):
 def test_fixed_design_is_checked_against_its_box(paper_result, paper_scenario):
     v = paper_result.validity
     assert v.box_check == "fixed" and v.note is None
+    design = paper_result.design
     expected = validity_report(
         paper_result.t,
         paper_result.x,
@@ -379,10 +385,19 @@ def test_fixed_design_is_checked_against_its_box(paper_result, paper_scenario):
         paper_result.u,
         _fixed_box(paper_scenario),
         LBAR,
+        C=design["C"],
+        H=design["H"],
+        K=design["K"],
     )
     assert v == expected
     # xhat(0) = (2, 1.5) sits on the box edge and overshoots it; x stays inside.
     assert v.estimate_outside is True and v.state_outside is False
+    # The K injection point xhat + K ytil starts outside: K = [-2.79, 0]^T, ytil(0) = -0.5.
+    assert v.injection_check == "checked" and v.injection_k_outside is True
+    assert v.first_exit_time == 0.0
+    np.testing.assert_allclose(
+        v.box_excursions["xhat + K ytil"]["worst_point"], [3.3934, 1.5], atol=1e-4
+    )
 
 
 def test_observer_without_design_still_checks_the_input_bound(paper_scenario, tmp_path):
@@ -477,7 +492,16 @@ def test_the_input_bound_checked_is_the_one_of_the_design_the_observer_runs(pape
         "scenario's input_bound = 3"
     )
     expected = validity_report(
-        r.t, r.x, r.xhat, r.u, tuple(map(np.asarray, small_box)), 0.1, note=v.note
+        r.t,
+        r.x,
+        r.xhat,
+        r.u,
+        tuple(map(np.asarray, small_box)),
+        0.1,
+        note=v.note,
+        C=r.design["C"],
+        H=r.design["H"],
+        K=r.design["K"],
     )
     assert v == expected
 
@@ -562,7 +586,10 @@ def test_scheduled_observer_whose_resolves_all_fail_keeps_the_design_box(
     )
     v = r.validity
     assert v.box_check == "scheduled" and "(0 box changes)" in v.note
-    fixed = validity_report(r.t, r.x, r.xhat, r.u, _fixed_box(paper_scenario), LBAR)
+    d = paper_design
+    fixed = validity_report(
+        r.t, r.x, r.xhat, r.u, _fixed_box(paper_scenario), LBAR, C=d.C, H=d.H, K=d.K
+    )
     assert (v.first_exit_time, v.fraction_outside) == (
         fixed.first_exit_time,
         fixed.fraction_outside,

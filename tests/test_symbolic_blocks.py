@@ -14,7 +14,6 @@ from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.systems import (
     ControlAffinePlant,
-    CriticWeights,
     RunningCost,
     SaturatedController,
     SymbolicController,
@@ -32,6 +31,19 @@ def _with_blocks(scenario, kind):
     return dataclasses.replace(
         scenario, simulation=dataclasses.replace(scenario.simulation, blocks=kind)
     )
+
+
+def _is_cpp(block):
+    """Whether ``block`` is made of C++ systems: only those convert to ``AutoDiffXd``.
+
+    The Python blocks (``LeafSystem`` subclasses) declare no scalar conversion.
+    """
+    try:
+        block.ToAutoDiffXd()
+    except RuntimeError as err:
+        assert "does not support scalar conversion" in str(err)
+        return False
+    return True
 
 
 def _derivatives(block, state, inputs):
@@ -180,11 +192,10 @@ def test_closed_loop_matches_the_python_blocks(paper_scenario, paper_design):
         for kind in ("symbolic", "python")
     }
     loop = build_closed_loop(_with_blocks(short, "symbolic"), design=paper_design)
-    assert isinstance(loop.plant, SymbolicPlant)
-    assert isinstance(loop.observer, SymbolicObserver)
-    assert isinstance(loop.controller, SymbolicController)
-    assert isinstance(loop.critic, CriticWeights)  # Python in every mode (see the module)
-    assert isinstance(loop.running_cost, SymbolicRunningCost)
+    assert loop.parts.symbolic
+    for slot in ("plant", "observer", "controller", "running_cost"):
+        assert _is_cpp(loop.blocks[slot]), slot
+    assert not _is_cpp(loop.critic)  # Python in every mode (see the module)
     for key in ("x", "xhat", "W", "u", "cost"):
         np.testing.assert_allclose(
             getattr(runs["symbolic"], key), getattr(runs["python"], key), rtol=1e-9, atol=1e-10
@@ -261,9 +272,10 @@ def test_blocks_setting_picks_the_blocks(paper_scenario, paper_design):
     from ofrl_drake import diagram
 
     python = build_closed_loop(_with_blocks(paper_scenario, "python"), design=paper_design)
-    assert isinstance(python.plant, ControlAffinePlant)
-    assert isinstance(python.controller, SaturatedController)
-    assert isinstance(build_closed_loop(paper_scenario, design=paper_design).plant, SymbolicPlant)
+    assert not python.parts.symbolic
+    assert not _is_cpp(python.plant) and not _is_cpp(python.controller)
+    auto = build_closed_loop(paper_scenario, design=paper_design)  # blocks: auto
+    assert auto.parts.symbolic and _is_cpp(auto.plant)
 
     assert not diagram.symbolic_blocks(paper_scenario, _branching_system())
     with pytest.raises(ScenarioError, match=r"simulation\.blocks: symbolic needs f and g"):

@@ -24,9 +24,11 @@ from ofrl_drake.systems import (
     GammaGain,
     RunningCost,
     SaturatedController,
+    SaturatedLqrController,
     ScheduledThreeGainObserver,
     ThreeGainObserver,
 )
+from ofrl_drake.systems.world import MeasuredPlant
 from tests.block_helpers import ports, random_gains
 
 GRID = [np.array([a, b]) for a in (-1.5, -0.2, 0.0, 0.7, 1.9) for b in (-1.0, 0.3, 1.6)]
@@ -569,3 +571,68 @@ def test_bellman_extrapolator_rejects_what_its_setter_would(arguments, message):
     given = {"r": [1.0], "input_bound": 3.0, "nu": 0.7} | arguments
     with pytest.raises(ModelError, match=message):
         BellmanExtrapolator(features, **given)
+
+
+def test_lqr_controller_keeps_its_arguments_and_reports_its_lqr_result():
+    """The gain is a derived result (``lqr_result()``), not an attribute beside the arguments."""
+    import dataclasses
+
+    import scipy.linalg
+
+    from ofrl_drake.baselines import linearize_at_origin
+
+    lin = linearize_at_origin(make_system("two_state"))
+    Q, R = 5.0 * np.eye(2), np.array([[2.0]])
+    block = SaturatedLqrController(lin, Q, R, 3)
+    assert block.linearization is lin and block.Q is Q and block.R is R
+    assert block.input_bound == 3 and isinstance(block.input_bound, int)
+    S = scipy.linalg.solve_continuous_are(lin.A(), lin.B(), Q, R)
+    result = block.lqr_result()
+    np.testing.assert_allclose(result.S, S, rtol=1e-8)
+    np.testing.assert_allclose(result.K, np.linalg.solve(R, lin.B().T @ S), rtol=1e-8)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.K = np.zeros((1, 2))
+    context = block.CreateDefaultContext()
+    x = np.array([0.01, -0.02])
+    block.get_estimated_state_input_port().FixValue(context, x)
+    np.testing.assert_array_equal(block.get_u_output_port().Eval(context), -result.K @ x)
+
+
+@pytest.mark.parametrize(
+    ("Q", "R", "input_bound", "message"),
+    [
+        (np.eye(3), np.eye(1), 3.0, r"Q must have shape \(2, 2\); got \(3, 3\)\.$"),
+        (-np.eye(2), np.eye(1), 3.0, r"Q must be positive semidefinite"),
+        ([[1.0, 2.0], [0.0, 1.0]], np.eye(1), 3.0, r"Q must be symmetric"),
+        (np.eye(2), np.eye(2), 3.0, r"R must have shape \(1, 1\); got \(2, 2\)\.$"),
+        (np.eye(2), -np.eye(1), 3.0, r"R must be positive definite"),
+        (np.eye(2), [[np.nan]], 3.0, r"R must be finite; got \[\[nan\]\]\.$"),
+        (np.eye(2), np.eye(1), -3.0, r"input_bound must be > 0; got -3\.0\.$"),
+        (np.eye(2), np.eye(1), np.nan, r"input_bound must be finite; got nan\.$"),
+    ],
+)
+def test_lqr_controller_rejects_bad_weights_and_bound(Q, R, input_bound, message):
+    """Not a Drake abort from deep inside, nor a gain for a negative-definite Q."""
+    from ofrl_drake.baselines import linearize_at_origin
+
+    lin = linearize_at_origin(make_system("two_state"))
+    with pytest.raises(ModelError, match=rf"^SaturatedLqrController: {message}"):
+        SaturatedLqrController(lin, Q, R, input_bound)
+
+
+def test_measured_plant_without_a_state_output_says_so():
+    from pydrake.systems.framework import DiagramBuilder
+
+    builder = DiagramBuilder()
+    inner = builder.AddSystem(ControlAffinePlant(make_system("two_state")))
+    builder.ExportInput(inner.GetInputPort("u"), "u")
+    builder.ExportOutput(inner.GetOutputPort("y"), "y")
+    plant = MeasuredPlant(builder.Build(), period=0.1)
+    assert plant.get_u_input_port().get_name() == "u"
+    assert plant.get_y_output_port().get_name() == "y"
+    with pytest.raises(
+        ModelError,
+        match=r"^MeasuredPlant: the plant Diagram has no output port 'state', so its state "
+        r"cannot be read; give it one\.$",
+    ):
+        plant.get_state_output_port()

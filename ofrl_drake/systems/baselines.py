@@ -16,12 +16,16 @@ They use the port names of the blocks they replace, so
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.common.value import AbstractValue
-from pydrake.systems.controllers import LinearQuadraticRegulator
+from pydrake.systems.controllers import (
+    DiscreteTimeLinearQuadraticRegulator,
+    LinearQuadraticRegulator,
+)
 from pydrake.systems.estimators import LuenbergerObserver
 from pydrake.systems.framework import (
     BasicVector,
@@ -49,7 +53,14 @@ from ofrl_drake.bellman import (
     learning_condition,
     point_features,
 )
-from ofrl_drake.checks import finite_vector, positive_number, positive_vector
+from ofrl_drake.checks import (
+    finite_vector,
+    is_real_number,
+    nonnegative_matrix,
+    positive_number,
+    positive_vector,
+    spd_matrix,
+)
 from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
@@ -59,6 +70,7 @@ __all__ = [
     "ConstantController",
     "FullStateObserver",
     "LinearizedLuenbergerObserver",
+    "LqrResult",
     "MovingBellmanExtrapolator",
     "SaturatedLqrController",
 ]
@@ -163,10 +175,15 @@ class LinearizedLuenbergerObserver(Diagram):
         )
         builder.AddNamedSystem("luenberger", observer)
         self._observer = observer
-        builder.ExportInput(observer.get_observed_system_output_input_port(), "y")
-        builder.ExportInput(observer.get_observed_system_input_input_port(), "u")
-        builder.ExportOutput(observer.get_estimated_state_output_port(), "estimated_state")
+        y_index = builder.ExportInput(observer.get_observed_system_output_input_port(), "y")
+        u_index = builder.ExportInput(observer.get_observed_system_input_input_port(), "u")
+        xhat_index = builder.ExportOutput(
+            observer.get_estimated_state_output_port(), "estimated_state"
+        )
         builder.BuildInto(self)
+        self._y_port = self.get_input_port(int(y_index))
+        self._u_port = self.get_input_port(int(u_index))
+        self._xhat_port = self.get_output_port(int(xhat_index))
 
     def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
@@ -176,15 +193,15 @@ class LinearizedLuenbergerObserver(Diagram):
 
     def get_y_input_port(self) -> InputPort:
         """The measurement ``y`` (size q)."""
-        return self.GetInputPort("y")
+        return self._y_port
 
     def get_u_input_port(self) -> InputPort:
         """The applied input ``u`` (size m)."""
-        return self.GetInputPort("u")
+        return self._u_port
 
     def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
-        return self.GetOutputPort("estimated_state")
+        return self._xhat_port
 
     def observer_certificate(self) -> ObserverCertificate:
         """Kind ``"local"``: the linearized error's certificate at ``alpha``, no box."""
@@ -206,11 +223,32 @@ class LinearizedLuenbergerObserver(Diagram):
         )
 
 
+@dataclass(frozen=True)
+class LqrResult:
+    """The LQR solution a :class:`SaturatedLqrController` acts on.
+
+    Attributes
+    ----------
+    K : ndarray, shape (m, n)
+        The gain: the unclipped input is ``u = -K xhat``.
+    S : ndarray, shape (n, n)
+        The solution of the Riccati equation: ``x^T S x`` is the cost-to-go of
+        the linearization.
+    """
+
+    K: np.ndarray
+    S: np.ndarray
+
+
 class SaturatedLqrController(Diagram):
     """Drake's ``LinearQuadraticRegulator`` on the linearization, clipped at lbar.
 
     ``u = clip(-K xhat, -lbar, lbar)`` with ``K`` the LQR gain of
-    ``(A, B, Q, R)``, a Drake ``LinearSystem`` followed by a ``Saturation``.
+    ``(A, B, Q, R)`` (:meth:`lqr_result`), a Drake ``LinearSystem`` followed by
+    a ``Saturation``. The gain block is the one Drake's
+    ``LinearQuadraticRegulator(system, Q, R)`` builds, from the solution of
+    ``LinearQuadraticRegulator(A, B, Q, R)`` (its discrete-time counterpart
+    for a discrete ``linearization``), solved once here.
     Near the origin ``U(u) ~ r u^2``, so ``R = diag(r)`` is the quadratic part of
     the scenario's input cost.
 
@@ -227,16 +265,18 @@ class SaturatedLqrController(Diagram):
     linearization : LinearSystem
         ``(A, B)`` of the plant at the origin.
     Q : array_like, shape (n, n)
-        State weight.
+        State weight, symmetric positive semidefinite.
     R : array_like, shape (m, m)
-        Input weight, positive definite.
+        Input weight, symmetric positive definite (a number if m = 1).
     input_bound : float
         lbar > 0.
 
-    Attributes
-    ----------
-    K : ndarray, shape (m, n)
-        The LQR gain.
+    Raises
+    ------
+    ModelError
+        If ``Q`` is not a finite symmetric positive semidefinite (n, n)
+        matrix, ``R`` not a finite symmetric positive definite (m, m) matrix,
+        or ``input_bound`` not a finite number > 0.
     """
 
     def __init__(
@@ -247,31 +287,48 @@ class SaturatedLqrController(Diagram):
         self.Q = Q
         self.R = R
         self.input_bound = input_bound
-        lqr = LinearQuadraticRegulator(
-            linearization, drake_array(Q), drake_array(np.atleast_2d(np.asarray(R, float)))
-        )
-        self.K = -np.asarray(lqr.D(), dtype=float)
-        m = self.K.shape[0]
+        A: DrakeArray = linearization.A()
+        B: DrakeArray = linearization.B()
+        n, m = B.shape
+        Q_arr = nonnegative_matrix("SaturatedLqrController: Q", Q, n)
+        R_arr = spd_matrix("SaturatedLqrController: R", [[R]] if is_real_number(R) else R, m)
+        bound = positive_number("SaturatedLqrController: input_bound", input_bound)
+        period = linearization.time_period()
+        solve = LinearQuadraticRegulator if period == 0 else DiscreteTimeLinearQuadraticRegulator
+        K, S = solve(A, B, drake_array(Q_arr), drake_array(R_arr))
+        self._lqr_result = LqrResult(K=np.asarray(K, dtype=float), S=np.asarray(S, dtype=float))
         builder = DiagramBuilder()
-        builder.AddNamedSystem("lqr", lqr)
+        # u = -K x, as Drake's LinearQuadraticRegulator(system, Q, R) returns it.
+        gain = LinearSystem(
+            drake_array(np.zeros((0, 0))),
+            drake_array(np.zeros((0, n))),
+            drake_array(np.zeros((m, 0))),
+            drake_array(-self._lqr_result.K),
+            period,
+        )
+        builder.AddNamedSystem("lqr", gain)
         saturation = builder.AddNamedSystem(
             "saturation",
-            Saturation(
-                drake_array(-input_bound * np.ones(m)), drake_array(input_bound * np.ones(m))
-            ),
+            Saturation(drake_array(-bound * np.ones(m)), drake_array(bound * np.ones(m))),
         )
-        builder.Connect(lqr.get_output_port(), saturation.get_input_port())
-        builder.ExportInput(lqr.get_input_port(), "estimated_state")
-        builder.ExportOutput(saturation.get_output_port(), "u")
+        builder.Connect(gain.get_output_port(), saturation.get_input_port())
+        xhat_index = builder.ExportInput(gain.get_input_port(), "estimated_state")
+        u_index = builder.ExportOutput(saturation.get_output_port(), "u")
         builder.BuildInto(self)
+        self._xhat_port = self.get_input_port(int(xhat_index))
+        self._u_port = self.get_output_port(int(u_index))
+
+    def lqr_result(self) -> LqrResult:
+        """The LQR gain ``K`` and Riccati solution ``S`` of ``(A, B, Q, R)``."""
+        return self._lqr_result
 
     def get_estimated_state_input_port(self) -> InputPort:
         """The state estimate xhat (size n)."""
-        return self.GetInputPort("estimated_state")
+        return self._xhat_port
 
     def get_u_output_port(self) -> OutputPort:
         """The clipped input u (size m)."""
-        return self.GetOutputPort("u")
+        return self._u_port
 
 
 class ConstantController(Diagram):
@@ -305,12 +362,13 @@ class ConstantController(Diagram):
             raise ModelError(f"value must be a non-empty finite vector; got {value!r}.")
         builder = DiagramBuilder()
         source = builder.AddNamedSystem("constant", ConstantVectorSource(u))
-        builder.ExportOutput(source.get_output_port(), "u")
+        u_index = builder.ExportOutput(source.get_output_port(), "u")
         builder.BuildInto(self)
+        self._u_port = self.get_output_port(int(u_index))
 
     def get_u_output_port(self) -> OutputPort:
         """The held input u (size m)."""
-        return self.GetOutputPort("u")
+        return self._u_port
 
 
 class MovingBellmanExtrapolator(LeafSystem):
@@ -318,7 +376,8 @@ class MovingBellmanExtrapolator(LeafSystem):
 
     Like :class:`~ofrl_drake.systems.BellmanExtrapolator`, but the point
     features are recomputed at every evaluation, for all N points at once
-    (:func:`~ofrl_drake.bellman.point_features`, no loop over points). One cache
+    (:func:`~ofrl_drake.bellman.point_features`, no loop over points, so the
+    model's ``f`` and ``g`` must accept batches). One cache
     entry, depending on both inputs, feeds the three outputs.
 
     .. pydrake_system::
@@ -356,7 +415,9 @@ class MovingBellmanExtrapolator(LeafSystem):
     ------
     ModelError
         If ``offsets`` is not of shape (n, N), ``r`` is not m finite numbers
-        > 0, or ``input_bound`` or ``nu`` is not a finite number > 0.
+        > 0, ``input_bound`` or ``nu`` is not a finite number > 0, or
+        ``system`` is not :attr:`~ofrl_drake.model.ControlAffineSystem.vectorized`
+        (each evaluation would loop over the points in Python).
 
     Notes
     -----
@@ -388,6 +449,7 @@ class MovingBellmanExtrapolator(LeafSystem):
             raise ModelError(
                 f"offsets must have shape (n, N) = ({system.n}, N); got {self._offsets.shape}."
             )
+        system.require_vectorized("MovingBellmanExtrapolator")
         self._Q = np.asarray(Q, dtype=float)
         # The system, basis, offsets and Q checked once here (at xhat = 0), so
         # that each evaluation computes its features without re-checking them.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -11,10 +12,9 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPor
 from pydrake.systems.primitives import AffineSystem
 
 from ofrl_drake.checks import finite_vector
-from ofrl_drake.drake_models import MultibodySource
 from ofrl_drake.drake_typing import DrakeArray, drake_array
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem, ShiftedSystem
+from ofrl_drake.model import ControlAffineSystem
 
 __all__ = ["DrakePlant"]
 
@@ -65,7 +65,8 @@ class DrakePlant(Diagram):
     ------
     ModelError
         If ``system`` was not built from a multibody plant, ``initial_state``
-        has the wrong length, or ``body_mass_scale`` names no body of the plant.
+        is not a finite vector of length n, or ``body_mass_scale`` names no
+        body of the plant.
     """
 
     def __init__(
@@ -78,23 +79,23 @@ class DrakePlant(Diagram):
         self.system = system
         self.initial_state = initial_state
         self.body_mass_scale = body_mass_scale
-        source = system.source
-        if not isinstance(source, MultibodySource):
+        source_plant = system.multibody_plant
+        if source_plant is None:
             raise ModelError(
                 f"{system.name}: DrakePlant runs the multibody plant of a model built by "
                 "ControlAffineSystem.from_multibody; this model has none "
-                f"(source = {type(source).__name__}). Use ControlAffinePlant instead."
+                f"(source = {type(system.source).__name__}). Use ControlAffinePlant instead."
             )
         n, m = system.n, system.m
-        x_eq = drake_array(system.x_eq if isinstance(system, ShiftedSystem) else np.zeros(n))
-        u_eq = drake_array(system.u_eq if isinstance(system, ShiftedSystem) else np.zeros(m))
-        z0 = np.zeros(n) if initial_state is None else np.asarray(initial_state, float)
-        if z0.shape != (n,):
-            raise ModelError(
-                f"{system.name}: initial_state must have length n = {n}; got shape {z0.shape}."
-            )
+        x_star, u_star = system.equilibrium
+        x_eq, u_eq = drake_array(x_star), drake_array(u_star)
+        z0 = (
+            np.zeros(n)
+            if initial_state is None
+            else finite_vector(f"{system.name}: initial_state", initial_state, n)
+        )
         x0: DrakeArray = z0 + x_eq
-        plant: MultibodyPlant = source.plant.Clone()
+        plant = cast(MultibodyPlant, source_plant.Clone())  # pydrake stub: Clone() -> System
         nq = plant.num_positions()
         plant.SetDefaultPositions(drake_array(x0[:nq]))
         self._x_eq = x_eq
@@ -143,7 +144,7 @@ class DrakePlant(Diagram):
 
     @property
     def plant(self) -> MultibodyPlant:
-        """The ``MultibodyPlant`` inside (a clone of ``system.source.plant``)."""
+        """The ``MultibodyPlant`` inside (a clone of ``system.multibody_plant``)."""
         return self._plant
 
     def get_u_input_port(self) -> InputPort:

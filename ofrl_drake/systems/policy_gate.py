@@ -170,14 +170,16 @@ class PolicyPassThrough(Diagram):
         self.size = size
         builder = DiagramBuilder()
         through = builder.AddNamedSystem("pass_through", PassThrough(int(size)))
-        builder.ExportInput(through.get_input_port(), "weights")
-        builder.ExportOutput(through.get_output_port(), "policy_weights")
+        weights_index = builder.ExportInput(through.get_input_port(), "weights")
+        policy_index = builder.ExportOutput(through.get_output_port(), "policy_weights")
         builder.BuildInto(self)
+        self._weights_port = self.get_input_port(int(weights_index))
+        self._policy_port = self.get_output_port(int(policy_index))
 
     def get_weights_input_port(self) -> InputPort:
         """The critic's weights W (size L)."""
-        return self.GetInputPort("weights")
+        return self._weights_port
 
     def get_policy_weights_output_port(self) -> OutputPort:
         """The same weights (size L)."""
-        return self.GetOutputPort("policy_weights")
+        return self._policy_port

@@ -10,13 +10,14 @@ the ``solve_failed`` output and counted on ``solve_counts``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.checks import finite_vector
+from ofrl_drake.checks import finite_vector, positive_number, positive_vector
 from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem
@@ -30,6 +31,38 @@ __all__ = ["VERIFY_SAMPLES", "ScheduledThreeGainObserver"]
 
 #: Samples of the cheap falsification attempt on every design put in force.
 VERIFY_SAMPLES = 1000
+
+
+def _design_options(owner: str, options: object) -> dict[str, Any]:
+    """``options`` checked to be keyword arguments of :func:`~ofrl_drake.design.design_observer`.
+
+    Only its keyword-only ones: the block passes the system, box, input bound
+    and rate itself. A bad key found here, not as a ``TypeError`` at the first
+    re-solve in the middle of a run.
+    """
+    import inspect
+
+    from ofrl_drake.design import design_observer
+
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise ModelError(
+            f"{owner}: design_options must be a dict of keyword arguments of design_observer; "
+            f"got {options!r}."
+        )
+    parameters = inspect.signature(design_observer).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return dict(options)  # a wrapper that forwards any keyword: nothing to check
+    accepted = [p.name for p in parameters if p.kind is inspect.Parameter.KEYWORD_ONLY]
+    unknown = [key for key in options if key not in accepted]
+    if unknown:
+        keys = ", ".join(repr(key) for key in unknown)
+        raise ModelError(
+            f"{owner}: design_options has unknown key{'s' if len(unknown) > 1 else ''} {keys}; "
+            f"use keyword arguments of design_observer: {accepted}."
+        )
+    return dict(options)
 
 
 class ScheduledThreeGainObserver(LeafSystem):
@@ -76,8 +109,13 @@ class ScheduledThreeGainObserver(LeafSystem):
     Raises
     ------
     ModelError
-        If ``period`` is not > 0, ``half_width`` does not hold n positive
-        numbers, or ``initial_state`` is not a finite vector of length n.
+        If ``period`` is not a finite number > 0, ``half_width`` is not n
+        finite numbers > 0, ``input_bound`` or ``alpha`` is not a finite
+        number >= 0 (what :func:`~ofrl_drake.design.design_observer` accepts),
+        ``design_options`` holds a key that is not a keyword-only argument of
+        :func:`~ofrl_drake.design.design_observer`, or ``initial_state`` is
+        not a finite vector of length n. Each message starts with
+        ``"ScheduledThreeGainObserver: <argument>"``.
 
     Notes
     -----
@@ -121,14 +159,12 @@ class ScheduledThreeGainObserver(LeafSystem):
         self.alpha = alpha
         self.design_options = design_options
         self.initial_state = initial_state
-        if not period > 0:
-            raise ModelError(f"period must be > 0 seconds; got {period}.")
-        hw = np.asarray(half_width, dtype=float)
-        if hw.shape != (system.n,) or np.any(hw <= 0):
-            raise ModelError(
-                f"half_width must hold {system.n} positive numbers; got {hw.tolist()}."
-            )
-        self._half_width = hw
+        name = type(self).__name__
+        self._period = positive_number(f"{name}: period", period)
+        self._half_width = positive_vector(f"{name}: half_width", half_width, system.n)
+        self._input_bound = positive_number(f"{name}: input_bound", input_bound, allow_zero=True)
+        self._alpha = positive_number(f"{name}: alpha", alpha, allow_zero=True)
+        self._design_options = _design_options(name, design_options)
         n, q = system.n, system.q
         self._gain_shape = (n, q)
         gains = ObserverGains.from_design(system, initial_design)
@@ -150,6 +186,10 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._certificate_index = self.DeclareDiscreteState(
             drake_array([float(initial_design.max_eigenvalue)])
         )
+        # Eager on purpose: the falsification of the initial design is the default
+        # value of the `verification` state (logged from t = 0, like each re-solve's),
+        # and Drake takes a state's default when it is declared. Seeded, so every
+        # context and run reads the same numbers.
         self._verification_index = self.DeclareDiscreteState(self._verify(initial_design, 0))
         self._failed_index = self.DeclareDiscreteState(1)
         self._counts_index = self.DeclareDiscreteState(2)
@@ -165,7 +205,7 @@ class ScheduledThreeGainObserver(LeafSystem):
         self._verification_port = self.DeclareStateOutputPort(
             "verification", self._verification_index
         )
-        self.DeclarePeriodicDiscreteUpdateEvent(period, period, self._resolve)
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period, self._period, self._resolve)
 
     # ------------------------------------------------------------- accessors
     def get_y_input_port(self) -> InputPort:
@@ -276,7 +316,7 @@ class ScheduledThreeGainObserver(LeafSystem):
         counts = context.get_discrete_state(self._counts_index).CopyToVector()
         try:
             design = design_observer(
-                self.system, box, self.input_bound, self.alpha, **(self.design_options or {})
+                self.system, box, self._input_bound, self._alpha, **self._design_options
             )
         except OfrlError:
             discrete_state.get_mutable_vector(self._failed_index).SetFromVector([1.0])

@@ -47,7 +47,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.symbolic import MakeVectorVariable
-from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
+from pydrake.systems.framework import (
+    Context,
+    Diagram,
+    DiagramBuilder,
+    InputPort,
+    InputPortIndex,
+    OutputPort,
+)
 from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSystem
 
 from ofrl_drake.basis import PolynomialBasis
@@ -89,11 +96,12 @@ def _add_symbolic_system(
     state: SymbolicArray,
     dynamics: Any,
     output: Any,
-) -> SymbolicVectorSystem:
+) -> tuple[SymbolicVectorSystem, list[InputPortIndex]]:
     """Add a ``SymbolicVectorSystem`` and export its inputs as the named ports.
 
     ``inputs`` is ``(port name, variables)`` in order; several ports are
-    stacked into the system's one input by a ``Multiplexer``.
+    stacked into the system's one input by a ``Multiplexer``. Returns the
+    system and the indices of the exported inputs, in the order of ``inputs``.
     """
     system = SymbolicVectorSystem(
         state=state,
@@ -103,13 +111,13 @@ def _add_symbolic_system(
     )
     builder.AddNamedSystem(name, system)
     if len(inputs) == 1:
-        builder.ExportInput(system.get_input_port(), inputs[0][0])
-        return system
+        return system, [builder.ExportInput(system.get_input_port(), inputs[0][0])]
     mux = builder.AddNamedSystem("stack_inputs", Multiplexer([v.size for _, v in inputs]))
     builder.Connect(mux.get_output_port(), system.get_input_port())
-    for i, (port, _) in enumerate(inputs):
-        builder.ExportInput(mux.GetInputPort(f"u{i}"), port)
-    return system
+    indices = [
+        builder.ExportInput(mux.get_input_port(i), port) for i, (port, _) in enumerate(inputs)
+    ]
+    return system, indices
 
 
 class SymbolicPlant(Diagram):
@@ -153,27 +161,30 @@ class SymbolicPlant(Diagram):
         with np.errstate(invalid="ignore"):  # numpy's object loops flag Drake expressions
             xdot = model.f + model.g @ u
         builder = DiagramBuilder()
-        dynamics = _add_symbolic_system(
+        dynamics, (u_index,) = _add_symbolic_system(
             builder, "dynamics", [("u", u)], state=x, dynamics=xdot, output=x
         )
         C: DrakeArray = system.output_matrix
         output = builder.AddNamedSystem("output_map", MatrixGain(C))
         builder.Connect(dynamics.get_output_port(), output.get_input_port())
-        builder.ExportOutput(output.get_output_port(), "y")
-        builder.ExportOutput(dynamics.get_output_port(), "state")
+        y_index = builder.ExportOutput(output.get_output_port(), "y")
+        state_index = builder.ExportOutput(dynamics.get_output_port(), "state")
         builder.BuildInto(self)
+        self._u_port = self.get_input_port(int(u_index))
+        self._y_port = self.get_output_port(int(y_index))
+        self._state_port = self.get_output_port(int(state_index))
 
     def get_u_input_port(self) -> InputPort:
         """The input ``u`` (size m)."""
-        return self.GetInputPort("u")
+        return self._u_port
 
     def get_y_output_port(self) -> OutputPort:
         """The measured output ``y = C x`` (size q)."""
-        return self.GetOutputPort("y")
+        return self._y_port
 
     def get_state_output_port(self) -> OutputPort:
         """The true state ``x`` (size n)."""
-        return self.GetOutputPort("state")
+        return self._state_port
 
     def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
@@ -234,23 +245,26 @@ class SymbolicObserver(Diagram):
         u: SymbolicArray = MakeVectorVariable(system.m, "u")
         rhs = observer_rhs_expression(model, system.output_matrix, gains, xhat, y, u)
         builder = DiagramBuilder()
-        dynamics = _add_symbolic_system(
+        dynamics, (y_index, u_index) = _add_symbolic_system(
             builder, "dynamics", [("y", y), ("u", u)], state=xhat, dynamics=rhs, output=xhat
         )
-        builder.ExportOutput(dynamics.get_output_port(), "estimated_state")
+        xhat_index = builder.ExportOutput(dynamics.get_output_port(), "estimated_state")
         builder.BuildInto(self)
+        self._y_port = self.get_input_port(int(y_index))
+        self._u_port = self.get_input_port(int(u_index))
+        self._xhat_port = self.get_output_port(int(xhat_index))
 
     def get_y_input_port(self) -> InputPort:
         """The measurement ``y`` (size q)."""
-        return self.GetInputPort("y")
+        return self._y_port
 
     def get_u_input_port(self) -> InputPort:
         """The applied input ``u`` (size m)."""
-        return self.GetInputPort("u")
+        return self._u_port
 
     def get_estimated_state_output_port(self) -> OutputPort:
         """The estimate ``xhat`` (size n)."""
-        return self.GetOutputPort("estimated_state")
+        return self._xhat_port
 
     def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
@@ -314,7 +328,7 @@ class SymbolicController(Diagram):
         u = policy_expression(basis, model.x, model.g, W, r_arr, float(input_bound))
         unused: SymbolicArray = MakeVectorVariable(1, "unused")
         builder = DiagramBuilder()
-        policy = _add_symbolic_system(
+        policy, (xhat_index, weights_index) = _add_symbolic_system(
             builder,
             "policy",
             [("estimated_state", model.x), ("policy_weights", W)],
@@ -322,20 +336,23 @@ class SymbolicController(Diagram):
             dynamics=[0.0 * unused[0]],
             output=u,
         )
-        builder.ExportOutput(policy.get_output_port(), "u")
+        u_index = builder.ExportOutput(policy.get_output_port(), "u")
         builder.BuildInto(self)
+        self._xhat_port = self.get_input_port(int(xhat_index))
+        self._weights_port = self.get_input_port(int(weights_index))
+        self._u_port = self.get_output_port(int(u_index))
 
     def get_estimated_state_input_port(self) -> InputPort:
         """The state estimate xhat (size n)."""
-        return self.GetInputPort("estimated_state")
+        return self._xhat_port
 
     def get_policy_weights_input_port(self) -> InputPort:
         """The weights of the policy in force (size L): the critic's W under the paper's law."""
-        return self.GetInputPort("policy_weights")
+        return self._weights_port
 
     def get_u_output_port(self) -> OutputPort:
         """The saturated input u (size m)."""
-        return self.GetOutputPort("u")
+        return self._u_port
 
 
 class SymbolicRunningCost(Diagram):
@@ -385,20 +402,23 @@ class SymbolicRunningCost(Diagram):
         u: SymbolicArray = MakeVectorVariable(m, "u")
         rate = stage_cost_expression(x, u, Q_arr, r_arr, float(input_bound))
         builder = DiagramBuilder()
-        integrand = _add_symbolic_system(
+        integrand, (state_index, u_index) = _add_symbolic_system(
             builder, "stage_cost", [("state", x), ("u", u)], state=J, dynamics=[rate], output=J
         )
-        builder.ExportOutput(integrand.get_output_port(), "cost")
+        cost_index = builder.ExportOutput(integrand.get_output_port(), "cost")
         builder.BuildInto(self)
+        self._state_port = self.get_input_port(int(state_index))
+        self._u_port = self.get_input_port(int(u_index))
+        self._cost_port = self.get_output_port(int(cost_index))
 
     def get_state_input_port(self) -> InputPort:
         """The true state x (size n)."""
-        return self.GetInputPort("state")
+        return self._state_port
 
     def get_u_input_port(self) -> InputPort:
         """The applied input u (size m)."""
-        return self.GetInputPort("u")
+        return self._u_port
 
     def get_cost_output_port(self) -> OutputPort:
         """The accumulated cost J (size 1)."""
-        return self.GetOutputPort("cost")
+        return self._cost_port

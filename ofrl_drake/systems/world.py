@@ -25,6 +25,7 @@ from pydrake.systems.framework import (
     DiagramBuilder,
     InputPort,
     OutputPort,
+    OutputPortIndex,
     System,
 )
 from pydrake.systems.primitives import (
@@ -78,15 +79,22 @@ def _optional_vector(name: str, value: ArrayLike | None, size: int) -> np.ndarra
 
 def _export_other_ports(
     builder: DiagramBuilder, inner: System, skip_in: set[str], skip_out: set[str]
-) -> None:
+) -> dict[str, OutputPortIndex]:
+    """Export the ports of ``inner`` not named in ``skip_*`` under their own names.
+
+    Returns the index of each exported output by name, for the accessors.
+    """
     for i in range(inner.num_input_ports()):
         input_port = inner.get_input_port(i)
         if input_port.get_name() not in skip_in:
             builder.ExportInput(input_port, input_port.get_name())
+    outputs: dict[str, OutputPortIndex] = {}
     for i in range(inner.num_output_ports()):
         output_port = inner.get_output_port(i)
-        if output_port.get_name() not in skip_out:
-            builder.ExportOutput(output_port, output_port.get_name())
+        name = output_port.get_name()
+        if name not in skip_out:
+            outputs[name] = builder.ExportOutput(output_port, name)
+    return outputs
 
 
 class MeasuredPlant(Diagram):
@@ -156,9 +164,9 @@ class MeasuredPlant(Diagram):
             source = builder.AddNamedSystem("disturbance", ConstantVectorSource(d))
             builder.Connect(source.get_output_port(), add_d.GetInputPort("u1"))
             builder.Connect(add_d.get_output_port(), inner.GetInputPort("u"))
-            builder.ExportInput(add_d.GetInputPort("u0"), "u")
+            u_index = builder.ExportInput(add_d.GetInputPort("u0"), "u")
         else:
-            builder.ExportInput(inner.GetInputPort("u"), "u")
+            u_index = builder.ExportInput(inner.GetInputPort("u"), "u")
         y = inner.GetOutputPort("y")
         self._hold: ZeroOrderHold | None = None
         if np.any(std > 0):
@@ -176,22 +184,36 @@ class MeasuredPlant(Diagram):
             builder.AddNamedSystem("sample_and_hold", self._hold)
             builder.Connect(y, self._hold.get_input_port())
             y = self._hold.get_output_port()
-        builder.ExportOutput(y, "y")
-        _export_other_ports(builder, inner, {"u"}, {"y"})
+        y_index = builder.ExportOutput(y, "y")
+        others = _export_other_ports(builder, inner, {"u"}, {"y"})
         builder.BuildInto(self)
         self._inner = inner
+        self._u_port = self.get_input_port(int(u_index))
+        self._y_port = self.get_output_port(int(y_index))
+        self._state_port = self.get_output_port(int(others["state"])) if "state" in others else None
 
     def get_u_input_port(self) -> InputPort:
         """The input ``u`` (size m), before the disturbance is added."""
-        return self.GetInputPort("u")
+        return self._u_port
 
     def get_y_output_port(self) -> OutputPort:
         """The measured output ``y``, noisy and sampled (size q)."""
-        return self.GetOutputPort("y")
+        return self._y_port
 
     def get_state_output_port(self) -> OutputPort:
-        """The inner plant's true state ``x`` (size n)."""
-        return self.GetOutputPort("state")
+        """The inner plant's true state ``x`` (size n).
+
+        Raises
+        ------
+        ModelError
+            If the inner plant has no output port ``state``.
+        """
+        if self._state_port is None:
+            raise ModelError(
+                f"MeasuredPlant: the plant {type(self._inner).__name__} has no output port "
+                "'state', so its state cannot be read; give it one."
+            )
+        return self._state_port
 
     def initialize_context(self, context: Context) -> None:
         """The inner plant's own initialization (:func:`initialize_context`)."""
@@ -254,14 +276,15 @@ class SampledController(Diagram):
         self._hold = ZeroOrderHold(float(period), m)
         builder.AddNamedSystem("hold", self._hold)
         builder.Connect(inner.GetOutputPort("u"), self._hold.get_input_port())
-        builder.ExportOutput(self._hold.get_output_port(), "u")
+        u_index = builder.ExportOutput(self._hold.get_output_port(), "u")
         _export_other_ports(builder, inner, set(), {"u"})
         builder.BuildInto(self)
         self._inner = inner
+        self._u_port = self.get_output_port(int(u_index))
 
     def get_u_output_port(self) -> OutputPort:
         """The held input ``u`` (size m)."""
-        return self.GetOutputPort("u")
+        return self._u_port
 
     def initialize_context(self, context: Context) -> None:
         """The inner controller's own initialization (:func:`initialize_context`)."""
