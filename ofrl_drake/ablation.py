@@ -47,13 +47,14 @@ sweep goes on. If the run is fine but ``J*`` did not converge, ``status`` is
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -128,6 +129,7 @@ FILES = SweepFiles(
     command="ablate",
     kind="ablation table",
     error=AblationError,
+    folders=("runs", "optimal"),
 )
 
 
@@ -303,28 +305,28 @@ class _Sweep:
         simulation = dataclasses.replace(self.scenario.simulation, duration=self.duration)
         return dataclasses.replace(self.scenario, simulation=simulation)
 
-    def open(self, resume: bool, retry_failed: bool = False) -> None:
-        """Read the rows and optima already on disk; open the table for appending.
+    @contextlib.contextmanager
+    def recording(self, resume: bool, retry_failed: bool = False) -> Iterator[None]:
+        """Read the rows and optima already on disk and append to the table, for the block.
 
         With ``retry_failed``, rows whose status is not ``ok`` are dropped from
-        the table (rewritten whole) so that their runs are done again.
+        the table (rewritten whole) so that their runs are done again. A sweep
+        that stops before its first row removes what it created in the folder
+        (:meth:`~ofrl_drake.sweep_store.SweepStore.recording`).
         """
         if self.store is None:
+            yield
             return
         plan = _plan(
             self.scenario, self.duration, list(self.states), list(self.variants.values()), self.seed
         )
-        rows = self.store.open(
+        with self.store.recording(
             plan, resume=resume, mismatch=_resume_mismatch, retry_failed=retry_failed
-        )
-        for row in rows:
-            self.done[(row["variant"], row["initial_state"])] = row
-        self.store.start()
-        self.cache = OptimalCostCache(self.store.folder / "optimal", self.mesh, self.solver)
-
-    def close(self) -> None:
-        if self.store is not None:
-            self.store.close()
+        ) as rows:
+            for row in rows:
+                self.done[(row["variant"], row["initial_state"])] = row
+            self.cache = OptimalCostCache(self.store.folder / "optimal", self.mesh, self.solver)
+            yield
 
     def submit(self, engine: Any, todo: Sequence[tuple[str, str]]) -> dict[Any, tuple]:
         """Submit the runs of ``todo`` and the missing optima; return handle -> task.
@@ -487,7 +489,10 @@ def ablate(
         Run on this Dask cluster; without one, run serially in this process.
     out : str or Path, optional
         Directory for ``ablation.csv`` (streamed), ``optimal/`` (cached ``J*``)
-        and ``runs/`` (trajectories). Without it nothing is written.
+        and ``runs/`` (trajectories). Without it nothing is written. A sweep
+        that stops before its first row (an error, an interrupt) removes what
+        it created there, so nothing half-written stays; a folder that existed
+        is left as it was found.
     resume : bool
         Keep the rows already in ``out/ablation.csv`` and run only the rest.
     duration : float, optional
@@ -525,6 +530,8 @@ def ablate(
         table without ``resume``, or a ``resume`` whose seed, initial states,
         variants, scenario or horizon differ from the sweep in ``out`` (named
         in the message).
+    OutputError
+        If ``out`` cannot be written.
 
     Examples
     --------
@@ -550,9 +557,8 @@ def ablate(
         seed=seed,
         workers=worker_threads(client),
     )
-    sweep.open(resume, retry_failed)
-    todo = [k for k in keys if k not in sweep.done]
-    try:
+    with sweep.recording(resume, retry_failed):
+        todo = [k for k in keys if k not in sweep.done]
         execute(
             lambda engine: sweep.submit(engine, todo),
             sweep.finished,
@@ -561,6 +567,4 @@ def ablate(
             done=len(keys) - len(todo),
             progress=progress,
         )
-    finally:
-        sweep.close()
     return [sweep.done[k] for k in keys]

@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
 
@@ -278,11 +279,16 @@ def write_report(
     md = out / "ablation.md"
     atomic_write_text(md, "\n".join(text))
     ratio = figures / "optimality_ratio.png"
-    with atomic_file(ratio, "wb") as fh:
-        plot_optimality_ratio(rows, variants).savefig(fh, dpi=DPI, format="png")
+    _save(plot_optimality_ratio(rows, variants), ratio)
     traj = figures / "trajectories.png"
-    with atomic_file(traj, "wb") as fh:
-        plot_trajectories(out / "runs", variants, x0_label, optimum, equilibrium, accuracy).savefig(
-            fh, dpi=DPI, format="png"
-        )
+    _save(plot_trajectories(out / "runs", variants, x0_label, optimum, equilibrium, accuracy), traj)
     return [md, ratio, traj]
+
+
+def _save(fig: Figure, path: Path) -> None:
+    """Write ``fig`` to ``path`` as a PNG, whole or not at all, and close it."""
+    try:
+        with atomic_file(path, "wb") as fh:
+            fig.savefig(fh, dpi=DPI, format="png")
+    finally:
+        plt.close(fig)

@@ -9,12 +9,14 @@ Subcommands::
 
 Exit codes (docs/cli.md has the table): 0 success; 1 internal error (a bug:
 please report it); 2 bad input, printed on one line (``error: ...``); 3 ``run``
-stopped early because the run diverged or timed out (its output folder is
-written and says so); 4 ``verify-observer`` found a counterexample to the
-design's decay claim (printed in one line); 130 interrupted (SIGINT). Nothing partial is written:
+stopped early because the run diverged or timed out, or its learning curve ran
+out of ``--max-wall`` (its output folder is written and says so); 4
+``verify-observer`` found a counterexample to the design's decay claim
+(printed in one line); 130 interrupted (SIGINT). Nothing partial is written:
 outputs are built in a temporary sibling and renamed into place. The exception
-is ``ablate``, whose rows stream into ``DIR/ablation.csv`` as runs finish so
-that ``--resume`` can complete an interrupted sweep.
+is ``ablate`` and ``montecarlo``, whose rows stream into their table as runs
+finish so that ``--resume`` can complete an interrupted sweep (one that stops
+before its first row removes what it wrote).
 """
 
 from __future__ import annotations
@@ -82,7 +84,7 @@ LEARNING_HEALTH_FILE = "learning_health.npz"
 #: Most ``run --checkpoints``: each checkpoint is one more closed-loop simulation over the
 #: whole horizon (milliseconds to seconds each), so 10^4 already take minutes to hours,
 #: against a default of 10. Refused while parsing: a billion would allocate 8 GB for the
-#: checkpoint times alone, and ``--max-wall`` does not bound the learning curve.
+#: checkpoint times alone, before ``--max-wall`` (which bounds the curve's time) could act.
 MAX_CHECKPOINTS = 10_000
 
 #: Most ``ablate --initial-states``: each state adds a run of every variant and a
@@ -261,8 +263,15 @@ def _not_regulated(details: dict[str, Any]) -> str:
     )
 
 
-def _learning_report(args: argparse.Namespace, loop: Any, result: Any) -> Any:
-    """The learning curve and health of ``run`` (``--checkpoints``, ``--optimal``)."""
+def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: float) -> Any:
+    """The learning curve and health of ``run`` (``--checkpoints``, ``--optimal``).
+
+    The curve shares ``simulation.max_wall_time`` (``--max-wall``) with the
+    simulation, which began at ``started`` (``time.monotonic()``): when it is
+    used up, the report has no curve and says why (``curve_stop``), and
+    ``run`` stops with exit 3 (:func:`_run`).
+    """
+    from ofrl_drake.errors import WallTimeExceeded
     from ofrl_drake.learning_curve import learning_report
 
     optimal_cost = None
@@ -278,7 +287,19 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any) -> Any:
                 "optimality ratios.",
                 file=sys.stderr,
             )
-    return learning_report(loop, result, checkpoints=args.checkpoints, optimal_cost=optimal_cost)
+    budget = loop.parts.scenario.simulation.max_wall_time
+    try:
+        return learning_report(
+            loop,
+            result,
+            checkpoints=args.checkpoints,
+            optimal_cost=optimal_cost,
+            max_wall_time=budget,
+            started=None if budget is None else started,
+        )
+    except WallTimeExceeded as err:  # the run's outputs are kept; the curve is not
+        report = learning_report(loop, result, checkpoints=0, optimal_cost=optimal_cost)
+        return dataclasses.replace(report, curve_stop=" ".join(str(err).split()))
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -308,11 +329,12 @@ def _run(args: argparse.Namespace) -> int:
     if warning:
         print(warning, file=sys.stderr)
     loop = build_closed_loop(scenario)
+    started = time.monotonic()  # --max-wall: the simulation and the learning curve share it
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
     verification = _verify(loop.design, loop.parts.system)
     if verification is not None and result.design is not None:
         result.design = {**result.design, "verification": verification.to_dict()}
-    learning = _learning_report(args, loop, result)
+    learning = _learning_report(args, loop, result, started)
     result.reports.update(learning.to_dict())
     out = Path(args.out)
     with atomic_directory(out) as tmp:
@@ -341,10 +363,22 @@ def _run(args: argparse.Namespace) -> int:
     if animation_note:
         print(animation_note, file=sys.stderr)
     stop = result.stop
+    no_curve = (
+        ""
+        if learning.curve_stop is None
+        else ", without the learning curve (out of --max-wall; summary.json -> learning_curve_stop)"
+    )
     if stop is not None and result.status != "ok":
         print(
             f"stopped: {result.status}: {stop.reason}; wrote {out} with the logs up "
-            f"to t = {stop.time:.6g} s",
+            f"to t = {stop.time:.6g} s{no_curve}",
+            file=sys.stderr,
+        )
+        return EXIT_STOPPED
+    if learning.curve_stop is not None:
+        print(
+            f"stopped: timeout: {learning.curve_stop.rstrip('.')}; wrote {out} with the whole "
+            f"run{no_curve}",
             file=sys.stderr,
         )
         return EXIT_STOPPED

@@ -5,7 +5,10 @@ see what learning buys, :func:`learning_curve` takes the policy in force at
 checkpoints ``t_k`` along the run and evaluates each one alone
 (:func:`evaluate_policy`): the critic frozen at ``W_pi(t_k)``, the **true
 state** fed back, from the scenario's ``x0`` over its horizon. Its cost, and
-its ratio to ``J*`` when that is known, is the learning curve.
+its ratio to ``J*`` when that is known, is the learning curve. Each
+checkpoint is a simulation over the whole horizon, so the curve can take as
+long as the run: ``max_wall_time`` bounds it (:class:`~ofrl_drake.errors.WallTimeExceeded`,
+as ``run --max-wall`` does).
 
 :func:`learning_health` reads the logs: the learning condition ``c(t)``,
 ``||Gamma||_2`` and ``cond(Gamma)``, for bases with quadratic monomials the
@@ -16,6 +19,7 @@ policy update was accepted or rejected (:class:`~ofrl_drake.systems.PolicyGate`)
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,9 +28,9 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder, EventStatus
 from pydrake.systems.primitives import ConstantVectorSource
 
-from ofrl_drake.checks import integer_at_least
+from ofrl_drake.checks import integer_at_least, positive_number
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
-from ofrl_drake.errors import ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded
 from ofrl_drake.learning import (
     linear_policy_gain,
     spectral_abscissa,
@@ -65,6 +69,14 @@ class PolicyRun:
     cost: float
     final_state_norm: float
     status: str
+
+
+def _seconds(name: str, value: Any, *, allow_zero: bool = False) -> float:
+    """:func:`~ofrl_drake.checks.positive_number`, raising :class:`ScenarioError`."""
+    try:
+        return positive_number(name, value, allow_zero=allow_zero)
+    except ModelError as err:
+        raise ScenarioError(str(err)) from None
 
 
 class PolicyEvaluator:
@@ -113,7 +125,12 @@ class PolicyEvaluator:
         self.diagram = builder.Build()
 
     def __call__(
-        self, W: np.ndarray, *, x0: np.ndarray | None = None, duration: float | None = None
+        self,
+        W: np.ndarray,
+        *,
+        x0: np.ndarray | None = None,
+        duration: float | None = None,
+        deadline: float | None = None,
     ) -> PolicyRun:
         """The cost of the policy of weights ``W`` from ``x0`` (default: the scenario's).
 
@@ -124,12 +141,27 @@ class PolicyEvaluator:
             Initial state (default: the scenario's).
         duration : float, optional
             Horizon (default: the scenario's).
+        deadline : float, optional
+            A ``time.monotonic()`` reading: the run stops when it passes
+            (checked after every step by the simulator's monitor, which
+            changes no step). None: no limit.
 
         Returns
         -------
         PolicyRun
             Stopped as ``diverged`` when the state leaves the scenario's abort box.
+
+        Raises
+        ------
+        ScenarioError
+            If ``deadline`` is not a number >= 0.
+        WallTimeExceeded
+            If ``deadline`` passed before the horizon (step ``"policy evaluation"``).
         """
+        if deadline is not None:
+            deadline = _seconds(
+                "PolicyEvaluator: deadline (a time.monotonic() reading)", deadline, allow_zero=True
+            )
         scenario: Scenario = self.loop.parts.scenario
         start = np.asarray(scenario.x0 if x0 is None else x0, dtype=float)
         horizon = float(scenario.simulation.duration if duration is None else duration)
@@ -145,12 +177,16 @@ class PolicyEvaluator:
         lower, upper = abort_box(scenario)
         state_port = plant.GetOutputPort("state")
         left: list[float] = []
+        late: list[float] = []
 
         def watch(root) -> EventStatus:
             x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(root)))
             if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
                 left.append(root.get_time())
                 return EventStatus.ReachedTermination(diagram, "left the abort box")
+            if deadline is not None and time.monotonic() > deadline:
+                late.append(root.get_time())
+                return EventStatus.ReachedTermination(diagram, "past its deadline")
             return EventStatus.Succeeded()
 
         simulator.set_monitor(watch)
@@ -160,6 +196,12 @@ class PolicyEvaluator:
         except RuntimeError as err:  # an integrator that gives up: the policy diverged
             left.append(simulator.get_context().get_time())
             return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
+        if late:
+            raise WallTimeExceeded(
+                f"the policy evaluation passed its deadline at t = {late[0]:.6g} s of "
+                f"{horizon:g} s; allow more wall time.",
+                step="policy evaluation",
+            )
         context = simulator.get_context()
         x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(context)))
         if left:
@@ -198,6 +240,55 @@ def evaluate_policy(
     return PolicyEvaluator(loop)(W, x0=x0, duration=duration)
 
 
+@dataclass(frozen=True)
+class _Budget:
+    """The wall time of a learning curve: ``seconds`` from ``start`` (``time.monotonic()``)."""
+
+    seconds: float
+    start: float
+    began: float  # when the curve began (``time.monotonic()``), for the message
+
+    def evaluate(self, evaluate: PolicyEvaluator, W: np.ndarray, what: str) -> PolicyRun:
+        """``evaluate(W)`` before the deadline, or :class:`WallTimeExceeded` naming ``what``."""
+        deadline = self.start + self.seconds
+        if time.monotonic() < deadline:
+            try:
+                return evaluate(W, deadline=deadline)
+            except WallTimeExceeded:
+                pass
+        raise WallTimeExceeded(
+            f"the learning curve did not finish within max_wall_time (--max-wall) = "
+            f"{self.seconds:g} s: it stopped at {what}, {time.monotonic() - self.began:.3g} s "
+            "into the curve; allow more wall time (a larger --max-wall) or evaluate fewer "
+            "checkpoints (--checkpoints; 0 switches the learning curve off).",
+            step="learning curve",
+        ) from None
+
+
+def _budget(owner: str, max_wall_time: Any, started: Any) -> _Budget | None:
+    """The curve's :class:`_Budget` (None without ``max_wall_time``), its values checked.
+
+    Raises
+    ------
+    ScenarioError
+        If ``max_wall_time`` is not a number > 0, ``started`` not a number >= 0,
+        or ``started`` is given without ``max_wall_time``.
+    """
+    now = time.monotonic()
+    if max_wall_time is None:
+        if started is not None:
+            raise ScenarioError(
+                f"{owner}: started ({started!r}) is when max_wall_time starts counting; "
+                "give max_wall_time too, or leave started out."
+            )
+        return None
+    seconds = _seconds(f"{owner}: max_wall_time (seconds, --max-wall)", max_wall_time)
+    if started is None:
+        return _Budget(seconds, now, now)
+    start = _seconds(f"{owner}: started (a time.monotonic() reading)", started, allow_zero=True)
+    return _Budget(seconds, start, now)
+
+
 def learning_curve(
     loop: ClosedLoop,
     result: SimulationResult,
@@ -205,6 +296,8 @@ def learning_curve(
     checkpoints: int = DEFAULT_CHECKPOINTS,
     optimal_cost: float | None = None,
     evaluator: PolicyEvaluator | None = None,
+    max_wall_time: float | None = None,
+    started: float | None = None,
 ) -> list[dict[str, Any]]:
     """The policy in force at ``checkpoints + 1`` times ``0, T/K, ..., T``, each evaluated alone.
 
@@ -219,6 +312,13 @@ def learning_curve(
         ``J*`` of the scenario from ``x0``; then each entry has its ratio.
     evaluator : PolicyEvaluator, optional
         The loop's evaluator (built here if omitted): one diagram for every checkpoint.
+    max_wall_time : float, optional
+        Seconds of wall time the curve may take, counted from ``started``; an
+        evaluation under way stops when they are used up. None: no limit.
+    started : float, optional
+        When ``max_wall_time`` starts counting, a ``time.monotonic()``
+        reading (default: now). ``run`` passes the start of its simulation,
+        so that the simulation and the curve share ``--max-wall``.
 
     Returns
     -------
@@ -231,7 +331,13 @@ def learning_curve(
     Raises
     ------
     ScenarioError
-        If ``checkpoints`` is not an integer >= 1.
+        If ``checkpoints`` is not an integer >= 1, ``max_wall_time`` not a
+        number > 0, or ``started`` not a number >= 0 (or given without
+        ``max_wall_time``).
+    WallTimeExceeded
+        If ``max_wall_time`` is used up before the last checkpoint is
+        evaluated (step ``"learning curve"``; the message names the
+        checkpoint it stopped at, the budget and how to allow more).
     """
     integer_at_least(
         "learning_curve: checkpoints (the intervals between checkpoints; "
@@ -240,18 +346,24 @@ def learning_curve(
         1,
         error=ScenarioError,
     )
+    budget = _budget("learning_curve", max_wall_time, started)
     horizon = float(loop.parts.scenario.simulation.duration)
     evaluate = PolicyEvaluator(loop) if evaluator is None else evaluator
     entries = []
     seen: set[int] = set()
-    for t_k in np.linspace(0.0, horizon, checkpoints + 1):
+    times = np.linspace(0.0, horizon, checkpoints + 1)
+    for k, t_k in enumerate(times, start=1):
         if t_k > result.t[-1] + 1e-9:
             break
         i = int(np.argmin(np.abs(result.t - t_k)))
         if i in seen:
             continue
         seen.add(i)
-        run = evaluate(result.W_policy[i])
+        if budget is None:
+            run = evaluate(result.W_policy[i])
+        else:
+            where = f"checkpoint {k} of {times.size} (t = {result.t[i]:.6g} s)"
+            run = budget.evaluate(evaluate, result.W_policy[i], where)
         ratio = (
             run.cost / optimal_cost
             if optimal_cost is not None and np.isfinite(optimal_cost) and np.isfinite(run.cost)
@@ -416,22 +528,30 @@ class LearningReport:
     Attributes
     ----------
     curve : list of dict or None
-        :func:`learning_curve` (None when switched off).
+        :func:`learning_curve` (None when switched off, or cut: ``curve_stop``).
     health : LearningHealth
     optimal_cost : float or None
         ``J*`` from ``x0`` when asked for.
     lqr_policy_cost : float or None
         The cost of the LQR policy of the linearization, evaluated like the
         checkpoints (true state, from ``x0``).
+    curve_stop : str or None
+        Why the curve is missing when it did not finish in time (the message
+        of its :class:`~ofrl_drake.errors.WallTimeExceeded`, as ``run`` records
+        it); None otherwise.
     """
 
     curve: list[dict[str, Any]] | None
     health: LearningHealth
     optimal_cost: float | None = None
     lqr_policy_cost: float | None = None
+    curve_stop: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """For ``summary.json``: ``learning_curve`` and ``learning_health``."""
+        """For ``summary.json``: ``learning_health``, ``learning_curve``, ``learning_curve_stop``.
+
+        The last two only when there is a curve, or a reason why there is none.
+        """
         health = self.health.summary()
         health["optimal_cost"] = _number(self.optimal_cost)
         health["lqr_policy_cost"] = _number(self.lqr_policy_cost)
@@ -442,6 +562,8 @@ class LearningReport:
         out: dict[str, Any] = {"learning_health": health}
         if self.curve is not None:
             out["learning_curve"] = self.curve
+        if self.curve_stop is not None:
+            out["learning_curve_stop"] = self.curve_stop
         return out
 
 
@@ -451,13 +573,37 @@ def learning_report(
     *,
     checkpoints: int = DEFAULT_CHECKPOINTS,
     optimal_cost: float | None = None,
+    max_wall_time: float | None = None,
+    started: float | None = None,
 ) -> LearningReport:
     """The learning curve (``checkpoints`` intervals; 0 switches it off) and health of a run.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop ``result`` was simulated from.
+    result : SimulationResult
+    checkpoints : int
+        ``K >= 0`` intervals between the curve's checkpoints (:func:`learning_curve`).
+    optimal_cost : float, optional
+        ``J*`` of the scenario from ``x0``.
+    max_wall_time : float, optional
+        Seconds of wall time the curve (its checkpoints, then the LQR policy's
+        cost) may take, counted from ``started``. None: no limit.
+    started : float, optional
+        When ``max_wall_time`` starts counting (a ``time.monotonic()``
+        reading; default: now).
 
     Raises
     ------
     ScenarioError
-        If ``checkpoints`` is not an integer >= 0.
+        If ``checkpoints`` is not an integer >= 0, ``max_wall_time`` not a
+        number > 0, or ``started`` not a number >= 0 (or given without
+        ``max_wall_time``).
+    WallTimeExceeded
+        If ``max_wall_time`` is used up before the curve is done (step
+        ``"learning curve"``, the message naming where it stopped, the budget
+        and the fix: a larger ``--max-wall`` or fewer ``--checkpoints``).
     """
     integer_at_least(
         "learning_report: checkpoints (0 switches the learning curve off)",
@@ -465,16 +611,30 @@ def learning_report(
         0,
         error=ScenarioError,
     )
+    budget = _budget("learning_report", max_wall_time, started)
     curve = None
     lqr_cost = None
     if checkpoints > 0:
         evaluate = PolicyEvaluator(loop)
         curve = learning_curve(
-            loop, result, checkpoints=checkpoints, optimal_cost=optimal_cost, evaluator=evaluate
+            loop,
+            result,
+            checkpoints=checkpoints,
+            optimal_cost=optimal_cost,
+            evaluator=evaluate,
+            max_wall_time=None if budget is None else budget.seconds,
+            started=None if budget is None else budget.start,
         )
         W_lqr = lqr_weights(loop)
         if W_lqr is not None:
-            lqr_cost = evaluate(W_lqr).cost
+            run = (
+                evaluate(W_lqr)
+                if budget is None
+                else budget.evaluate(
+                    evaluate, W_lqr, "the LQR policy's cost, after the checkpoints"
+                )
+            )
+            lqr_cost = run.cost
     return LearningReport(
         curve=curve,
         health=learning_health(loop, result),

@@ -29,7 +29,6 @@ import dataclasses
 import json
 import math
 import os
-import shutil
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -210,34 +209,6 @@ def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) 
     return FILES.read(path, repair=repair)
 
 
-def _absent_paths(store: SweepStore | None) -> list[Path]:
-    """What of ``store``'s folder does not exist yet: of the folder, plan, table and ``runs/``."""
-    if store is None:
-        return []
-    paths = [store.folder, store.folder / FILES.plan, store.table, store.runs]
-    return [p for p in paths if not (p.exists() or p.is_symlink())]
-
-
-def _remove_created(store: SweepStore | None, created: Sequence[Path]) -> None:
-    """Remove what a sweep created of ``store``'s folder (``created``, :func:`_absent_paths`).
-
-    A sweep that stops before its first row (an error, an interrupt) leaves
-    nothing to resume, so nothing of it stays: not a folder holding only
-    ``montecarlo.json``. ``runs/`` goes with its files; the folder itself only
-    if it is then empty.
-    """
-    if store is None:
-        return
-    for path in reversed(created):  # deepest first
-        with contextlib.suppress(OSError):
-            if path == store.runs:
-                shutil.rmtree(path)
-            elif path == store.folder:
-                path.rmdir()
-            else:
-                path.unlink()
-
-
 def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[str, Any]:
     return {
         "scenario": scenario.name,
@@ -326,13 +297,15 @@ def montecarlo(
     if mass_spread > 0:
         _bodies(scenario)  # refuse a truth without bodies before any run
     store = None if out is None else SweepStore(FILES, Path(out))
-    created = _absent_paths(store)
-    recorded = 0  # rows this call wrote into the folder
-    done: list[dict] = []
-    try:
-        if store is not None:
-            plan = _plan(scenario, runs, seed, mass_spread)
-            done = store.open(plan, resume=resume, mismatch=_resume_mismatch)
+    # A sweep that stops before its first row removes what it wrote (SweepStore.recording).
+    recording: contextlib.AbstractContextManager[list[dict[str, Any]]] = (
+        contextlib.nullcontext([])
+        if store is None
+        else store.recording(
+            _plan(scenario, runs, seed, mass_spread), resume=resume, mismatch=_resume_mismatch
+        )
+    )
+    with recording as done:
         if optimal_cost is None:
             from ofrl_drake.optimal import optimal_control
 
@@ -350,7 +323,6 @@ def montecarlo(
             }
 
         def record(value: dict[str, Any]) -> dict:
-            nonlocal recorded
             row = value["row"]
             row["optimal_cost"] = float(optimal_cost)
             row["optimality_ratio"] = (
@@ -362,7 +334,6 @@ def montecarlo(
                 if value["logs"]:
                     store.save_run(f"seed_{row['seed']}.npz", value["logs"])
                 store.write(row)
-                recorded += 1
             finished[row["seed"]] = row
             return row
 
@@ -371,19 +342,7 @@ def montecarlo(
                 raise MonteCarloError(f"a Monte Carlo task failed (runs {list(ks)}): {err}")
             return [record(run) for run in value]
 
-        if store is not None:
-            store.start()
-        try:
-            execute(
-                submit, finish, client=client, total=runs, done=runs - len(todo), progress=progress
-            )
-        finally:
-            if store is not None:
-                store.close()
-    except BaseException:
-        if not recorded:  # nothing to resume: the folder is left as it was found
-            _remove_created(store, created)
-        raise
+        execute(submit, finish, client=client, total=runs, done=runs - len(todo), progress=progress)
     return [finished[str(seed + k)] for k in range(runs)]
 
 

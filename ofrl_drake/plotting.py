@@ -21,8 +21,9 @@ Conventions, so the figures go into a paper unedited:
 
 from __future__ import annotations
 
+import functools
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -655,31 +656,40 @@ def save_figures(
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    figures = {f"state_{i + 1}": plot_state(result, i, box) for i in range(result.x.shape[1])}
-    figures["estimation_error"] = plot_estimation_error(result)
-    figures["estimation_error_log"] = plot_estimation_error_log(result)
-    figures["critic_weights"] = plot_weights(result, weight_labels)
-    figures["control_input"] = plot_input(result, input_bound)
-    figures["learning_condition"] = plot_learning_condition(result)
-    figures["cost"] = plot_cost(result)
-    figures["overview"] = plot_overview(result, input_bound, box)
+    # Each figure is drawn, saved and closed in turn: one open at a time, whatever n.
+    figures: dict[str, Callable[[], Figure]] = {
+        f"state_{i + 1}": functools.partial(plot_state, result, i, box)
+        for i in range(result.x.shape[1])
+    }
+    figures["estimation_error"] = lambda: plot_estimation_error(result)
+    figures["estimation_error_log"] = lambda: plot_estimation_error_log(result)
+    figures["critic_weights"] = lambda: plot_weights(result, weight_labels)
+    figures["control_input"] = lambda: plot_input(result, input_bound)
+    figures["learning_condition"] = lambda: plot_learning_condition(result)
+    figures["cost"] = lambda: plot_cost(result)
+    figures["overview"] = lambda: plot_overview(result, input_bound, box)
     if learning_curve:
-        figures["learning_curve"] = plot_learning_curve(
+        figures["learning_curve"] = lambda: plot_learning_curve(
             learning_curve, optimal_cost=optimal_cost, lqr_cost=lqr_cost
         )
     if health is not None:
-        figures["learning_health"] = plot_learning_health(health)
+        figures["learning_health"] = lambda: plot_learning_health(health)
     extra = getattr(result, "extra", {})
     if "observer_gains" in extra:
         failed = extra.get("solve_failed", np.zeros((result.t.size, 1)))[:, 0] > 0.5
-        figures["gain_schedule"] = plot_gain_schedule(result.t, extra["observer_gains"], failed)
+        figures["gain_schedule"] = lambda: plot_gain_schedule(
+            result.t, extra["observer_gains"], failed
+        )
     title = getattr(result, "scenario_name", "")
     paths = []
-    for name, fig in figures.items():
+    for name, draw in figures.items():
+        fig = draw()
         if title:  # in the corner, clear of the legends above the axes
             fig.text(0.998, 0.002, title, ha="right", va="bottom", fontsize=7, color="0.45")
         path = directory / f"{name}.png"
-        fig.savefig(path, dpi=dpi)
-        plt.close(fig)
+        try:
+            fig.savefig(path, dpi=dpi)
+        finally:
+            plt.close(fig)
         paths.append(path)
     return paths

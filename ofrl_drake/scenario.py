@@ -392,7 +392,7 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
     fix = ""
     if tp is float:
         # A plain 1e-2 is a number (YAML 1.2); Drake's typed loader reads it with float().
-        ok = isinstance(value, _ExponentNumber) or (
+        ok = isinstance(value, _PlainNumber) or (
             isinstance(value, (int, float)) and not isinstance(value, bool)
         )
         kind = "a number"
@@ -418,7 +418,7 @@ def _is_float_text(text: str) -> bool:
 
 def _integer_fix(value: Any) -> str:
     """How to write ``value`` as the integer it means, if it is a whole number in another form."""
-    if isinstance(value, _ExponentNumber):
+    if isinstance(value, _PlainNumber):
         value = float(value)
     elif not isinstance(value, float):
         return ""
@@ -1004,22 +1004,22 @@ MAX_YAML_NODES = 100_000
 
 _MANTISSA = r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)"
 #: A decimal number of the YAML 1.2 core schema (an integer or a float, not .inf or .nan).
-_NUMBER_TEXT = re.compile(_MANTISSA + r"(?:[eE][-+]?[0-9]+)?")
-#: The same with an exponent: ``1e-2``, ``5.0e0``, ``1E3``, ``1.0e-4``.
-_EXPONENT_TEXT = re.compile(_MANTISSA + r"[eE][-+]?[0-9]+$")
+_NUMBER_TEXT = re.compile(_MANTISSA + r"(?:[eE][-+]?[0-9]+)?$")
 
 
-class _ExponentNumber(str):
-    """A plain (unquoted) YAML scalar in exponent form that YAML 1.1 reads as a string.
+class _PlainNumber(str):
+    """A plain (unquoted) YAML scalar that YAML 1.2 reads as a number and YAML 1.1 as a string.
 
     PyYAML, and so Drake's loader, follow YAML 1.1: an exponent makes a float
-    only with a decimal point and a signed exponent (``1.0e-2``), so ``1e-2``,
-    ``1e1`` and ``5.0e0`` are strings. YAML 1.2 reads them as the numbers they
-    are, and so does the schema check: it accepts one where a float is
-    expected (Drake's typed loader, which builds the :class:`Scenario`, then
-    converts it with Python's ``float``), keeps it as written where a string
-    is (``name: 1e3``), and refuses it, with the integer to write, where an
-    integer is.
+    only with a decimal point and a signed exponent (``1.0e-2``), and a
+    leading point only without a sign (``.5``), so ``1e-2``, ``1e1``,
+    ``5.0e0``, ``-.5`` and ``+.01`` are strings. YAML 1.2 reads them as the
+    numbers they are, and so does the schema check: it accepts one where a
+    float is expected (Drake's typed loader, which builds the
+    :class:`Scenario`, then converts it with Python's ``float``), keeps it as
+    written where a string is (``name: 1e3``), and refuses it, with the
+    integer to write, where an integer is. A scalar that reads as a number
+    but is a plain ``str`` was therefore quoted in the file.
     """
 
     def __repr__(self) -> str:  # as written, unquoted: messages show what the file holds
@@ -1027,14 +1027,15 @@ class _ExponentNumber(str):
 
 
 class _RawLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, marking the plain exponent numbers as :class:`_ExponentNumber`."""
+    """PyYAML's safe loader, marking plain YAML 1.2 numbers as :class:`_PlainNumber`."""
 
 
-_EXPONENT_TAG = "tag:ofrl_drake,2025:exponent_number"
-# Appended after YAML 1.1's own resolvers: 1.0e-4 stays the float they make of it.
-_RawLoader.add_implicit_resolver(_EXPONENT_TAG, _EXPONENT_TEXT, list("-+0123456789."))
+_PLAIN_NUMBER_TAG = "tag:ofrl_drake,2025:plain_number"
+# Appended after YAML 1.1's own resolvers: what they read as an int or a float
+# (3, 1.0e-4, .5) stays what they make of it; only the rest is marked.
+_RawLoader.add_implicit_resolver(_PLAIN_NUMBER_TAG, _NUMBER_TEXT, list("-+0123456789."))
 _RawLoader.add_constructor(
-    _EXPONENT_TAG, lambda loader, node: _ExponentNumber(loader.construct_scalar(node))
+    _PLAIN_NUMBER_TAG, lambda loader, node: _PlainNumber(loader.construct_scalar(node))
 )
 
 

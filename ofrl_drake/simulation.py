@@ -750,7 +750,9 @@ def _injection_gains(
 
     A ``"design"`` certificate's fixed gains; a ``"scheduled"`` observer's gains
     in force at each sample, from its ``observer_gains`` log (``[vec(L), vec(H),
-    vec(K)]``, row-major). Any other certificate has no box to check them against.
+    vec(K)]``, row-major). A design dict without ``H`` and ``K`` (a user's own
+    certificate may omit them) leaves them unchecked (``injection_check ==
+    "no_gains"``); any other certificate has no box to check them against.
     """
     C = np.asarray(loop.parts.system.output_matrix, dtype=float)
     q, n = C.shape
@@ -762,13 +764,14 @@ def _injection_gains(
             "H": gains[:, k : 2 * k].reshape(-1, n, q),
             "K": gains[:, 2 * k :].reshape(-1, n, q),
         }
-    if cert.kind == "design" and cert.design is not None:
+    design = cert.design if cert.kind == "design" else None
+    if design is not None and "H" in design and "K" in design:
         return {
-            "C": np.asarray(cert.design.get("C", C), dtype=float),
-            "H": np.asarray(cert.design["H"], dtype=float),
-            "K": np.asarray(cert.design["K"], dtype=float),
+            "C": np.asarray(design.get("C", C), dtype=float),
+            "H": np.asarray(design["H"], dtype=float),
+            "K": np.asarray(design["K"], dtype=float),
         }
-    return {}
+    return {}  # a design dict without H and K (a user's certificate): not checked
 
 
 def _initialize_context(

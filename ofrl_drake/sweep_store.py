@@ -13,15 +13,22 @@ differs between them (file names, columns, the command, the exception).
   read back exactly (:func:`read_table`). A ``resume`` drops a torn last line
   and, with ``retry_failed``, the rows whose status is not ``ok``.
 * ``runs/`` holds each run's trajectories, one ``.npz`` file per run, written whole.
+* A sweep that stops before its first row (an error, an interrupt) leaves
+  nothing to resume, so nothing of it stays: :meth:`SweepStore.recording`
+  removes what of the folder :meth:`SweepStore.open` found absent (the folder
+  itself, the plan, the table, ``runs/``...), and leaves a folder that was
+  there as it was found.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import os
-from collections.abc import Callable, Mapping, Sequence
+import shutil
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -153,6 +160,14 @@ def load_arrays(path: str | os.PathLike[str]) -> dict[str, Any] | None:
         return {k: data[k] for k in data.files}
 
 
+def _remove(path: Path) -> None:
+    """Remove ``path``: a folder with its files, or a file (a link, not its target)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink()
+
+
 @dataclass(frozen=True)
 class SweepFiles:
     """What one kind of sweep keeps in its folder, and how its errors are named.
@@ -173,6 +188,9 @@ class SweepFiles:
         The table in messages, e.g. ``ablation table``.
     error : type
         The exception raised for bad input (an :class:`~ofrl_drake.errors.OfrlError`).
+    folders : tuple of str
+        The sub-folders the sweep writes (``runs/`` and, e.g., a cache), removed
+        with their files by :meth:`SweepStore.discard` when it created them.
     """
 
     table: str
@@ -182,6 +200,7 @@ class SweepFiles:
     command: str
     kind: str
     error: type[OfrlError]
+    folders: tuple[str, ...] = ("runs",)
 
     def read(self, path: str | os.PathLike[str], *, repair: bool = False) -> list[dict[str, Any]]:
         """The rows of a table of this kind (:func:`read_table`), errors as :attr:`error`."""
@@ -201,17 +220,25 @@ class SweepStore:
     folder : Path
         The ``--out`` folder (created if absent).
 
+    Attributes
+    ----------
+    written : int
+        Rows this store appended to the table since it was opened.
+
     Examples
     --------
     >>> store = SweepStore(files, Path("out"))                          # doctest: +SKIP
-    >>> done = store.open(plan, resume=True, mismatch=why_not)          # doctest: +SKIP
-    >>> store.start(); store.write(row); store.close()                  # doctest: +SKIP
+    >>> with store.recording(plan, resume=True, mismatch=why_not) as done:  # doctest: +SKIP
+    ...     store.write(row)                                            # doctest: +SKIP
     """
 
     def __init__(self, files: SweepFiles, folder: Path) -> None:
         self.files = files
         self.folder = folder
+        self.written = 0
         self._writer: RowWriter | None = None
+        self._absent: list[Path] = []  # what open() found absent, outermost first
+        self._found: dict[Path, set[str]] = {}  # files of each sub-folder open() found
 
     @property
     def table(self) -> Path:
@@ -254,6 +281,13 @@ class SweepStore:
             table without its plan, a table without ``resume``, a plan cut
             short, or a ``resume`` of another sweep (named by ``mismatch``).
         """
+        self._absent = self._absent_paths()
+        self._found = {
+            path: {entry.name for entry in path.iterdir()}
+            for path in self._sub_folders()
+            if path.is_dir() and not path.is_symlink()
+        }
+        self.written = 0
         files, error = self.files, self.files.error
         table, plan_path = self.table, self.folder / files.plan
         if table.exists() and not plan_path.exists():
@@ -313,6 +347,86 @@ class SweepStore:
         if self._writer is None:
             raise RuntimeError("SweepStore.write: call start() first.")
         self._writer.write(row)
+        self.written += 1
+
+    def _sub_folders(self) -> list[Path]:
+        """The paths of :attr:`SweepFiles.folders`."""
+        folder = self.folder.expanduser().absolute()
+        return [folder / name for name in self.files.folders]
+
+    def _absent_paths(self) -> list[Path]:
+        """What of the folder does not exist now, outermost first.
+
+        Of the folder's parents, the folder, the plan, the table and
+        :attr:`SweepFiles.folders`: what :meth:`open` and the sweep may create.
+        """
+        folder = self.folder.expanduser().absolute()
+        files = [folder / self.files.plan, folder / self.files.table]
+        parents = reversed(folder.parents)  # outermost first; open() creates the missing ones
+        paths = [*parents, folder, *files, *self._sub_folders()]
+        return [p for p in paths if not (p.exists() or p.is_symlink())]
+
+    def discard(self) -> None:
+        """Remove what :meth:`open` found absent, unless a row was written since.
+
+        For a sweep that stopped before its first row (an error, an interrupt):
+        there is nothing to resume, so nothing of it stays, not a folder
+        holding only the plan and the table's header. Files and
+        :attr:`SweepFiles.folders` created since :meth:`open` are removed (the
+        folders with their files, and the files added to such a folder that
+        was there); the folder itself only if it did not exist and is then
+        empty, and so for the parents it created. What existed is left as it
+        was found.
+        Once a row is written (:attr:`written`) nothing is removed: the folder
+        can be resumed.
+        """
+        if self.written:
+            return
+        self.close()
+        for folder, found in self._found.items():
+            with contextlib.suppress(OSError):
+                for entry in folder.iterdir():
+                    if entry.name not in found:
+                        _remove(entry)
+        folders = set(self._sub_folders())
+        for path in reversed(self._absent):  # deepest first
+            with contextlib.suppress(OSError):
+                if path in folders or not path.is_dir():
+                    _remove(path)
+                else:
+                    path.rmdir()  # the sweep's folder or a parent: only if empty
+        self._absent, self._found = [], {}
+
+    @contextlib.contextmanager
+    def recording(
+        self,
+        plan: Mapping[str, Any],
+        *,
+        resume: bool,
+        mismatch: Callable[[Mapping[str, Any], Mapping[str, Any]], str | None],
+        retry_failed: bool = False,
+    ) -> Iterator[list[dict[str, Any]]]:
+        """:meth:`open` and :meth:`start` the store for the block; :meth:`close` it after.
+
+        Yields the rows already done (:meth:`open`'s arguments and result). If
+        :meth:`open` or the block raises, or is interrupted, before the first
+        row is written, what the sweep created in the folder is removed
+        (:meth:`discard`) and the exception goes on.
+
+        Raises
+        ------
+        OfrlError
+            (:attr:`SweepFiles.error`) As :meth:`open`.
+        """
+        try:
+            rows = self.open(plan, resume=resume, mismatch=mismatch, retry_failed=retry_failed)
+            self.start()
+            yield rows
+        except BaseException:
+            self.discard()
+            raise
+        finally:
+            self.close()
 
     def save_run(self, name: str, arrays: Mapping[str, Any]) -> None:
         """Write ``runs/<name>`` (an ``.npz`` file of ``arrays``) whole or not at all."""

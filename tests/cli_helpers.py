@@ -1,5 +1,6 @@
 """Running the command-line tool as a user does: ``python -m ofrl_drake`` in a subprocess."""
 
+import re
 import subprocess
 import sys
 
@@ -38,3 +39,11 @@ def run_sweep_against_unreachable_scheduler(command, scenario, out, timeout_opti
         timeout_option,
         timeout=timeout,
     )
+
+
+def assert_one_line(proc, code, pattern):
+    """``proc`` exited with ``code`` and printed one line on stderr that matches ``pattern``."""
+    assert proc.returncode == code, (proc.returncode, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert re.search(pattern, lines[0]), lines[0]

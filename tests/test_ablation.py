@@ -452,6 +452,7 @@ def test_resume_refuses_another_scenario(paper_scenario, tmp_path):
 
 # -------------------------------------------------------- Dask and CLI
 def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path, capsys):
+    import matplotlib.pyplot as plt
     from distributed import LocalCluster
 
     from ofrl_drake import load_scenario
@@ -459,6 +460,7 @@ def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path
 
     scenario_file, variants_file = short_files
     out = tmp_path / "dask"
+    plt.close("all")
     with LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
     ) as cluster:
@@ -479,6 +481,7 @@ def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert f"wrote {out}: 6 runs (6 ok)" in captured.out, captured.out
+    assert plt.get_fignums() == []  # the report's figures are closed once written
     scenario = load_scenario(scenario_file)
     serial = ablate(
         scenario,

@@ -16,7 +16,11 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_dump, yaml_load
 
-from tests.cli_helpers import run_cli, run_sweep_against_unreachable_scheduler
+from tests.cli_helpers import (
+    assert_one_line,
+    run_cli,
+    run_sweep_against_unreachable_scheduler,
+)
 
 from .conftest import PAPER_SCENARIO
 
@@ -443,16 +447,34 @@ def test_an_unreachable_scheduler_is_given_up_after_scheduler_timeout(tmp_path, 
 
 
 # Mocks, not functions of this file: a frame of this file would read as the user's own code.
-STOPS = {
-    "J*": ("ofrl_drake.optimal.optimal_control", MemoryError, 1, r"^internal error: MemoryError:"),
-    "task": (
+# (command, stop) -> (what fails, its exception, exit code, message)
+SWEEP_STOPS = {
+    ("montecarlo", "J*"): (
+        "ofrl_drake.optimal.optimal_control",
+        MemoryError,
+        1,
+        r"^internal error: MemoryError:",
+    ),
+    ("montecarlo", "task"): (
         "ofrl_drake.monte_carlo.run_seeds",
         RuntimeError("the worker was lost"),
         2,
         r"^error: a Monte Carlo task failed \(runs \[0, 1\]\): the worker was lost$",
     ),
-    "interrupt": (
+    ("montecarlo", "interrupt"): (
         "ofrl_drake.monte_carlo.run_seeds",
+        KeyboardInterrupt,
+        130,
+        r"^error: interrupted; no output written$",
+    ),
+    ("ablate", "error"): (
+        "ofrl_drake.ablation.OptimalCostCache",
+        MemoryError,
+        1,
+        r"^internal error: MemoryError",
+    ),
+    ("ablate", "interrupt"): (
+        "ofrl_drake.ablation.run_variant_states",
         KeyboardInterrupt,
         130,
         r"^error: interrupted; no output written$",
@@ -460,31 +482,101 @@ STOPS = {
 }
 
 
-@pytest.mark.parametrize("stop", list(STOPS))
-def test_montecarlo_leaves_nothing_when_it_stops_before_its_first_run(
-    tmp_path, capsys, monkeypatch, stop
+@pytest.mark.parametrize(("command", "stop"), list(SWEEP_STOPS))
+def test_a_sweep_leaves_nothing_when_it_stops_before_its_first_row(
+    tmp_path, capsys, monkeypatch, command, stop
 ):
-    # A montecarlo that failed before its first run left a folder holding only
-    # montecarlo.json (and the table's header): half-written output.
+    # A sweep that failed (or was interrupted) before its first row left its plan
+    # (montecarlo.json, ablation.json) and the table's header in --out: half-written
+    # output that looked resumable.
     from unittest import mock
 
     from ofrl_drake.cli import main
 
-    target, raised, code, message = STOPS[stop]
-    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
-    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    target, raised, code, message = SWEEP_STOPS[command, stop]
+    runs = []
+    if command == "montecarlo":
+        unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+        monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+        runs = ["--runs", "2"]
     monkeypatch.setattr(target, mock.Mock(side_effect=raised))
-    out = tmp_path / "sub" / "mc"
-    args = ["montecarlo", str(PAPER_SCENARIO), "--runs", "2", "--workers", "0", "--out", str(out)]
+    out = tmp_path / "sub" / "sweep"
+    args = [command, str(PAPER_SCENARIO), *runs, "--workers", "0", "--out", str(out)]
     assert main(args) == code
     err = capsys.readouterr().err
     assert err.count("\n") == 1, err
     assert re.match(message, err.strip()), err
-    assert not out.exists()
+    assert not out.exists() and list(tmp_path.iterdir()) == []  # its parent sub/ too
     # An empty folder that was there before is left as it was found: empty.
-    out.mkdir()
+    out.mkdir(parents=True)
     assert main(args) == code
+    capsys.readouterr()
     assert list(out.iterdir()) == []
+
+
+def _curve_summary(out):
+    summary = json.loads((out / "summary.json").read_text())
+    return summary, sorted(p.name for p in (out / "figures").iterdir())
+
+
+def test_max_wall_bounds_the_learning_curve_exit_3_with_the_whole_run_written(
+    tmp_path, capsys, monkeypatch
+):
+    # --max-wall did not bound the learning curve: each of its checkpoints is one more
+    # simulation over the horizon, after the run, with no budget at all. Now the curve
+    # shares the budget with the simulation; when it runs out the run stops with exit 3,
+    # its folder written whole (the simulation, its figures) and saying why.
+    from ofrl_drake import learning_curve
+    from ofrl_drake.cli import main
+
+    out = tmp_path / "out"
+    args = ["run", str(_short_scenario(tmp_path)), "--out", str(out), "--quiet"]
+    assert main([*args, "--checkpoints", "2"]) == 0  # an earlier run's folder, replaced whole
+    capsys.readouterr()
+    # The curve's clock reads a day later: its budget is used up at the first checkpoint,
+    # while the design and the simulation (their own clocks) finish well within it.
+    later = types.SimpleNamespace(monotonic=lambda: time.monotonic() + 86400.0)
+    monkeypatch.setattr(learning_curve, "time", later)
+    assert main([*args, "--max-wall", "600"]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert re.match(
+        r"^stopped: timeout: the learning curve did not finish within max_wall_time "
+        r"\(--max-wall\) = 600 s: it stopped at checkpoint 1 of 11 \(t = 0 s\), .* 0 switches "
+        rf"the learning curve off\); wrote {re.escape(str(out))} with the whole run, without "
+        r"the learning curve \(out of --max-wall; summary.json -> learning_curve_stop\)$",
+        err.strip(),
+    ), err
+    summary, figures = _curve_summary(out)
+    assert summary["status"] == "ok" and summary["final_time"] == pytest.approx(2.0)
+    assert "learning_curve" not in summary  # none of the earlier run's curve either
+    assert summary["learning_curve_stop"].startswith("the learning curve did not finish")
+    assert "learning_curve.png" not in figures and "state_1.png" in figures
+    assert (out / "trajectories.npz").is_file() and (out / "learning_health.npz").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenario.yaml"]
+
+
+def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):
+    # The simulation used the whole --max-wall: the learning curve used to run after it
+    # anyway, unbounded; now the folder says it was not evaluated, and exit 3 as before.
+    path = _short_scenario(tmp_path, variant={"observer": "true_state"})  # no design: 1 ms
+    out = tmp_path / "out"
+    proc = run_cli("run", path, "--out", out, "--quiet", "--max-wall", "0.001")
+    assert_one_line(
+        proc,
+        3,
+        r"^stopped: timeout: wall time .* exceeded max_wall_time = 0\.001 s at t = .*; wrote "
+        r".* without the learning curve \(out of --max-wall; summary.json -> "
+        r"learning_curve_stop\)$",
+    )
+    summary, figures = _curve_summary(out)
+    assert summary["status"] == "timeout" and "learning_curve" not in summary
+    assert re.match(
+        r"^the learning curve did not finish within max_wall_time \(--max-wall\) = 0\.001 s",
+        summary["learning_curve_stop"],
+    )
+    assert "learning_curve.png" not in figures
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenario.yaml"]
 
 
 def test_an_error_in_the_users_plant_names_its_file_line_and_function(tmp_path):
@@ -505,17 +597,13 @@ def test_an_error_in_the_users_plant_names_its_file_line_and_function(tmp_path):
         "def make_fraise():\n"
         "    return ControlAffineSystem(f, g, C=[[0.0, 1.0]], name='fraise')\n"
     )
-    data = yaml_load(data=PAPER_SCENARIO.read_text())
-    data["system"] = f"{source}:make_fraise"
-    scenario = tmp_path / "fr.yaml"
-    scenario.write_text(yaml_dump(data))
+    scenario = _short_scenario(tmp_path, system=f"{source}:make_fraise")
     proc = run_cli("run", scenario, "--out", tmp_path / "o")
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.count("\n") == 1, proc.stderr
-    assert re.search(
+    assert_one_line(
+        proc,
+        2,
         r"system: '.*rp\.py:make_fraise' raised ModelError: f\(x\) failed at the probe point "
         rf"x = \[.*\]: name 'undefined_name' is not defined \(at {re.escape(str(source))}:6, "
         r"in f\)$",
-        proc.stderr.strip(),
-    ), proc.stderr
+    )
     assert not (tmp_path / "o").exists()

@@ -20,18 +20,15 @@ from pydrake.common.yaml import yaml_dump, yaml_load
 
 from ofrl_drake.atomic import atomic_write_text, output_lock
 from ofrl_drake.errors import OutputError
-from tests.cli_helpers import run_cli, run_sweep_against_unreachable_scheduler
+from tests.cli_helpers import (
+    assert_one_line,
+    run_cli,
+    run_sweep_against_unreachable_scheduler,
+)
 
 from .conftest import PAPER_SCENARIO, ROOT
 
 PENDULUM = ROOT / "diagrams" / "pendulum_upright.yaml"
-
-
-def _one_line(proc, code, pattern):
-    assert proc.returncode == code, (proc.returncode, proc.stderr)
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1, proc.stderr
-    assert re.search(pattern, lines[0]), lines[0]
 
 
 def _short(tmp_path, source=PAPER_SCENARIO, **simulation):
@@ -47,29 +44,29 @@ def test_out_refuses_a_fifo_a_symlink_and_a_device(tmp_path):
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)
     proc = run_cli("design-observer", PAPER_SCENARIO, "--out", fifo)
-    _one_line(proc, 2, r"--out: .*pipe is not a regular file \(a device, FIFO or socket\)")
+    assert_one_line(proc, 2, r"--out: .*pipe is not a regular file \(a device, FIFO or socket\)")
     assert fifo.is_fifo()  # untouched
     target = tmp_path / "real.json"
     target.write_text("{}")
     link = tmp_path / "link.json"
     link.symlink_to(target)
     proc = run_cli("design-observer", PAPER_SCENARIO, "--out", link)
-    _one_line(proc, 2, r"--out: .*link\.json is a symbolic link")
+    assert_one_line(proc, 2, r"--out: .*link\.json is a symbolic link")
     assert link.is_symlink() and target.read_text() == "{}"
     proc = run_cli("verify-observer", PAPER_SCENARIO, "--samples", 10, "--out", "/dev/null")
-    _one_line(proc, 2, r"--out: /dev/null is not a regular file")
+    assert_one_line(proc, 2, r"--out: /dev/null is not a regular file")
     assert not os.path.isfile("/dev/null")  # still the device
     os.symlink(tmp_path, tmp_path / "dir_link")
     proc = run_cli("run", PAPER_SCENARIO, "--out", tmp_path / "dir_link")
-    _one_line(proc, 2, r"--out: .*dir_link is a symbolic link")
+    assert_one_line(proc, 2, r"--out: .*dir_link is a symbolic link")
 
 
 def test_out_refuses_the_empty_path_and_the_current_folder(tmp_path):
     (tmp_path / "keep.txt").write_text("mine")
     proc = run_cli("run", PAPER_SCENARIO, "--out", "", cwd=tmp_path)
-    _one_line(proc, 2, r"--out: the path is empty")
+    assert_one_line(proc, 2, r"--out: the path is empty")
     proc = run_cli("run", PAPER_SCENARIO, "--out", ".", cwd=tmp_path)
-    _one_line(proc, 2, r"--out: .* is the current folder or holds it")
+    assert_one_line(proc, 2, r"--out: .* is the current folder or holds it")
     assert (tmp_path / "keep.txt").read_text() == "mine"
 
 
@@ -132,9 +129,9 @@ def test_a_second_writer_of_the_same_output_is_refused(tmp_path):
     out = tmp_path / "o"
     with output_lock(out):
         proc = run_cli("run", _short(tmp_path), "--out", out, "--quiet")
-        _one_line(proc, 2, r"--out: another ofrl-drake command is writing .*o now")
+        assert_one_line(proc, 2, r"--out: another ofrl-drake command is writing .*o now")
         proc = run_cli("ablate", _short(tmp_path), "--workers", 0, "--out", out)
-        _one_line(proc, 2, r"--out: another ofrl-drake command is writing")
+        assert_one_line(proc, 2, r"--out: another ofrl-drake command is writing")
     assert not out.exists()
 
 
@@ -146,7 +143,7 @@ def test_duplicate_keys_are_refused_with_both_lines(tmp_path):
     path = tmp_path / "dup.yaml"
     path.write_text(text)
     proc = run_cli("run", path, "--out", tmp_path / "o")
-    _one_line(proc, 2, r"key 'name' appears twice in one mapping \(lines \d+ and \d+\)")
+    assert_one_line(proc, 2, r"key 'name' appears twice in one mapping \(lines \d+ and \d+\)")
 
 
 def _alias_bomb(tmp_path):
@@ -163,7 +160,7 @@ def _alias_bomb(tmp_path):
 def test_an_alias_bomb_is_refused_at_once(tmp_path):
     path = _alias_bomb(tmp_path)
     proc = run_cli("run", path, "--out", tmp_path / "o")
-    _one_line(proc, 2, r"expands to more than 100000 values")
+    assert_one_line(proc, 2, r"expands to more than 100000 values")
 
 
 def test_an_alias_bomb_is_refused_before_any_loader_expands_it(tmp_path, monkeypatch):
@@ -204,7 +201,7 @@ def test_a_huge_file_is_refused_before_parsing(tmp_path):
     path = tmp_path / "huge.yaml"
     path.write_text("name: " + "x" * 2_000_000 + "\n")
     proc = run_cli("run", path, "--out", tmp_path / "o")
-    _one_line(proc, 2, r"the file is 2\.0 MB; a scenario file is at most 1 MB")
+    assert_one_line(proc, 2, r"the file is 2\.0 MB; a scenario file is at most 1 MB")
 
 
 # -------------------------------------------------------------- bad values
@@ -214,17 +211,19 @@ def test_an_input_bound_that_would_overflow_is_named(tmp_path):
     path = tmp_path / "huge_u.yaml"
     path.write_text(yaml_dump(data))
     proc = run_cli("design-observer", path, "--out", tmp_path / "d.json")
-    _one_line(proc, 2, r"input_bound: 1e\+308 is beyond what the input sector .* at most 1e\+12")
+    assert_one_line(
+        proc, 2, r"input_bound: 1e\+308 is beyond what the input sector .* at most 1e\+12"
+    )
 
 
 def test_a_log_period_beyond_the_horizon_is_refused(tmp_path):
     proc = run_cli("run", _short(tmp_path, log_period=5.0), "--out", tmp_path / "o")
-    _one_line(proc, 2, r"simulation\.log_period: 5\.0 s is longer than the horizon")
+    assert_one_line(proc, 2, r"simulation\.log_period: 5\.0 s is longer than the horizon")
 
 
 def test_cenic_is_not_offered(tmp_path):
     proc = run_cli("run", _short(tmp_path, integrator="cenic"), "--out", tmp_path / "o")
-    _one_line(proc, 2, r"simulation\.integrator: unknown scheme 'cenic'; choose one of \[")
+    assert_one_line(proc, 2, r"simulation\.integrator: unknown scheme 'cenic'; choose one of \[")
     assert "'cenic'" not in proc.stderr.split("choose one of")[1]
 
 
@@ -270,10 +269,12 @@ def test_resume_retry_failed_reruns_failed_rows_and_a_missing_plan_is_explained(
     assert len(rows) == 1 and rows[0]["status"] == "ok"
     assert tuple(table.read_text().splitlines()[0].split(",")) == CSV_COLUMNS
     proc = run_cli(*args[:-2], "--out", out, "--retry-failed")
-    _one_line(proc, 2, r"--retry-failed: reruns failed rows of a sweep; pass --resume too")
+    assert_one_line(proc, 2, r"--retry-failed: reruns failed rows of a sweep; pass --resume too")
     (out / "ablation.json").unlink()
     proc = run_cli(*args, "--resume")
-    _one_line(proc, 2, r"ablation\.json is missing; it records the sweep .* Restore it, or move")
+    assert_one_line(
+        proc, 2, r"ablation\.json is missing; it records the sweep .* Restore it, or move"
+    )
 
 
 # ------------------------------------------------------------------- sizes
@@ -297,7 +298,7 @@ def test_point_sets_are_checked_before_any_allocation(tmp_path, points, message)
     path = tmp_path / "big.yaml"
     path.write_text(yaml_dump(data))
     proc = run_cli("run", path, "--out", tmp_path / "o")
-    _one_line(proc, 2, message)
+    assert_one_line(proc, 2, message)
     # The refusal is the scenario's validation: loading builds no point.
     from ofrl_drake import ScenarioError, load_scenario
 
@@ -310,9 +311,9 @@ def test_a_long_name_and_too_many_samples_are_refused(tmp_path):
     data["name"] = "n" * 20_000
     path = tmp_path / "long.yaml"
     path.write_text(yaml_dump(data))
-    _one_line(run_cli("run", path, "--out", tmp_path / "o"), 2, r"name: 20000 characters")
+    assert_one_line(run_cli("run", path, "--out", tmp_path / "o"), 2, r"name: 20000 characters")
     proc = run_cli("verify-observer", PAPER_SCENARIO, "--samples", 10**9)
-    _one_line(proc, 2, r"samples: 1000000000 would need about .* GiB .* at most 10000000")
+    assert_one_line(proc, 2, r"samples: 1000000000 would need about .* GiB .* at most 10000000")
 
 
 # --------------------------------------------------------------- sweeps
@@ -328,7 +329,9 @@ def test_a_cut_short_plan_and_a_failing_table_write_are_named(tmp_path, monkeypa
     assert run_cli(*args).returncode == 0
     plan = out / "ablation.json"
     plan.write_text(plan.read_text()[:40])
-    _one_line(run_cli(*args, "--resume"), 2, r"ablation\.json is not valid JSON \(cut short\?\)")
+    assert_one_line(
+        run_cli(*args, "--resume"), 2, r"ablation\.json is not valid JSON \(cut short\?\)"
+    )
     writer = RowWriter(tmp_path / "t.csv", ("a",), ())
     writer._fh.close()
     writer._fh = open("/dev/full", "w")  # every write: no space left on device
@@ -351,7 +354,7 @@ def test_a_scheduler_without_workers_is_waited_for_a_stated_time(tmp_path):
             "--scheduler-timeout",
             3,
         )
-        _one_line(proc, 2, r"--scheduler: no worker joined tcp://.* within 3 s; start one")
+        assert_one_line(proc, 2, r"--scheduler: no worker joined tcp://.* within 3 s; start one")
         assert time.perf_counter() - start < 60
 
 
@@ -427,7 +430,7 @@ def _user_plant_scenario(tmp_path, module, source):
 def test_an_error_inside_the_users_f_names_the_users_file_not_ofrl_drake(tmp_path):
     path = _user_plant_scenario(tmp_path, "my_plant", USER_PLANT)
     proc = run_cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
-    _one_line(
+    assert_one_line(
         proc,
         2,
         r"your code raised ZeroDivisionError: my model breaks beyond 0\.9 \(at .*my_plant\.py:8, "
@@ -495,7 +498,7 @@ def test_a_scheduler_timeout_that_never_expires_is_refused_before_connecting(
     proc = run_sweep_against_unreachable_scheduler(
         command, PAPER_SCENARIO, tmp_path / "o", value, timeout=120
     )
-    _one_line(
+    assert_one_line(
         proc,
         2,
         rf"^error: argument --scheduler-timeout: must be a finite number of seconds > 0 .*"
@@ -517,7 +520,7 @@ def test_ablate_refuses_a_negative_seed_as_montecarlo_does(tmp_path):
         "--out",
         tmp_path / "o",
     )
-    _one_line(proc, 2, r"^error: --seed: must be an integer >= 0; got -1\.$")
+    assert_one_line(proc, 2, r"^error: --seed: must be an integer >= 0; got -1\.$")
     assert list(tmp_path.iterdir()) == []
     from ofrl_drake import load_scenario
     from ofrl_drake.ablation_grid import AblationError, sample_initial_states
@@ -570,7 +573,7 @@ def test_sweeps_refuse_the_current_folder_as_run_does(tmp_path, command, extra, 
     work = tmp_path / "work"
     work.mkdir()
     proc = run_cli(command, PAPER_SCENARIO, *extra, "--workers", 0, "--out", out, cwd=work)
-    _one_line(proc, 2, r"^error: --out: .* is the current folder or holds it; name an output")
+    assert_one_line(proc, 2, r"^error: --out: .* is the current folder or holds it; name an output")
     assert list(work.iterdir()) == []
     assert list(tmp_path.iterdir()) == [work]
 
@@ -585,7 +588,7 @@ def test_sweeps_refuse_the_current_folder_as_run_does(tmp_path, command, extra, 
 )
 def test_argument_errors_are_one_line_naming_the_help(tmp_path, args):
     proc = run_cli(*args, cwd=tmp_path, timeout=120)
-    _one_line(
+    assert_one_line(
         proc,
         2,
         r"^error: (argument --checkpoints: invalid int value: 'x'|"
@@ -601,6 +604,8 @@ def test_help_and_a_missing_command_still_work():
         assert proc.returncode == 0, proc.stderr
         assert proc.stdout.startswith("usage: ofrl-drake") and proc.stderr == ""
     proc = run_cli(timeout=120)
-    _one_line(proc, 2, r"^error: the following arguments are required: command; see ofrl-drake")
+    assert_one_line(
+        proc, 2, r"^error: the following arguments are required: command; see ofrl-drake"
+    )
     proc = run_cli("nope", timeout=120)
-    _one_line(proc, 2, r"^error: argument command: invalid choice: 'nope' .*; see ofrl-drake")
+    assert_one_line(proc, 2, r"^error: argument command: invalid choice: 'nope' .*; see ofrl-drake")

@@ -8,6 +8,7 @@ Gamma bounded and every policy in force stabilising its linearized loop.
 """
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -369,3 +370,91 @@ def test_an_optimal_task_names_a_warm_start_of_the_wrong_kind():
         r"task, an optimal.Trajectory or None; got str 'last run'\. Pass the run",
     ):
         solve_optimal_task(load_scenario(PAPER), [0.1, 0.2], "last run")
+
+
+# ------------------------------------------------------------ wall time
+@pytest.fixture(scope="module")
+def short_paper_run():
+    """The paper's loop over 2 s (its observer: the true state, no design) and its run."""
+    scenario = load_scenario(PAPER)
+    scenario = dataclasses.replace(
+        scenario,
+        simulation=dataclasses.replace(scenario.simulation, duration=2.0),
+        variant=dataclasses.replace(scenario.variant, observer="true_state"),
+    )
+    loop = build_closed_loop(scenario)
+    return loop, simulate(scenario, loop=loop, progress=False)
+
+
+def test_a_learning_report_out_of_wall_time_names_where_it_stopped_the_budget_and_the_fix(
+    short_paper_run,
+):
+    # Before: the learning curve had no budget at all, so run --max-wall did not bound it.
+    import time
+
+    from ofrl_drake.errors import WallTimeExceeded
+    from ofrl_drake.learning_curve import learning_report
+
+    loop, result = short_paper_run
+    with pytest.raises(
+        WallTimeExceeded,
+        match=r"^the learning curve did not finish within max_wall_time \(--max-wall\) = 1 s: "
+        r"it stopped at checkpoint 1 of 11 \(t = 0 s\), [0-9.e+-]+ s into the curve; allow "
+        r"more wall time \(a larger --max-wall\) or evaluate fewer checkpoints "
+        r"\(--checkpoints; 0 switches the learning curve off\)\.$",
+    ) as raised:
+        # a budget of 1 s that began 10 s ago: used up whatever this machine's speed
+        learning_report(loop, result, max_wall_time=1.0, started=time.monotonic() - 10.0)
+    assert raised.value.step == "learning curve"
+    with pytest.raises(WallTimeExceeded, match=r"= 1e-09 s: it stopped at checkpoint 1 of 3"):
+        learning_report(loop, result, checkpoints=2, max_wall_time=1e-9)
+
+
+def test_a_policy_evaluation_stops_at_its_deadline_and_a_budget_changes_no_number(
+    short_paper_run,
+):
+    import time
+
+    from ofrl_drake.errors import WallTimeExceeded
+    from ofrl_drake.learning_curve import learning_report
+
+    loop, result = short_paper_run
+    evaluate = PolicyEvaluator(loop)
+    W = result.W_policy[-1]
+    # The monitor sees the deadline passed right after Initialize, before any step.
+    with pytest.raises(
+        WallTimeExceeded, match=r"^the policy evaluation passed its deadline at t = 0 s of 2 s"
+    ):
+        evaluate(W, deadline=time.monotonic() - 1.0)
+    # A budget that does not run out takes the same steps: the same numbers, bit for bit.
+    assert evaluate(W, deadline=time.monotonic() + 600.0) == evaluate(W)
+    free = learning_report(loop, result, checkpoints=4)
+    bounded = learning_report(loop, result, checkpoints=4, max_wall_time=600.0)
+    assert bounded.curve == free.curve and bounded.curve_stop is None
+    assert bounded.lqr_policy_cost == free.lqr_policy_cost
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"max_wall_time": 0.0}, r"max_wall_time \(seconds, --max-wall\) must be > 0; got 0\.0"),
+        ({"max_wall_time": -1}, r"max_wall_time \(seconds, --max-wall\) must be > 0; got -1\.0"),
+        ({"max_wall_time": math.nan}, r"max_wall_time \(seconds, --max-wall\) must be finite"),
+        ({"max_wall_time": math.inf}, r"max_wall_time \(seconds, --max-wall\) must be finite"),
+        (
+            {"max_wall_time": "5"},
+            r"max_wall_time \(seconds, --max-wall\) must be a number; got '5'",
+        ),
+        (
+            {"max_wall_time": 5, "started": -1.0},
+            r"started \(a time\.monotonic\(\) reading\) must be >= 0; got -1\.0",
+        ),
+        ({"started": 3.0}, r"started \(3\.0\) is when max_wall_time starts counting; give"),
+    ],
+)
+def test_a_learning_report_names_a_bad_budget(options, match):
+    from ofrl_drake.errors import ScenarioError
+    from ofrl_drake.learning_curve import learning_report
+
+    with pytest.raises(ScenarioError, match=r"^learning_report: " + match):
+        learning_report(None, None, checkpoints=0, **options)

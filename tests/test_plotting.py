@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from matplotlib.legend import Legend
@@ -171,3 +172,22 @@ def test_summary_records_the_units():
     r = dataclasses.replace(_result(n=2), state_units=("rad", "rad/s"), input_units=("N·m",))
     assert r.summary()["units"] == {"state": ["rad", "rad/s"], "input": ["N·m"]}
     assert "units" not in _result(n=2).summary()
+
+
+def test_figures_are_drawn_one_at_a_time_and_none_is_left_open(tmp_path, monkeypatch):
+    # Drawing every figure first had 21 open at once for n = 12 (matplotlib warns at 20).
+    from matplotlib.figure import Figure
+
+    open_at_save = []
+    save = Figure.savefig
+
+    def counting_save(fig, *args, **kwargs):
+        open_at_save.append(len(plt.get_fignums()))
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", counting_save)
+    plt.close("all")
+    r = _result(n=12, T=0.5, samples=26)
+    paths = save_figures(r, tmp_path, input_bound=3.0)
+    assert len(paths) == len(open_at_save) == 19  # 12 states and 7 other figures
+    assert max(open_at_save) == 1 and plt.get_fignums() == []

@@ -451,6 +451,8 @@ def _write_text(tmp_path, old, new):
         ("duration: 30.0", "duration: 3E+1", lambda s: s.simulation.duration, 30.0),
         ("accuracy: 1.0e-4", "accuracy: 1e-4", lambda s: s.simulation.accuracy, 1e-4),
         ("x0: [-1.0, 1.0]", "x0: [-1e0, .5e1]", lambda s: s.x0, [-1.0, 5.0]),
+        ("x0: [-1.0, 1.0]", "x0: [-.5, +.25]", lambda s: s.x0, [-0.5, 0.25]),
+        ("kc: 0.01", "kc: +.01", lambda s: s.critic.kc, 0.01),
         (
             "Gamma0: [[50.0, 0.0, 0.0]",
             "Gamma0: [[5e1, 0e0, 0.0]",
@@ -459,7 +461,7 @@ def _write_text(tmp_path, old, new):
         ),
     ],
 )
-def test_numbers_in_exponent_form_are_read_as_python_reads_them(tmp_path, old, new, get, expected):
+def test_yaml_1_2_numbers_are_read_as_python_reads_them(tmp_path, old, new, get, expected):
     value = get(load_scenario(_write_text(tmp_path, old, new)))
     assert value == expected
     assert all(type(v) is float for v in (value if isinstance(value, list) else [value]))

@@ -455,6 +455,27 @@ def test_input_above_the_bound_is_reported_without_a_design(paper_scenario):
     )
 
 
+def test_a_certificate_without_injection_gains_leaves_them_unchecked(paper_scenario, paper_design):
+    # A user's observer may certify a box with a design dict of its own, without H and K.
+    from ofrl_drake.observer import ObserverGains
+    from ofrl_drake.observer_certificate import ObserverCertificate
+    from ofrl_drake.systems import ThreeGainObserver
+
+    class OwnCertificate(ThreeGainObserver):
+        def observer_certificate(self):
+            return ObserverCertificate(
+                "design", design={"P": paper_design.P.tolist()}, box=paper_design.box
+            )
+
+    def observer(parts):
+        return OwnCertificate(parts.system, ObserverGains.from_design(parts.system, paper_design))
+
+    r = simulate(_short(paper_scenario), design=paper_design, observer=observer, progress=False)
+    v = r.validity
+    assert v.box_check == "fixed" and v.injection_check == "no_gains"
+    assert v.injection_k_outside is None and v.estimate_outside is True
+
+
 def test_observer_that_ignores_the_design_gets_no_box_check(paper_scenario, paper_design):
     r = simulate(
         _short(paper_scenario), design=paper_design, observer=FullStateObserver(2), progress=False

@@ -1,5 +1,6 @@
 """The sweep engine and the sweep's folder, shared by ablate and montecarlo (no Drake run)."""
 
+import dataclasses
 import io
 import json
 import math
@@ -151,6 +152,74 @@ def test_a_folder_of_another_command_is_refused(tmp_path):
     with pytest.raises(_SweepError, match=r"not written by ofrl-drake test \(no t\.json\)"):
         SweepStore(FILES, tmp_path / "mine").open({}, resume=False, mismatch=_never_different)
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
+
+
+def _tree(folder):
+    """Every path under ``folder`` (relative, sorted) with each file's bytes."""
+    return {
+        str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None
+        for p in sorted(folder.rglob("*"))
+    }
+
+
+@pytest.mark.parametrize("stop", [_SweepError("disk full"), KeyboardInterrupt()])
+def test_a_sweep_stopped_before_its_first_row_leaves_its_folder_as_it_was_found(tmp_path, stop):
+    # Before: a failed or interrupted first run left a folder holding only the plan and
+    # the table's header (ablation.json, an empty ablation.csv), which looked resumable.
+    files = dataclasses.replace(FILES, folders=("runs", "cache"))
+
+    def stopped(out, plan=None, resume=False, rows=0):
+        store = SweepStore(files, out)
+        with pytest.raises(type(stop)):
+            with store.recording(plan or {"seed": 1}, resume=resume, mismatch=_seed_differs):
+                store.save_run("a.npz", {"t": np.arange(3.0)})
+                (out / "cache").mkdir(exist_ok=True)
+                (out / "cache" / "j.json").write_text("{}")
+                for k in range(rows):
+                    store.write({"name": f"r{k}", "value": 1.0, "status": "ok"})
+                raise stop
+        return store
+
+    # A folder the sweep created goes, with everything in it, and the parents it created.
+    new = tmp_path / "new"
+    assert stopped(new).written == 0
+    assert not new.exists() and list(tmp_path.iterdir()) == []
+    stopped(tmp_path / "a" / "b" / "new")
+    assert list(tmp_path.iterdir()) == []
+    # A folder that was there stays, with its files (empty, or a sweep being resumed).
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    stopped(empty)
+    assert list(empty.iterdir()) == []
+    resumed = _filled(tmp_path)
+    (resumed / "runs").mkdir()
+    (resumed / "runs" / "old.npz").write_bytes(b"old run")
+    before = _tree(resumed)
+    stopped(resumed, resume=True)
+    assert _tree(resumed) == before  # the new runs/a.npz and cache/ are gone, the rest kept
+    # A refused resume removes nothing either.
+    with pytest.raises(_SweepError, match=r"seed 1 != 2"):
+        with SweepStore(files, resumed).recording({"seed": 2}, resume=True, mismatch=_seed_differs):
+            pass
+    assert _tree(resumed) == before
+    # After a first row, nothing is removed: the folder can be resumed.
+    kept = tmp_path / "kept"
+    assert stopped(kept, rows=1).written == 1
+    assert sorted(_tree(kept)) == ["cache", "cache/j.json", "runs", "runs/a.npz", "t.csv", "t.json"]
+    assert FILES.read(kept / "t.csv") == [{"name": "r0", "value": 1.0, "status": "ok"}]
+
+
+def test_a_sweep_that_ends_keeps_its_folder_even_without_a_new_row(tmp_path):
+    out = _filled(tmp_path)
+    before = _tree(out)
+    store = SweepStore(FILES, out)
+    with store.recording({"seed": 1}, resume=True, mismatch=_seed_differs) as rows:
+        assert [r["name"] for r in rows] == ["a", "b"]  # all done: nothing to write
+    assert store.written == 0 and _tree(out) == before
+    new = tmp_path / "new"
+    with SweepStore(FILES, new).recording({"seed": 1}, resume=False, mismatch=_seed_differs):
+        pass  # a sweep of no row that ended: its plan and header stay
+    assert sorted(_tree(new)) == ["t.csv", "t.json"]
 
 
 def test_a_table_of_another_kind_is_named(tmp_path):

@@ -596,6 +596,17 @@ def test_lqr_controller_keeps_its_arguments_and_reports_its_lqr_result():
     x = np.array([0.01, -0.02])
     block.get_estimated_state_input_port().FixValue(context, x)
     np.testing.assert_array_equal(block.get_u_output_port().Eval(context), -result.K @ x)
+    assert block.K is result.K  # read-only, as before the result object
+
+
+@pytest.mark.parametrize("R", [2.0, [2.0], np.array([2.0]), [[2.0]]])
+def test_lqr_controller_takes_r_of_one_input_as_a_number_a_vector_or_a_matrix(R):
+    from ofrl_drake.baselines import linearize_at_origin
+
+    lin = linearize_at_origin(make_system("two_state"))
+    block = SaturatedLqrController(lin, np.eye(2), R, 3.0)
+    reference = SaturatedLqrController(lin, np.eye(2), np.array([[2.0]]), 3.0)
+    np.testing.assert_array_equal(block.lqr_result().K, reference.lqr_result().K)
 
 
 @pytest.mark.parametrize(

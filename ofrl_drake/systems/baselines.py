@@ -240,6 +240,15 @@ class LqrResult:
     S: np.ndarray
 
 
+def _input_weight(R: ArrayLike, m: int) -> ArrayLike:
+    """``R`` as a matrix: a number, or a vector of one entry, is ``[[R]]`` when ``m = 1``."""
+    if is_real_number(R):
+        return np.array([[R]], dtype=float)
+    if m == 1 and np.ndim(R) == 1 and np.size(R) == 1:
+        return np.reshape(R, (1, 1))
+    return R
+
+
 class SaturatedLqrController(Diagram):
     """Drake's ``LinearQuadraticRegulator`` on the linearization, clipped at lbar.
 
@@ -267,7 +276,8 @@ class SaturatedLqrController(Diagram):
     Q : array_like, shape (n, n)
         State weight, symmetric positive semidefinite.
     R : array_like, shape (m, m)
-        Input weight, symmetric positive definite (a number if m = 1).
+        Input weight, symmetric positive definite (a number, or a vector of
+        one entry, if m = 1).
     input_bound : float
         lbar > 0.
 
@@ -291,7 +301,7 @@ class SaturatedLqrController(Diagram):
         B: DrakeArray = linearization.B()
         n, m = B.shape
         Q_arr = nonnegative_matrix("SaturatedLqrController: Q", Q, n)
-        R_arr = spd_matrix("SaturatedLqrController: R", [[R]] if is_real_number(R) else R, m)
+        R_arr = spd_matrix("SaturatedLqrController: R", _input_weight(R, m), m)
         bound = positive_number("SaturatedLqrController: input_bound", input_bound)
         period = linearization.time_period()
         solve = LinearQuadraticRegulator if period == 0 else DiscreteTimeLinearQuadraticRegulator
@@ -321,6 +331,11 @@ class SaturatedLqrController(Diagram):
     def lqr_result(self) -> LqrResult:
         """The LQR gain ``K`` and Riccati solution ``S`` of ``(A, B, Q, R)``."""
         return self._lqr_result
+
+    @property
+    def K(self) -> np.ndarray:
+        """The LQR gain, ``lqr_result().K`` (shape ``(m, n)``)."""
+        return self._lqr_result.K
 
     def get_estimated_state_input_port(self) -> InputPort:
         """The state estimate xhat (size n)."""
