@@ -148,9 +148,10 @@ def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
     """Hold an exclusive lock on ``target`` for the block; refuse if another process holds it.
 
     The lock is ``flock`` on a file named by a hash of ``target``'s absolute
-    path in ``<tmp>/ofrl_drake-locks`` (nothing is added beside the output),
-    released when the block ends or the process dies, so two ``ofrl-drake``
-    commands writing the same output cannot interleave.
+    path (links and ``..`` resolved) in ``<tmp>/ofrl_drake-locks`` (nothing is
+    added beside the output), released when the block ends or the process
+    dies, so two ``ofrl-drake`` commands writing the same output cannot
+    interleave.
 
     Raises
     ------
@@ -160,7 +161,7 @@ def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
     import fcntl
     import hashlib
 
-    path = Path(target).expanduser().absolute()
+    path = Path(target).expanduser().resolve()  # one lock whatever the spelling (.., links)
     folder = Path(tempfile.gettempdir()) / "ofrl_drake-locks"
     folder.mkdir(mode=0o777, exist_ok=True)
     name = hashlib.sha256(str(path).encode()).hexdigest()[:32]

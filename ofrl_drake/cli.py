@@ -375,13 +375,6 @@ def _run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_STOPPED
-    if learning.curve_stop is not None:
-        print(
-            f"stopped: timeout: {learning.curve_stop.rstrip('.')}; wrote {out} with the whole "
-            f"run{no_curve}",
-            file=sys.stderr,
-        )
-        return EXIT_STOPPED
     if graph.suffix == ".dot":
         print(
             f"note: Graphviz 'dot' not found; wrote {out / graph.name} instead of "
@@ -410,6 +403,13 @@ def _run(args: argparse.Namespace) -> int:
         f"|e(T)| = {s['final_estimation_error_norm']:.3g}, J(T) = {s['final_cost']:.4g}, "
         f"simulated in {s['wall_time']:.2f} s, {time.perf_counter() - args.started:.1f} s in all"
     )
+    if learning.curve_stop is not None:  # the run is whole and reported above; its curve is not
+        print(
+            f"stopped: timeout: {learning.curve_stop.rstrip('.')}; wrote {out} with the whole "
+            f"run{no_curve}",
+            file=sys.stderr,
+        )
+        return EXIT_STOPPED
     return EXIT_OK
 
 

@@ -256,11 +256,22 @@ class _Budget:
                 return evaluate(W, deadline=deadline)
             except WallTimeExceeded:
                 pass
+        before = self.began - self.start  # what the run used before the curve began
+        if before >= self.seconds:
+            where = (
+                f"the run had used {before:.3g} s of it before the curve began (the "
+                "simulation and the checks after it), so no checkpoint was evaluated; allow "
+                "more wall time (a larger --max-wall)"
+            )
+        else:
+            where = (
+                f"it stopped at {what}, {time.monotonic() - self.began:.3g} s into the curve "
+                f"(the run had used {before:.3g} s before it); allow more wall time (a larger "
+                "--max-wall) or evaluate fewer checkpoints"
+            )
         raise WallTimeExceeded(
             f"the learning curve did not finish within max_wall_time (--max-wall) = "
-            f"{self.seconds:g} s: it stopped at {what}, {time.monotonic() - self.began:.3g} s "
-            "into the curve; allow more wall time (a larger --max-wall) or evaluate fewer "
-            "checkpoints (--checkpoints; 0 switches the learning curve off).",
+            f"{self.seconds:g} s: {where} (--checkpoints 0 switches the learning curve off).",
             step="learning curve",
         ) from None
 

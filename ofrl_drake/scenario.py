@@ -450,7 +450,7 @@ def _check_mapping(path: str, schema: type, data: Any) -> None:
     hints = typing.get_type_hints(schema)
     fields = {f.name: f for f in dataclasses.fields(schema)}
     prefix = f"{path}." if path else ""
-    unknown = sorted(set(data) - set(fields))
+    unknown = sorted(set(data) - set(fields), key=str)  # a key may be a number: 1: ...
     if unknown:
         raise ScenarioError(
             f"{prefix}{unknown[0]}: unknown key in {where}; allowed keys are {sorted(fields)}."

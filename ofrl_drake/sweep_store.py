@@ -160,6 +160,15 @@ def load_arrays(path: str | os.PathLike[str]) -> dict[str, Any] | None:
         return {k: data[k] for k in data.files}
 
 
+def _has_rows(table: Path) -> bool:
+    """Whether ``table`` holds a line after its header."""
+    try:
+        with open(table, encoding="utf-8") as fh:
+            return len(fh.readlines()[1:2]) > 0
+    except OSError:
+        return False
+
+
 def _remove(path: Path) -> None:
     """Remove ``path``: a folder with its files, or a file (a link, not its target)."""
     if path.is_dir() and not path.is_symlink():
@@ -239,16 +248,17 @@ class SweepStore:
         self._writer: RowWriter | None = None
         self._absent: list[Path] = []  # what open() found absent, outermost first
         self._found: dict[Path, set[str]] = {}  # files of each sub-folder open() found
+        self._table_before: str | None = None  # the table retry_failed rewrote, as found
 
     @property
     def table(self) -> Path:
         """The table's path."""
-        return self.folder / self.files.table
+        return self._root() / self.files.table
 
     @property
     def runs(self) -> Path:
         """The folder of the runs' arrays."""
-        return self.folder / "runs"
+        return self._root() / "runs"
 
     def open(
         self,
@@ -281,6 +291,7 @@ class SweepStore:
             table without its plan, a table without ``resume``, a plan cut
             short, or a ``resume`` of another sweep (named by ``mismatch``).
         """
+        self._table_before = None
         self._absent = self._absent_paths()
         self._found = {
             path: {entry.name for entry in path.iterdir()}
@@ -289,14 +300,14 @@ class SweepStore:
         }
         self.written = 0
         files, error = self.files, self.files.error
-        table, plan_path = self.table, self.folder / files.plan
+        table, plan_path = self.table, self._root() / files.plan
         if table.exists() and not plan_path.exists():
             raise error(
                 f"--out: {plan_path} is missing; it records the sweep that "
                 f"{files.table} belongs to, so it cannot be resumed. Restore it, or move "
                 f"{files.table} away to start a new sweep in {self.folder}."
             )
-        check_output_folder(self.folder, marker=files.plan, command=files.command, error=error)
+        check_output_folder(self._root(), marker=files.plan, command=files.command, error=error)
         ensure_parent(plan_path)
         if table.exists() and not resume:
             raise error(f"{table} exists; pass --resume to complete it, or choose another --out.")
@@ -307,6 +318,7 @@ class SweepStore:
         if retry_failed:
             kept = [r for r in rows if r["status"] == "ok"]
             if len(kept) < len(rows):
+                self._table_before = table.read_text()  # restored by discard()
                 text = ",".join(files.columns) + "\n"
                 text += "".join(format_row(r, files.columns, files.text) for r in kept)
                 atomic_write_text(table, text)
@@ -319,7 +331,7 @@ class SweepStore:
         resume: bool,
         mismatch: Callable[[Mapping[str, Any], Mapping[str, Any]], str | None],
     ) -> None:
-        path = self.folder / self.files.plan
+        path = self._root() / self.files.plan
         if resume and path.is_file():
             try:
                 old = json.loads(path.read_text())
@@ -349,10 +361,18 @@ class SweepStore:
         self._writer.write(row)
         self.written += 1
 
+    def _root(self) -> Path:
+        """The folder as the file system names it: ``~``, links and ``..`` resolved.
+
+        Every path of the store is made from it, so a spelling such as
+        ``build/../out`` (``build`` absent) neither creates ``build`` nor makes
+        an existing folder look absent to :meth:`discard`.
+        """
+        return self.folder.expanduser().resolve()
+
     def _sub_folders(self) -> list[Path]:
         """The paths of :attr:`SweepFiles.folders`."""
-        folder = self.folder.expanduser().absolute()
-        return [folder / name for name in self.files.folders]
+        return [self._root() / name for name in self.files.folders]
 
     def _absent_paths(self) -> list[Path]:
         """What of the folder does not exist now, outermost first.
@@ -360,7 +380,7 @@ class SweepStore:
         Of the folder's parents, the folder, the plan, the table and
         :attr:`SweepFiles.folders`: what :meth:`open` and the sweep may create.
         """
-        folder = self.folder.expanduser().absolute()
+        folder = self._root()
         files = [folder / self.files.plan, folder / self.files.table]
         parents = reversed(folder.parents)  # outermost first; open() creates the missing ones
         paths = [*parents, folder, *files, *self._sub_folders()]
@@ -376,13 +396,21 @@ class SweepStore:
         folders with their files, and the files added to such a folder that
         was there); the folder itself only if it did not exist and is then
         empty, and so for the parents it created. What existed is left as it
-        was found.
+        was found: a table that ``retry_failed`` rewrote is put back, and a
+        table this store created but finds with rows in it (another process's
+        sweep) keeps the folder whole.
         Once a row is written (:attr:`written`) nothing is removed: the folder
         can be resumed.
         """
         if self.written:
             return
         self.close()
+        if self._table_before is not None:  # retry_failed dropped rows: put them back
+            atomic_write_text(self.table, self._table_before)
+            self._table_before = None
+        table = self._root() / self.files.table
+        if table in self._absent and _has_rows(table):
+            return  # rows this store did not write: another process's sweep, kept whole
         for folder, found in self._found.items():
             with contextlib.suppress(OSError):
                 for entry in folder.iterdir():

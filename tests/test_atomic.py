@@ -5,7 +5,7 @@ import stat
 
 import pytest
 
-from ofrl_drake.atomic import atomic_file, atomic_write_text
+from ofrl_drake.atomic import atomic_file, atomic_write_text, output_lock
 from ofrl_drake.errors import OutputError
 
 
@@ -39,3 +39,15 @@ def test_bad_paths_raise_output_error_naming_them(tmp_path):
         atomic_write_text(tmp_path / "afile" / "sub" / "c.json", "{}")
     with pytest.raises(OutputError, match=r"--out: .* is a folder; name a file inside it"):
         atomic_write_text(tmp_path, "{}")
+
+
+def test_one_output_has_one_lock_whatever_its_spelling(tmp_path):
+    # Keyed on the absolute path, "sweep" and "alias/sweep" (a link) or "absent/../sweep"
+    # were two locks, and two sweeps wrote into one folder.
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "alias").symlink_to(tmp_path, target_is_directory=True)
+    with output_lock(tmp_path / "sweep"):
+        for spelling in (tmp_path / "alias" / "sweep", tmp_path / "absent" / ".." / "sweep"):
+            with pytest.raises(OutputError, match=r"another ofrl-drake command is writing .*sweep"):
+                with output_lock(spelling):
+                    pass

@@ -533,20 +533,28 @@ def test_max_wall_bounds_the_learning_curve_exit_3_with_the_whole_run_written(
     args = ["run", str(_short_scenario(tmp_path)), "--out", str(out), "--quiet"]
     assert main([*args, "--checkpoints", "2"]) == 0  # an earlier run's folder, replaced whole
     capsys.readouterr()
-    # The curve's clock reads a day later: its budget is used up at the first checkpoint,
-    # while the design and the simulation (their own clocks) finish well within it.
-    later = types.SimpleNamespace(monotonic=lambda: time.monotonic() + 86400.0)
-    monkeypatch.setattr(learning_curve, "time", later)
-    assert main([*args, "--max-wall", "600"]) == 3
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1, err
+    # The first checkpoint's evaluation passes its deadline, while the design and the
+    # simulation finish well within the budget.
+    from ofrl_drake.errors import WallTimeExceeded
+
+    def late(self, W, **kwargs):
+        raise WallTimeExceeded("passed its deadline", step="policy evaluation")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(learning_curve.PolicyEvaluator, "__call__", late)
+        assert main([*args, "--max-wall", "600"]) == 3
+    captured = capsys.readouterr()
+    # The run is reported as any whole run is (its warnings, the observer, "wrote"), then why
+    # it stopped, last.
+    assert f"wrote {out}: |x(T)| = " in captured.out, captured.out
     assert re.match(
         r"^stopped: timeout: the learning curve did not finish within max_wall_time "
-        r"\(--max-wall\) = 600 s: it stopped at checkpoint 1 of 11 \(t = 0 s\), .* 0 switches "
+        r"\(--max-wall\) = 600 s: it stopped at checkpoint 1 of 11 \(t = 0 s\), .* into the "
+        r"curve \(the run had used .* s before it\); .* 0 switches "
         rf"the learning curve off\); wrote {re.escape(str(out))} with the whole run, without "
         r"the learning curve \(out of --max-wall; summary.json -> learning_curve_stop\)$",
-        err.strip(),
-    ), err
+        captured.err.strip().splitlines()[-1],
+    ), captured.err
     summary, figures = _curve_summary(out)
     assert summary["status"] == "ok" and summary["final_time"] == pytest.approx(2.0)
     assert "learning_curve" not in summary  # none of the earlier run's curve either
@@ -554,6 +562,16 @@ def test_max_wall_bounds_the_learning_curve_exit_3_with_the_whole_run_written(
     assert "learning_curve.png" not in figures and "state_1.png" in figures
     assert (out / "trajectories.npz").is_file() and (out / "learning_health.npz").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenario.yaml"]
+    # A budget the run used up before the curve began: no checkpoint to blame.
+    monkeypatch.setattr(
+        learning_curve, "time", types.SimpleNamespace(monotonic=lambda: time.monotonic() + 9e4)
+    )
+    assert main([*args, "--max-wall", "600"]) == 3
+    assert re.search(
+        r"= 600 s: the run had used 9e\+04 s of it before the curve began .*, so no "
+        r"checkpoint was evaluated; allow more wall time \(a larger --max-wall\) \(--checkpoints",
+        capsys.readouterr().err.strip().splitlines()[-1],
+    )
 
 
 def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):

@@ -387,7 +387,7 @@ def short_paper_run():
 
 
 def test_a_learning_report_out_of_wall_time_names_where_it_stopped_the_budget_and_the_fix(
-    short_paper_run,
+    short_paper_run, monkeypatch
 ):
     # Before: the learning curve had no budget at all, so run --max-wall did not bound it.
     import time
@@ -399,15 +399,30 @@ def test_a_learning_report_out_of_wall_time_names_where_it_stopped_the_budget_an
     with pytest.raises(
         WallTimeExceeded,
         match=r"^the learning curve did not finish within max_wall_time \(--max-wall\) = 1 s: "
-        r"it stopped at checkpoint 1 of 11 \(t = 0 s\), [0-9.e+-]+ s into the curve; allow "
-        r"more wall time \(a larger --max-wall\) or evaluate fewer checkpoints "
-        r"\(--checkpoints; 0 switches the learning curve off\)\.$",
+        r"the run had used 10 s of it before the curve began \(the simulation and the checks "
+        r"after it\), so no checkpoint was evaluated; allow more wall time \(a larger "
+        r"--max-wall\) \(--checkpoints 0 switches the learning curve off\)\.$",
     ) as raised:
-        # a budget of 1 s that began 10 s ago: used up whatever this machine's speed
+        # a budget of 1 s that began 10 s ago: used up before the curve, whatever the machine
         learning_report(loop, result, max_wall_time=1.0, started=time.monotonic() - 10.0)
     assert raised.value.step == "learning curve"
-    with pytest.raises(WallTimeExceeded, match=r"= 1e-09 s: it stopped at checkpoint 1 of 3"):
-        learning_report(loop, result, checkpoints=2, max_wall_time=1e-9)
+    # A checkpoint that passes the deadline: the curve names it.
+    from ofrl_drake import learning_curve
+
+    def late(self, W, **kwargs):
+        raise WallTimeExceeded("passed its deadline", step="policy evaluation")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(learning_curve.PolicyEvaluator, "__call__", late)
+        with pytest.raises(
+            WallTimeExceeded,
+            match=r"^the learning curve did not finish within max_wall_time \(--max-wall\) = "
+            r"60 s: it stopped at checkpoint 1 of 3 \(t = 0 s\), [0-9.e+-]+ s into the curve "
+            r"\(the run had used [0-9.e+-]+ s before it\); allow more wall time \(a larger "
+            r"--max-wall\) or evaluate fewer checkpoints \(--checkpoints 0 switches the learning "
+            r"curve off\)\.$",
+        ):
+            learning_report(loop, result, checkpoints=2, max_wall_time=60.0)
 
 
 def test_a_policy_evaluation_stops_at_its_deadline_and_a_budget_changes_no_number(

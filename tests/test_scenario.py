@@ -552,3 +552,17 @@ def test_the_log_cap_passes_fine_log_periods_and_refuses_just_above_it(paper_sce
     )
     with pytest.raises(ScenarioError, match=r"simulation\.log_period: .* at most 2 GiB"):
         validate_scenario(tight)
+
+
+@pytest.mark.parametrize("where", [(), ("critic",)])
+def test_an_unknown_number_key_beside_text_keys_is_named(tmp_path, where):
+    # Sorting the unknown keys raised TypeError when one of them was a number.
+    def edit(data):
+        for key in where:
+            data = data[key]
+        data[1] = "a"
+        data["zz"] = "b"
+
+    prefix = "".join(f"{key}\\." for key in where)
+    with pytest.raises(ScenarioError, match=rf": {prefix}1: unknown key in "):
+        load_scenario(_write(tmp_path, edit))

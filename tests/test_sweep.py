@@ -287,3 +287,33 @@ def test_montecarlo_names_a_path_given_as_the_scenario(tmp_path):
 
     with pytest.raises(ScenarioError, match=r"^montecarlo: scenario must be a Scenario; got the"):
         montecarlo("diagrams/two_state_paper.yaml", 1, out=tmp_path / "mc", progress=False)
+
+
+def test_a_stopped_sweep_never_removes_what_it_did_not_create(tmp_path):
+    def stop_before_first_row(out, **kwargs):
+        store = SweepStore(FILES, out)
+        with pytest.raises(KeyboardInterrupt):
+            with store.recording({"seed": 1}, mismatch=_seed_differs, **kwargs):
+                raise KeyboardInterrupt
+
+    # A finished sweep reached through a spelling with ".." over an absent folder
+    # looked absent, and was removed whole.
+    done = _filled(tmp_path)
+    before = _tree(done)
+    stop_before_first_row(tmp_path / "absent" / ".." / "out", resume=True)
+    assert _tree(done) == before and not (tmp_path / "absent").exists()
+    # --retry-failed drops the failed rows from the table before it runs them again; stopped
+    # before a new row, the table is put back as it was found.
+    stop_before_first_row(done, resume=True, retry_failed=True)
+    assert _tree(done) == before
+    assert [r["status"] for r in FILES.read(done / "t.csv")] == ["ok", "diverged: x left"]
+    # A table created by this store but holding rows it did not write (another process
+    # sweeping into the same folder) keeps the folder whole.
+    shared = tmp_path / "shared"
+    store = SweepStore(FILES, shared)
+    with pytest.raises(KeyboardInterrupt):
+        with store.recording({"seed": 1}, resume=False, mismatch=_seed_differs):
+            with open(shared / "t.csv", "a") as fh:
+                fh.write("other,3.0,ok\n")
+            raise KeyboardInterrupt
+    assert [r["name"] for r in FILES.read(shared / "t.csv")] == ["other"]
