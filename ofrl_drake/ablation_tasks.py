@@ -30,7 +30,7 @@ import numpy as np
 
 from ofrl_drake.ablation_grid import AblationError, Variant, initial_state_label
 from ofrl_drake.ablation_metrics import run_metrics
-from ofrl_drake.errors import status_line
+from ofrl_drake.errors import WallTimeExceeded, status_line
 from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
 from ofrl_drake.scenario import Scenario, variant_choices
 
@@ -186,13 +186,20 @@ def _run(
     label = initial_state_label(s.x0)
     learned = variant_choices(s)["controller"] == "learned"
     start = time.perf_counter()
+    budget = s.simulation.max_wall_time  # the run and its policy evaluations share it
+    deadline = None if budget is None else time.monotonic() + budget
     regulated = False
     try:
         result = simulate(s, loop=loop, progress=False)
         box = (np.asarray(s.observer.box.lower), np.asarray(s.observer.box.upper))
-        metrics = {**run_metrics(result, box), **_policy_costs(evaluator, result, s)}
+        metrics = run_metrics(result, box)
         regulated = bool(result.regulated)
         status = "ok"
+        try:
+            metrics.update(_policy_costs(evaluator, result, s, deadline))
+        except WallTimeExceeded as err:  # the run is whole; its policies were not evaluated
+            metrics.update(initial_policy_cost=math.nan, final_policy_cost=math.nan)
+            status = f"timeout: {' '.join(str(err).split())} (max_wall_time = {budget:g} s)"
         if result.stop is not None and result.status != "ok":
             # Stopped by the guard: the metrics of a truncated run are not comparable.
             status = f"{result.status}: {result.stop.reason}"
@@ -216,21 +223,24 @@ def _run(
     )
 
 
-def _policy_costs(evaluator: Any, result: Any, scenario: Scenario) -> dict[str, float]:
+def _policy_costs(
+    evaluator: Any, result: Any, scenario: Scenario, deadline: float | None = None
+) -> dict[str, float]:
     """The policy in force at 0 and at the run's end, each fed the true state from x0.
 
     What learning buys, apart from the observer: the critic frozen at
     ``W_pi(0)`` and ``W_pi(T)``, over the scenario's horizon
     (:class:`ofrl_drake.learning_curve.PolicyEvaluator`, built once per
     variant). NaN for a controller that does not act on the critic (``lqr``,
-    ``constant``): no ``evaluator``.
+    ``constant``): no ``evaluator``. Each evaluation stops at ``deadline`` (a
+    ``time.monotonic()`` reading) with :class:`~ofrl_drake.errors.WallTimeExceeded`.
     """
     if evaluator is None:
         return {"initial_policy_cost": math.nan, "final_policy_cost": math.nan}
     x0 = np.asarray(scenario.x0, dtype=float)
     return {
-        "initial_policy_cost": evaluator(result.W_policy[0], x0=x0).cost,
-        "final_policy_cost": evaluator(result.W_policy[-1], x0=x0).cost,
+        "initial_policy_cost": evaluator(result.W_policy[0], x0=x0, deadline=deadline).cost,
+        "final_policy_cost": evaluator(result.W_policy[-1], x0=x0, deadline=deadline).cost,
     }
 
 

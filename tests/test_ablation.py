@@ -393,6 +393,36 @@ def test_a_run_the_guard_stops_is_recorded_with_its_status(paper_scenario):
     assert outcome.warm_start() is None
 
 
+def test_the_policy_evaluations_share_the_runs_budget(paper_scenario, monkeypatch):
+    # The policy costs at 0 and T are two more simulations over the horizon after the run;
+    # --max-wall did not bound them. Here the run's budget is spent before they begin.
+    import types
+
+    from ofrl_drake import ablation_tasks
+    from ofrl_drake.learning_curve import PolicyEvaluator
+
+    baseline = Variant("baseline")
+    simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=60.0)
+    run = _scenario_for(
+        dataclasses.replace(paper_scenario, simulation=simulation), baseline, [-1.0, 1.0], 1.0
+    )
+    loop = build_closed_loop(run, design=design_for(paper_scenario))
+    whole = _run(loop, PolicyEvaluator(loop), run, baseline, build_share=0.0)
+    assert whole.status == "ok" and math.isfinite(whole.metrics["final_policy_cost"])
+    clock = types.SimpleNamespace(
+        monotonic=lambda: time.monotonic() - 61.0, perf_counter=time.perf_counter
+    )
+    monkeypatch.setattr(ablation_tasks, "time", clock)  # the deadline: a second ago
+    late = _run(loop, PolicyEvaluator(loop), run, baseline, build_share=0.0)
+    assert late.status.startswith("timeout: the policy evaluation passed its deadline at t = ")
+    assert late.status.endswith("(max_wall_time = 60 s)")
+    assert math.isnan(late.metrics["initial_policy_cost"])
+    # The run itself is whole: its own metrics are those of the run without a deadline.
+    for name, value in whole.metrics.items():
+        if not name.endswith("policy_cost"):
+            assert late.metrics[name] == value, name
+
+
 def test_a_design_out_of_wall_time_is_a_timeout_row(paper_scenario):
     simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3)
     scenario = dataclasses.replace(paper_scenario, simulation=simulation)
