@@ -49,6 +49,7 @@ __all__ = [
     "FILES",
     "RUNS_PER_TASK",
     "MonteCarloError",
+    "envelope_samples",
     "montecarlo",
     "montecarlo_table",
     "read_montecarlo_rows",
@@ -347,11 +348,13 @@ def montecarlo(
 
 
 def _stats(values: Sequence[float]) -> str:
+    """``mean ± std`` of the finite ``values``; ``(n = K)`` when K of them are not all."""
     arr = np.asarray(values, dtype=float)
     arr = arr[np.isfinite(arr)]
     if arr.size == 0:
         return "n/a"
-    return f"{arr.mean():.4g} ± {arr.std(ddof=1) if arr.size > 1 else 0.0:.2g}"
+    text = f"{arr.mean():.4g} ± {arr.std(ddof=1) if arr.size > 1 else 0.0:.2g}"
+    return text if arr.size == len(values) else f"{text} (n = {arr.size})"
 
 
 def montecarlo_table(rows: Sequence[dict]) -> str:
@@ -369,6 +372,28 @@ def montecarlo_table(rows: Sequence[dict]) -> str:
         f"{_stats([r['cost'] for r in rows])} | {_stats([r['optimality_ratio'] for r in rows])} |",
     ]
     return "\n".join(lines) + "\n"
+
+
+def envelope_samples(
+    logs: Sequence[tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every run's state on one time grid, NaN after the run ended.
+
+    ``logs`` holds ``(t, x)`` per run (``x`` of shape ``(T_k, n)``). The grid
+    spans the longest run, as finely as its most finely logged run; a run the
+    guard stopped early counts only up to its last sample (interpolating past
+    it would hold its last state flat to the horizon). Returns ``(grid, stack)``
+    with ``stack`` of shape ``(runs, grid size, n)``.
+    """
+    end = max(float(t[-1]) for t, _ in logs)
+    size = max(t.size for t, _ in logs)
+    grid = np.linspace(0.0, end, size)
+    stack = np.full((len(logs), size, logs[0][1].shape[1]), np.nan)
+    for k, (t, x) in enumerate(logs):
+        inside = grid <= t[-1] * (1 + 1e-12)
+        for i in range(x.shape[1]):
+            stack[k, inside, i] = np.interp(grid[inside], t, x[:, i])
+    return grid, stack
 
 
 def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], name: str) -> None:
@@ -400,11 +425,11 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     n = logs[0][1].shape[1]
     fig, axes = plt.subplots(n, 1, figsize=(6.5, 1.8 * n), sharex=True, layout="constrained")
     axes = np.atleast_1d(axes)
+    grid, stack = envelope_samples(logs)
     for i, ax in enumerate(axes):
-        grid = logs[0][0]
-        stack = np.array([np.interp(grid, t, x[:, i]) for t, x in logs])
-        ax.fill_between(grid, stack.min(axis=0), stack.max(axis=0), alpha=0.3, label="min-max")
-        ax.plot(grid, np.median(stack, axis=0), lw=1.2, label="median")
+        lower, upper = np.nanmin(stack[:, :, i], axis=0), np.nanmax(stack[:, :, i], axis=0)
+        ax.fill_between(grid, lower, upper, alpha=0.3, label="min-max")
+        ax.plot(grid, np.nanmedian(stack[:, :, i], axis=0), lw=1.2, label="median")
         ax.set_ylabel(f"$x_{i + 1}$")
     axes[-1].set_xlabel("t [s]")
     axes[0].legend(loc="upper right", fontsize=8)

@@ -19,7 +19,9 @@ from ofrl_drake.examples import make_system
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.monte_carlo import (
     MonteCarloError,
+    envelope_samples,
     montecarlo,
+    montecarlo_table,
     read_montecarlo_rows,
     run_seeds,
     write_montecarlo_report,
@@ -488,3 +490,25 @@ def test_the_wrappers_accessors_return_their_named_ports():
     controller = SampledController(SaturatedController(system, basis, np.ones(1), 3.0), 0.01)
     assert controller.get_u_output_port().get_name() == "u"
     assert controller.get_u_output_port() is controller.GetOutputPort("u")
+
+
+def test_the_envelope_of_a_run_stopped_early_ends_where_it_stopped():
+    # Interpolated onto the first run's grid, a run the guard stopped early was held flat
+    # to the horizon, and a short first run cut every run to its length.
+    short = (np.linspace(0.0, 1.0, 11), np.ones((11, 2)))
+    whole = (np.linspace(0.0, 2.0, 21), np.zeros((21, 2)))
+    grid, stack = envelope_samples([short, whole])
+    np.testing.assert_allclose(grid, np.linspace(0.0, 2.0, 21), rtol=0, atol=1e-15)
+    assert stack.shape == (2, 21, 2)
+    assert np.all(stack[0, grid <= 1.0] == 1.0) and np.all(np.isnan(stack[0, grid > 1.0]))
+    assert np.all(stack[1] == 0.0)
+
+
+def test_a_statistic_over_fewer_runs_than_the_table_says_names_its_count():
+    row = {"status": "ok", "regulated": "true", "final_state_norm": 1.0}
+    row.update(rms_estimation_error=0.5, cost=2.0, optimality_ratio=float("nan"))
+    rows = [dict(row), dict(row, cost=4.0), dict(row, cost=float("nan"))]
+    table = montecarlo_table(rows)
+    assert "| 1 ± 0 |" in table  # every run: no count
+    assert "| 3 ± 1.4 (n = 2) |" in table
+    assert table.rstrip().endswith("| n/a |")

@@ -235,7 +235,13 @@ class MeasuredPlant(Diagram):
         self._inner.set_state(self.GetMutableSubsystemContext(self._inner, context), x)
 
     def start_holds(self, context: Context) -> None:
-        """The sample-and-hold starts at ``y(0)`` with its noise (after the state is set)."""
+        """The sample-and-hold starts at ``y(0)`` with one noise draw (after the state is set).
+
+        What a log at ``t = 0`` shows. The periodic update at ``t = 0`` then
+        samples ``y(0)`` again with the next draw, and that is what the loop
+        uses on ``[0, period)``: every sample ``t_k = k period``, ``t = 0``
+        included, takes a new draw.
+        """
         start_holds(self._inner, self.GetMutableSubsystemContext(self._inner, context))
         if self._hold is not None:
             hold_context = self.GetMutableSubsystemContext(self._hold, context)
