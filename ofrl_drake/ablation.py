@@ -325,7 +325,7 @@ class _Sweep:
         ) as rows:
             for row in rows:
                 self.done[(row["variant"], row["initial_state"])] = row
-            self.cache = OptimalCostCache(self.store.folder / "optimal", self.mesh, self.solver)
+            self.cache = OptimalCostCache(self.store.root / "optimal", self.mesh, self.solver)
             yield
 
     def submit(self, engine: Any, todo: Sequence[tuple[str, str]]) -> dict[Any, tuple]:

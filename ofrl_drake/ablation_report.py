@@ -21,15 +21,14 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
 
 from ofrl_drake.ablation import load_run
 from ofrl_drake.ablation_metrics import settling_time
-from ofrl_drake.atomic import atomic_file, atomic_write_text
+from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.optimal import Trajectory
-from ofrl_drake.plotting import numerical_floor, shade_numerical_floor
+from ofrl_drake.plotting import numerical_floor, save_png, shade_numerical_floor
 
 __all__ = [
     "REPORT_METRICS",
@@ -279,16 +278,10 @@ def write_report(
     md = out / "ablation.md"
     atomic_write_text(md, "\n".join(text))
     ratio = figures / "optimality_ratio.png"
-    _save(plot_optimality_ratio(rows, variants), ratio)
+    save_png(plot_optimality_ratio(rows, variants), ratio, DPI)
     traj = figures / "trajectories.png"
-    _save(plot_trajectories(out / "runs", variants, x0_label, optimum, equilibrium, accuracy), traj)
+    trajectories = plot_trajectories(
+        out / "runs", variants, x0_label, optimum, equilibrium, accuracy
+    )
+    save_png(trajectories, traj, DPI)
     return [md, ratio, traj]
-
-
-def _save(fig: Figure, path: Path) -> None:
-    """Write ``fig`` to ``path`` as a PNG, whole or not at all, and close it."""
-    try:
-        with atomic_file(path, "wb") as fh:
-            fig.savefig(fh, dpi=DPI, format="png")
-    finally:
-        plt.close(fig)

@@ -15,6 +15,7 @@ import numpy as np
 from ofrl_drake.errors import ModelError, OfrlError
 
 __all__ = [
+    "finite_array",
     "finite_vector",
     "integer_at_least",
     "is_real_number",
@@ -25,7 +26,8 @@ __all__ = [
 ]
 
 
-def _finite_array(name: str, value: Any) -> np.ndarray:
+def finite_array(name: str, value: Any) -> np.ndarray:
+    """``value`` as a float array of any shape, checked numeric and finite."""
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as err:
@@ -70,7 +72,7 @@ def positive_number(name: str, value: Any, *, allow_zero: bool = False) -> float
     """
     if isinstance(value, str | bytes | bool | np.bool_):
         raise ModelError(f"{name} must be a number; got {value!r}.")
-    arr = _finite_array(name, value)
+    arr = finite_array(name, value)
     if arr.ndim != 0:
         raise ModelError(f"{name} must be a number; got shape {arr.shape}.")
     x = float(arr)
@@ -82,7 +84,7 @@ def positive_number(name: str, value: Any, *, allow_zero: bool = False) -> float
 
 def finite_vector(name: str, value: Any, size: int | None = None) -> np.ndarray:
     """``value`` as a finite, non-empty 1-D array, of length ``size`` if given."""
-    arr = _finite_array(name, value)
+    arr = finite_array(name, value)
     if arr.ndim != 1 or arr.size == 0:
         raise ModelError(f"{name} must be a non-empty 1-D vector; got shape {arr.shape}.")
     if size is not None and arr.size != size:
@@ -99,7 +101,7 @@ def positive_vector(name: str, value: Any, size: int | None = None) -> np.ndarra
 
 
 def _symmetric(name: str, value: Any, size: int | None) -> np.ndarray:
-    arr = _finite_array(name, value)
+    arr = finite_array(name, value)
     if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or arr.size == 0:
         raise ModelError(f"{name} must be a square matrix; got shape {arr.shape}.")
     if size is not None and arr.shape[0] != size:

@@ -40,7 +40,7 @@ from ofrl_drake.contracts import (
     PolicyWeightsSetter,
     WeightsSetter,
 )
-from ofrl_drake.drake_typing import DrakeArray
+from ofrl_drake.drake_typing import DrakeArray, input_port_names, output_port_names
 from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
@@ -537,14 +537,14 @@ def _check_ports(slot: str, block: System, wrapped: bool) -> None:
         name += f" {block.get_name()!r}"
     for signal, provider in SIGNALS.items():
         if provider == slot and not block.HasOutputPort(signal):
-            have = [block.get_output_port(i).get_name() for i in range(block.num_output_ports())]
+            have = output_port_names(block)
             raise SwapError(
                 f"{slot}: the block must have an output port named {signal!r}; {name} has "
                 f"none (its output ports: {have}). Name the port {signal!r}."
             )
     for port in _WRAPPED_INPUTS.get(slot, ()) if wrapped else ():
         if not block.HasInputPort(port):
-            have = [block.get_input_port(i).get_name() for i in range(block.num_input_ports())]
+            have = input_port_names(block)
             raise SwapError(
                 f"{slot}: the block must have an input port named {port!r}, which the "
                 f"scenario's measurement and actuation feed; {name} has none (its input "

@@ -45,6 +45,7 @@ from pydrake.symbolic import Expression, Jacobian, MakeVectorVariable, Variable
 from pydrake.systems.framework import InputPort, PortDataType, System
 
 from ofrl_drake.checks import integer_at_least
+from ofrl_drake.drake_typing import input_port_names
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
 from ofrl_drake.multibody_bounds import MultibodyStructure, multibody_structure
@@ -189,7 +190,7 @@ class DrakeDynamics:
 
 # ------------------------------------------------------------- Drake systems
 def _resolve_input_port(system: System, input_port: int | str) -> InputPort:
-    names = [system.get_input_port(i).get_name() for i in range(system.num_input_ports())]
+    names = input_port_names(system)
     if not names:
         raise ModelError(
             f"{system.get_name() or type(system).__name__} has no input port; "
@@ -330,9 +331,7 @@ def extract_drake_system(
     context.SetContinuousState([Expression(v) for v in x])  # type: ignore[arg-type]  # pydrake array stub
     # By name: the converted system need not declare its ports in the same order.
     if not symbolic.HasInputPort(port.get_name()):
-        converted = [
-            symbolic.get_input_port(i).get_name() for i in range(symbolic.num_input_ports())
-        ]
+        converted = input_port_names(symbolic)
         raise ModelError(
             f"{label}: the system's symbolic version (ToSymbolic()) has no input port "
             f"{port.get_name()!r}, only {converted}; its scalar conversion must keep the "

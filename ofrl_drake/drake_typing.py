@@ -13,6 +13,9 @@ through :func:`drake_array` where they are built, and so are the values of
 vector ports (:func:`vector_value`, or :func:`vector_reader` in a block's
 per-evaluation code), whose stub says ``object``.
 
+:func:`input_port_names` and :func:`output_port_names` list a system's ports
+for messages that name what a block has.
+
 None changes a value: :func:`drake_array` is ``np.asarray(values,
 dtype=float)``, :func:`vector_value` is ``port.Eval(context)``, and
 :func:`vector_reader` is ``port.Eval`` itself.
@@ -29,7 +32,15 @@ from numpy.typing import ArrayLike
 if TYPE_CHECKING:  # annotations only
     from pydrake.systems.framework import Context, InputPort, OutputPort
 
-__all__ = ["DrakeArray", "SymbolicArray", "drake_array", "vector_reader", "vector_value"]
+__all__ = [
+    "DrakeArray",
+    "SymbolicArray",
+    "drake_array",
+    "input_port_names",
+    "output_port_names",
+    "vector_reader",
+    "vector_value",
+]
 
 #: A float array as pydrake's stubs take and give it: any shape (see the module docstring).
 DrakeArray: TypeAlias = np.ndarray[Any, np.dtype[np.float64]]
@@ -60,3 +71,13 @@ def vector_reader(port: InputPort | OutputPort) -> Callable[[Context], DrakeArra
     scenario's loop).
     """
     return cast("Callable[[Context], DrakeArray]", port.Eval)
+
+
+def input_port_names(system: Any) -> list[str]:
+    """The names of ``system``'s input ports, in port order (a System of any scalar type)."""
+    return [system.get_input_port(i).get_name() for i in range(system.num_input_ports())]
+
+
+def output_port_names(system: Any) -> list[str]:
+    """The names of ``system``'s output ports, in port order (a System of any scalar type)."""
+    return [system.get_output_port(i).get_name() for i in range(system.num_output_ports())]

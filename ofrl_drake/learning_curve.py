@@ -358,8 +358,27 @@ def learning_curve(
         error=ScenarioError,
     )
     budget = _budget("learning_curve", max_wall_time, started)
-    horizon = float(loop.parts.scenario.simulation.duration)
     evaluate = PolicyEvaluator(loop) if evaluator is None else evaluator
+    return _curve(loop, result, checkpoints, optimal_cost, evaluate, budget)
+
+
+def _within(
+    budget: _Budget | None, evaluate: PolicyEvaluator, W: np.ndarray, what: str
+) -> PolicyRun:
+    """``evaluate(W)``, within ``budget`` when there is one (:meth:`_Budget.evaluate`)."""
+    return evaluate(W) if budget is None else budget.evaluate(evaluate, W, what)
+
+
+def _curve(
+    loop: ClosedLoop,
+    result: SimulationResult,
+    checkpoints: int,
+    optimal_cost: float | None,
+    evaluate: PolicyEvaluator,
+    budget: _Budget | None,
+) -> list[dict[str, Any]]:
+    """:func:`learning_curve` with its arguments checked and its budget made (one clock)."""
+    horizon = float(loop.parts.scenario.simulation.duration)
     entries = []
     seen: set[int] = set()
     times = np.linspace(0.0, horizon, checkpoints + 1)
@@ -370,11 +389,8 @@ def learning_curve(
         if i in seen:
             continue
         seen.add(i)
-        if budget is None:
-            run = evaluate(result.W_policy[i])
-        else:
-            where = f"checkpoint {k} of {times.size} (t = {result.t[i]:.6g} s)"
-            run = budget.evaluate(evaluate, result.W_policy[i], where)
+        where = f"checkpoint {k} of {times.size} (t = {result.t[i]:.6g} s)"
+        run = _within(budget, evaluate, result.W_policy[i], where)
         ratio = (
             run.cost / optimal_cost
             if optimal_cost is not None and np.isfinite(optimal_cost) and np.isfinite(run.cost)
@@ -627,25 +643,11 @@ def learning_report(
     lqr_cost = None
     if checkpoints > 0:
         evaluate = PolicyEvaluator(loop)
-        curve = learning_curve(
-            loop,
-            result,
-            checkpoints=checkpoints,
-            optimal_cost=optimal_cost,
-            evaluator=evaluate,
-            max_wall_time=None if budget is None else budget.seconds,
-            started=None if budget is None else budget.start,
-        )
+        curve = _curve(loop, result, checkpoints, optimal_cost, evaluate, budget)
         W_lqr = lqr_weights(loop)
         if W_lqr is not None:
-            run = (
-                evaluate(W_lqr)
-                if budget is None
-                else budget.evaluate(
-                    evaluate, W_lqr, "the LQR policy's cost, after the checkpoints"
-                )
-            )
-            lqr_cost = run.cost
+            what = "the LQR policy's cost, after the checkpoints"
+            lqr_cost = _within(budget, evaluate, W_lqr, what).cost
     return LearningReport(
         curve=curve,
         health=learning_health(loop, result),

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
-from ofrl_drake.atomic import atomic_file, atomic_write_text
+from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.checks import integer_at_least, is_real_number
 from ofrl_drake.errors import OfrlError, status_line
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
@@ -400,6 +400,8 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     """``montecarlo.md`` and ``figures/envelope.png`` (the state envelope across runs)."""
     import matplotlib.pyplot as plt
 
+    from ofrl_drake.plotting import save_png  # matplotlib only when a report is written
+
     out = Path(out)
     failed = [r for r in rows if not (r["status"] == "ok" and r["regulated"] == "true")]
     text = [
@@ -435,6 +437,4 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     axes[0].legend(loc="upper right", fontsize=8)
     fig.suptitle(f"{name}: state envelope over {len(logs)} runs")
     (out / "figures").mkdir(exist_ok=True)
-    with atomic_file(out / "figures" / "envelope.png", "wb") as fh:
-        fig.savefig(fh, dpi=150, format="png")
-    plt.close(fig)
+    save_png(fig, out / "figures" / "envelope.png", 150)

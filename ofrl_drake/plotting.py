@@ -32,6 +32,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from ofrl_drake.atomic import atomic_file
+
 if TYPE_CHECKING:  # matplotlib >= 3.10 names the rc keys; the annotation only
     from matplotlib.typing import RcKeyType
 
@@ -51,6 +53,7 @@ __all__ = [
     "plot_state",
     "plot_weights",
     "save_figures",
+    "save_png",
     "shade_numerical_floor",
     "transient_end",
 ]
@@ -687,9 +690,15 @@ def save_figures(
         if title:  # in the corner, clear of the legends above the axes
             fig.text(0.998, 0.002, title, ha="right", va="bottom", fontsize=7, color="0.45")
         path = directory / f"{name}.png"
-        try:
-            fig.savefig(path, dpi=dpi)
-        finally:
-            plt.close(fig)
+        save_png(fig, path, dpi)
         paths.append(path)
     return paths
+
+
+def save_png(fig: Figure, path: Path, dpi: int) -> None:
+    """Write ``fig`` to ``path`` as a PNG, whole or not at all, and close it (also on error)."""
+    try:
+        with atomic_file(path, "wb") as fh:
+            fig.savefig(fh, dpi=dpi, format="png")
+    finally:
+        plt.close(fig)

@@ -164,7 +164,8 @@ def _has_rows(table: Path) -> bool:
     """Whether ``table`` holds a line after its header."""
     try:
         with open(table, encoding="utf-8") as fh:
-            return len(fh.readlines()[1:2]) > 0
+            fh.readline()  # the header
+            return fh.readline() != ""
     except OSError:
         return False
 
@@ -253,12 +254,12 @@ class SweepStore:
     @property
     def table(self) -> Path:
         """The table's path."""
-        return self._root() / self.files.table
+        return self.root / self.files.table
 
     @property
     def runs(self) -> Path:
         """The folder of the runs' arrays."""
-        return self._root() / "runs"
+        return self.root / "runs"
 
     def open(
         self,
@@ -300,14 +301,14 @@ class SweepStore:
         }
         self.written = 0
         files, error = self.files, self.files.error
-        table, plan_path = self.table, self._root() / files.plan
+        table, plan_path = self.table, self.root / files.plan
         if table.exists() and not plan_path.exists():
             raise error(
                 f"--out: {plan_path} is missing; it records the sweep that "
                 f"{files.table} belongs to, so it cannot be resumed. Restore it, or move "
                 f"{files.table} away to start a new sweep in {self.folder}."
             )
-        check_output_folder(self._root(), marker=files.plan, command=files.command, error=error)
+        check_output_folder(self.root, marker=files.plan, command=files.command, error=error)
         ensure_parent(plan_path)
         if table.exists() and not resume:
             raise error(f"{table} exists; pass --resume to complete it, or choose another --out.")
@@ -331,7 +332,7 @@ class SweepStore:
         resume: bool,
         mismatch: Callable[[Mapping[str, Any], Mapping[str, Any]], str | None],
     ) -> None:
-        path = self._root() / self.files.plan
+        path = self.root / self.files.plan
         if resume and path.is_file():
             try:
                 old = json.loads(path.read_text())
@@ -361,7 +362,8 @@ class SweepStore:
         self._writer.write(row)
         self.written += 1
 
-    def _root(self) -> Path:
+    @property
+    def root(self) -> Path:
         """The folder as the file system names it: ``~``, links and ``..`` resolved.
 
         Every path of the store is made from it, so a spelling such as
@@ -372,7 +374,7 @@ class SweepStore:
 
     def _sub_folders(self) -> list[Path]:
         """The paths of :attr:`SweepFiles.folders`."""
-        return [self._root() / name for name in self.files.folders]
+        return [self.root / name for name in self.files.folders]
 
     def _absent_paths(self) -> list[Path]:
         """What of the folder does not exist now, outermost first.
@@ -380,7 +382,7 @@ class SweepStore:
         Of the folder's parents, the folder, the plan, the table and
         :attr:`SweepFiles.folders`: what :meth:`open` and the sweep may create.
         """
-        folder = self._root()
+        folder = self.root
         files = [folder / self.files.plan, folder / self.files.table]
         parents = reversed(folder.parents)  # outermost first; open() creates the missing ones
         paths = [*parents, folder, *files, *self._sub_folders()]
@@ -408,7 +410,7 @@ class SweepStore:
         if self._table_before is not None:  # retry_failed dropped rows: put them back
             atomic_write_text(self.table, self._table_before)
             self._table_before = None
-        table = self._root() / self.files.table
+        table = self.root / self.files.table
         if table in self._absent and _has_rows(table):
             return  # rows this store did not write: another process's sweep, kept whole
         for folder, found in self._found.items():

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ofrl_drake.checks import _finite_array
+from ofrl_drake.checks import finite_array
 from ofrl_drake.errors import ModelError
 
 __all__ = [
@@ -266,7 +266,7 @@ def _injection_points(
             f"points; got {xa.shape} and {xh.shape}."
         )
     T, n = xa.shape
-    Cm = _finite_array("validity_report: C", C)
+    Cm = finite_array("validity_report: C", C)
     if Cm.ndim != 2 or Cm.shape[0] == 0 or Cm.shape[1] != n:
         raise ModelError(
             f"validity_report: C must have shape (q, n) with n = {n} (the columns of x) and "
@@ -276,7 +276,7 @@ def _injection_points(
     ytil = (xa - xh) @ Cm.T  # (T, q)
     points: dict[str, np.ndarray] = {}
     for name, gain in (("H", H), ("K", K)):
-        G = _finite_array(f"validity_report: {name}", gain)
+        G = finite_array(f"validity_report: {name}", gain)
         if G.shape not in ((n, q), (T, n, q)):
             raise ModelError(
                 f"validity_report: {name} must have shape (n, q) = {(n, q)}, or {(T, n, q)} "

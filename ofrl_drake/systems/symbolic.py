@@ -115,7 +115,7 @@ def _add_symbolic_system(
     mux = builder.AddNamedSystem("stack_inputs", Multiplexer([v.size for _, v in inputs]))
     builder.Connect(mux.get_output_port(), system.get_input_port())
     indices = [
-        builder.ExportInput(mux.get_input_port(i), port) for i, (port, _) in enumerate(inputs)
+        builder.ExportInput(mux.GetInputPort(f"u{i}"), port) for i, (port, _) in enumerate(inputs)
     ]
     return system, indices
 
