@@ -1,5 +1,6 @@
-"""Argument checks shared by the blocks: each raises :class:`ModelError`
-(:func:`integer_at_least` the class it is given; :func:`is_real_number` is a test).
+"""Argument checks shared by the blocks: each raises :class:`ModelError`, or the
+class given as ``error`` where a module raises its own (:func:`finite_array`,
+:func:`integer_at_least`, :func:`positive_number`); :func:`is_real_number` is a test.
 
 Every message names the owner (``"GammaGain: initial_gamma"``), the value it
 got and what would be accepted, so a user can fix the call without reading
@@ -26,14 +27,17 @@ __all__ = [
 ]
 
 
-def finite_array(name: str, value: Any) -> np.ndarray:
-    """``value`` as a float array of any shape, checked numeric and finite."""
+def finite_array(name: str, value: Any, *, error: type[OfrlError] = ModelError) -> np.ndarray:
+    """``value`` as a float array of any shape, checked numeric and finite.
+
+    Raises ``error`` (default :class:`ModelError`).
+    """
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as err:
-        raise ModelError(f"{name} must be numeric; got {value!r}.") from err
+        raise error(f"{name} must be numeric; got {value!r}.") from err
     if not np.all(np.isfinite(arr)):
-        raise ModelError(f"{name} must be finite; got {arr.tolist()}.")
+        raise error(f"{name} must be finite; got {arr.tolist()}.")
     return arr
 
 
@@ -65,20 +69,23 @@ def integer_at_least(
     return int(value)
 
 
-def positive_number(name: str, value: Any, *, allow_zero: bool = False) -> float:
+def positive_number(
+    name: str, value: Any, *, allow_zero: bool = False, error: type[OfrlError] = ModelError
+) -> float:
     """``value`` as a float, checked finite and ``> 0`` (``>= 0`` with ``allow_zero``).
 
-    A string (``"10"``) or a bool is refused, not read as a number.
+    A string (``"10"``) or a bool is refused, not read as a number. Raises
+    ``error`` (default :class:`ModelError`).
     """
     if isinstance(value, str | bytes | bool | np.bool_):
-        raise ModelError(f"{name} must be a number; got {value!r}.")
-    arr = finite_array(name, value)
+        raise error(f"{name} must be a number; got {value!r}.")
+    arr = finite_array(name, value, error=error)
     if arr.ndim != 0:
-        raise ModelError(f"{name} must be a number; got shape {arr.shape}.")
+        raise error(f"{name} must be a number; got shape {arr.shape}.")
     x = float(arr)
     if x < 0 or (x == 0 and not allow_zero):
         bound = ">= 0" if allow_zero else "> 0"
-        raise ModelError(f"{name} must be {bound}; got {x}.")
+        raise error(f"{name} must be {bound}; got {x}.")
     return x
 
 

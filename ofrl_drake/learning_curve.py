@@ -71,14 +71,6 @@ class PolicyRun:
     status: str
 
 
-def _seconds(name: str, value: Any, *, allow_zero: bool = False) -> float:
-    """:func:`~ofrl_drake.checks.positive_number`, raising :class:`ScenarioError`."""
-    try:
-        return positive_number(name, value, allow_zero=allow_zero)
-    except ModelError as err:
-        raise ScenarioError(str(err)) from None
-
-
 class PolicyEvaluator:
     """The policy-evaluation diagram of a loop, built once and run for any ``W`` and ``x0``.
 
@@ -159,8 +151,11 @@ class PolicyEvaluator:
             If ``deadline`` passed before the horizon (step ``"policy evaluation"``).
         """
         if deadline is not None:
-            deadline = _seconds(
-                "PolicyEvaluator: deadline (a time.monotonic() reading)", deadline, allow_zero=True
+            deadline = positive_number(
+                "PolicyEvaluator: deadline (a time.monotonic() reading)",
+                deadline,
+                allow_zero=True,
+                error=ScenarioError,
             )
         scenario: Scenario = self.loop.parts.scenario
         start = np.asarray(scenario.x0 if x0 is None else x0, dtype=float)
@@ -293,10 +288,17 @@ def _budget(owner: str, max_wall_time: Any, started: Any) -> _Budget | None:
                 "give max_wall_time too, or leave started out."
             )
         return None
-    seconds = _seconds(f"{owner}: max_wall_time (seconds, --max-wall)", max_wall_time)
+    seconds = positive_number(
+        f"{owner}: max_wall_time (seconds, --max-wall)", max_wall_time, error=ScenarioError
+    )
     if started is None:
         return _Budget(seconds, now, now)
-    start = _seconds(f"{owner}: started (a time.monotonic() reading)", started, allow_zero=True)
+    start = positive_number(
+        f"{owner}: started (a time.monotonic() reading)",
+        started,
+        allow_zero=True,
+        error=ScenarioError,
+    )
     return _Budget(seconds, start, now)
 
 
@@ -534,8 +536,6 @@ def lqr_weights(loop: ClosedLoop) -> np.ndarray | None:
     None when the loop has no linearization or the basis no quadratic monomial.
     """
     from pydrake.systems.controllers import LinearQuadraticRegulator
-
-    from ofrl_drake.errors import ModelError
 
     critic = loop.parts.critic
     if critic is None or critic.linearization is None:

@@ -7,13 +7,14 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from ofrl_drake.checks import (
+    finite_array,
     finite_vector,
     nonnegative_matrix,
     positive_number,
     positive_vector,
     spd_matrix,
 )
-from ofrl_drake.errors import ModelError
+from ofrl_drake.errors import ModelError, ScenarioError
 
 
 def test_accepted_values_come_back_as_float_arrays():
@@ -66,3 +67,16 @@ def test_gram_matrices_pass_and_their_negations_fail(A):
 def test_a_string_or_bool_is_not_a_positive_number(value):
     with pytest.raises(ModelError, match=r"^x must be a number; got"):
         positive_number("x", value)
+
+
+@pytest.mark.parametrize("value", [0.0, np.nan, "10", [1.0, 2.0], object()])
+def test_a_module_gets_its_own_error_class_from_positive_number(value):
+    """``error=`` raises the caller's class (not a ModelError) for every refusal."""
+    with pytest.raises(ScenarioError, match=r"^k must be") as caught:
+        positive_number("k", value, error=ScenarioError)
+    assert not isinstance(caught.value, ModelError)
+
+
+def test_finite_array_raises_the_given_class():
+    with pytest.raises(ScenarioError, match=r"^a must be finite; got \[1.0, inf\]"):
+        finite_array("a", [1.0, np.inf], error=ScenarioError)
