@@ -26,8 +26,11 @@ _EXPORTS = {
     "Variant": "ofrl_drake.ablation_grid",
     "ablate": "ofrl_drake.ablation",
     "PolynomialBasis": "ofrl_drake.basis",
+    "AblationError": "ofrl_drake.ablation_grid",
     "ClosedLoop": "ofrl_drake.diagram",
     "build_closed_loop": "ofrl_drake.diagram",
+    "DesignError": "ofrl_drake.design.errors",
+    "ObserverDesignInfeasible": "ofrl_drake.design.errors",
     "ModelError": "ofrl_drake.errors",
     "OfrlError": "ofrl_drake.errors",
     "OutputError": "ofrl_drake.errors",
@@ -35,6 +38,7 @@ _EXPORTS = {
     "SwapError": "ofrl_drake.errors",
     "WallTimeExceeded": "ofrl_drake.errors",
     "ControlAffineSystem": "ofrl_drake.model",
+    "MonteCarloError": "ofrl_drake.monte_carlo",
     "montecarlo": "ofrl_drake.monte_carlo",
     "Scenario": "ofrl_drake.scenario",
     "load_scenario": "ofrl_drake.scenario",
@@ -43,9 +47,13 @@ _EXPORTS = {
 }
 
 __all__ = [
+    "AblationError",
     "ClosedLoop",
     "ControlAffineSystem",
+    "DesignError",
     "ModelError",
+    "MonteCarloError",
+    "ObserverDesignInfeasible",
     "OfrlError",
     "OutputError",
     "PolynomialBasis",

@@ -16,6 +16,7 @@ import numpy as np
 from ofrl_drake.errors import ModelError, OfrlError
 
 __all__ = [
+    "array_of_shape",
     "finite_array",
     "finite_vector",
     "integer_at_least",
@@ -38,6 +39,35 @@ def finite_array(name: str, value: Any, *, error: type[OfrlError] = ModelError) 
         raise error(f"{name} must be numeric; got {value!r}.") from err
     if not np.all(np.isfinite(arr)):
         raise error(f"{name} must be finite; got {arr.tolist()}.")
+    return arr
+
+
+def array_of_shape(
+    name: str,
+    value: Any,
+    shape: tuple[int | None, ...],
+    *,
+    meaning: str = "",
+    fix: str = "",
+    error: type[OfrlError] = ModelError,
+) -> np.ndarray:
+    """``value`` as a finite float array of ``shape``; a None axis takes any length >= 1.
+
+    The message names the shape wanted, after its ``meaning`` if given
+    (``"A must have shape (n, n) = (2, 2); got (3, 3)."``), then ``fix``.
+    Raises ``error`` (default :class:`ModelError`).
+    """
+    arr = finite_array(name, value, error=error)
+    fits = arr.ndim == len(shape) and all(
+        got >= 1 if want is None else got == want
+        for got, want in zip(arr.shape, shape, strict=True)
+    )
+    if not fits:
+        wanted = "(" + ", ".join("N" if want is None else str(want) for want in shape) + ")"
+        if len(shape) == 1:
+            wanted = wanted[:-1] + ",)"
+        said = f"{meaning} = {wanted}" if meaning else wanted
+        raise error(f"{name} must have shape {said}; got {arr.shape}{fix}.")
     return arr
 
 

@@ -426,6 +426,7 @@ def critic_settings(
                 ),
                 unit.rho - 1.0,
                 scenario.simulation.duration,
+                c.policy_period if c.law == "policy_iteration" else None,
             )
         except ModelError as err:
             raise ScenarioError(str(err)) from None
@@ -713,6 +714,15 @@ def build_closed_loop(
     DesignError
         If ``design`` is not an ``ObserverDesign``, or is certified for a
         smaller input bound than the scenario's ``input_bound``.
+    ObserverDesignInfeasible
+        If ``design`` is omitted and the scenario's LMI has no certified
+        solution (or its pinned gains ``observer.L/H/K`` are not certified).
+    WallTimeExceeded
+        If ``design`` is omitted and the design does not finish within
+        ``simulation.max_wall_time``.
+    ModelError
+        If the plant's ``f`` or ``g`` returns the wrong shape or non-finite
+        values where the design or a block evaluates it.
 
     Examples
     --------

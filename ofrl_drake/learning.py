@@ -73,6 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ofrl_drake.basis import PolynomialBasis
+from ofrl_drake.checks import positive_number
 from ofrl_drake.errors import ModelError
 
 __all__ = [
@@ -380,6 +381,7 @@ def auto_gains(
     gain_sum_at: Callable[[float], np.ndarray],
     rho_terms: np.ndarray,
     horizon: float,
+    policy_period: float | None = None,
 ) -> LearningGains:
     """Learning gains from the plant, the points and the horizon (``critic.gains: auto``).
 
@@ -392,20 +394,25 @@ def auto_gains(
         ``omega_i^T M omega_i`` at ``W0``.
     horizon : float
         The scenario's horizon T.
+    policy_period : float, optional
+        Seconds between policy improvements when the scenario gives them
+        (``critic.policy_period``); by default ``T / 10``.
 
     Returns
     -------
     LearningGains
-        ``kc = 1``; ``nu = 1 / median(rho_terms)``; ``policy_period = T / 10``;
-        ``beta = 5 / policy_period``; ``Gamma0 = (beta / kc) S0^{-1}`` with the
-        eigenvalues of ``S0`` floored at ``1e-9`` times its largest, so that
-        ``Gamma0`` is symmetric positive definite even where the points excite
-        a direction of the basis weakly; ``gamma_bound = 10``.
+        ``kc = 1``; ``nu = 1 / median(rho_terms)``; ``policy_period`` as
+        given, or ``T / 10``; ``beta = 5 / policy_period``;
+        ``Gamma0 = (beta / kc) S0^{-1}`` with the eigenvalues of ``S0``
+        floored at ``1e-9`` times its largest, so that ``Gamma0`` is symmetric
+        positive definite even where the points excite a direction of the
+        basis weakly; ``gamma_bound = 10``.
 
     Raises
     ------
     ModelError
-        If every ``omega_i`` vanishes at ``W0`` (no point excites the critic).
+        If every ``omega_i`` vanishes at ``W0`` (no point excites the critic),
+        or ``policy_period`` is not a number > 0.
 
     Notes
     -----
@@ -435,7 +442,10 @@ def auto_gains(
         )
     nu = 1.0 / typical
     kc = 1.0
-    period = POLICY_PERIOD_FRACTION * float(horizon)
+    if policy_period is None:
+        period = POLICY_PERIOD_FRACTION * float(horizon)
+    else:
+        period = positive_number("critic.policy_period", policy_period)
     beta = 5.0 / period
     S0 = np.asarray(gain_sum_at(nu), dtype=float)
     S0 = 0.5 * (S0 + S0.T)

@@ -38,7 +38,7 @@ from ofrl_drake.learning import (
     value_weights,
 )
 from ofrl_drake.scenario import Scenario, abort_box
-from ofrl_drake.simulation import SimulationResult, simulator_config
+from ofrl_drake.simulation import SimulationResult, is_domain_error, simulator_config
 from ofrl_drake.variants import controller_block, plant_block, running_cost_block
 
 __all__ = [
@@ -189,8 +189,16 @@ class PolicyEvaluator:
         try:
             simulator.AdvanceTo(horizon)
         except RuntimeError as err:  # an integrator that gives up: the policy diverged
-            left.append(simulator.get_context().get_time())
             return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
+        except ValueError as err:  # f or g outside its domain (sqrt(-1)): the state left it
+            if not is_domain_error(err):
+                raise
+            cause = " ".join(str(err).split())[:200]
+            return PolicyRun(
+                float("nan"),
+                float("nan"),
+                f"diverged: the model's f or g was evaluated outside its domain ({cause})",
+            )
         if late:
             raise WallTimeExceeded(
                 f"the policy evaluation passed its deadline at t = {late[0]:.6g} s of "
@@ -429,7 +437,10 @@ class LearningHealth:
         (None without a linearization or quadratic monomials).
     accepted_times, rejected_times : list of float
         When the policy gate accepted or rejected an update (empty under the
-        paper's law, which has no gate).
+        paper's law, which has no gate): one entry per decision, the first
+        log sample at or after it (the gate decides at multiples of
+        ``policy_period``; when that is at most the log period, several
+        decisions share a sample time and the time repeats).
     """
 
     t: np.ndarray
@@ -514,9 +525,11 @@ def learning_health(loop: ClosedLoop, result: SimulationResult) -> LearningHealt
     rejected: list[float] = []
     updates = result.extra.get("policy_updates")
     if updates is not None:
+        # Decisions per log interval: more than one when policy_period <= log_period.
         steps = np.diff(np.asarray(updates, float), axis=0, prepend=np.zeros((1, 2)))
-        accepted = [float(t) for t in result.t[steps[:, 0] > 0.5]]
-        rejected = [float(t) for t in result.t[steps[:, 1] > 0.5]]
+        counts = np.rint(steps).astype(int)
+        accepted = [float(t) for t in np.repeat(result.t, counts[:, 0])]
+        rejected = [float(t) for t in np.repeat(result.t, counts[:, 1])]
     return LearningHealth(
         t=result.t,
         learning_condition=result.learning_condition,

@@ -37,15 +37,32 @@ __all__ = [
     "observer_rhs",
     "observer_rhs_batch",
     "observer_rhs_expression",
+    "require_gains",
 ]
 
 
-def _matrix(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+def _gain_shapes(system: ControlAffineSystem) -> dict[str, tuple[int, ...]]:
+    """The shape of each gain of :class:`ObserverGains` for ``system``'s n, q and m."""
+    n, m, q = system.n, system.m, system.q
+    return {
+        "L": (n, q),
+        "H": (n, q),
+        "K": (n, q),
+        "Mf1": (n, n),
+        "Mg1": (n, n, m),
+        "Mg2": (n, n, m),
+    }
+
+
+def _matrix(
+    name: str, value: Any, shape: tuple[int, ...], *, what: str = "observer gain ", fix: str = ""
+) -> np.ndarray:
+    """``value`` as a finite float array of ``shape``; a message names ``what + name``."""
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape:
-        raise ModelError(f"observer gain {name} must have shape {shape}; got {arr.shape}.")
+        raise ModelError(f"{what}{name} must have shape {shape}; got {arr.shape}{fix}.")
     if not np.all(np.isfinite(arr)):
-        raise ModelError(f"observer gain {name} must be finite; got {arr.tolist()}.")
+        raise ModelError(f"{what}{name} must be finite; got {arr.tolist()}{fix}.")
     return arr
 
 
@@ -106,14 +123,14 @@ class ObserverGains:
         Mg2: Any,
     ) -> ObserverGains:
         """Check shapes against ``system`` and build the gains."""
-        n, m, q = system.n, system.m, system.q
+        shape = _gain_shapes(system)
         return cls(
-            L=_matrix("L", L, (n, q)),
-            H=_matrix("H", H, (n, q)),
-            K=_matrix("K", K, (n, q)),
-            Mf1=_matrix("Mf1", Mf1, (n, n)),
-            Mg1=_matrix("Mg1", Mg1, (n, n, m)),
-            Mg2=_matrix("Mg2", Mg2, (n, n, m)),
+            L=_matrix("L", L, shape["L"]),
+            H=_matrix("H", H, shape["H"]),
+            K=_matrix("K", K, shape["K"]),
+            Mf1=_matrix("Mf1", Mf1, shape["Mf1"]),
+            Mg1=_matrix("Mg1", Mg1, shape["Mg1"]),
+            Mg2=_matrix("Mg2", Mg2, shape["Mg2"]),
         )
 
     @classmethod
@@ -134,6 +151,43 @@ class ObserverGains:
                     f"gains.{name} differs from design.{name}; build the gains with "
                     "ObserverGains.from_design(system, design) or omit design=."
                 )
+
+
+def require_gains(value: Any, system: ControlAffineSystem, what: str) -> ObserverGains:
+    """``value`` if it is an :class:`ObserverGains` that fits ``system``, else :class:`ModelError`.
+
+    For the observer blocks, which run the gains as :attr:`ObserverGains.stacked`
+    without re-reading their shapes: gains built for another model would
+    raise deep inside numpy, or run with their row blocks misread (the
+    estimate stuck while the run reports success).
+
+    Parameters
+    ----------
+    value : object
+        What was given as the gains.
+    system : ControlAffineSystem
+        The model the observer runs.
+    what : str
+        How the message names ``value`` (``"ThreeGainObserver: gains"``).
+
+    Raises
+    ------
+    ModelError
+        If ``value`` is not an :class:`ObserverGains`, or one of its gains has
+        not the shape ``system``'s n, q and m give (:meth:`ObserverGains.from_arrays`)
+        or is not finite. The message starts with ``what``, names the shapes
+        got and expected and points to :meth:`ObserverGains.from_design`.
+    """
+    fix = "build them with ObserverGains.from_design(system, design)"
+    if not isinstance(value, ObserverGains):
+        raise ModelError(f"{what} must be an ObserverGains; got {type(value).__name__}; {fix}.")
+    fix = (
+        f"; the model {system.name!r} has n = {system.n}, q = {system.q}, m = {system.m}: "
+        f"{fix} for this model"
+    )
+    for name, shape in _gain_shapes(system).items():
+        _matrix(name, getattr(value, name), shape, what=f"{what}.", fix=fix)
+    return value
 
 
 @njit(**JIT)

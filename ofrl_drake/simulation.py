@@ -46,6 +46,7 @@ __all__ = [
     "SAMPLED_KEYS",
     "TRAJECTORY_KEYS",
     "SimulationResult",
+    "is_domain_error",
     "simulate",
     "simulator_config",
 ]
@@ -593,6 +594,16 @@ def simulate(
     DesignError
         If ``design`` is not an ``ObserverDesign`` certified for the
         scenario's ``input_bound`` (see :func:`~ofrl_drake.build_closed_loop`).
+    ObserverDesignInfeasible
+        If ``design`` and ``loop`` are omitted and the scenario's LMI has no
+        certified solution (or its pinned gains are not certified).
+    WallTimeExceeded
+        If the observer design does not finish within
+        ``simulation.max_wall_time`` (a run that does not is stopped with
+        status ``timeout`` instead).
+    ModelError
+        If the plant's ``f`` or ``g`` returns the wrong shape or non-finite
+        values where the design or a block evaluates it.
     """
     if isinstance(scenario, (str, Path)):
         scenario = load_scenario(scenario)
@@ -642,7 +653,7 @@ def simulate(
                 raise
             guard.fail(f"the integrator gave up: {' '.join(str(err).split())}")
         except ValueError as err:
-            if not _is_domain_error(err):
+            if not is_domain_error(err):
                 raise
             cause = " ".join(str(err).split())[:200]
             guard.fail(
@@ -817,7 +828,7 @@ def _units(units: Any) -> tuple[str, ...] | None:
     return None if units is None else tuple(str(u) for u in units)
 
 
-def _is_domain_error(err: ValueError) -> bool:
+def is_domain_error(err: ValueError) -> bool:
     """True for Drake's symbolic math refusing an argument, e.g. ``log(nan)`` or ``sqrt(-1)``."""
     return "out of domain" in str(err)
 

@@ -163,6 +163,17 @@ def test_metrics_on_known_trajectories():
     assert math.isnan(optimality_ratio(2.0, 0.0))
 
 
+def test_rms_estimation_error_integrates_a_varying_error_over_uneven_samples():
+    # e = x - xhat at t = 1, 2, 4: |e|^2 = 5, 1, 0. Trapezoid over [1, 2] and [2, 4]:
+    # (5 + 1) / 2 * 1 + (1 + 0) / 2 * 2 = 4, over T = 3 s: RMS = sqrt(4 / 3).
+    # (The mean of |e|^2 gives sqrt(2), the largest sqrt(5), the left-point rule
+    # sqrt(7 / 3), dividing by t[-1] instead of T gives 1.)
+    t = np.array([1.0, 2.0, 4.0])
+    e = np.array([[1.0, 2.0], [0.0, -1.0], [0.0, 0.0]])
+    x = np.array([[1.0, 2.5], [0.3, -1.0], [0.0, 0.2]])
+    assert rms_estimation_error(t, x, x - e) == pytest.approx(math.sqrt(4.0 / 3.0), rel=1e-12)
+
+
 def test_csv_columns_are_exactly_the_issue_s():
     assert CSV_COLUMNS == (
         "variant",

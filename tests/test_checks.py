@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from ofrl_drake.checks import (
+    array_of_shape,
     finite_array,
     finite_vector,
     nonnegative_matrix,
@@ -80,3 +81,21 @@ def test_a_module_gets_its_own_error_class_from_positive_number(value):
 def test_finite_array_raises_the_given_class():
     with pytest.raises(ScenarioError, match=r"^a must be finite; got \[1.0, inf\]"):
         finite_array("a", [1.0, np.inf], error=ScenarioError)
+
+
+@pytest.mark.parametrize(
+    ("value", "shape", "message"),
+    [
+        (np.zeros((2, 3)), (2, 2), r"^A must have shape \(n, n\) = \(2, 2\); got \(2, 3\)\.$"),
+        (np.zeros((2, 0)), (2, None), r"^A must have shape \(n, n\) = \(2, N\); got \(2, 0\)\.$"),
+        (np.zeros(3), (2,), r"^A must have shape \(n, n\) = \(2,\); got \(3,\)\.$"),
+        ([[1.0, np.nan]], (1, 2), r"^A must be finite; got \[\[1.0, nan\]\]"),
+    ],
+)
+def test_array_of_shape_names_the_shape_wanted_and_got(value, shape, message):
+    with pytest.raises(ModelError, match=message):
+        array_of_shape("A", value, shape, meaning="(n, n)")
+
+
+def test_array_of_shape_takes_any_length_on_a_none_axis():
+    np.testing.assert_array_equal(array_of_shape("P", [[1, 2, 3]], (1, None)), [[1.0, 2.0, 3.0]])

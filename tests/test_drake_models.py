@@ -430,13 +430,13 @@ def test_certified_bounds_on_pendulum_contain_sampled_jacobians():
     p = PendulumParams()
     d21 = -p.gravity() / p.length() * np.cos(X[0])  # d f2 / d theta
     assert b.Mf1[1, 0] <= d21.min() and d21.max() <= b.Mf2[1, 0]
-    np.testing.assert_allclose(b.Mf1[0], [0.0, 1.0]) and np.testing.assert_allclose(
-        b.Mf2[0], [0.0, 1.0]
-    )
+    np.testing.assert_allclose(b.Mf1[0], [0.0, 1.0])
+    np.testing.assert_allclose(b.Mf2[0], [0.0, 1.0])
     np.testing.assert_allclose(
         [b.Mf1[1, 1], b.Mf2[1, 1]], -p.damping() / (p.mass() * p.length() ** 2)
     )
-    np.testing.assert_array_equal(b.Mg1, 0.0) and np.testing.assert_array_equal(b.Mg2, 0.0)
+    np.testing.assert_array_equal(b.Mg1, 0.0)
+    np.testing.assert_array_equal(b.Mg2, 0.0)
     # Bounds are tight: the exact range of -g/l cos over [-1, 2] is [-19.62, 8.165...].
     assert b.Mf1[1, 0] == pytest.approx(-p.gravity() / p.length(), abs=1e-5)
     assert b.Mf2[1, 0] == pytest.approx(-p.gravity() / p.length() * np.cos(2.0), abs=1e-5)

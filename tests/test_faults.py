@@ -343,7 +343,9 @@ def test_a_scheduler_without_workers_is_waited_for_a_stated_time(tmp_path):
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=0, dashboard_address=None, processes=True) as cluster:
-        start = time.perf_counter()
+        # No clock in the assert (a slow machine is not a failure): the message states
+        # the 3 s waited, and the subprocess timeout, far above any honest run, turns a
+        # wait that never ends into a failure (subprocess.TimeoutExpired).
         proc = run_cli(
             "ablate",
             _short(tmp_path),
@@ -353,9 +355,9 @@ def test_a_scheduler_without_workers_is_waited_for_a_stated_time(tmp_path):
             cluster.scheduler_address,
             "--scheduler-timeout",
             3,
+            timeout=600,
         )
         assert_one_line(proc, 2, r"--scheduler: no worker joined tcp://.* within 3 s; start one")
-        assert time.perf_counter() - start < 60
 
 
 # ------------------------------------------------------------ first run

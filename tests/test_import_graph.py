@@ -338,3 +338,24 @@ def test_the_graph_sees_the_imports_it_must_see():
     assert "diagram" not in GRAPH["slots"] and "scenario" not in GRAPH["slots"]
     assert "observer_certificate" in GRAPH["simulation"]
     assert "examples.two_state" in GRAPH["examples.coupled_two_state"]
+
+
+def test_every_public_name_resolves_and_every_error_is_the_projects():
+    """``ofrl_drake.__all__`` names what ``ofrl_drake`` gives, and a user catches every
+    documented refusal of ``simulate`` / ``build_closed_loop`` with ``od.OfrlError``."""
+    import ofrl_drake as od
+
+    for name in od.__all__:
+        assert getattr(od, name) is not None, name
+    errors = [getattr(od, n) for n in od.__all__ if n.endswith(("Error", "Infeasible", "Exceeded"))]
+    assert {e.__name__ for e in errors} >= {
+        "AblationError",
+        "DesignError",
+        "ModelError",
+        "MonteCarloError",
+        "ObserverDesignInfeasible",
+        "ScenarioError",
+        "SwapError",
+        "WallTimeExceeded",
+    }
+    assert all(issubclass(e, od.OfrlError) for e in errors)

@@ -149,18 +149,27 @@ def test_bounded_gain_forgetting_keeps_the_trace_ratio_bounded(beta, bound, s):
     G0 = np.diag([1.0, 2.0, 3.0])
     G0inv = np.linalg.inv(G0)
     S = s * np.diag([1.0, 1e-6, 0.0])  # two directions barely or never excited
-    G = G0.copy()
     dt = 0.01 / beta
-    worst = 0.0
-    for _ in range(20000):
-        ratio = np.trace(G0inv @ G) / L
-        worst = max(worst, ratio)
-        b = bounded_forgetting(beta, ratio, bound)
-        G = G + dt * (b * G - G @ S @ G)
+
+    def run(forgetting, stop=np.inf):
+        """The largest trace ratio in 20000 steps (or once past ``stop``), and the last Gamma."""
+        G = G0.copy()
+        worst = 0.0
+        for _ in range(20000):
+            ratio = np.trace(G0inv @ G) / L
+            worst = max(worst, ratio)
+            if worst > stop:
+                break
+            G = G + dt * (forgetting(ratio) * G - G @ S @ G)
+        return worst, G
+
+    worst, G = run(lambda ratio: bounded_forgetting(beta, ratio, bound))
     assert worst <= bound * (1 + 1e-3)
     assert np.linalg.eigvalsh(G)[0] > 0
-    # Without the bound, the unexcited direction grows as exp(beta t):
-    assert np.exp(beta * 20000 * dt) > 1e80
+    # The same steps with the forgetting fixed at beta (no bound): the unexcited
+    # direction grows as exp(beta t) and the trace ratio leaves the bound behind.
+    unbounded, _ = run(lambda ratio: beta, stop=10.0 * bound)
+    assert unbounded > 10.0 * bound, (unbounded, bound)
 
 
 def test_bounded_forgetting_vanishes_at_the_bound_and_turns_negative_beyond():
@@ -314,3 +323,16 @@ def test_equal_costs_up_to_round_off_count_as_no_rise_and_a_real_rise_is_refused
     assert not higher.improves_on(current)
     inadmissible = dataclasses.replace(current, admissible=False, local_cost=0.0)
     assert not inadmissible.improves_on(current)
+
+
+def test_auto_gains_follow_a_given_policy_period():
+    """``beta = 5 / policy_period`` for the period in force, given or T / 10; Gamma0 scales."""
+    S0 = np.array([[2.0, 0.3], [0.3, 0.5]])
+    terms = np.array([1.0, 2.0, 4.0])
+    derived = auto_gains(lambda nu: S0 / nu, terms, horizon=20.0)
+    given = auto_gains(lambda nu: S0 / nu, terms, horizon=20.0, policy_period=0.5)
+    assert given.policy_period == 0.5
+    assert given.beta == pytest.approx(10.0)
+    np.testing.assert_allclose(given.Gamma0, derived.Gamma0 * 4.0, rtol=1e-12)
+    with pytest.raises(ModelError, match=r"^critic\.policy_period must be > 0; got 0\.0"):
+        auto_gains(lambda nu: S0 / nu, terms, horizon=20.0, policy_period=0.0)

@@ -9,6 +9,7 @@ Gamma bounded and every policy in force stabilising its linearized loop.
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -386,6 +387,28 @@ def short_paper_run():
     return loop, simulate(scenario, loop=loop, progress=False)
 
 
+def test_each_checkpoint_evaluates_the_policy_in_force_at_its_time(short_paper_run):
+    """A checkpoint's cost is that of ``W_policy`` at its sample, and its ratio that cost / J*."""
+    from ofrl_drake.learning_curve import learning_curve
+
+    loop, result = short_paper_run
+    J_star = optimal_control(loop.parts.scenario)
+    assert J_star.converged, J_star.status
+    curve = learning_curve(loop, result, checkpoints=2, optimal_cost=J_star.cost)
+    assert [entry["t"] for entry in curve] == pytest.approx([0.0, 1.0, 2.0])
+    evaluate = PolicyEvaluator(loop)
+    for entry in (curve[0], curve[-1]):
+        (i,) = np.flatnonzero(result.t == entry["t"])  # the logged sample of the checkpoint
+        expected = evaluate(result.W_policy[i]).cost
+        assert entry["status"] == "ok"
+        assert entry["policy_cost"] == pytest.approx(expected, rel=1e-12)
+        assert entry["optimality_ratio"] == pytest.approx(expected / J_star.cost, rel=1e-12)
+    # The paper's law moves W over the run, so the policies and their costs differ.
+    assert not np.allclose(result.W_policy[0], result.W_policy[-1])
+    costs = [entry["policy_cost"] for entry in curve]
+    assert len(set(costs)) == len(costs), costs
+
+
 def test_a_learning_report_out_of_wall_time_names_where_it_stopped_the_budget_and_the_fix(
     short_paper_run, monkeypatch
 ):
@@ -473,3 +496,56 @@ def test_a_learning_report_names_a_bad_budget(options, match):
 
     with pytest.raises(ScenarioError, match=r"^learning_report: " + match):
         learning_report(None, None, checkpoints=0, **options)
+
+
+def test_derived_gains_follow_the_scenario_policy_period():
+    """Before: beta stayed 5 / (T/10) when critic.policy_period was given with gains: auto."""
+    scenario = _critic(_policy_iteration(load_scenario(PENDULUM)), policy_period=0.25)
+    gains = build_closed_loop(scenario).parts.critic.gains
+    assert gains.policy_period == 0.25
+    assert gains.beta == pytest.approx(5.0 / 0.25, rel=1e-12)
+
+
+def test_every_gate_decision_is_counted_when_several_share_a_log_sample():
+    """policy_period < log_period: the summary's counts are the gate's own, one time each."""
+    scenario = _critic(_policy_iteration(load_scenario(PENDULUM)), policy_period=0.005)
+    scenario = dataclasses.replace(
+        scenario, simulation=dataclasses.replace(scenario.simulation, duration=0.5)
+    )
+    loop = build_closed_loop(scenario)
+    result = simulate(scenario, loop=loop, progress=False)
+    health = learning_health(loop, result).summary()
+    accepted, rejected = result.extra["policy_updates"][-1]
+    # Before: one per log sample that saw the count rise (about 25 of the ~100 here).
+    assert accepted + rejected >= 90
+    assert health["policy_updates_accepted"] == accepted
+    assert health["policy_updates_rejected"] == rejected
+    assert len(health["accepted_times"]) == accepted
+    assert health["accepted_times"] == sorted(health["accepted_times"])
+    assert set(health["accepted_times"]) <= set(result.t.tolist())
+
+
+def _domain_plant() -> ControlAffineSystem:
+    """A pendulum whose f is defined only for |x1| < 1.5 (sqrt of 2.25 - x1^2)."""
+
+    def f(x):
+        return np.array([x[1], np.sin(x[0]) + np.sqrt(2.25 - x[0] ** 2) - 1.5])
+
+    def g(x):
+        return np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]])
+
+    return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name="domain_pendulum")
+
+
+def test_a_policy_evaluation_leaving_the_domain_of_f_is_diverged_not_an_internal_error():
+    """Before: the evaluator caught only RuntimeError, so Drake's ValueError ended the CLI."""
+    register("domain_pendulum", _domain_plant)
+    try:
+        scenario = _user_scenario("domain_pendulum", 2, duration=2.0)
+        scenario = dataclasses.replace(scenario, x0=[0.2, 0.0], xhat0=[0.2, 0.0])
+        loop = build_closed_loop(scenario)
+        run = PolicyEvaluator(loop)(np.zeros(loop.parts.basis.size), x0=np.array([1.4, 3.0]))
+    finally:
+        EXAMPLES.pop("domain_pendulum")
+    assert math.isnan(run.cost)
+    assert re.match(r"^diverged: the model's f or g was evaluated outside its domain", run.status)

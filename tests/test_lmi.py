@@ -117,15 +117,28 @@ def test_linear_system_reduces_to_schur_form():
     st.floats(0.0, 3.0),
 )
 def test_negative_lmi_iff_negative_schur_complement(A, L, alpha):
-    # With M22 = -2 I < 0, M < 0 iff M11 + M21^T M21 / 2 < 0 (Schur complement).
+    # With M22 = -2 I < 0, M < 0 iff S = M11 + M21^T M21 / 2 < 0 (Schur complement).
+    # S is built from the design variables by the (lmi2) formula (ofrl_drake/lmi.py's
+    # module docstring), not from M's blocks: for a linear plant (M_f1 = M_f2 = A,
+    # M_g = 0) J21 = 0, so M11 = A_cl^T P + P A_cl + 2 alpha P with A_cl = A - L C
+    # (R = P L) and M21 = P. A wrong M11 or M21 in lmi_matrix breaks the identities.
     Z = np.zeros((2, 2, 1))
     P = np.array([[3.0, -0.5], [-0.5, 1.5]])
     M = lmi_matrix(P, L, np.zeros((2, 1)), np.zeros((2, 1)), C2, (A, A, Z, Z), [0.0], alpha)
-    S = M[:2, :2] + M[2:, :2].T @ M[2:, :2] / 2
-    lam_M = np.linalg.eigvalsh(M)[-1]
-    lam_S = np.linalg.eigvalsh(S)[-1]
-    if abs(lam_S) > 1e-9 * (1 + np.abs(S).max()):
-        assert (lam_M < 0) == (lam_S < 0)
+    Acl = A - L @ C2
+    S = Acl.T @ P + P @ Acl + 2 * alpha * P + P.T @ P / 2
+    # det M = det(M22) det S = 4 det S (n = 2), to rounding of 4x4 determinants.
+    scale = (1.0 + np.abs(M).max()) ** 4
+    np.testing.assert_allclose(
+        np.linalg.det(M), 4.0 * np.linalg.det(S), rtol=1e-9, atol=1e-12 * scale
+    )
+    lam_M = np.linalg.eigvalsh(M)
+    lam_S = np.linalg.eigvalsh(S)
+    if np.all(np.abs(lam_S) > 1e-9 * (1 + np.abs(S).max())):
+        # Haynsworth: M has the n negative eigenvalues of M22 and the inertia of S,
+        # so as many positive eigenvalues as S, and M < 0 iff S < 0.
+        assert np.sum(lam_M > 0) == np.sum(lam_S > 0)
+        assert (lam_M[-1] < 0) == (lam_S[-1] < 0)
 
 
 def test_certificate_lists_every_vertex_with_its_max_eigenvalue():

@@ -30,6 +30,19 @@ def test_fixed_box_flags_state_estimate_and_input_at_their_samples():
     assert r.warning().startswith("warning: x, xhat, |u| left the certified region at t = 2.000 s")
 
 
+def test_fraction_outside_weights_each_sample_by_its_time_step():
+    # Uneven samples: each weighs the step after it, the last one the step before
+    # it: 0.5, 1.5, 0.25, 1.75, 1.75 (5.75 in all). Outside at t = 0.5 (x) and at
+    # t = 4 (|u|): (1.5 + 1.75) / 5.75 = 13 / 23, where the share of samples is 2 / 5.
+    t = np.array([0.0, 0.5, 2.0, 2.25, 4.0])
+    x, xhat, u = _inside(t), _inside(t), np.zeros((t.size, 1))
+    x[1] = [0.0, 1.5]
+    u[4] = [-2.5]
+    r = validity_report(t, x, xhat, u, BOX, 2.0)
+    assert r.first_exit_time == 0.5
+    assert r.fraction_outside == pytest.approx(13 / 23, rel=1e-12)
+
+
 def test_fixed_box_inside_is_valid_and_has_no_warning():
     r = validity_report(T, _inside(), _inside(), np.full((T.size, 1), 2.0), BOX, 2.0)
     assert r.valid and r.warning() is None

@@ -54,7 +54,9 @@ from ofrl_drake.bellman import (
     point_features,
 )
 from ofrl_drake.checks import (
+    array_of_shape,
     finite_vector,
+    integer_at_least,
     is_real_number,
     nonnegative_matrix,
     positive_number,
@@ -63,7 +65,7 @@ from ofrl_drake.checks import (
 )
 from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 from ofrl_drake.observer_certificate import ObserverCertificate
 
 __all__ = [
@@ -94,15 +96,21 @@ class FullStateObserver(LeafSystem):
     ----------
     num_states : int
         n, the size of the state.
+
+    Raises
+    ------
+    ModelError
+        If ``num_states`` is not an integer >= 1.
     """
 
     def __init__(self, num_states: int) -> None:
         super().__init__()
         self.num_states = num_states
-        self._state_port = self.DeclareVectorInputPort("state", num_states)
+        n = integer_at_least("FullStateObserver: num_states", num_states, 1)
+        self._state_port = self.DeclareVectorInputPort("state", n)
         self._xhat_port = self.DeclareVectorOutputPort(
             "estimated_state",
-            num_states,
+            n,
             self._calc_estimated_state,
             prerequisites_of_calc={self._state_port.ticket()},
         )
@@ -150,6 +158,12 @@ class LinearizedLuenbergerObserver(Diagram):
         then reports the Lyapunov certificate of the linearized error at that
         rate (:func:`ofrl_drake.baselines.linearized_observer_certificate`).
 
+    Raises
+    ------
+    ModelError
+        If ``gain`` is not a finite array of shape (n, q), the number of
+        states by the number of outputs of ``linearization``.
+
     Notes
     -----
     ``xhat(0)`` is set in a context with :meth:`set_estimated_state` (a run
@@ -169,6 +183,15 @@ class LinearizedLuenbergerObserver(Diagram):
         self.linearization = linearization
         self.gain = gain
         self.alpha = alpha
+        # Drake's LuenbergerObserver would abort the process on a wrong shape (an assertion).
+        array_of_shape(
+            "LinearizedLuenbergerObserver: gain",
+            gain,
+            (linearization.num_states(), linearization.num_outputs()),
+            meaning="(n, q)",
+            fix=", n states by q outputs of the linearization; build it with "
+            "ofrl_drake.baselines.luenberger_gain(A, C, poles)",
+        )
         builder = DiagramBuilder()
         observer = LuenbergerObserver(
             linearization, linearization.CreateDefaultContext(), drake_array(gain)
@@ -429,7 +452,8 @@ class MovingBellmanExtrapolator(LeafSystem):
     Raises
     ------
     ModelError
-        If ``offsets`` is not of shape (n, N), ``r`` is not m finite numbers
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`,
+        ``offsets`` is not of shape (n, N), ``r`` is not m finite numbers
         > 0, ``input_bound`` or ``nu`` is not a finite number > 0, or
         ``system`` is not :attr:`~ofrl_drake.model.ControlAffineSystem.vectorized`
         (each evaluation would loop over the points in Python).
@@ -459,6 +483,7 @@ class MovingBellmanExtrapolator(LeafSystem):
         self.input_bound = input_bound
         self.nu = nu
         self.metric = metric
+        require_system(system, "MovingBellmanExtrapolator: system")
         self._offsets = np.asarray(offsets, dtype=float)
         if self._offsets.ndim != 2 or self._offsets.shape[0] != system.n:
             raise ModelError(

@@ -7,7 +7,7 @@ from pydrake.systems.framework import InputPort, LeafSystem, OutputPort
 
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.drake_typing import vector_value
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 from ofrl_drake.policy import check_policy_arguments, policy_kernel, policy_scale
 
 __all__ = ["SaturatedController"]
@@ -39,7 +39,8 @@ class SaturatedController(LeafSystem):
     Raises
     ------
     ModelError
-        If ``basis`` is not for ``system.n`` states, ``r`` is not ``m``
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`,
+        ``basis`` is not for ``system.n`` states, ``r`` is not ``m``
         positive numbers, or ``input_bound <= 0``.
     """
 
@@ -55,6 +56,7 @@ class SaturatedController(LeafSystem):
         self.basis = basis
         self.r = r
         self.input_bound = input_bound
+        require_system(system, "SaturatedController: system")
         self._r = check_policy_arguments(
             "SaturatedController", system.n, system.m, basis, r, input_bound
         )

@@ -14,7 +14,7 @@ from pydrake.systems.primitives import AffineSystem
 from ofrl_drake.checks import finite_vector
 from ofrl_drake.drake_typing import DrakeArray, drake_array
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 
 __all__ = ["DrakePlant"]
 
@@ -64,7 +64,8 @@ class DrakePlant(Diagram):
     Raises
     ------
     ModelError
-        If ``system`` was not built from a multibody plant, ``initial_state``
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`
+        or was not built from a multibody plant, ``initial_state``
         is not a finite vector of length n, or ``body_mass_scale`` names no
         body of the plant.
     """
@@ -79,6 +80,7 @@ class DrakePlant(Diagram):
         self.system = system
         self.initial_state = initial_state
         self.body_mass_scale = body_mass_scale
+        require_system(system, "DrakePlant: system")
         source_plant = system.multibody_plant
         if source_plant is None:
             raise ModelError(

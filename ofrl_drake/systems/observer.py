@@ -10,8 +10,8 @@ from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSyste
 
 from ofrl_drake.checks import finite_vector
 from ofrl_drake.drake_typing import DrakeArray, vector_value
-from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.observer import ObserverGains, observer_rhs
+from ofrl_drake.model import ControlAffineSystem, require_system
+from ofrl_drake.observer import ObserverGains, observer_rhs, require_gains
 from ofrl_drake.observer_certificate import ObserverCertificate
 
 if TYPE_CHECKING:  # annotations only
@@ -50,8 +50,11 @@ class ThreeGainObserver(LeafSystem):
     Raises
     ------
     ModelError
-        If ``design`` is given and its L, H, K differ from ``gains``, or
-        ``initial_state`` is not a finite vector of length n.
+        If ``system`` is not a :class:`ControlAffineSystem`, ``gains`` not an
+        :class:`ObserverGains` whose gains have the shapes ``system``'s n, q
+        and m give (:func:`~ofrl_drake.observer.require_gains`), ``design``
+        is given and its L, H, K differ from ``gains``, or ``initial_state``
+        is not a finite vector of length n.
 
     See Also
     --------
@@ -70,6 +73,8 @@ class ThreeGainObserver(LeafSystem):
         self.gains = gains
         self.initial_state = initial_state
         self.design = design
+        require_system(system, "ThreeGainObserver: system")
+        require_gains(gains, system, "ThreeGainObserver: gains")
         if design is not None:
             gains.check_design(design)
         x0: DrakeArray = (

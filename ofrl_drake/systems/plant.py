@@ -8,7 +8,7 @@ from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSyste
 
 from ofrl_drake.checks import finite_vector
 from ofrl_drake.drake_typing import DrakeArray, vector_value
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 
 __all__ = ["ControlAffinePlant"]
 
@@ -36,7 +36,8 @@ class ControlAffinePlant(LeafSystem):
     Raises
     ------
     ModelError
-        If ``initial_state`` is not a finite vector of length n.
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`
+        or ``initial_state`` is not a finite vector of length n.
 
     Notes
     -----
@@ -48,6 +49,7 @@ class ControlAffinePlant(LeafSystem):
         super().__init__()
         self.system = system
         self.initial_state = initial_state
+        require_system(system, "ControlAffinePlant: system")
         x0: DrakeArray = (
             np.zeros(system.n)
             if initial_state is None

@@ -19,7 +19,14 @@ from pydrake.systems.framework import (
 from pydrake.systems.primitives import PassThrough
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.checks import finite_vector, positive_number
+from ofrl_drake.checks import (
+    array_of_shape,
+    finite_vector,
+    integer_at_least,
+    nonnegative_matrix,
+    positive_number,
+    positive_vector,
+)
 from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.learning import PolicyCheck, check_policy, second_moment
 
@@ -56,22 +63,26 @@ class PolicyGate(LeafSystem):
         (:meth:`set_policy_weights`).
     period : float
         Seconds between improvement steps, > 0.
-    A, B : array_like
-        The plant's linearization at the target.
+    A, B : array_like, shapes (n, n) and (n, m)
+        The plant's linearization at the target, ``x' = A x + B u``.
     Q : array_like, shape (n, n)
-        State weight.
+        State weight, symmetric positive semidefinite.
     r : array_like, shape (m,)
-        Diagonal of R.
+        Diagonal of R, entries > 0.
     basis : PolynomialBasis
-        The critic's basis.
+        The critic's basis, over n = ``basis.n`` states.
     points : array_like, shape (n, N)
         The extrapolation points, whose second moment weighs the local cost.
 
     Raises
     ------
     ModelError
-        If ``initial_weights`` is not a finite vector of the basis' size or
-        ``period`` is not a positive number.
+        If ``initial_weights`` is not a finite vector of the basis' size,
+        ``period`` is not a positive number, ``r`` is not m finite numbers
+        > 0, ``A``, ``B`` or ``points`` is not a finite array of shape
+        (n, n), (n, m) or (n, N) with N >= 1, or ``Q`` is not a finite
+        symmetric positive semidefinite (n, n) matrix. Each message starts
+        with ``"PolicyGate: <argument>"``.
     """
 
     def __init__(
@@ -98,11 +109,15 @@ class PolicyGate(LeafSystem):
             "PolicyGate: initial_weights", initial_weights, size=basis.size
         )
         positive_number("PolicyGate: period", period)
-        self._A = np.asarray(A, dtype=float)
-        self._B = np.asarray(B, dtype=float)
-        self._Q = np.asarray(Q, dtype=float)
-        self._r = np.asarray(r, dtype=float)
-        self._moment = second_moment(points)
+        n = basis.n
+        self._r = positive_vector("PolicyGate: r", r)
+        m = self._r.size
+        self._A = array_of_shape("PolicyGate: A", A, (n, n), meaning="(n, n)")
+        self._B = array_of_shape("PolicyGate: B", B, (n, m), meaning="(n, m)")
+        self._Q = nonnegative_matrix("PolicyGate: Q", Q, n)
+        self._moment = second_moment(
+            array_of_shape("PolicyGate: points", points, (n, None), meaning="(n, N)")
+        )
         size = basis.size
         self._policy_index = self.DeclareDiscreteState(BasicVector(W0))
         self._updates_index = self.DeclareDiscreteState(BasicVector(drake_array([0.0, 0.0])))
@@ -163,13 +178,19 @@ class PolicyPassThrough(Diagram):
     ----------
     size : int
         L, the number of weights.
+
+    Raises
+    ------
+    ModelError
+        If ``size`` is not an integer >= 1.
     """
 
     def __init__(self, size: int) -> None:
         super().__init__()
         self.size = size
+        L = integer_at_least("PolicyPassThrough: size", size, 1)
         builder = DiagramBuilder()
-        through = builder.AddNamedSystem("pass_through", PassThrough(int(size)))
+        through = builder.AddNamedSystem("pass_through", PassThrough(L))
         weights_index = builder.ExportInput(through.get_input_port(), "weights")
         policy_index = builder.ExportOutput(through.get_output_port(), "policy_weights")
         builder.BuildInto(self)

@@ -20,7 +20,7 @@ from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSyste
 from ofrl_drake.checks import finite_vector, positive_number, positive_vector
 from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.model import ControlAffineSystem, require_system
 from ofrl_drake.observer import ObserverGains, observer_rhs
 from ofrl_drake.observer_certificate import ObserverCertificate
 
@@ -63,6 +63,17 @@ def _design_options(owner: str, options: object) -> dict[str, Any]:
             f"use keyword arguments of design_observer: {accepted}."
         )
     return dict(options)
+
+
+def _require_design(owner: str, design: object) -> None:
+    """Raise :class:`ModelError` unless ``design`` is an ``ObserverDesign``."""
+    from ofrl_drake.design import ObserverDesign
+
+    if not isinstance(design, ObserverDesign):
+        raise ModelError(
+            f"{owner}: initial_design must be an ObserverDesign; got {type(design).__name__}; "
+            "design one with ofrl_drake.design.design_observer(system, box, input_bound, alpha)."
+        )
 
 
 class ScheduledThreeGainObserver(LeafSystem):
@@ -109,7 +120,9 @@ class ScheduledThreeGainObserver(LeafSystem):
     Raises
     ------
     ModelError
-        If ``period`` is not a finite number > 0, ``half_width`` is not n
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`,
+        ``initial_design`` not an :class:`~ofrl_drake.design.ObserverDesign`,
+        ``period`` is not a finite number > 0, ``half_width`` is not n
         finite numbers > 0, ``input_bound`` or ``alpha`` is not a finite
         number >= 0 (what :func:`~ofrl_drake.design.design_observer` accepts),
         ``design_options`` holds a key that is not a keyword-only argument of
@@ -160,6 +173,8 @@ class ScheduledThreeGainObserver(LeafSystem):
         self.design_options = design_options
         self.initial_state = initial_state
         name = type(self).__name__
+        require_system(system, f"{name}: system")
+        _require_design(name, initial_design)
         self._period = positive_number(f"{name}: period", period)
         self._half_width = positive_vector(f"{name}: half_width", half_width, system.n)
         self._input_bound = positive_number(f"{name}: input_bound", input_bound, allow_zero=True)

@@ -66,8 +66,8 @@ from ofrl_drake.checks import (
 )
 from ofrl_drake.cost import stage_cost_expression
 from ofrl_drake.drake_typing import DrakeArray, SymbolicArray
-from ofrl_drake.model import ControlAffineSystem
-from ofrl_drake.observer import ObserverGains, observer_rhs_expression
+from ofrl_drake.model import ControlAffineSystem, require_system
+from ofrl_drake.observer import ObserverGains, observer_rhs_expression, require_gains
 from ofrl_drake.observer_certificate import ObserverCertificate
 from ofrl_drake.policy import check_policy_arguments, policy_expression
 
@@ -140,7 +140,8 @@ class SymbolicPlant(Diagram):
     Raises
     ------
     ModelError
-        If ``f`` or ``g`` cannot be traced symbolically.
+        If ``system`` is not a :class:`ControlAffineSystem`, or its ``f`` or
+        ``g`` cannot be traced symbolically.
 
     Notes
     -----
@@ -155,6 +156,7 @@ class SymbolicPlant(Diagram):
     def __init__(self, system: ControlAffineSystem) -> None:
         super().__init__()
         self.system = system
+        require_system(system, "SymbolicPlant: system")
         model = system.symbolic()
         x = model.x
         u: SymbolicArray = MakeVectorVariable(system.m, "u")
@@ -214,8 +216,10 @@ class SymbolicObserver(Diagram):
     Raises
     ------
     ModelError
-        If ``f`` or ``g`` cannot be traced symbolically, or ``design`` has
-        other gains.
+        If ``system`` is not a :class:`ControlAffineSystem`, ``gains`` not an
+        :class:`ObserverGains` whose gains have the shapes ``system``'s n, q
+        and m give (:func:`~ofrl_drake.observer.require_gains`), ``f`` or
+        ``g`` cannot be traced symbolically, or ``design`` has other gains.
 
     Notes
     -----
@@ -237,6 +241,8 @@ class SymbolicObserver(Diagram):
         self.system = system
         self.gains = gains
         self.design = design
+        require_system(system, "SymbolicObserver: system")
+        require_gains(gains, system, "SymbolicObserver: gains")
         if design is not None:
             gains.check_design(design)
         model = system.symbolic()
@@ -320,6 +326,7 @@ class SymbolicController(Diagram):
         self.basis = basis
         self.r = r
         self.input_bound = input_bound
+        require_system(system, "SymbolicController: system")
         r_arr = check_policy_arguments(
             "SymbolicController", system.n, system.m, basis, r, input_bound
         )
