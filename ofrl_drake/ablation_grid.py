@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ofrl_drake.checks import finite_array, integer_at_least
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.scenario import Scenario, variant_choices
 
@@ -218,10 +219,8 @@ def sample_initial_states(scenario: Scenario, count: int, seed: int) -> np.ndarr
         If ``count`` or ``seed`` is not an integer >= 0, or the initial estimation
         error is wider than the box.
     """
-    if int(count) != count or count < 0:
-        raise AblationError(f"--initial-states: must be an integer >= 0; got {count!r}.")
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise AblationError(f"--seed: must be an integer >= 0; got {seed!r}.")
+    integer_at_least("count (--initial-states)", count, 0, error=AblationError)
+    integer_at_least("seed (--seed)", seed, 0, error=AblationError)
     x0 = np.asarray(scenario.x0, dtype=float)
     offset = np.asarray(scenario.xhat0, dtype=float) - x0
     lower = np.asarray(scenario.observer.box.lower, dtype=float)
@@ -251,9 +250,9 @@ def initial_states_by_label(
     """
     if initial_states is None:
         initial_states = [scenario.x0]
-    states = np.atleast_2d(np.asarray(initial_states, dtype=float))
+    states = np.atleast_2d(finite_array("initial states", initial_states, error=AblationError))
     n = len(scenario.x0)
-    if states.ndim != 2 or states.shape[1] != n or not np.all(np.isfinite(states)):
+    if states.ndim != 2 or states.shape[1] != n:
         raise AblationError(
             f"initial states: expected finite rows of {n} numbers; got shape {states.shape}."
         )

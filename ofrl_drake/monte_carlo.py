@@ -96,8 +96,8 @@ def _bodies(scenario: Scenario) -> list[str]:
     names = multibody_body_names(truth)
     if names is None:
         raise MonteCarloError(
-            "--mass-spread: perturbs the body masses of a multibody truth; the scenario's "
-            "truth is not one (give plant.multibody or truth.plant.multibody)."
+            "mass_spread (--mass-spread) perturbs the body masses of a multibody truth; the "
+            "scenario's truth is not one (give plant.multibody or truth.plant.multibody)."
         )
     return [name for name in names if name != "world"]
 
@@ -284,10 +284,12 @@ def montecarlo(
         If ``out`` cannot be written.
     """
     check_scenario(scenario, "montecarlo")
-    integer_at_least("--runs:", runs, 1, error=MonteCarloError)
-    integer_at_least("--seed:", seed, 0, error=MonteCarloError)
+    integer_at_least("runs (--runs)", runs, 1, error=MonteCarloError)
+    integer_at_least("seed (--seed)", seed, 0, error=MonteCarloError)
     if not (is_real_number(mass_spread) and math.isfinite(mass_spread) and 0 <= mass_spread < 1):
-        raise MonteCarloError(f"--mass-spread: must be in [0, 1); got {mass_spread!r}.")
+        raise MonteCarloError(
+            f"mass_spread (--mass-spread) must be in [0, 1); got {mass_spread!r}."
+        )
     if optimal_cost is not None and not (
         is_real_number(optimal_cost) and (math.isnan(optimal_cost) or 0 <= optimal_cost < math.inf)
     ):

@@ -19,6 +19,7 @@ from ofrl_drake.ablation_grid import (
     Variant,
     default_variants,
     initial_state_label,
+    initial_states_by_label,
     sample_initial_states,
 )
 from ofrl_drake.ablation_metrics import (
@@ -628,3 +629,27 @@ def test_cli_errors_are_one_line(short_files, tmp_path, capsys):
     assert "ablation.csv exists; pass --resume" in capsys.readouterr().err
     assert main([*args, "--variants", str(tmp_path / "missing.yaml")]) == 2
     assert "missing.yaml: no such variants file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("states", "match"),
+    [
+        ([[np.nan, 2.0]], r"^initial states must be finite; got \[\[nan, 2\.0\]\]"),
+        ([[1.0, 2.0, 3.0]], r"^initial states: expected finite rows of 2 numbers; got shape"),
+        ([[1.0], [1.0, 2.0]], r"^initial states must be numeric; got"),
+        ([[0.1, 0.2], [0.1, 0.2]], r"^initial states: repeated states"),
+    ],
+)
+def test_initial_states_name_the_bad_value(states, match):
+    from ofrl_drake import load_scenario
+
+    with pytest.raises(AblationError, match=match):
+        initial_states_by_label(load_scenario(PAPER_SCENARIO), states)
+
+
+@pytest.mark.parametrize("count", [2.0, -1, "3", True])
+def test_a_count_of_initial_states_is_a_whole_number(count):
+    from ofrl_drake import load_scenario
+
+    with pytest.raises(AblationError, match=r"^count \(--initial-states\) must be an integer >= 0"):
+        sample_initial_states(load_scenario(PAPER_SCENARIO), count, 0)

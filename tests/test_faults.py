@@ -522,12 +522,12 @@ def test_ablate_refuses_a_negative_seed_as_montecarlo_does(tmp_path):
         "--out",
         tmp_path / "o",
     )
-    assert_one_line(proc, 2, r"^error: --seed: must be an integer >= 0; got -1\.$")
+    assert_one_line(proc, 2, r"^error: seed \(--seed\) must be an integer >= 0; got -1\.$")
     assert list(tmp_path.iterdir()) == []
     from ofrl_drake import load_scenario
     from ofrl_drake.ablation_grid import AblationError, sample_initial_states
 
-    with pytest.raises(AblationError, match=r"--seed: must be an integer >= 0; got -1\."):
+    with pytest.raises(AblationError, match=r"^seed \(--seed\) must be an integer >= 0; got -1\."):
         sample_initial_states(load_scenario(PAPER_SCENARIO), 0, -1)
 
 

@@ -279,9 +279,11 @@ def test_montecarlo_statuses_resume_and_refusals(real, tmp_path):
         montecarlo(short, 2, seed=5, out=tmp_path, optimal_cost=1.0)
     with pytest.raises(MonteCarloError, match=r"--resume: the folder's sweep differs in seed"):
         montecarlo(short, 2, seed=6, out=tmp_path, resume=True, optimal_cost=1.0)
-    with pytest.raises(MonteCarloError, match=r"--mass-spread: must be in \[0, 1\); got 1.5"):
+    with pytest.raises(
+        MonteCarloError, match=r"^mass_spread \(--mass-spread\) must be in \[0, 1\); got 1.5"
+    ):
         montecarlo(short, 2, mass_spread=1.5)
-    with pytest.raises(MonteCarloError, match=r"--runs: must be an integer >= 1; got 0"):
+    with pytest.raises(MonteCarloError, match=r"^runs \(--runs\) must be an integer >= 1; got 0"):
         montecarlo(short, 0)
 
 

@@ -263,8 +263,8 @@ def test_worker_threads_without_a_cluster_or_with_one_that_cannot_tell():
 @pytest.mark.parametrize(
     ("options", "match"),
     [
-        ({"mass_spread": "0.1"}, r"^--mass-spread: must be in \[0, 1\); got '0\.1'"),
-        ({"mass_spread": None}, r"^--mass-spread: must be in \[0, 1\); got None"),
+        ({"mass_spread": "0.1"}, r"^mass_spread \(--mass-spread\) must be in \[0, 1\); got '0\.1'"),
+        ({"mass_spread": None}, r"^mass_spread \(--mass-spread\) must be in \[0, 1\); got None"),
         ({"optimal_cost": "1"}, r"^optimal_cost: must be J\* .*a number >= 0 .*; got '1'"),
         ({"optimal_cost": -1.0}, r"^optimal_cost: .*; got -1\.0"),
         ({"optimal_cost": math.inf}, r"^optimal_cost: .*; got inf"),
