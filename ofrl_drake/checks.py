@@ -16,7 +16,9 @@ import numpy as np
 from ofrl_drake.errors import ModelError, OfrlError
 
 __all__ = [
+    "MAX_DRAKE_SEED",
     "array_of_shape",
+    "drake_seed",
     "finite_array",
     "finite_vector",
     "integer_at_least",
@@ -97,6 +99,26 @@ def integer_at_least(
     ):
         raise error(f"{name} must be an integer >= {least}; got {value!r}.")
     return int(value)
+
+
+#: The largest seed Drake's ``RandomGenerator`` keeps whole: it reads 32 bits, so
+#: ``2**32`` would repeat seed 0's draws.
+MAX_DRAKE_SEED = 2**32 - 1
+
+
+def drake_seed(name: str, value: Any, *, error: type[OfrlError] = ModelError) -> int:
+    """``value`` as a seed for Drake's random sources: an integer in ``[0, 2**32 - 1]``.
+
+    Drake keeps 32 bits of a seed (a larger one would repeat a smaller one's
+    draws, or fail inside pybind11). Raises ``error`` (default :class:`ModelError`).
+    """
+    seed = integer_at_least(name, value, 0, error=error)
+    if seed > MAX_DRAKE_SEED:
+        raise error(
+            f"{name} must be at most 2**32 - 1 = {MAX_DRAKE_SEED} (Drake's random sources "
+            f"keep 32 bits of a seed); got {value!r}."
+        )
+    return seed
 
 
 def positive_number(

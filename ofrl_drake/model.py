@@ -233,10 +233,27 @@ class ControlAffineSystem:
     # ------------------------------------------------------------------ checks
     def _call(self, name: str, fn: ArrayFunction, x: np.ndarray) -> np.ndarray:
         try:
-            value = np.asarray(fn(x), dtype=float)
+            raw = fn(x)
         except Exception as err:
             raise ModelError(
                 f"{name}(x) failed at the probe point x = {x.tolist()}: {err}"
+            ) from err
+        if raw is None:
+            raise ModelError(
+                f"{name}(x) returned None at the probe point x = {x.tolist()}; it must return "
+                f"an array (a missing return statement in {name}?)."
+            )
+        if np.iscomplexobj(raw):
+            raise ModelError(
+                f"{name}(x) returned complex values {np.asarray(raw).tolist()} at the probe "
+                f"point x = {x.tolist()}; {name} must be real."
+            )
+        try:
+            value = np.asarray(raw, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ModelError(
+                f"{name}(x) returned {raw!r} at the probe point x = {x.tolist()}, which is "
+                f"not an array of numbers ({err})."
             ) from err
         if not np.all(np.isfinite(value)):
             raise ModelError(
@@ -343,7 +360,18 @@ class ControlAffineSystem:
         return np.stack([np.asarray(self.g(x), float) for x in X.T], axis=-1)
 
     def dynamics(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``f(x) + g(x) u`` for one state (any scalar type)."""
+        """``f(x) + g(x) u`` for one state (any scalar type).
+
+        Raises
+        ------
+        ModelError
+            If ``u`` is not a vector of the model's ``m`` inputs.
+        """
+        if np.shape(u) != (self.m,):
+            raise ModelError(
+                f"{self.name}: dynamics(x, u) needs u of shape (m,) = ({self.m},); "
+                f"got shape {np.shape(u)}."
+            )
         return self.f(x) + self.g(x) @ u
 
     def output(self, x: np.ndarray) -> np.ndarray:

@@ -7,7 +7,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from ofrl_drake.checks import (
+    MAX_DRAKE_SEED,
     array_of_shape,
+    drake_seed,
     finite_array,
     finite_vector,
     nonnegative_matrix,
@@ -99,3 +101,14 @@ def test_array_of_shape_names_the_shape_wanted_and_got(value, shape, message):
 
 def test_array_of_shape_takes_any_length_on_a_none_axis():
     np.testing.assert_array_equal(array_of_shape("P", [[1, 2, 3]], (1, None)), [[1.0, 2.0, 3.0]])
+
+
+def test_a_drake_seed_is_a_32_bit_integer():
+    assert drake_seed("seed", 0) == 0
+    assert drake_seed("seed", np.uint32(MAX_DRAKE_SEED)) == 2**32 - 1
+    with pytest.raises(
+        ScenarioError, match=r"^seed must be at most 2\*\*32 - 1 = 4294967295 .*got 4294967296"
+    ):
+        drake_seed("seed", 2**32, error=ScenarioError)
+    with pytest.raises(ModelError, match=r"^seed must be an integer >= 0; got -1"):
+        drake_seed("seed", -1)

@@ -106,11 +106,34 @@ def test_scalar_constants_fall_back_with_warning():
             r"f\(x\) returned non-finite",
         ),
         (_f, _g, [[np.nan, 1.0]], r"C must be finite"),
+        (lambda x: None, _g, [[1.0, 0.0]], r"f\(x\) returned None .*a missing return statement"),
+        (
+            lambda x: np.array([x[1], -x[0] + 1j * x[0]]),
+            _g,
+            [[1.0, 0.0]],
+            r"f\(x\) returned complex values .*; f must be real",
+        ),
+        (_f, lambda x: "g", [[1.0, 0.0]], r"g\(x\) returned 'g' .*not an array of numbers"),
     ],
 )
 def test_bad_models_raise(f, g, C, match):
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises(ModelError, match=match):
         ControlAffineSystem(f, g, C)
+
+
+def test_dynamics_needs_one_input_per_column_of_g():
+    system = ControlAffineSystem(_f, _g, [[1.0, 0.0]], name="mine")
+    np.testing.assert_allclose(
+        system.dynamics(np.array([0.5, 1.0]), np.array([2.0])),
+        _f(np.array([0.5, 1.0])) + _g(np.array([0.5, 1.0])) @ np.array([2.0]),
+        rtol=0,
+        atol=0,
+    )
+    with pytest.raises(
+        ModelError,
+        match=r"^mine: dynamics\(x, u\) needs u of shape \(m,\) = \(1,\); got shape \(2,\)",
+    ):
+        system.dynamics(np.array([0.5, 1.0]), np.array([1.0, 2.0]))
 
 
 def test_unknown_example_names_choices():
