@@ -88,11 +88,12 @@ from ofrl_drake.optimal import (
 )
 from ofrl_drake.scenario import Scenario, check_scenario, validate_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
-from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
+from ofrl_drake.sweep_store import SweepFiles, SweepStore, describe_difference, load_arrays
 
 __all__ = [
     "CSV_COLUMNS",
     "FILES",
+    "MAX_RUN_SLUG",
     "ablate",
     "load_run",
     "read_rows",
@@ -178,11 +179,46 @@ def read_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dic
     return FILES.read(path, repair=repair)
 
 
+def _run_slug(variant: str) -> str:
+    """The part of a run's file name that names its variant (a file name's characters)."""
+    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", variant)
+
+
 def _run_name(variant: str, label: str) -> str:
-    """The file of one run in ``runs/``."""
-    slug = re.sub(r"[^A-Za-z0-9_.=-]+", "_", variant)
+    """The file of one run in ``runs/``: ``<variant's slug>__<hash of the label>.npz``."""
     digest = hashlib.sha256(label.encode()).hexdigest()[:12]
-    return f"{slug}__{digest}.npz"
+    return f"{_run_slug(variant)}__{digest}.npz"
+
+
+#: The longest slug of a variant's name (:func:`_run_slug`): a run's file is
+#: written through a temporary ``.<file name>.XXXXXXXX``, and a file name has at
+#: most 255 bytes on common file systems.
+MAX_RUN_SLUG = 255 - len(".__0123456789ab.npz.XXXXXXXX")
+
+
+def _check_run_names(variants: Sequence[Variant]) -> None:
+    """Refuse variants whose runs' files in ``runs/`` would clash or not fit a file name.
+
+    Two names that differ only in characters :func:`_run_slug` replaces
+    (``a/b`` and ``a_b``) would share one file per initial state: the
+    figures would plot one variant's run under both names, and ``J*`` be
+    warm-started from the wrong one.
+    """
+    seen: dict[str, str] = {}
+    for variant in variants:
+        slug = _run_slug(variant.name)
+        if len(slug) > MAX_RUN_SLUG:
+            raise AblationError(
+                f"variants: the name {variant.name[:40]!r}... has {len(slug)} characters as a "
+                f"file name in runs/; shorten it to at most {MAX_RUN_SLUG}."
+            )
+        if slug in seen:
+            raise AblationError(
+                f"variants: {seen[slug]!r} and {variant.name!r} would share the files "
+                f"runs/{slug}__<initial state>.npz (characters other than letters, digits "
+                "and _ . = - become _ in a file name); rename one of them."
+            )
+        seen[slug] = variant.name
 
 
 def _save_run(store: SweepStore, outcome: RunOutcome) -> None:
@@ -234,11 +270,6 @@ def _plan(
 def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
     """Why a ``--resume`` with plan ``new`` cannot continue the sweep of plan ``old``."""
 
-    def lookup(values: Any, path: str) -> Any:
-        for key in path.split("."):
-            values = values.get(key) if isinstance(values, Mapping) else None
-        return values
-
     if "seed" in old and old["seed"] != new["seed"]:
         return f"the folder's sweep used --seed {old['seed']}, this one --seed {new['seed']}"
     if "initial_states" in old and old["initial_states"] != new["initial_states"]:
@@ -267,12 +298,9 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
             f"this one {new['duration']} s"
         )
     if "scenario_values" in old:
-        where = first_difference(old["scenario_values"], new["scenario_values"])
+        where = describe_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:
-            return (
-                f"the scenario differs in {where} ({lookup(old['scenario_values'], where)!r} "
-                f"in the folder, {lookup(new['scenario_values'], where)!r} now)"
-            )
+            return f"the scenario differs in {where}"
     if old.get("scenario_key") != new["scenario_key"]:
         return f"the folder holds a sweep of another scenario ({old.get('scenario')!r})"
     return None
@@ -522,8 +550,11 @@ def ablate(
     AblationError
         Before any run: for bad variants (not :class:`Variant` objects or a
         mapping, an unknown slot or choice, the message listing the valid
-        ones, or a variant whose scenario is invalid, e.g. ``controller:
-        constant`` without ``variant.constant_input``), bad initial states, a
+        ones, two names that make the same file name in ``runs/`` (``a/b``
+        and ``a_b``: characters other than letters, digits and ``_ . = -``
+        become ``_``) or one longer than :data:`MAX_RUN_SLUG`, or a variant
+        whose scenario is invalid, e.g. ``controller: constant`` without
+        ``variant.constant_input``), bad initial states, a
         ``duration`` that is not a number > 0, a ``mesh`` that is not a
         :class:`~ofrl_drake.optimal.Mesh`, a ``solver`` not in
         :data:`~ofrl_drake.optimal.SOLVERS` or not available, an existing
@@ -541,6 +572,7 @@ def ablate(
     """
     check_scenario(scenario, "ablate")
     variants = variant_list(scenario, variants)
+    _check_run_names(variants)
     states = initial_states_by_label(scenario, initial_states)
     x0 = next(iter(states.values())).tolist()
     duration = _check_sweep(scenario, variants, x0, duration, mesh, solver)

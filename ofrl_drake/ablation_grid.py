@@ -26,7 +26,7 @@ import numpy as np
 
 from ofrl_drake.checks import finite_array, integer_at_least
 from ofrl_drake.errors import OfrlError
-from ofrl_drake.scenario import Scenario, variant_choices
+from ofrl_drake.scenario import Scenario, check_yaml, variant_choices
 
 __all__ = [
     "AblationError",
@@ -123,13 +123,23 @@ def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
     Raises
     ------
     AblationError
-        If the file is missing, not a mapping, or names an unknown slot or choice.
+        If the file is missing, unreadable or not UTF-8 text, not a mapping,
+        repeats a key in one mapping (e.g. a variant's name: Drake's loader
+        would keep the last silently; the key and both lines named), or names
+        an unknown slot or choice.
     """
     from pydrake.common.yaml import yaml_load
 
     path = Path(path)
     if not path.is_file():
         raise AblationError(f"{path}: no such variants file.")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise AblationError(f"{path}: not UTF-8 text ({err}); save it as UTF-8.") from None
+    except OSError as err:
+        raise AblationError(f"{path}: cannot be read ({err.strerror or err}).") from None
+    check_yaml(path, text, error=AblationError, what="variants file")
     try:
         data = yaml_load(filename=str(path))
     except Exception as err:

@@ -154,6 +154,20 @@ class ClosedLoop:
 
     Attributes
     ----------
+    diagram : Diagram
+        The closed loop, as Drake's ``Diagram`` (simulate it with a
+        ``Simulator``, or with :func:`~ofrl_drake.simulate` and ``loop=``).
+    parts : ClosedLoopParts
+        What the blocks were built from: the scenario (with the choices
+        given by name), the model, the basis, the points' features, the
+        observer design, Q and r, the critic's settings, the truth and
+        whether the blocks are symbolic (:class:`~ofrl_drake.slots.ClosedLoopParts`).
+    blocks : dict of str to System
+        The blocks by slot name (:data:`~ofrl_drake.slots.SLOTS`); also the
+        properties ``loop.plant``, ``loop.observer`` ...
+    loggers : dict of str to VectorLogSink
+        Drake's loggers by log key (:data:`LOGGED`, and :data:`OPTIONAL_LOGGED`
+        where a block has the port); :meth:`logs` reads them from a context.
     swapped : frozenset of str
         The slots given to :func:`build_closed_loop` as a block or a factory:
         they start from their own initial values unless a run asks for others.

@@ -526,10 +526,17 @@ def _load_plant(model: Any) -> tuple[Any, str | None, str]:
         if "://" in text:
             parser.AddModels(url=text)  # type: ignore[call-arg]  # pydrake stub lacks url=
         else:
-            if not Path(text).is_file():
+            if not Path(text).is_file():  # a stat, not an open: a FIFO would block
+                what = (
+                    "is a directory, not a model file"
+                    if Path(text).is_dir()
+                    else "is not a regular file"
+                    if Path(text).exists()
+                    else "does not exist"
+                )
                 raise ModelError(
-                    f"from_multibody: model file {text!r} does not exist; give an SDF, "
-                    "URDF or MJCF file or a package:// URL."
+                    f"from_multibody: model file {text!r} {what}; give an SDF, URDF or MJCF "
+                    "file or a package:// URL."
                 )
             parser.AddModels(file_name=Path(text))
         plant.Finalize()
@@ -619,9 +626,11 @@ def extract_multibody(
     ------
     ModelError
         If ``check_points`` is not a positive integer or ``seed`` not an
-        integer >= 0, the model cannot be loaded, the plant is discrete or not
-        finalized, has quaternion (floating) joints, effort limits, no
-        actuators, or the equations disagree with ``EvalTimeDerivatives``.
+        integer >= 0, the model file does not exist or is a directory (or
+        another kind of non-regular file, named as such), the model cannot be
+        loaded, the plant is discrete or not finalized, has quaternion
+        (floating) joints, effort limits, no actuators, or the equations
+        disagree with ``EvalTimeDerivatives``.
     """
     plant, path, stem = _load_plant(model)
     label = name or stem

@@ -38,11 +38,11 @@ import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_write_text
-from ofrl_drake.checks import integer_at_least, is_real_number
+from ofrl_drake.checks import MAX_DRAKE_SEED, drake_seed, integer_at_least, is_real_number
 from ofrl_drake.errors import OfrlError, status_line
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
-from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
+from ofrl_drake.sweep_store import SweepFiles, SweepStore, describe_difference, load_arrays
 
 __all__ = [
     "CSV_COLUMNS",
@@ -222,8 +222,31 @@ def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[
 
 def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
     """Why a ``--resume`` with plan ``new`` cannot continue the sweep of plan ``old``."""
-    where = first_difference(old, new)
+    where = describe_difference(old, new)
     return None if where is None else f"the folder's sweep differs in {where}"
+
+
+def _check_seeds(seed: int, runs: int) -> None:
+    """Refuse a sweep whose last measurement seed, ``seed + runs - 1``, Drake cannot keep.
+
+    Drake keeps 32 bits of a seed (:func:`~ofrl_drake.checks.drake_seed`): a
+    larger one fails inside pybind11 or repeats a smaller seed's noise.
+    """
+    try:
+        drake_seed(
+            f"the last run's measurement seed, seed + runs - 1 = {seed} + {runs} - 1 "
+            "(--seed, --runs),",
+            int(seed) + int(runs) - 1,
+            error=MonteCarloError,
+        )
+    except MonteCarloError as err:
+        largest = MAX_DRAKE_SEED - int(runs) + 1
+        fix = (
+            f"With runs = {runs}, give a seed of at most {largest}."
+            if largest >= 0
+            else f"Drake has {MAX_DRAKE_SEED + 1} seeds; give runs of at most that."
+        )
+        raise MonteCarloError(f"{err} {fix}") from None
 
 
 def montecarlo(
@@ -248,7 +271,8 @@ def montecarlo(
     runs : int
         ``N >= 1``.
     seed : int
-        Run ``k`` uses measurement seed ``seed + k``.
+        Run ``k`` uses measurement seed ``seed + k``; Drake keeps 32 bits of a
+        seed, so ``seed + runs - 1`` must be at most ``2**32 - 1``.
     mass_spread : float
         ``0 <= s < 1``: each body mass of a multibody truth is scaled by
         ``U[1 - s, 1 + s]`` per run (0: no perturbation).
@@ -274,18 +298,21 @@ def montecarlo(
     Raises
     ------
     MonteCarloError
-        Before any run: for bad arguments (``runs``, ``seed``, a
-        ``mass_spread`` that is not a number in ``[0, 1)``, an
+        Before any run: for bad arguments (``runs``, ``seed``, a last
+        measurement seed ``seed + runs - 1`` above ``2**32 - 1``, which Drake
+        cannot keep, a ``mass_spread`` that is not a number in ``[0, 1)``, an
         ``optimal_cost`` that is not a number >= 0 or NaN), an existing table
         without ``resume``, or a ``resume`` of a different sweep (the first
-        differing key named); during the sweep, for a task that failed
-        outside its own guard (a worker lost).
+        differing key named, with the folder's value and this call's);
+        during the sweep, for a task that failed outside its own guard (a
+        worker lost).
     OutputError
         If ``out`` cannot be written.
     """
     check_scenario(scenario, "montecarlo")
     integer_at_least("runs (--runs)", runs, 1, error=MonteCarloError)
     integer_at_least("seed (--seed)", seed, 0, error=MonteCarloError)
+    _check_seeds(seed, runs)
     if not (is_real_number(mass_spread) and math.isfinite(mass_spread) and 0 <= mass_spread < 1):
         raise MonteCarloError(
             f"mass_spread (--mass-spread) must be in [0, 1); got {mass_spread!r}."

@@ -349,6 +349,22 @@ def resolve_system(scenario: Any) -> ControlAffineSystem:
     return system
 
 
+def _check_truth_sizes(truth: ControlAffineSystem, model: ControlAffineSystem) -> None:
+    """Refuse a truth whose numbers of states, inputs and outputs are not the model's.
+
+    The truth is simulated in the model's place, in its coordinates (shifted by
+    the scenario's ``equilibrium``), so ``(n, m, q)`` must agree.
+    """
+    got, want = (truth.n, truth.m, truth.q), (model.n, model.m, model.q)
+    if got != want:
+        raise ScenarioError(
+            f"truth: the truth {truth.name!r} has (n, m, q) = {got} (states, inputs, "
+            f"outputs), the model {model.name!r} {want}; they must agree, since the truth "
+            "is simulated in the model's place and coordinates. Name a truth of the "
+            "model's sizes (or leave truth.system and truth.plant out: the model's plant)."
+        )
+
+
 def multibody_body_names(system: ControlAffineSystem | None) -> list[str] | None:
     """The body names of a model built from a multibody plant; None for any other (or None)."""
     plant = None if system is None else system.multibody_plant
@@ -370,16 +386,18 @@ def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
     Raises
     ------
     ScenarioError
-        Naming ``truth`` and the entry, if the truth cannot be built, or
-        ``body_mass_scale`` names a body that does not exist or the truth is
-        not a multibody plant.
+        Naming ``truth`` and the entry, if the truth cannot be built, its
+        numbers of states, inputs or outputs differ from the model's (naming
+        both), or ``body_mass_scale`` names a body that does not exist or the
+        truth is not a multibody plant.
     """
     truth = getattr(scenario, "truth", None)
     if truth is None:
         return None
     system: ControlAffineSystem | None
+    model = resolve_system(scenario)
     if not truth.system and truth.plant is None:
-        system = resolve_system(scenario)
+        system = model
     else:
         proxy = dataclasses.make_dataclass("TruthProxy", ["system", "plant", "equilibrium"])(
             truth.system, truth.plant, getattr(scenario, "equilibrium", None)
@@ -389,11 +407,18 @@ def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
         if system is None:
             try:
                 system = _base_system(proxy)
-                if proxy.equilibrium is not None:
-                    system = _shift(system, proxy.equilibrium, check=False)
             except ScenarioError as err:
                 raise ScenarioError(f"truth.{err}") from None
+            # Before the shift, whose own check would name equilibrium.x, not the truth.
+            _check_truth_sizes(system, model)
+            if proxy.equilibrium is not None:
+                try:
+                    system = _shift(system, proxy.equilibrium, check=False)
+                except ScenarioError as err:
+                    raise ScenarioError(f"truth.{err}") from None
             _BUILT[key] = system
+        else:  # built for a scenario whose model may have other sizes
+            _check_truth_sizes(system, model)
     if truth.body_mass_scale:
         names = multibody_body_names(system)
         if names is None:

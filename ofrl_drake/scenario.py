@@ -18,9 +18,11 @@ is required.
 
 import dataclasses
 import re
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
+from decimal import ROUND_CEILING, Decimal
 from pathlib import Path
 from typing import Any, Optional
 
@@ -29,7 +31,8 @@ import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.systems.analysis import GetIntegrationSchemes
 
-from ofrl_drake.errors import ScenarioError, ScenarioTypeError
+from ofrl_drake.checks import drake_seed, integer_at_least
+from ofrl_drake.errors import OfrlError, ScenarioError, ScenarioTypeError
 
 __all__ = [
     "ABORT_BOX_FACTOR",
@@ -52,6 +55,7 @@ __all__ = [
     "VariantConfig",
     "abort_box",
     "check_scenario",
+    "check_yaml",
     "critic_gains_choice",
     "dump_scenario",
     "load_scenario",
@@ -587,7 +591,13 @@ def validate_scenario(scenario: Scenario) -> None:
         the wrong type, a wrong size or a value out of range, a basis without
         an even degree, a ``simulation.log_period`` so small that the logs
         would take more than :data:`MAX_LOG_BYTES` (naming the smallest period
-        that fits).
+        that fits), a ``simulation.max_step``, ``measurement.period`` or
+        ``actuation.period`` that would take more than :data:`MAX_STEPS`
+        integrator steps over the horizon, or an ``observer.schedule_period``
+        more than :data:`MAX_SCHEDULE_SOLVES` LMI solves (each naming the
+        smallest period allowed), a ``measurement.seed`` beyond the 32 bits
+        Drake's random sources keep (``2**32 - 1``), or a truth whose sizes
+        differ from the model's.
     """
     # Imported here: the registry imports model code, the scenario does not need it
     # for parsing.
@@ -679,8 +689,7 @@ def validate_scenario(scenario: Scenario) -> None:
             )
     elif p.number < 1:
         raise ScenarioError(f"points.number: must be >= 1; got {p.number}.")
-    if p.seed < 0:
-        raise ScenarioError(f"points.seed: must be an integer >= 0; got {p.seed}.")
+    integer_at_least("points.seed", p.seed, 0, error=ScenarioError)  # numpy takes any size
     count = p.number if p.kind == "uniform" else int(np.prod([float(c) for c in p.counts]))
     need = 8.0 * count * (L * n + 2 * m * L + L + n + 8)  # gradients and per-point data
     if need > MAX_POINT_BYTES:
@@ -757,12 +766,13 @@ def validate_scenario(scenario: Scenario) -> None:
                 f"{scenario.input_bound}; got {scenario.variant.constant_input}."
             )
 
-    _validate_real_world(scenario, n, m, q)
+    _validate_real_world(scenario, m, q)
 
     s = scenario.simulation
     _positive("simulation.duration", s.duration)
     _positive("simulation.accuracy", s.accuracy)
     _positive("simulation.max_step", s.max_step)
+    _check_event_counts(scenario)
     _positive("simulation.log_period", s.log_period)
     if s.integrator not in integration_schemes():
         raise ScenarioError(
@@ -814,7 +824,62 @@ def _check_log_size(s: SimulationConfig, n: int, m: int, L: int) -> None:
         )
 
 
-def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
+def _smallest_period(duration: float, most: int) -> float:
+    """``duration / most`` to three significant digits, rounded up: a period that passes."""
+    least = duration / most
+    nearest = float(f"{least:.3g}")
+    if nearest >= least:
+        return nearest
+    exact = Decimal(least)
+    return float(exact.quantize(Decimal(1).scaleb(exact.adjusted() - 2), rounding=ROUND_CEILING))
+
+
+def _check_event_count(
+    key: str, period: float, duration: float, what: str, most: int, most_name: str
+) -> None:
+    """Refuse a ``period`` > 0 that repeats more than ``most`` times over ``duration``.
+
+    ``what`` names the events (``"integrator steps or more"``), ``most_name``
+    the constant ``most`` is; the message names the smallest period allowed for
+    this duration. A period of 0 (continuous) passes.
+    """
+    if period == 0 or period >= duration / most:
+        return
+    raise ScenarioError(
+        f"{key}: {period:g} s over simulation.duration = {duration:g} s means "
+        f"{duration / period:.3g} {what}; a run takes at most {most:,} ({most_name}), so "
+        f"that it ends in minutes, not hours. Use a {key.rsplit('.', 1)[-1]} of at least "
+        f"{_smallest_period(duration, most):g} s (or a shorter simulation.duration)."
+    )
+
+
+def _check_event_counts(scenario: Scenario) -> None:
+    """Bound the integrator steps and the LMI solves the periods of ``scenario`` force.
+
+    ``simulation.max_step``, ``measurement.period`` and ``actuation.period``
+    each end an integrator step every that many seconds, so the horizon takes
+    at least ``duration / period`` steps: at most :data:`MAX_STEPS`. Every
+    ``observer.schedule_period`` solves an LMI: at most
+    :data:`MAX_SCHEDULE_SOLVES` over the horizon.
+    """
+    meas, act = scenario.measurement, scenario.actuation
+    ends_a_step = "(each ends an integrator step)"
+    periods = [
+        ("simulation.max_step", scenario.simulation.max_step, "integrator steps or more"),
+        ("observer.schedule_period", scenario.observer.schedule_period, "LMI re-solves"),
+        ("measurement.period", meas.period if meas else 0.0, f"samples {ends_a_step}"),
+        ("actuation.period", act.period if act else 0.0, f"held inputs {ends_a_step}"),
+    ]
+    for key, period, what in periods:
+        most, most_name = (
+            (MAX_SCHEDULE_SOLVES, "MAX_SCHEDULE_SOLVES")
+            if key == "observer.schedule_period"
+            else (MAX_STEPS, "MAX_STEPS")
+        )
+        _check_event_count(key, period, scenario.simulation.duration, what, most, most_name)
+
+
+def _validate_real_world(scenario: Scenario, m: int, q: int) -> None:
     """Check ``truth``, ``measurement`` and ``actuation`` against the model's sizes."""
     from ofrl_drake.plants import resolve_truth
 
@@ -832,8 +897,7 @@ def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
                 "measurement.period: noise is drawn once per sample, so it needs a sampling "
                 f"period > 0; got 0 with noise_std = {meas.noise_std}. Set e.g. period: 0.01."
             )
-        if meas.seed < 0:
-            raise ScenarioError(f"measurement.seed: must be an integer >= 0; got {meas.seed}.")
+        drake_seed("measurement.seed", meas.seed, error=ScenarioError)
     act = scenario.actuation
     if act is not None:
         _positive("actuation.period", act.period, allow_zero=True)
@@ -851,12 +915,7 @@ def _validate_real_world(scenario: Scenario, n: int, m: int, q: int) -> None:
                 raise ScenarioError(
                     f"truth.body_mass_scale.{body}: must be a number > 0; got {scale}."
                 )
-        system = resolve_truth(scenario)  # not None: the scenario has a truth
-        if system is not None and (system.n, system.m, system.q) != (n, m, q):
-            raise ScenarioError(
-                f"truth: the truth has (n, m, q) = ({system.n}, {system.m}, {system.q}), the "
-                f"model ({n}, {m}, {q}); they must agree."
-            )
+        resolve_truth(scenario)  # builds it, checks its sizes against the model's
 
 
 def manual_gains(critic: CriticConfig) -> tuple[float, float, float, list[list[float]]]:
@@ -991,11 +1050,35 @@ MAX_LOG_BYTES = 2 * 2**30
 #: condition, the policy updates and every logger's time stamps.
 _LOG_SCALARS = 10
 
+#: Most integrator steps a run may be forced to take over its horizon:
+#: ``simulation.duration`` divided by ``simulation.max_step``, ``measurement.period``
+#: or ``actuation.period`` (each period ends a step). A step of the two-state
+#: example takes about 150 us (measured: 120 to 150 us with max_step, a
+#: measurement or an actuation period of 1e-4 or 1e-5 s), so ten million steps
+#: take about 25 minutes there (longer on larger plants): room for any honest
+#: run, five thousand times the most a shipped scenario takes (2,000 samples of
+#: ``cart_pole_real_world.yaml``), and about as many samples as the logs hold
+#: (:data:`MAX_LOG_BYTES`). A period of 1e-9 s over a 1 s horizon (a billion
+#: steps, about 42 hours) is refused.
+MAX_STEPS = 10_000_000
+
+#: Most LMI re-solves ``observer.schedule_period`` may ask for over the horizon:
+#: each one designs the observer again (about 35 ms on the two-state example,
+#: measured at periods of 0.01 and 0.002 s), so ten thousand take about six
+#: minutes; the tests re-solve at most 300 times.
+MAX_SCHEDULE_SOLVES = 10_000
+
 #: Longest ``name``, in characters (it labels files, figures and the diagram).
 MAX_NAME_LENGTH = 200
 
 #: Largest scenario file read, in bytes: a scenario is a page of YAML.
 MAX_SCENARIO_BYTES = 1_000_000
+
+#: Deepest nesting of YAML lists and mappings a scenario file may hold. The
+#: schema's deepest value, a row of ``truth.plant.C``, is 4 levels below the
+#: root mapping; PyYAML composes nested values recursively, so a value nested a
+#: few hundred levels deep would exhaust Python's stack.
+MAX_YAML_DEPTH = 20
 
 #: Most YAML nodes a scenario may expand to (aliases included): a bound on
 #: "billion laughs" files, far above any real scenario.
@@ -1039,6 +1122,33 @@ _RawLoader.add_constructor(
 )
 
 
+class _DepthLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, composing at most :data:`MAX_YAML_DEPTH` nested lists and mappings.
+
+    Raises :class:`ScenarioError` (naming the line) at the first collection
+    deeper than that, before PyYAML's recursion exhausts the stack.
+    """
+
+    depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        event = self.peek_event()
+        if not isinstance(event, yaml.MappingStartEvent | yaml.SequenceStartEvent):
+            return super().compose_node(parent, index)
+        if self.depth >= MAX_YAML_DEPTH:
+            raise ScenarioError(
+                f"line {event.start_mark.line + 1}: lists and mappings nested more than "
+                f"{MAX_YAML_DEPTH} levels deep; no scenario key nests more than 4 below the "
+                "top level (the rows of truth.plant.C). Write the value as the table in "
+                "docs/scenario.md gives it: a number, a string, a list or a list of rows."
+            )
+        self.depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+
 def _not_yaml(path: Path, err: Exception) -> ScenarioError:
     """The error for a file PyYAML refuses, on one line (its marks name lines of ``path``)."""
     text = " ".join(str(err).replace('in "<unicode string>", ', "").split())
@@ -1065,22 +1175,32 @@ def _raw_yaml(path: Path, text: str) -> Any:
     return raw
 
 
-def _check_yaml(path: Path, text: str) -> None:
+def check_yaml(
+    path: Path, text: str, *, error: type[OfrlError] = ScenarioError, what: str = "scenario"
+) -> None:
     """Refuse alias bombs and duplicate keys before Drake's loader sees the file.
 
-    The file is composed (not constructed) with PyYAML's safe loader; its node
+    For scenario files and the other YAML files a command reads (an
+    ablation's variants file): ``what`` names the kind of file, ``error``
+    the class raised.
+
+    The file is composed (not constructed) with PyYAML's safe loader, at most
+    :data:`MAX_YAML_DEPTH` lists and mappings deep; its node
     graph is walked as an expanding loader would walk it, counting every node
     an alias repeats, up to :data:`MAX_YAML_NODES`. A mapping that repeats a
     key is refused with the key and both lines (Drake's loader keeps the last).
 
     Raises
     ------
-    ScenarioError
+    OfrlError
+        ``error`` (default :class:`ScenarioError`), naming the line.
     """
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        root = yaml.compose(text, Loader=_DepthLoader)
     except yaml.YAMLError as err:
-        raise _not_yaml(path, err) from None
+        raise error(str(_not_yaml(path, err))) from None
+    except ScenarioError as err:  # nested too deep
+        raise error(f"{path}: {err}") from None
     stack = [] if root is None else [root]
     expanded = 0
     checked: set[int] = set()
@@ -1094,9 +1214,9 @@ def _check_yaml(path: Path, text: str) -> None:
         visited.add(id(node))
         if expanded > MAX_YAML_NODES:
             if repeated:
-                raise ScenarioError(
+                raise error(
                     f"{path}: the YAML expands to more than {MAX_YAML_NODES} values (aliases "
-                    "repeat a part many times); write the scenario out without them."
+                    f"repeat a part many times); write the {what} out without them."
                 )
             where = (
                 ""
@@ -1104,10 +1224,15 @@ def _check_yaml(path: Path, text: str) -> None:
                 else f"; the longest list ({len(longest.value)} entries) starts at line "
                 f"{longest.start_mark.line + 1}"
             )
-            raise ScenarioError(
+            example = (
+                " (e.g. give a critic's Gamma0 for the basis in use, or leave it out for "
+                "critic.gains: auto)"
+                if what == "scenario"
+                else ""
+            )
+            raise error(
                 f"{path}: the YAML holds more than {MAX_YAML_NODES} values, far more than any "
-                f"scenario needs{where}; shorten it (e.g. give a critic's Gamma0 for the basis "
-                "in use, or leave it out for critic.gains: auto)."
+                f"{what} needs{where}; shorten it{example}."
             )
         if isinstance(node, yaml.MappingNode):
             if id(node) not in checked:
@@ -1116,7 +1241,7 @@ def _check_yaml(path: Path, text: str) -> None:
                 for key, _ in node.value:
                     name = key.value if isinstance(key, yaml.ScalarNode) else repr(key)
                     if name in seen:
-                        raise ScenarioError(
+                        raise error(
                             f"{path}: key {name[:80]!r} appears twice in one mapping (lines "
                             f"{seen[name] + 1} and {key.start_mark.line + 1}); keep one."
                         )
@@ -1127,6 +1252,36 @@ def _check_yaml(path: Path, text: str) -> None:
             if longest is None or len(node.value) > len(longest.value):
                 longest = node
             stack.extend(node.value)
+
+
+#: What a path that is not a regular file is, by its ``stat`` mode test.
+_FILE_KINDS = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a named pipe (FIFO)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _not_a_file(path: Path) -> str:
+    """Why ``path``, which is not a regular file, cannot be read as a scenario file."""
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return f"{path}: no such scenario file."
+    except OSError as err:
+        return f"{path}: cannot be read ({err.strerror or err})."
+    kind = next((name for test, name in _FILE_KINDS if test(mode)), "a special file")
+    if kind == "a directory":
+        return (
+            f"{path}: is a directory, not a scenario file; give the path of a scenario YAML "
+            f"file in it (e.g. {path / 'scenario.yaml'})."
+        )
+    return (
+        f"{path}: is {kind}, not a regular file; a scenario is read from a YAML file on "
+        "disk: give that file's path."
+    )
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -1144,7 +1299,10 @@ def load_scenario(path: str | Path) -> Scenario:
     Raises
     ------
     ScenarioError
-        If the file is missing or unreadable, or a key is unknown, missing or
+        If the path is empty, missing, a directory or not a regular file (a
+        FIFO, a device: it is never opened), the file is unreadable, larger
+        than :data:`MAX_SCENARIO_BYTES`, not YAML, nested more than
+        :data:`MAX_YAML_DEPTH` levels deep, or a key is unknown, missing or
         bad: an integer key written with a decimal point or an exponent
         (``1e3``, naming the integer to write), a quoted number (``"0.01"``),
         a module or model file of ``system``, ``plant`` or ``truth`` that
@@ -1158,9 +1316,14 @@ def load_scenario(path: str | Path) -> Scenario:
     relative model files named by ``system``, ``plant`` and ``truth`` are
     found beside the file and made absolute.
     """
+    if isinstance(path, str) and not path:
+        raise ScenarioError(
+            "the scenario path is empty (''); give the path of a scenario YAML file, e.g. "
+            "diagrams/two_state_paper.yaml."
+        )
     path = Path(path)
-    if not path.is_file():
-        raise ScenarioError(f"{path}: no such scenario file.")
+    if not path.is_file():  # a stat, not an open: a FIFO would block a read
+        raise ScenarioError(_not_a_file(path))
     size = path.stat().st_size
     if size > MAX_SCENARIO_BYTES:
         raise ScenarioError(
@@ -1171,7 +1334,7 @@ def load_scenario(path: str | Path) -> Scenario:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
         raise ScenarioError(f"{path}: cannot be read ({err}).") from None
-    _check_yaml(path, text)
+    check_yaml(path, text)
     raw = _raw_yaml(path, text)
     try:
         _check_mapping("", Scenario, raw)

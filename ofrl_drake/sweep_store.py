@@ -43,6 +43,7 @@ __all__ = [
     "SweepFiles",
     "SweepStore",
     "TableError",
+    "describe_difference",
     "first_difference",
     "format_row",
     "load_arrays",
@@ -79,7 +80,8 @@ def read_table(
     Raises
     ------
     TableError
-        If the header is not ``columns`` or a row is malformed.
+        If the header is not ``columns``, or a line is malformed, is not
+        UTF-8 text or cannot be read as CSV (the line named).
     """
     path = Path(path)
     data = path.read_bytes()
@@ -90,10 +92,25 @@ def read_table(
                 fh.truncate(len(data))
     if not data and repair:
         return []  # killed before the header was complete; the writer adds it
-    lines = list(csv.reader(io.StringIO(data.decode())))
+    try:
+        decoded = data.decode()
+    except UnicodeDecodeError as err:
+        line = data.count(b"\n", 0, err.start) + 1
+        raise _bad_line(
+            path, line, f"is not UTF-8 text (byte {data[err.start]:#04x} at offset {err.start})"
+        ) from None
+    reader = csv.reader(io.StringIO(decoded))
+    try:
+        lines = list(reader)
+    except csv.Error as err:
+        raise _bad_line(path, reader.line_num, f"cannot be read as CSV ({err})") from None
     columns = tuple(columns)
     if not lines or tuple(lines[0]) != columns:
-        raise TableError(f"{path}: not an {kind}; expected the header {columns}.")
+        got = f"the header {_shortened(tuple(lines[0]))}" if lines else "an empty file"
+        raise TableError(
+            f"{path}: not a valid {kind}: expected the header {columns}; got {got}. Move it "
+            "away, or choose another --out."
+        )
     rows = []
     for i, values in enumerate(lines[1:], start=2):
         try:
@@ -101,8 +118,23 @@ def read_table(
                 {c: (v if c in text else float(v)) for c, v in zip(columns, values, strict=True)}
             )
         except ValueError:
-            raise TableError(f"{path}: line {i} is malformed: {values}.") from None
+            raise _bad_line(path, i, f"is malformed: {_shortened(values)}") from None
     return rows
+
+
+def _shortened(value: Any, limit: int = 200) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a corrupt line can be megabytes long)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _bad_line(path: Path, line: int, problem: str) -> TableError:
+    """The error for line ``line`` of the table ``path`` (the file is corrupt)."""
+    if line <= 1:
+        fix = "the header is damaged: move the file away, or choose another --out"
+    else:
+        fix = "delete that line (--resume then runs its row again), or choose another --out"
+    return TableError(f"{path}: line {line} {problem}; the file is corrupt: {fix}.")
 
 
 class RowWriter:
@@ -137,18 +169,47 @@ class RowWriter:
         self._fh.close()
 
 
-def first_difference(old: Any, new: Any, path: str = "") -> str | None:
-    """The key path of the first difference between two JSON-like values, or None."""
+class _Absent:
+    """A key one of two plans does not have, as :func:`describe_difference` shows it."""
+
+    def __repr__(self) -> str:
+        return "absent"
+
+
+_ABSENT = _Absent()
+
+
+def _difference(old: Any, new: Any, path: str) -> tuple[str, Any, Any] | None:
+    """The key path of the first difference and the two values there, or None."""
     if isinstance(old, dict) and isinstance(new, dict):
         for key in sorted(set(old) | set(new)):
             where = f"{path}.{key}" if path else str(key)
-            if key not in old or key not in new:
-                return where
-            found = first_difference(old[key], new[key], where)
+            found = _difference(old.get(key, _ABSENT), new.get(key, _ABSENT), where)
             if found is not None:
                 return found
         return None
-    return None if old == new else (path or "value")
+    if old is _ABSENT or new is _ABSENT:
+        return path, old, new
+    return None if old == new else (path or "value", old, new)
+
+
+def first_difference(old: Any, new: Any, path: str = "") -> str | None:
+    """The key path of the first difference between two JSON-like values, or None."""
+    found = _difference(old, new, path)
+    return None if found is None else found[0]
+
+
+def describe_difference(old: Any, new: Any) -> str | None:
+    """The first difference between a folder's plan ``old`` and a command's ``new``, or None.
+
+    ``"runs (3 in the folder, 2 now)"``: the key path (:func:`first_difference`)
+    and both values, so a refused ``--resume`` says what to pass.
+    """
+    found = _difference(old, new, "")
+    if found is None:
+        return None
+    where, before, now = found
+    return f"{where} ({before!r} in the folder, {now!r} now)"
 
 
 def load_arrays(path: str | os.PathLike[str]) -> dict[str, Any] | None:

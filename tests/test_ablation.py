@@ -3,6 +3,7 @@
 import dataclasses
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -312,6 +313,72 @@ def test_ablate_refuses_a_bad_variant_before_any_run(paper_scenario, tmp_path, v
     with pytest.raises(AblationError, match=match):
         ablate(paper_scenario, variants, out=out, progress=False)
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("variants", "match"),
+    [
+        (
+            {"a/b": {}, "a_b": {"controller": "lqr"}},
+            r"^variants: 'a/b' and 'a_b' would share the files runs/a_b__<initial state>\.npz "
+            r"\(characters other than letters, digits and _ \. = - become _ in a file name\); "
+            r"rename one of them\.$",
+        ),
+        (
+            [Variant("a b"), Variant("a, b", {"controller": "lqr"})],
+            r"^variants: 'a b' and 'a, b' would share the files runs/a_b__<initial state>\.npz",
+        ),
+        (
+            {"v" * 228: {}},
+            r"^variants: the name 'v{40}'\.\.\. has 228 characters as a file name in runs/; "
+            r"shorten it to at most 227\.$",
+        ),
+    ],
+    ids=["slash", "spaces_and_commas", "too_long"],
+)
+def test_ablate_refuses_names_whose_run_files_clash_before_any_run(
+    paper_scenario, tmp_path, variants, match
+):
+    """One file per (variant, initial state) in runs/: the figures and J*'s warm start read it."""
+    out = tmp_path / "sweep"
+    with pytest.raises(AblationError, match=match):
+        ablate(paper_scenario, variants, out=out, duration=2.0, progress=False)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        (
+            "a: {}\na: {controller: lqr}\n",
+            r"key 'a' appears twice in one mapping \(lines 1 and 2\)",
+        ),
+        (
+            "a: {controller: lqr, controller: learned}\n",
+            r"key 'controller' appears twice in one mapping \(lines 1 and 1\)",
+        ),
+    ],
+    ids=["variant", "slot"],
+)
+def test_a_variants_file_that_repeats_a_key_is_refused(tmp_path, text, match):
+    """Drake's loader would keep the last silently: only the second `a` would run."""
+    from ofrl_drake.ablation_grid import load_variants
+
+    path = tmp_path / "variants.yaml"
+    path.write_text(text)
+    with pytest.raises(AblationError, match=rf"^{re.escape(str(path))}: {match}; keep one\.$"):
+        load_variants(path)
+
+
+def test_a_variants_file_that_is_not_utf8_is_refused(tmp_path):
+    from ofrl_drake.ablation_grid import load_variants
+
+    path = tmp_path / "variants.yaml"
+    path.write_bytes(b"baseline: {}\n\xe9t\xe9: {controller: lqr}\n")
+    with pytest.raises(
+        AblationError, match=r"variants\.yaml: not UTF-8 text \(.*\); save it as UTF-8"
+    ):
+        load_variants(path)
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,8 @@
 """Control-affine models from Drake systems and multibody models."""
 
+import os
+import re
+
 import numpy as np
 import pydrake.math as pmath
 import pytest
@@ -535,6 +538,19 @@ def test_from_multibody_errors(tmp_path):
     floating.Finalize()
     with pytest.raises(ModelError, match=r"7 positions but 6 velocities \(a quaternion"):
         ControlAffineSystem.from_multibody(floating)
+
+
+def test_a_directory_as_a_model_file_is_named_a_directory(tmp_path):
+    with pytest.raises(
+        ModelError,
+        match=rf"model file '{re.escape(str(tmp_path))}' is a directory, not a model file; "
+        r"give an SDF, URDF or MJCF file",
+    ):
+        ControlAffineSystem.from_multibody(str(tmp_path))
+    fifo = tmp_path / "cart_pole.sdf"
+    os.mkfifo(fifo)  # never opened: it would block
+    with pytest.raises(ModelError, match=r"cart_pole\.sdf' is not a regular file; give an SDF"):
+        ControlAffineSystem.from_multibody(str(fifo))
 
 
 _LIMITED_URDF = """<?xml version="1.0"?>

@@ -210,3 +210,26 @@ def test_status_line_names_the_error_on_one_line():
     assert status_line(ImportError()) == "ImportError"  # an empty message: the type alone
     late = WallTimeExceeded("the LMI ran out", step="LMI solve")
     assert status_line(late) == "timeout: the LMI ran out"
+
+
+@pytest.mark.parametrize(
+    ("truth", "sizes"),
+    [
+        ({"system": "two_state"}, r"\(2, 1, 1\)"),  # was truth.equilibrium.x: expected 2 entries
+        ({"system": "coupled_two_state"}, r"\(4, 2, 2\)"),  # was truth.equilibrium.u
+    ],
+)
+def test_a_truth_of_other_sizes_with_an_equilibrium_names_both_sizes(tmp_path, truth, sizes):
+    # The cart-pole model (4 states, 1 input, 2 outputs) runs about its equilibrium;
+    # the truth's size, not a key truth.equilibrium.x, is what is wrong.
+    data = yaml_load(data=(ROOT / "diagrams" / "cart_pole.yaml").read_text())
+    data["truth"] = truth
+    path = tmp_path / "truth.yaml"
+    path.write_text(yaml_dump(data))
+    with pytest.raises(
+        ScenarioError,
+        match=rf"truth\.yaml: truth: the truth '{truth['system']}' has \(n, m, q\) = {sizes} "
+        r"\(states, inputs, outputs\), the model 'cart_pole' \(4, 1, 2\); they must agree.* "
+        r"Name a truth of the model's sizes",
+    ):
+        load_scenario(path)

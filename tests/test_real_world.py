@@ -277,7 +277,9 @@ def test_montecarlo_statuses_resume_and_refusals(real, tmp_path):
     assert len(read_montecarlo_rows(tmp_path / "montecarlo.csv")) == 2
     with pytest.raises(MonteCarloError, match=r"exists; pass --resume"):
         montecarlo(short, 2, seed=5, out=tmp_path, optimal_cost=1.0)
-    with pytest.raises(MonteCarloError, match=r"--resume: the folder's sweep differs in seed"):
+    with pytest.raises(
+        MonteCarloError, match=r"^--resume: the folder's sweep differs in seed \(5 in the folder, 6"
+    ):
         montecarlo(short, 2, seed=6, out=tmp_path, resume=True, optimal_cost=1.0)
     with pytest.raises(
         MonteCarloError, match=r"^mass_spread \(--mass-spread\) must be in \[0, 1\); got 1.5"
@@ -366,6 +368,21 @@ def test_bad_real_world_keys_exit_2_naming_the_key(tmp_path, edit, message):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(message, lines[0]), lines
     assert not (tmp_path / "o").exists()
+
+
+def test_montecarlo_with_a_seed_drake_cannot_keep_exits_2_before_any_run(tmp_path):
+    """It exited 0 with "0% success" and a pybind11 TypeError as every run's status."""
+    out = tmp_path / "mc"
+    proc = run_cli("montecarlo", REAL, "--seed", 99999999999999999999, "--runs", 1, "--out", out)
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line == (
+        "error: the last run's measurement seed, seed + runs - 1 = 99999999999999999999 + 1 - 1 "
+        "(--seed, --runs), must be at most 2**32 - 1 = 4294967295 (Drake's random sources keep "
+        "32 bits of a seed); got 99999999999999999999. With runs = 1, give a seed of at most "
+        "4294967295."
+    )
+    assert not out.exists()
 
 
 def test_run_writes_a_scenario_yaml_that_reproduces_the_noisy_run(tmp_path):

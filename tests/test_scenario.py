@@ -1,6 +1,7 @@
 """Scenario files: the paper's parameters, and every bad input named by its key."""
 
 import dataclasses
+import os
 import re
 import shutil
 
@@ -149,6 +150,47 @@ def test_missing_file_and_bad_yaml(tmp_path):
         load_scenario(bad)
 
 
+def test_a_path_that_is_not_a_regular_file_says_what_it_is(tmp_path):
+    with pytest.raises(
+        ScenarioError, match=r"^the scenario path is empty \(''\); give the path of a"
+    ):
+        load_scenario("")
+    with pytest.raises(
+        ScenarioError,
+        match=rf"^{re.escape(str(tmp_path))}: is a directory, not a scenario file; give the "
+        "path of a scenario YAML file in it",
+    ):
+        load_scenario(tmp_path)
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)  # never opened: a read would block until a writer came
+    with pytest.raises(
+        ScenarioError, match=r"fifo\.yaml: is a named pipe \(FIFO\), not a regular file; "
+    ):
+        load_scenario(fifo)
+    with pytest.raises(ScenarioError, match=r"^/dev/null: is a character device, not a regular"):
+        load_scenario("/dev/null")
+
+
+def test_yaml_nested_too_deep_is_refused_naming_the_nesting(tmp_path):
+    from ofrl_drake.scenario import MAX_YAML_DEPTH
+
+    path = tmp_path / "deep.yaml"
+
+    def nested(levels):  # name: holds ``levels`` lists, the root mapping one level more
+        text = PAPER_SCENARIO.read_text()
+        path.write_text(
+            text.replace("name: two_state_paper", f"name: {'[' * levels}{']' * levels}")
+        )
+        return path
+
+    deep = r"deep\.yaml: line 3: lists and mappings nested more than 20 levels deep; .*Write the"
+    for levels in (5000, MAX_YAML_DEPTH):
+        with pytest.raises(ScenarioError, match=deep):
+            load_scenario(nested(levels))
+    with pytest.raises(ScenarioError, match=r"name: expected a string"):  # 20 deep: allowed
+        load_scenario(nested(MAX_YAML_DEPTH - 1))
+
+
 def test_pinned_gains_are_accepted(tmp_path):
     def pin(d):
         d["observer"].update(L=[[-20.0], [10.0]], H=[[1.0], [0.0]], K=[[0.0], [0.0]])
@@ -282,6 +324,79 @@ def test_validation_leaves_a_python_built_scenario_unchanged(paper_scenario):
     before = dataclasses.asdict(good)
     validate_scenario(good)
     assert dataclasses.asdict(good) == before
+
+
+@pytest.mark.parametrize("seed", [2**32, 99999999999999999999])
+def test_a_measurement_seed_beyond_what_drake_keeps_is_refused(tmp_path, paper_scenario, seed):
+    from ofrl_drake.scenario import MeasurementConfig, validate_scenario
+
+    # Drake's RandomGenerator keeps 32 bits: 2**32 would draw seed 0's noise.
+    refused = rf"measurement\.seed must be at most 2\*\*32 - 1 = 4294967295 .*got {seed}\."
+    path = tmp_path / "seed.yaml"
+    path.write_text(PAPER_SCENARIO.read_text() + f"measurement:\n  seed: {seed}\n")
+    with pytest.raises(ScenarioError, match=rf"seed\.yaml: {refused}"):
+        load_scenario(path)
+    with pytest.raises(ScenarioError, match=refused):
+        validate_scenario(
+            dataclasses.replace(paper_scenario, measurement=MeasurementConfig(seed=seed))
+        )
+    path.write_text(PAPER_SCENARIO.read_text() + "measurement:\n  seed: 4294967295\n")
+    assert load_scenario(path).measurement.seed == 2**32 - 1
+    # points.seed feeds numpy only, which takes any integer >= 0.
+    points = dataclasses.replace(paper_scenario.points, kind="uniform", seed=seed)
+    validate_scenario(dataclasses.replace(paper_scenario, points=points))
+
+
+#: (section, key, what, smallest): the paper's 30 s horizon allows 10,000,000 steps
+#: (MAX_STEPS) and 10,000 LMI re-solves (MAX_SCHEDULE_SOLVES).
+TINY_PERIODS = [
+    ("simulation", "max_step", r"integrator steps or more.*10,000,000 \(MAX_STEPS\)", 3e-6),
+    ("observer", "schedule_period", r"LMI re-solves.*10,000 \(MAX_SCHEDULE_SOLVES\)", 0.003),
+    ("measurement", "period", r"samples \(each ends an integrator step\).*MAX_STEPS", 3e-6),
+    ("actuation", "period", r"held inputs \(each ends an integrator step\).*MAX_STEPS", 3e-6),
+]
+
+
+@pytest.mark.parametrize(("section", "key", "what", "smallest"), TINY_PERIODS)
+def test_a_period_too_small_for_the_horizon_is_refused_naming_the_smallest(
+    tmp_path, section, key, what, smallest
+):
+    def load(period):
+        def edit(d):
+            d.setdefault(section, {})[key] = period
+
+        return load_scenario(_write(tmp_path, edit))
+
+    with pytest.raises(
+        ScenarioError,
+        match=rf"bad\.yaml: {section}\.{key}: 1e-09 s over simulation\.duration = 30 s means "
+        rf"3e\+10 {what}.*Use a {key} of at least {smallest:g} s \(or a shorter",
+    ):
+        load(1e-9)
+    assert getattr(getattr(load(smallest), section), key) == smallest  # the named one passes
+    with pytest.raises(ScenarioError, match=rf"{section}\.{key}: .*at least {smallest:g} s"):
+        load(smallest * (1 - 1e-9))
+
+
+SHIPPED = sorted((ROOT / "diagrams").glob("*.yaml")) + sorted(
+    (ROOT / "benchmarks" / "scenarios").glob("*.yaml")
+)
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_every_shipped_scenario_loads_far_within_the_step_bounds(path):
+    from ofrl_drake.scenario import MAX_SCHEDULE_SOLVES, MAX_STEPS
+
+    s = load_scenario(path)
+    periods = [
+        s.simulation.max_step,
+        s.measurement.period if s.measurement else 0.0,
+        s.actuation.period if s.actuation else 0.0,
+    ]
+    steps = max(s.simulation.duration / p for p in periods if p > 0)
+    assert steps * 5000 <= MAX_STEPS  # as scenario.MAX_STEPS's comment says
+    if s.observer.schedule_period > 0:
+        assert s.simulation.duration / s.observer.schedule_period <= MAX_SCHEDULE_SOLVES
 
 
 @pytest.mark.parametrize("degrees", [[3], [3, 5]])

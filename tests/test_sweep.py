@@ -4,6 +4,7 @@ import dataclasses
 import io
 import json
 import math
+import re
 import sys
 
 import numpy as np
@@ -11,7 +12,13 @@ import pytest
 
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.sweep import Engine, execute, split_consecutive, worker_threads
-from ofrl_drake.sweep_store import SweepFiles, SweepStore, first_difference, load_arrays
+from ofrl_drake.sweep_store import (
+    SweepFiles,
+    SweepStore,
+    describe_difference,
+    first_difference,
+    load_arrays,
+)
 
 
 class _SweepError(OfrlError):
@@ -224,7 +231,51 @@ def test_a_sweep_that_ends_keeps_its_folder_even_without_a_new_row(tmp_path):
 
 def test_a_table_of_another_kind_is_named(tmp_path):
     (tmp_path / "t.csv").write_text("a,b\n1,2\n")
-    with pytest.raises(_SweepError, match=r"t\.csv: not an example table; expected the header"):
+    with pytest.raises(
+        _SweepError,
+        match=r"t\.csv: not a valid example table: expected the header \('name', 'value', "
+        r"'status'\); got the header \('a', 'b'\)\. Move it away, or choose another --out",
+    ):
+        FILES.read(tmp_path / "t.csv")
+
+
+def test_a_table_of_another_kind_reads_with_its_article(tmp_path):
+    from ofrl_drake.monte_carlo import FILES as MONTE_CARLO
+    from ofrl_drake.monte_carlo import MonteCarloError
+
+    (tmp_path / "montecarlo.csv").write_text("a,b\n")
+    with pytest.raises(MonteCarloError, match=r"not a valid Monte Carlo table: expected"):
+        MONTE_CARLO.read(tmp_path / "montecarlo.csv")
+
+
+@pytest.mark.parametrize(
+    ("line", "match"),
+    [
+        (b"c,\xff\xfe,ok\n", r"line 4 is not UTF-8 text \(byte 0xff at offset 52\)"),
+        (b"c," + b"9" * 200_000 + b",ok\n", r"line 4 cannot be read as CSV \(field larger than"),
+        (b"c,3,ok,x\n", r"line 4 is malformed: \['c', '3', 'ok', 'x'\]"),
+    ],
+    ids=["not_utf8", "huge_field", "extra_field"],
+)
+def test_resume_of_a_corrupt_table_names_the_line_and_the_fix(tmp_path, line, match):
+    out = _filled(tmp_path)
+    table = out / "t.csv"
+    table.write_bytes(table.read_bytes() + line)
+    with pytest.raises(
+        _SweepError,
+        match=rf"^{re.escape(str(table))}: {match}.*; the file is corrupt: delete that line "
+        r"\(--resume then runs its row again\), or choose another --out\.$",
+    ):
+        SweepStore(FILES, out).open({"seed": 1}, resume=True, mismatch=_seed_differs)
+
+
+def test_a_table_with_a_damaged_header_says_to_move_it_away(tmp_path):
+    (tmp_path / "t.csv").write_bytes(b"name,\xe9value,status\n")
+    with pytest.raises(
+        _SweepError,
+        match=r"t\.csv: line 1 is not UTF-8 text \(byte 0xe9 at offset 5\); the file is "
+        r"corrupt: the header is damaged: move the file away, or choose another --out\.$",
+    ):
         FILES.read(tmp_path / "t.csv")
 
 
@@ -232,6 +283,15 @@ def test_first_difference_names_the_key_path():
     assert first_difference({"a": {"b": 1, "c": 2}}, {"a": {"b": 1, "c": 3}}) == "a.c"
     assert first_difference({"a": 1}, {"a": 1, "z": 0}) == "z"
     assert first_difference({"a": [1]}, {"a": [1]}) is None
+
+
+def test_describe_difference_names_the_folder_s_value_and_the_command_s():
+    assert describe_difference({"runs": 3, "seed": 0}, {"runs": 2, "seed": 0}) == (
+        "runs (3 in the folder, 2 now)"
+    )
+    missing = describe_difference({"a": {"b": "x"}}, {"a": {}})
+    assert missing == "a.b ('x' in the folder, absent now)"
+    assert describe_difference({"a": [1]}, {"a": [1]}) is None
 
 
 @pytest.mark.parametrize(
@@ -279,6 +339,61 @@ def test_montecarlo_refuses_a_bad_spread_or_optimal_cost_before_any_run(
     with pytest.raises(MonteCarloError, match=match):
         montecarlo(paper_scenario, 1, out=out, progress=False, **{"optimal_cost": 1.0, **options})
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("seed", "runs", "match"),
+    [
+        (
+            99999999999999999999,
+            1,
+            r"^the last run's measurement seed, seed \+ runs - 1 = 99999999999999999999 \+ 1 - 1 "
+            r"\(--seed, --runs\), must be at most 2\*\*32 - 1 = 4294967295 .*; got "
+            r"99999999999999999999\. With runs = 1, give a seed of at most 4294967295\.$",
+        ),
+        (
+            2**32 - 1,
+            2,
+            r"= 4294967295 \+ 2 - 1 .*; got 4294967296\. With runs = 2, give a seed of at most "
+            r"4294967294\.$",
+        ),
+    ],
+    ids=["seed_too_large", "last_seed_too_large"],
+)
+def test_montecarlo_refuses_seeds_drake_cannot_keep_before_any_run(
+    paper_scenario, tmp_path, seed, runs, match
+):
+    """Run k uses measurement seed seed + k; Drake keeps 32 bits of a seed."""
+    from ofrl_drake.monte_carlo import MonteCarloError, montecarlo
+
+    out = tmp_path / "mc"
+    with pytest.raises(MonteCarloError, match=match):
+        montecarlo(paper_scenario, runs, seed, out=out, progress=False, optimal_cost=1.0)
+    assert not out.exists()
+
+
+def test_montecarlo_resume_names_the_folder_s_value_and_the_command_s(paper_scenario, tmp_path):
+    from ofrl_drake.monte_carlo import MonteCarloError, montecarlo
+
+    short = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, duration=0.2)
+    )
+    out = tmp_path / "mc"
+    montecarlo(short, 1, seed=3, out=out, progress=False, optimal_cost=1.0)
+    with pytest.raises(
+        MonteCarloError,
+        match=r"^--resume: the folder's sweep differs in runs \(1 in the folder, 2 now\); resume "
+        r"with the sweep's own arguments",
+    ):
+        montecarlo(short, 2, seed=3, out=out, resume=True, progress=False, optimal_cost=1.0)
+    longer = dataclasses.replace(
+        short, simulation=dataclasses.replace(short.simulation, duration=0.3)
+    )
+    with pytest.raises(
+        MonteCarloError,
+        match=r"differs in scenario_values\.simulation\.duration \(0\.2 in the folder, 0\.3 now\)",
+    ):
+        montecarlo(longer, 1, seed=3, out=out, resume=True, progress=False, optimal_cost=1.0)
 
 
 def test_montecarlo_names_a_path_given_as_the_scenario(tmp_path):
