@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -41,7 +42,7 @@ from ofrl_drake.contracts import (
     WeightsSetter,
 )
 from ofrl_drake.drake_typing import DrakeArray, input_port_names, output_port_names
-from ofrl_drake.errors import ModelError, ScenarioError, SwapError
+from ofrl_drake.errors import InitialPolicyWarning, ModelError, ScenarioError, SwapError
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
     POLICY_PERIOD_FRACTION,
@@ -49,7 +50,9 @@ from ofrl_drake.learning import (
     LearningGains,
     auto_gains,
     basis_scales,
+    check_policy,
     rho_metric,
+    second_moment,
 )
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.plants import resolve_system, resolve_truth
@@ -460,9 +463,43 @@ def critic_settings(
             policy_period=gains.policy_period if c.policy_period is None else c.policy_period,
             gamma_bound=gains.gamma_bound if c.gamma_bound is None else c.gamma_bound,
         )
+        _warn_if_not_admissible(scenario, basis, features, r, linearization, W0)
     else:
         gains = dataclasses.replace(gains, policy_period=None, gamma_bound=None)
     return CriticSettings(law=c.law, gains=gains, metric=metric, linearization=linearization)
+
+
+def _warn_if_not_admissible(
+    scenario: Scenario,
+    basis: PolynomialBasis,
+    features: PointFeatures,
+    r: np.ndarray,
+    linearization: tuple[np.ndarray, np.ndarray] | None,
+    W0: np.ndarray,
+) -> None:
+    """Warn when policy iteration starts from a policy its acceptance test calls inadmissible.
+
+    Kleinman's iteration needs a stabilizing start: until the gate accepts an
+    admissible candidate the loop runs ``W0``'s policy, whose linearized loop
+    is unstable or whose value is not positive definite.
+    """
+    if linearization is None:  # refused before: policy iteration needs one
+        return
+    A, B = linearization
+    Q = np.asarray(scenario.cost.Q, dtype=float)
+    check = check_policy(A, B, Q, r, basis, W0, second_moment(features.points))
+    if check.admissible:
+        return
+    warnings.warn(
+        f"critic.W0: policy iteration starts from a policy its gate would not accept: the "
+        f"smallest eigenvalue of its value's quadratic part is {check.value_min_eigenvalue:.3g} "
+        f"(must be > 0) and the spectral abscissa of its linearized loop "
+        f"{check.spectral_abscissa:.3g} (must be < 0); the loop runs this policy until the "
+        "gate accepts an admissible update. Start from a stabilizing W0, e.g. the LQR value "
+        "(ofrl_drake.learning_curve.lqr_weights(loop)).",
+        InitialPolicyWarning,
+        stacklevel=2,
+    )
 
 
 def resolved_scenario(scenario: Scenario, critic: CriticSettings | None) -> Scenario:

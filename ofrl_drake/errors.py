@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 __all__ = [
+    "InitialPolicyWarning",
     "ModelError",
     "OfrlError",
     "OutputError",
@@ -104,3 +105,7 @@ def status_line(err: BaseException) -> str:
     head = "timeout" if isinstance(err, WallTimeExceeded) else type(err).__name__
     text = " ".join(str(err).split())
     return f"{head}: {text}" if text else head
+
+
+class InitialPolicyWarning(UserWarning):
+    """Policy iteration starts from a policy its acceptance test would refuse (``critic.W0``)."""

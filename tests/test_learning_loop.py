@@ -10,6 +10,7 @@ Gamma bounded and every policy in force stabilising its linearized loop.
 import dataclasses
 import math
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ofrl_drake import build_closed_loop, load_scenario, simulate
+from ofrl_drake.errors import InitialPolicyWarning
 from ofrl_drake.examples import EXAMPLES, register
 from ofrl_drake.learning import value_matrix
 from ofrl_drake.learning_curve import (
@@ -549,3 +551,18 @@ def test_a_policy_evaluation_leaving_the_domain_of_f_is_diverged_not_an_internal
         EXAMPLES.pop("domain_pendulum")
     assert math.isnan(run.cost)
     assert re.match(r"^diverged: the model's f or g was evaluated outside its domain", run.status)
+
+
+def test_policy_iteration_from_an_inadmissible_policy_warns_naming_w0():
+    """Kleinman's iteration needs a stabilizing start: a W0 that is not one is named."""
+    scenario = _policy_iteration(load_scenario(PENDULUM))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the shipped W0 warns nothing
+        build_closed_loop(scenario)
+    indefinite = _critic(scenario, W0=[15.2321, 5.3705, -0.6065])
+    with pytest.warns(InitialPolicyWarning, match=r"^critic\.W0: policy iteration starts from"):
+        build_closed_loop(indefinite)
+    # The paper's law has no gate and no such test.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        build_closed_loop(_critic(indefinite, law="paper", policy_period=None, gamma_bound=None))
