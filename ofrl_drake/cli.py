@@ -34,6 +34,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -303,9 +304,18 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    """``run``, holding the output's lock (:func:`ofrl_drake.atomic.output_lock`)."""
+    """``run``, holding the output's lock (:func:`ofrl_drake.atomic.output_lock`).
+
+    numpy's overflow warnings are off: a state that overflows (``x0 = [1e300,
+    1e300]``, a huge disturbance) printed ``RuntimeWarning: overflow
+    encountered`` and its source line, while the run itself reports it: a
+    state that is not finite, or outside the abort box, stops the run as
+    ``diverged`` (exit 3, ``summary.json`` -> ``status``, ``stop``).
+    """
+    import numpy as np
+
     check_output_directory(Path(args.out))
-    with output_lock(Path(args.out).expanduser().resolve()):
+    with output_lock(Path(args.out).expanduser().resolve()), np.errstate(over="ignore"):
         return _run(args)
 
 
@@ -413,6 +423,34 @@ def _run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _check_output_file(out: str, scenario: str) -> Path:
+    """Check the ``--out FILE`` of ``design-observer`` and ``verify-observer`` before the work.
+
+    The file is written after the design (seconds to minutes): a path that
+    cannot take it is refused first. So is the scenario file itself
+    (``design-observer same.yaml --out same.yaml`` replaced the scenario with
+    JSON), also through a link or under another spelling.
+
+    Raises
+    ------
+    OutputError
+        If ``out`` is the scenario file, not a regular file (a folder, a link,
+        a device: :func:`ofrl_drake.atomic.check_output_target`), or cannot be
+        created (:func:`ofrl_drake.atomic.check_writable`).
+    """
+    target = check_output_target(out)
+    try:
+        same = target.exists() and os.path.samefile(target, scenario)
+    except OSError:  # the scenario cannot be read: load_scenario names it
+        same = False
+    if same:
+        raise OutputError(
+            f"--out: {out} is the scenario file {scenario}; the JSON would replace the "
+            "scenario. Name another file for the output."
+        )
+    return check_writable(target)
+
+
 def _cmd_design_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
@@ -420,7 +458,7 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.verification import verify_observer
 
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
-    check_writable(Path(args.out))  # fail before the work, not after
+    _check_output_file(args.out, args.scenario)  # fail before the work, not after
     system = resolve_system(scenario)
     design = design_for(scenario, system)
     verification = verify_observer(design, system)  # the fast check shown next to every design
@@ -455,6 +493,8 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
     from ofrl_drake.verification import verify_observer
 
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
+    if args.out:
+        _check_output_file(args.out, args.scenario)  # fail before the work, not after
     system = resolve_system(scenario)
     design = design_for(scenario, system)
     report = verify_observer(design, system, samples=args.samples, seed=args.seed)
@@ -469,6 +509,116 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
     return EXIT_FALSIFIED if report.falsified else EXIT_OK
 
 
+#: Seconds past ``--scheduler-timeout`` left to distributed to report a failed connection
+#: itself (its own message names the cause) before the connection is abandoned.
+CONNECT_GRACE = 1.0
+
+
+def _check_scheduler_address(scheduler: str, error: type[OfrlError]) -> None:
+    """Refuse a ``--scheduler`` that is not the address of a dask scheduler, before connecting.
+
+    Raises
+    ------
+    OfrlError
+        (``error``: the command's own class) If ``scheduler`` has no port, an
+        unknown scheme, or a port outside 1-65535.
+    """
+    from distributed.comm import registry
+    from distributed.comm.addressing import get_address_host_port, parse_address
+
+    try:
+        registry.get_backend(parse_address(scheduler)[0])
+        port = get_address_host_port(scheduler)[1]
+        if not 0 < port < 65536:
+            raise ValueError(f"port {port} is not in 1-65535")
+    except (ValueError, TypeError) as err:
+        raise error(
+            f"--scheduler: {scheduler!r} is not a scheduler address ({err}); give "
+            "tcp://HOST:PORT of a running dask scheduler."
+        ) from None
+
+
+def _connect(scheduler: str, wait: float, error: type[OfrlError]) -> Any:
+    """A ``distributed.Client`` of ``scheduler``, within ``wait`` seconds or not at all.
+
+    distributed bounds the TCP connection by ``timeout``, not the handshake
+    after it: a server that accepts and stays silent (an HTTP server, a
+    scheduler that hangs) held ``Client`` forever, and one that sends
+    something else (an SSH banner) read as a message of exabytes
+    (``MemoryError``). The client is built in a thread given ``wait`` seconds
+    and :data:`CONNECT_GRACE`; one still connecting then is abandoned (the
+    process exits soon after, with exit 2).
+
+    Raises
+    ------
+    OfrlError
+        (``error``) If no dask scheduler answered at ``scheduler`` in time, or
+        connecting raised anything at all; naming the address and the cause.
+    """
+    from distributed import Client
+
+    built: dict[str, Any] = {}
+
+    def build() -> None:
+        try:
+            built["client"] = Client(scheduler, timeout=wait)
+        except Exception as err:  # whatever the server sent: the command's one-line error
+            built["error"] = err
+
+    thread = threading.Thread(target=build, name="ofrl-drake connect", daemon=True)
+    thread.start()
+    thread.join(wait + CONNECT_GRACE)
+    if "client" in built:
+        return built["client"]
+    err = built.get("error")
+    if err is None:
+        why = f"no dask scheduler answered after {wait:g} s"
+    elif isinstance(err, (OSError, TimeoutError)):
+        why = " ".join(str(err).split())
+    else:
+        text = " ".join(str(err).split())[:200]
+        why = f"what answered there is not a dask scheduler: {type(err).__name__}: {text}"
+    raise error(
+        f"--scheduler: cannot connect to {scheduler} within --scheduler-timeout {wait:g} s "
+        f"({why}); start a dask scheduler there, check the address (a dask scheduler's port, "
+        "not another server's), or raise --scheduler-timeout."
+    ) from None
+
+
+@contextlib.contextmanager
+def _sigint_kept_from_children() -> Iterator[None]:
+    """Hold SIGINT while the block starts processes, which never receive it.
+
+    A terminal's Ctrl-C goes to the whole process group: Dask's worker
+    processes, interrupted mid-start (``Fatal Python error:
+    init_import_site``) or mid-task, printed dozens of lines of tracebacks
+    beside the command's one line. In the block, SIGINT is blocked in this
+    thread's signal mask; the threads started in it (the cluster's event loop,
+    the threads that start each worker, and restart it later) inherit the
+    mask, and the processes they start keep it across ``exec``, so the
+    workers leave the interrupt to the command, which closes them. The
+    command itself loses no SIGINT: one that comes in the block (the cluster's
+    start, seconds) is held (:func:`_sigint_held`) and raised as
+    ``KeyboardInterrupt`` when the block ends. (Ignoring SIGINT in the block,
+    which the workers would inherit as well, would drop that Ctrl-C: the sweep
+    went on to its end.) Outside the main thread the block runs as is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    # Started now, not by the block's first process: starting it unblocks SIGINT in the
+    # thread that starts it, and every thread that thread starts inherits its mask.
+    resource_tracker.ensure_running()
+    with _sigint_held():
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            yield
+        finally:  # a SIGINT the mask kept pending is delivered here, to _sigint_held's handler
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
 @contextlib.contextmanager
 def _dask_client(
     scheduler: str | None,
@@ -479,8 +629,10 @@ def _dask_client(
     """A client of the cluster at ``scheduler``, or of an embedded ``LocalCluster``.
 
     ``wait`` seconds (``--scheduler-timeout``) bound both the connection to
-    ``scheduler`` and, with what is left of them, the wait for its first
-    worker; then the command stops with exit 2.
+    ``scheduler`` (:func:`_connect`) and, with what is left of them, the wait
+    for its first worker; then the command stops with exit 2. The workers of
+    a ``LocalCluster`` never get SIGINT (:func:`_sigint_kept_from_children`):
+    a Ctrl-C stops the command, which closes them, without a line of theirs.
 
     Raises
     ------
@@ -494,20 +646,8 @@ def _dask_client(
 
     if scheduler:
         deadline = time.monotonic() + wait
-        try:
-            client = Client(scheduler, timeout=wait)
-        except (OSError, TimeoutError) as err:
-            raise error(
-                f"--scheduler: cannot connect to {scheduler} within --scheduler-timeout "
-                f"{wait:g} s ({err}); start a dask scheduler there, check the address, or "
-                "raise --scheduler-timeout."
-            ) from None
-        except (ValueError, TypeError) as err:
-            raise error(
-                f"--scheduler: {scheduler!r} is not a scheduler address ({err}); give "
-                "tcp://HOST:PORT of a running dask scheduler."
-            ) from None
-        with client:
+        _check_scheduler_address(scheduler, error)
+        with _connect(scheduler, wait, error) as client:
             try:
                 # Dask waits forever for timeout=0: at least a moment, which finds a worker
                 # already there.
@@ -522,17 +662,37 @@ def _dask_client(
     if workers is None:
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
         workers = workers or os.cpu_count() or 1
-    with (
-        LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.ERROR,
-        ) as cluster,
-        Client(cluster) as client,
-    ):
+    logging_was = logging.root.manager.disable
+    cluster = contextlib.ExitStack()  # closes the client, then the cluster
+    try:
+        with _sigint_kept_from_children():
+            local = cluster.enter_context(
+                LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    # No dashboard; its HTTP server on any free local port, not 8787, which
+                    # another cluster may hold ("warning: Port 8787 is already in use").
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                    silence_logs=logging.ERROR,
+                )
+            )
+            client = cluster.enter_context(Client(local))
         yield client
+    except BaseException:
+        # Closing a cluster whose tasks were cut short (Ctrl-C) logs distributed's errors
+        # (lost workers, cancelled tasks): the command prints its own line instead.
+        logging.disable(logging.CRITICAL)
+        raise
+    finally:
+        try:
+            # A Ctrl-C while the cluster closes is raised after it, not in the middle (a
+            # cluster left half-closed for Python's exit to close, with a traceback).
+            with _sigint_held():
+                cluster.close()
+        finally:
+            logging.disable(logging_was)
 
 
 def _locked(command: Any) -> Any:
@@ -553,20 +713,29 @@ def _locked(command: Any) -> Any:
 
 
 def _run_sweep(
-    args: argparse.Namespace, sweep: Any, table: Path, error: type[OfrlError]
-) -> list[dict] | int:
-    """``sweep(client)``: serially with ``--workers 0``, else on Dask; its rows.
+    args: argparse.Namespace,
+    sweep: Callable[[Any], list[dict]],
+    table: Path,
+    error: type[OfrlError],
+    report: Callable[[list[dict]], int],
+) -> int:
+    """``sweep(client)`` (serially with ``--workers 0``, else on Dask), then ``report(rows)``.
 
-    An interrupt (SIGINT, SIGTERM) keeps the rows finished in ``table`` and
-    returns the exit code, after one line saying how to resume. ``error`` is
-    the command's exception class, for a scheduler that cannot be used
-    (:func:`_dask_client`).
+    Returns ``report``'s exit code. An interrupt (SIGINT, SIGTERM), in the
+    sweep or in its report (the figures, ``J*``), keeps the rows finished in
+    ``table`` and returns the exit code, after one line saying how to resume.
+    ``error`` is the command's exception class, for a scheduler that cannot
+    be used (:func:`_dask_client`).
     """
     try:
         if args.workers == 0 and not args.scheduler:
-            return sweep(None)
-        with _dask_client(args.scheduler, args.workers, args.scheduler_timeout, error) as client:
-            return sweep(client)
+            rows = sweep(None)
+        else:
+            with _dask_client(
+                args.scheduler, args.workers, args.scheduler_timeout, error
+            ) as client:
+                rows = sweep(client)
+        return report(rows)
     except KeyboardInterrupt as err:
         what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
         kept = (
@@ -574,7 +743,7 @@ def _run_sweep(
             if table.exists()
             else "no output written"  # stopped before the sweep wrote anything
         )
-        print(f"error: {what}; {kept}", file=sys.stderr)
+        _print_error(f"error: {what}; {kept}")
         return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
 
 
@@ -605,34 +774,36 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "retry_failed": args.retry_failed,
     }
-    rows = _run_sweep(
+
+    def report(rows: list[dict]) -> int:
+        x0_label = initial_state_label(scenario.x0)
+        optimum = OptimalCostCache(out / "optimal").get(scenario, scenario.x0)
+        write_report(
+            out,
+            rows,
+            [v.name for v in variants],
+            scenario_name=scenario.name,
+            x0_label=x0_label,
+            duration=scenario.simulation.duration,
+            optimum=optimum.trajectory if optimum is not None else None,
+            equilibrium=scenario.equilibrium.x if scenario.equilibrium is not None else None,
+            accuracy=scenario.simulation.accuracy,
+        )
+        ok = sum(r["status"] == "ok" for r in rows)
+        print(summary_table(rows, [v.name for v in variants]))
+        print(
+            f"wrote {out}: {len(rows)} runs ({ok} ok), ablation.csv, ablation.md, "
+            "figures/optimality_ratio.png, figures/trajectories.png"
+        )
+        return EXIT_OK
+
+    return _run_sweep(
         args,
         lambda client: ablate(scenario, variants, states, client, **options),
         out / "ablation.csv",
         AblationError,
+        report,
     )
-    if isinstance(rows, int):
-        return rows
-    x0_label = initial_state_label(scenario.x0)
-    optimum = OptimalCostCache(out / "optimal").get(scenario, scenario.x0)
-    write_report(
-        out,
-        rows,
-        [v.name for v in variants],
-        scenario_name=scenario.name,
-        x0_label=x0_label,
-        duration=scenario.simulation.duration,
-        optimum=optimum.trajectory if optimum is not None else None,
-        equilibrium=scenario.equilibrium.x if scenario.equilibrium is not None else None,
-        accuracy=scenario.simulation.accuracy,
-    )
-    ok = sum(r["status"] == "ok" for r in rows)
-    print(summary_table(rows, [v.name for v in variants]))
-    print(
-        f"wrote {out}: {len(rows)} runs ({ok} ok), ablation.csv, ablation.md, "
-        "figures/optimality_ratio.png, figures/trajectories.png"
-    )
-    return EXIT_OK
 
 
 def _cmd_montecarlo(args: argparse.Namespace) -> int:
@@ -649,22 +820,24 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     out = Path(args.out)
     options = {"mass_spread": args.mass_spread, "out": out, "resume": args.resume}
-    rows = _run_sweep(
+
+    def report(rows: list[dict]) -> int:
+        write_montecarlo_report(out, rows, scenario.name)
+        print(montecarlo_table(rows), end="")
+        good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
+        print(
+            f"wrote {out}: {len(rows)} runs ({good} ok and regulated), montecarlo.csv, "
+            "montecarlo.md, figures/envelope.png"
+        )
+        return EXIT_OK
+
+    return _run_sweep(
         args,
         lambda client: montecarlo(scenario, args.runs, args.seed, client=client, **options),
         out / "montecarlo.csv",
         MonteCarloError,
+        report,
     )
-    if isinstance(rows, int):
-        return rows
-    write_montecarlo_report(out, rows, scenario.name)
-    print(montecarlo_table(rows), end="")
-    good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
-    print(
-        f"wrote {out}: {len(rows)} runs ({good} ok and regulated), montecarlo.csv, "
-        "montecarlo.md, figures/envelope.png"
-    )
-    return EXIT_OK
 
 
 def _positive_seconds(text: str) -> float:
@@ -1003,12 +1176,118 @@ def _drake_warnings_only() -> Iterator[None]:
         logger.setLevel(level)
 
 
+def _print_error(line: str) -> None:
+    """Print the command's one error line on stderr, on a line of its own.
+
+    On a terminal, a progress bar cut short (Ctrl-C mid-run) is still on the
+    last line, without its newline: the line is blanked first, so the error
+    does not run on from the bar (``0.0 serror: interrupted``).
+    """
+    if sys.stderr.isatty():
+        try:
+            columns = os.get_terminal_size(sys.stderr.fileno()).columns
+        except (OSError, ValueError):
+            columns = 0
+        line = "\r" + " " * ((columns or 80) - 1) + "\r" + line
+    print(line, file=sys.stderr)
+
+
+class _WarningLines:
+    """``warnings.showwarning`` while a command runs: a Python warning is one line.
+
+    Python's own prints two, the second the source line that warned (``return
+    ControlAffineSystem(f, g, ...)``). Here each is ``warning: MESSAGE`` on
+    stderr, and a message already shown is not shown again. A figure font's
+    missing characters (:class:`ofrl_drake.plotting.MissingGlyphWarning`, one
+    per figure) are gathered for :meth:`glyph_note`, one line for them all.
+    """
+
+    def __init__(self) -> None:
+        self.shown: set[str] = set()
+        self.glyphs: dict[str, None] = {}  # in the order drawn, each once
+        self.fonts: dict[str, None] = {}
+
+    def __call__(
+        self,
+        message: Warning | str,
+        category: type[Warning],
+        filename: str,
+        lineno: int,
+        file: Any = None,
+        line: str | None = None,
+    ) -> None:
+        plotting = sys.modules.get("ofrl_drake.plotting")  # imported if it drew a figure
+        if plotting is not None and isinstance(message, plotting.MissingGlyphWarning):
+            self.glyphs.update(dict.fromkeys(message.characters))
+            self.fonts[message.fonts] = None
+            return
+        text = f"warning: {' '.join(str(message).split())}"
+        if text not in self.shown:
+            self.shown.add(text)
+            print(text, file=sys.stderr if file is None else file)
+
+    def glyph_note(self) -> None:
+        """One line naming every character the figures' font lacked, if any."""
+        if self.glyphs:
+            print(
+                f"note: the figures' font ({', '.join(self.fonts)}) has no glyph for "
+                f"{''.join(self.glyphs)!r}, drawn as empty boxes; use other characters "
+                "in the scenario's name (and variant names), or set matplotlib's font.family "
+                "to a font that has them.",
+                file=sys.stderr,
+            )
+
+
+#: Seconds after a swallowed interrupt (:func:`_interrupts_not_swallowed`) before its
+#: signal is sent again: time for Python to leave the callback that swallowed it.
+RESIGNAL_DELAY = 0.01
+
+
+@contextlib.contextmanager
+def _interrupts_not_swallowed() -> Iterator[None]:
+    """A Ctrl-C (or SIGTERM) raised where Python cannot raise it comes again, in main.
+
+    A ``KeyboardInterrupt`` that lands in a weakref callback or a ``__del__``
+    (frequent while Dask's or matplotlib's objects are released) is "ignored":
+    Python printed ``Exception ignored in: <function WeakSet...>`` and a
+    traceback, and the command went on to its end, exit 0. Here the signal is
+    sent to the main thread again, :data:`RESIGNAL_DELAY` later (not from the
+    hook, which it would interrupt in turn), and the command stops as for any
+    Ctrl-C; other unraisable exceptions are reported as before.
+    """
+    previous = sys.unraisablehook
+    main_thread = threading.main_thread().ident
+
+    def hook(unraisable: Any) -> None:
+        interrupt = unraisable.exc_value
+        if isinstance(interrupt, KeyboardInterrupt) and main_thread is not None:
+            signum = signal.SIGTERM if isinstance(interrupt, Terminated) else signal.SIGINT
+            again = threading.Timer(RESIGNAL_DELAY, signal.pthread_kill, (main_thread, signum))
+            again.daemon = True
+            again.start()
+        else:
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``ofrl-drake``; returns the exit code."""
+    """Entry point of ``ofrl-drake``; returns the exit code.
+
+    While the command runs, Python warnings are printed as one line each
+    (:class:`_WarningLines`), restored on return.
+    """
 
     started = time.perf_counter()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _raise_terminated)
+    lines = _WarningLines()
+    showwarning = warnings.showwarning
+    warnings.showwarning = lines
     try:
         args = _parser().parse_args(argv)
         args.started = started
@@ -1017,31 +1296,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _sigint_held():
             for module in _COMMAND_MODULES.get(args.command, _DEFAULT_MODULES):
                 importlib.import_module(module)
-        with _drake_warnings_only():
-            return args.func(args)
+        with _drake_warnings_only(), _interrupts_not_swallowed():
+            code = args.func(args)
+        lines.glyph_note()
+        return code
     except OfrlError as err:
         frame = _user_frame_behind(err)
         where = "" if frame is None else f" (at {frame.filename}:{frame.lineno}, in {frame.name})"
-        print(f"error: {' '.join(str(err).split())}{where}", file=sys.stderr)
+        _print_error(f"error: {' '.join(str(err).split())}{where}")
         return EXIT_BAD_INPUT
     except Terminated:
-        print("error: terminated (SIGTERM); no output written", file=sys.stderr)
+        _print_error("error: terminated (SIGTERM); no output written")
         return EXIT_TERMINATED
     except KeyboardInterrupt:
-        print("error: interrupted; no output written", file=sys.stderr)
+        _print_error("error: interrupted; no output written")
         return EXIT_INTERRUPTED
     except Exception as err:
         msg = " ".join(str(err).split())[:500]
         frame = _user_code_frame(err)
         if frame is not None:
-            print(
+            _print_error(
                 f"error: your code raised {type(err).__name__}: {msg} (at {frame.filename}:"
-                f"{frame.lineno}, in {frame.name}); fix it there, it is not an ofrl_drake error",
-                file=sys.stderr,
+                f"{frame.lineno}, in {frame.name}); fix it there, it is not an ofrl_drake error"
             )
             return EXIT_BAD_INPUT
-        print(f"internal error: {type(err).__name__}: {msg}", file=sys.stderr)
+        _print_error(f"internal error: {type(err).__name__}: {msg}")
         return EXIT_INTERNAL
+    finally:
+        warnings.showwarning = showwarning
 
 
 if __name__ == "__main__":  # pragma: no cover

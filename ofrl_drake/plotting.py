@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import re
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -41,6 +42,7 @@ if TYPE_CHECKING:  # matplotlib >= 3.10 names the rc keys; the annotation only
     from ofrl_drake.simulation import SimulationResult
 
 __all__ = [
+    "MissingGlyphWarning",
     "numerical_floor",
     "plot_comparison",
     "plot_cost",
@@ -656,6 +658,12 @@ def save_figures(
     ``learning_curve`` (with ``optimal_cost``, ``lqr_cost``) adds
     ``learning_curve.png``; ``health`` adds ``learning_health.png``. Each
     figure is titled with the scenario's name.
+
+    Warns
+    -----
+    MissingGlyphWarning
+        Once per figure whose text (the scenario's name) has characters its
+        font cannot draw (:func:`save_png`).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -695,10 +703,74 @@ def save_figures(
     return paths
 
 
+class MissingGlyphWarning(UserWarning):
+    """A figure's text has characters its font lacks; they are drawn as empty boxes.
+
+    :func:`save_png` warns once per figure, in place of matplotlib's warning
+    for every character at every drawing pass (a scenario named in CJK script
+    printed about 40 of them per run).
+
+    Attributes
+    ----------
+    characters : str
+        The missing characters, each once, in the order they were drawn.
+    fonts : str
+        The font(s) matplotlib looked in, as it names them (``DejaVu Sans``).
+    path : pathlib.Path
+        The figure's file.
+    """
+
+    def __init__(self, characters: str, fonts: str, path: Path) -> None:
+        super().__init__(
+            f"{Path(path).name}: the font ({fonts}) has no glyph for {characters!r}, drawn as "
+            "empty boxes; use other characters, or set matplotlib's font.family to a font "
+            "that has them."
+        )
+        self.characters = characters
+        self.fonts = fonts
+        self.path = Path(path)
+
+    def __reduce__(self) -> tuple[type[MissingGlyphWarning], tuple[str, str, Path]]:
+        return type(self), (self.characters, self.fonts, self.path)
+
+
+#: matplotlib's warning for one character its font lacks (``Glyph 20498 (\N{CJK UNIFIED
+#: IDEOGRAPH-5012}) missing from font(s) DejaVu Sans.``).
+_MISSING_GLYPH = re.compile(r"Glyph (\d+) \(.*\) missing from font\(s\) (.+?)\.?$")
+
+
 def save_png(fig: Figure, path: Path, dpi: int) -> None:
-    """Write ``fig`` to ``path`` as a PNG, whole or not at all, and close it (also on error)."""
+    """Write ``fig`` to ``path`` as a PNG, whole or not at all, and close it (also on error).
+
+    Characters the font lacks give one :class:`MissingGlyphWarning` for the
+    figure; any other warning is issued as it was.
+
+    Warns
+    -----
+    MissingGlyphWarning
+        If the figure's text has characters its font cannot draw.
+    """
     try:
-        with atomic_file(path, "wb") as fh:
-            fig.savefig(fh, dpi=dpi, format="png")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.filterwarnings("always", _MISSING_GLYPH.pattern, UserWarning)
+            with atomic_file(path, "wb") as fh:
+                fig.savefig(fh, dpi=dpi, format="png")
     finally:
         plt.close(fig)
+    missing: dict[str, None] = {}  # in the order drawn, each once
+    fonts = ""
+    for caught_warning in caught:
+        glyph = _MISSING_GLYPH.match(str(caught_warning.message))
+        if glyph is not None and issubclass(caught_warning.category, UserWarning):
+            missing[chr(int(glyph.group(1)))] = None
+            fonts = glyph.group(2)
+        else:
+            warnings.warn_explicit(
+                caught_warning.message,
+                caught_warning.category,
+                caught_warning.filename,
+                caught_warning.lineno,
+                source=caught_warning.source,
+            )
+    if missing:
+        warnings.warn(MissingGlyphWarning("".join(missing), fonts, path), stacklevel=2)

@@ -345,24 +345,95 @@ def _interrupt(args, *, when):
     return proc.returncode, out, err
 
 
+def _terminal_lines(raw):
+    """The lines a terminal shows for the bytes ``raw`` written to it.
+
+    A carriage return moves back to the start of the line, where the text after it
+    overwrites what was there (a progress bar redrawn in place); empty lines are left out.
+    """
+    lines = []
+    for line in raw.decode(errors="replace").replace("\r\n", "\n").split("\n"):
+        screen = ""
+        for part in line.split("\r"):
+            screen = part + screen[len(part) :]
+        if screen.strip():
+            lines.append(screen.rstrip())
+    return lines
+
+
+def _interrupt_on_a_terminal(args, *, when):
+    """Run ``python -m ofrl_drake ARGS`` with stderr on a terminal (a pty), as a user does.
+
+    SIGINT is sent once ``when(text)`` holds for what the command wrote on the terminal so
+    far: an event the command shows (its progress bar), not a time. Returns the exit code
+    and the lines the terminal shows.
+    """
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        stdout=subprocess.DEVNULL,
+        stderr=slave,
+    )
+    os.close(slave)
+    raw, sent = b"", False
+    try:
+        while True:
+            ready, _, _ = select.select([master], [], [], 1.0)
+            if not ready:
+                if proc.poll() is not None:
+                    break
+                continue
+            try:
+                chunk = os.read(master, 65536)
+            except OSError:  # EIO: the command closed the terminal (it exited)
+                break
+            if not chunk:
+                break
+            raw += chunk
+            if not sent and when(raw.decode(errors="replace")):
+                proc.send_signal(signal.SIGINT)
+                sent = True
+        proc.wait(timeout=300)
+    finally:
+        os.close(master)
+        if proc.poll() is None:
+            proc.kill()
+    assert sent, f"the event never came: {raw!r}"
+    return proc.returncode, _terminal_lines(raw)
+
+
+def _simulating(text):
+    """True once the run's progress bar shows 1 % to 99 %: the simulation is under way."""
+    return re.search(r"\]\s+([1-9]\d?)%", text) is not None
+
+
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs /proc to see the imports")
 @pytest.mark.parametrize("moment", ["importing Drake", "simulating"])
 def test_sigint_at_any_moment_exits_130_with_one_line(tmp_path, moment):
-    """SIGINT as soon as the process maps Drake (mid-import), or 6 s in (a 3000 s run).
+    """SIGINT as soon as the process maps Drake (mid-import), or mid-simulation.
+
+    Mid-simulation is when the progress bar, on a terminal as a user sees it, has
+    reached 1 % of a 3000 s run (which takes seconds): the signal used to be sent 6 s
+    after the start, which a fast machine could outrun. On the terminal, the error line
+    replaces the bar cut short instead of running on from it (``0.3 serror: ...``).
 
     A SIGINT before Python itself has started (its ``site`` imports, before any
     of ofrl_drake runs) gets Python's own traceback; nothing here can catch it.
     """
     out = tmp_path / "o"
-    # 3000 s of the paper scenario take about 12 s to simulate here, so the
-    # signal arrives mid-run even on a machine several times faster.
     scenario = _short_scenario(tmp_path, duration=3000.0)
-    start = time.monotonic()
-    when = _maps_drake if moment == "importing Drake" else lambda _: time.monotonic() > start + 6
-    code, _, err = _interrupt(["run", scenario, "--out", out, "--quiet"], when=when)
-    assert code == 130, err
-    assert err.count("\n") == 1, err
-    assert err.startswith("error: interrupted"), err
+    if moment == "importing Drake":
+        code, _, err = _interrupt(["run", scenario, "--out", out, "--quiet"], when=_maps_drake)
+        assert code == 130, err
+        assert err.count("\n") == 1, err
+        assert err.startswith("error: interrupted"), err
+    else:
+        code, lines = _interrupt_on_a_terminal(["run", scenario, "--out", out], when=_simulating)
+        assert code == 130, lines
+        assert lines == ["error: interrupted; no output written"], lines
     assert not out.exists()
 
 
@@ -625,3 +696,370 @@ def test_an_error_in_the_users_plant_names_its_file_line_and_function(tmp_path):
         r"in f\)$",
     )
     assert not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------- what is not a dask scheduler
+class _FakeServer:
+    """A local TCP server that accepts connections and, per ``greeting``, sends it or stays silent.
+
+    Stands in for what a mistyped ``--scheduler`` port reaches: an HTTP server, which
+    waits for a request line (silent), or an SSH server, which greets first.
+    """
+
+    def __init__(self, greeting):
+        import socket
+        import threading
+
+        self.greeting = greeting
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.address = f"tcp://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.accepted = []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self):
+        while True:
+            try:
+                conn, _ = self.listener.accept()
+            except OSError:  # closed
+                return
+            self.accepted.append(conn)
+            if self.greeting:
+                conn.sendall(self.greeting)
+
+    def close(self):
+        self.listener.close()
+        for conn in self.accepted:
+            conn.close()
+
+
+@pytest.mark.parametrize(
+    ("greeting", "cause"),
+    [
+        (b"", r"no dask scheduler answered after 2 s"),
+        (
+            b"SSH-2.0-OpenSSH_9.2p1 Debian-2\r\n",
+            r"what answered there is not a dask scheduler: MemoryError: .*",
+        ),
+    ],
+    ids=["silent", "greets"],
+)
+def test_a_server_that_is_not_a_dask_scheduler_is_given_up_in_one_line(tmp_path, greeting, cause):
+    # A silent server held the command forever, past --scheduler-timeout (distributed bounds
+    # the TCP connection, not the handshake); one that greets first was read as a message of
+    # exabytes: "internal error: MemoryError", exit 1. The subprocess timeout, far above any
+    # honest run, turns a hang into a failure; no clock in the assert.
+    server = _FakeServer(greeting)
+    try:
+        proc = run_cli(
+            "montecarlo",
+            PAPER_SCENARIO,
+            "--runs",
+            1,
+            "--out",
+            tmp_path / "o",
+            "--scheduler",
+            server.address,
+            "--scheduler-timeout",
+            2,
+            timeout=300,
+        )
+    finally:
+        server.close()
+    assert_one_line(
+        proc,
+        2,
+        rf"^error: --scheduler: cannot connect to {re.escape(server.address)} within "
+        rf"--scheduler-timeout 2 s \({cause}\); start a dask scheduler there, check the "
+        r"address \(a dask scheduler's port, not another server's\), or raise "
+        r"--scheduler-timeout\.$",
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("address", "why"),
+    [
+        ("tcp://127.0.0.1:0", r"port 0 is not in 1-65535"),
+        ("tcp://127.0.0.1:99999", r"port 99999 is not in 1-65535"),
+    ],
+)
+def test_a_scheduler_address_of_no_dask_scheduler_is_named_before_connecting(
+    tmp_path, capsys, address, why
+):
+    # A port no server can have was tried for the whole --scheduler-timeout, then named as
+    # a scheduler that did not answer.
+    from ofrl_drake.cli import main
+
+    out = tmp_path / "o"
+    args = ["ablate", str(PAPER_SCENARIO), "--out", str(out), "--scheduler", address]
+    assert main([*args, "--scheduler-timeout", "5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert re.match(
+        rf"^error: --scheduler: '{re.escape(address)}' is not a scheduler address \(.*{why}.*\); "
+        r"give tcp://HOST:PORT of a running dask scheduler\.$",
+        err,
+    ), err
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------ Ctrl-C reaches the whole process group
+def _workers(pid):
+    """The process ids of the Dask worker processes started by process ``pid``."""
+    found = []
+    for child in os.listdir("/proc"):
+        if not child.isdigit():
+            continue
+        try:
+            with open(f"/proc/{child}/stat") as fh:
+                parent = int(fh.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{child}/cmdline", "rb") as fh:
+                command = fh.read()
+        except (OSError, ValueError, IndexError):
+            continue
+        if parent == pid and b"spawn_main" in command:
+            found.append(int(child))
+    return found
+
+
+def _takes_sigint(pid):
+    """True if process ``pid`` acts on a SIGINT: neither blocked nor ignored."""
+    with open(f"/proc/{pid}/status") as fh:
+        fields = dict(line.split(":", 1) for line in fh.read().splitlines() if ":" in line)
+    bit = 1 << (signal.SIGINT - 1)
+    return not (int(fields["SigBlk"], 16) & bit or int(fields["SigIgn"], 16) & bit)
+
+
+def _table_rows(table):
+    try:
+        return len(table.read_text().splitlines()) - 1
+    except OSError:
+        return 0
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs /proc to see the workers")
+@pytest.mark.parametrize("moment", ["workers starting", "workers running"])
+def test_ctrl_c_to_the_process_group_of_a_sweep_prints_one_line(tmp_path, moment):
+    # A terminal's Ctrl-C goes to the whole process group, Dask's worker processes too:
+    # each printed its traceback (12 to 67 lines: "Process Dask Worker process (from
+    # Nanny)", "Fatal Python error: init_import_site") beside the command's line.
+    out = tmp_path / "o"
+    table = out / "montecarlo.csv"
+    args = ["montecarlo", PAPER_SCENARIO, "--runs", 40, "--workers", 1, "--out", out]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ofrl_drake", *map(str, args)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    if moment == "workers starting":  # the worker's process exists: it is starting up
+
+        def ready():
+            return bool(_workers(proc.pid))
+
+    else:  # a row is written, so the worker is running the next runs
+
+        def ready():
+            return _table_rows(table) >= 1
+
+    try:
+        while proc.poll() is None and not ready():
+            time.sleep(0.01)
+        # Whether a worker printed its traceback is a race (with its being closed); that it
+        # cannot take the signal is not.
+        workers = _workers(proc.pid)
+        taking = [pid for pid in workers if _takes_sigint(pid)]
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert workers and not taking, (workers, taking)
+    assert proc.returncode == 130, err
+    assert err.count("\n") == 1, err
+    if moment == "workers starting":
+        assert err.startswith("error: interrupted; "), err
+    else:
+        assert err == (
+            f"error: interrupted; finished rows are in {table}; rerun with --resume to "
+            "complete the sweep\n"
+        )
+        assert 1 <= _table_rows(table) < 40
+
+
+def test_an_interrupt_swallowed_by_python_still_stops_the_command(tmp_path, capsys, monkeypatch):
+    # A KeyboardInterrupt that lands in a __del__ or a weakref callback (Dask releases many
+    # objects) is "ignored" by Python: it printed "Exception ignored in: ..." with a
+    # traceback, and the sweep went on to its end, exit 0.
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+
+    class Doomed:
+        def __del__(self):
+            raise KeyboardInterrupt
+
+    def runs(*args, **kwargs):
+        Doomed()  # interrupted where Python cannot raise it
+        time.sleep(0.5)  # the interrupt is raised here, in the command, again
+        return []
+
+    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    monkeypatch.setattr("ofrl_drake.monte_carlo.run_seeds", runs)
+    out = tmp_path / "o"
+    args = ["montecarlo", str(PAPER_SCENARIO), "--runs", "2", "--workers", "0", "--out", str(out)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert err == "error: interrupted; no output written\n", err
+
+
+def test_an_interrupt_while_a_sweep_writes_its_report_keeps_the_rows(tmp_path, capsys, monkeypatch):
+    # The sweep's rows were all written; an interrupt in its report (figures, J*) said
+    # "no output written", beside a folder holding every row.
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+
+    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    monkeypatch.setattr(
+        "ofrl_drake.monte_carlo.write_montecarlo_report", mock.Mock(side_effect=KeyboardInterrupt)
+    )
+    out = tmp_path / "o"
+    scenario = _short_scenario(tmp_path, duration=0.2)
+    args = ["montecarlo", str(scenario), "--runs", "1", "--workers", "0", "--out", str(out)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert err == (
+        f"error: interrupted; finished rows are in {out / 'montecarlo.csv'}; rerun with "
+        "--resume to complete the sweep\n"
+    ), err
+    assert _table_rows(out / "montecarlo.csv") == 1
+
+
+# ------------------------------------------------------------------ --out is not the input
+@pytest.mark.parametrize("command", ["design-observer", "verify-observer"])
+@pytest.mark.parametrize("spelling", ["same path", "hard link"])
+def test_out_that_is_the_scenario_file_is_refused(tmp_path, capsys, command, spelling):
+    # design-observer same.yaml --out same.yaml exited 0, the scenario replaced with JSON.
+    from ofrl_drake.cli import main
+
+    scenario = tmp_path / "same.yaml"
+    scenario.write_text(PAPER_SCENARIO.read_text())
+    out = scenario
+    if spelling == "hard link":
+        out = tmp_path / "design.json"
+        os.link(scenario, out)
+    assert main([command, str(scenario), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        f"error: --out: {out} is the scenario file {scenario}; the JSON would replace the "
+        "scenario. Name another file for the output.\n"
+    ), err
+    assert scenario.read_text() == PAPER_SCENARIO.read_text()
+
+
+def test_verify_observer_checks_its_out_before_the_work(tmp_path, capsys, monkeypatch):
+    # verify-observer designed and verified (seconds to minutes), then found that --out
+    # could not be written; design-observer checked first.
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+
+    design = mock.Mock(side_effect=AssertionError("the design ran"))
+    monkeypatch.setattr("ofrl_drake.variants.design_for", design)
+    (tmp_path / "afile").write_text("x")
+    for out in (tmp_path / "afile" / "report.json", tmp_path):
+        assert main(["verify-observer", str(PAPER_SCENARIO), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("error: --out: "), err
+    design.assert_not_called()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+# ---------------------------------------------------------------- stderr on success
+def test_a_name_the_font_cannot_draw_gives_one_note_line(tmp_path, capsys):
+    # matplotlib warned once per character and drawing pass, with its source line: about 83
+    # stderr lines for name: "倒立振子".
+    from ofrl_drake.cli import main
+
+    scenario = _short_scenario(tmp_path, duration=0.2, name="倒立振子")
+    args = ["run", str(scenario), "--out", str(tmp_path / "o"), "--quiet", "--checkpoints", "0"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "Glyph" not in err and "savefig" not in err, err
+    glyphs = [line for line in err.splitlines() if "glyph" in line]
+    assert glyphs == [
+        "note: the figures' font (DejaVu Sans) has no glyph for '倒立振子', drawn as empty "
+        "boxes; use other characters in the scenario's name (and variant names), or set "
+        "matplotlib's font.family to a font that has them."
+    ], err
+    assert (tmp_path / "o" / "figures" / "state_1.png").is_file()
+
+
+def test_save_png_warns_once_per_figure_naming_the_missing_characters(tmp_path):
+    import matplotlib.pyplot as plt
+
+    from ofrl_drake.plotting import MissingGlyphWarning, save_png
+
+    fig = plt.figure()
+    fig.text(0.1, 0.5, "倒立振子 and 倒立")
+    with pytest.warns(MissingGlyphWarning) as caught:
+        save_png(fig, tmp_path / "f.png", 50)
+    glyphs = [w for w in caught if "glyph" in str(w.message).lower()]
+    assert len(glyphs) == 1, [str(w.message) for w in caught]
+    assert glyphs[0].message.characters == "倒立振子"
+    assert re.match(
+        r"^f\.png: the font \(DejaVu Sans\) has no glyph for '倒立振子'", str(glyphs[0].message)
+    )
+    assert (tmp_path / "f.png").is_file()
+
+
+def test_a_state_that_overflows_is_reported_by_the_runs_status_alone(tmp_path):
+    # x0 = [1e300, 1e300]: numpy's "RuntimeWarning: overflow encountered in dot" and its
+    # source line, beside the run's own line saying it diverged.
+    scenario = _short_scenario(tmp_path, duration=0.2, x0=[1e300, 1e300])
+    proc = run_cli("run", scenario, "--out", tmp_path / "o", "--quiet", "--checkpoints", 0)
+    assert proc.returncode == 3, proc.stderr
+    assert "RuntimeWarning" not in proc.stderr, proc.stderr
+    assert "overflow encountered" not in proc.stderr, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert lines[0].startswith("warning: x0 = [1e+300, 1e+300] outside the observer box")
+    assert lines[1].startswith("stopped: diverged: x_1 = 1e+300 left the abort box"), lines
+    assert len(lines) == 2, proc.stderr
+
+
+def test_a_python_warning_is_one_line_without_its_source_line(tmp_path):
+    # A plant whose f does not take a batch of states warns (model.py); Python printed the
+    # warning and the user's source line under it, two lines before the one-line error.
+    source = tmp_path / "scalar_plant.py"
+    source.write_text(
+        "import math\n"
+        "import numpy as np\n"
+        "from ofrl_drake import ControlAffineSystem\n"
+        "\n"
+        "\n"
+        "def f(x):\n"
+        "    return np.array([x[1], -math.sin(x[0])])\n"
+        "\n"
+        "\n"
+        "def g(x):\n"
+        "    return np.array([[0.0], [1.0]])\n"
+        "\n"
+        "\n"
+        "def make_plant():\n"
+        "    return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name='scalar_only')\n"
+    )
+    scenario = _short_scenario(tmp_path, system=f"{source}:make_plant")
+    proc = run_cli("run", scenario, "--out", tmp_path / "o")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 2, proc.stderr
+    assert lines[0] == (
+        "warning: scalar_only: f and g do not accept a batch of states of shape (n, N); "
+        "falling back to a Python loop over points. Write constants as 0 * x[0] so they "
+        "broadcast."
+    ), proc.stderr
+    assert lines[1].startswith("error: scalar_only: f and g must accept pydrake.symbolic"), lines
