@@ -156,6 +156,18 @@ def numerical_floor(
     t : ndarray, shape (T,)
     values : ndarray, shape (T,) or (T, k)
         Magnitudes (e.g. ``|e_i|`` or ``||x||``); several columns share one floor.
+    tail : float, optional
+        The fraction of the horizon, at its end, read for the floor (default
+        the last quarter).
+    drop : float, optional
+        How far below its peak a signal must be to count as settled (default
+        ``1e-3`` of the peak).
+
+    Returns
+    -------
+    float or None
+        The floor, or None for fewer than 8 samples, a non-finite value, a
+        window without samples, or a signal that still decays or never settled.
     """
     t = np.asarray(t, dtype=float)
     mags = np.abs(np.asarray(values, dtype=float)).reshape(t.size, -1)
