@@ -23,6 +23,7 @@ import inspect
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -490,16 +491,36 @@ def _warn_if_not_admissible(
     check = check_policy(A, B, Q, r, basis, W0, second_moment(features.points))
     if check.admissible:
         return
+    failed = []
+    if not check.value_min_eigenvalue > 0.0:
+        failed.append(
+            "the smallest eigenvalue of its value's quadratic part is "
+            f"{check.value_min_eigenvalue:.3g} (must be > 0)"
+        )
+    if not check.spectral_abscissa < 0.0:
+        failed.append(
+            f"the spectral abscissa of its linearized loop is {check.spectral_abscissa:.3g} "
+            "(must be < 0)"
+        )
     warnings.warn(
-        f"critic.W0: policy iteration starts from a policy its gate would not accept: the "
-        f"smallest eigenvalue of its value's quadratic part is {check.value_min_eigenvalue:.3g} "
-        f"(must be > 0) and the spectral abscissa of its linearized loop "
-        f"{check.spectral_abscissa:.3g} (must be < 0); the loop runs this policy until the "
-        "gate accepts an admissible update. Start from a stabilizing W0, e.g. the LQR value "
-        "(ofrl_drake.learning_curve.lqr_weights(loop)).",
+        f"critic.W0: policy iteration starts from a policy its gate would not accept: "
+        f"{' and '.join(failed) or 'it is not admissible'}; the loop runs this policy until "
+        "the gate accepts an admissible update. Start from a stabilizing W0, e.g. the LQR "
+        "value (ofrl_drake.learning_curve.lqr_weights(loop)).",
         InitialPolicyWarning,
-        stacklevel=2,
+        stacklevel=_stacklevel_outside_the_package(),
     )
+
+
+def _stacklevel_outside_the_package() -> int:
+    """The ``stacklevel`` at which a warning names its caller's first frame outside ofrl_drake."""
+    package = str(Path(__file__).resolve().parent)
+    frame = inspect.currentframe()
+    level = 0
+    while frame is not None and str(Path(frame.f_code.co_filename).resolve()).startswith(package):
+        frame = frame.f_back
+        level += 1
+    return max(level, 1)
 
 
 def resolved_scenario(scenario: Scenario, critic: CriticSettings | None) -> Scenario:

@@ -24,6 +24,7 @@ from numba import njit
 from pydrake.symbolic import if_then_else
 
 from ofrl_drake._jit import JIT
+from ofrl_drake.checks import array_of_shape
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
 
@@ -58,12 +59,7 @@ def _matrix(
     name: str, value: Any, shape: tuple[int, ...], *, what: str = "observer gain ", fix: str = ""
 ) -> np.ndarray:
     """``value`` as a finite float array of ``shape``; a message names ``what + name``."""
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != shape:
-        raise ModelError(f"{what}{name} must have shape {shape}; got {arr.shape}{fix}.")
-    if not np.all(np.isfinite(arr)):
-        raise ModelError(f"{what}{name} must be finite; got {arr.tolist()}{fix}.")
-    return arr
+    return array_of_shape(f"{what}{name}", value, shape, fix=fix)
 
 
 @dataclass(frozen=True)

@@ -814,17 +814,17 @@ def _check_log_size(s: SimulationConfig, n: int, m: int, L: int) -> None:
     per_sample = 8.0 * (2 * n + 2 * L + L * (L + 1) // 2 + m + _LOG_SCALARS)
     need = samples * per_sample
     if need > MAX_LOG_BYTES:
-        least = s.duration * per_sample / MAX_LOG_BYTES
+        least = _smallest_period(s.duration, MAX_LOG_BYTES / per_sample)
         raise ScenarioError(
             f"simulation.log_period: {s.log_period:g} s over simulation.duration = "
             f"{s.duration:g} s logs {samples:.3g} samples, about {need / 2**30:.3g} GiB "
             f"({per_sample / 8:.0f} numbers each: x, xhat, W, Gamma, u, ...); the logs may "
-            f"take at most {MAX_LOG_BYTES / 2**30:g} GiB. Use a log_period above {least:.3g} s "
-            "(or a shorter duration)."
+            f"take at most {MAX_LOG_BYTES / 2**30:g} GiB. Use a log_period of at least "
+            f"{least:g} s (or a shorter duration)."
         )
 
 
-def _smallest_period(duration: float, most: int) -> float:
+def _smallest_period(duration: float, most: float) -> float:
     """``duration / most`` to three significant digits, rounded up: a period that passes."""
     least = duration / most
     nearest = float(f"{least:.3g}")
@@ -1138,9 +1138,7 @@ class _DepthLoader(yaml.SafeLoader):
         if self.depth >= MAX_YAML_DEPTH:
             raise ScenarioError(
                 f"line {event.start_mark.line + 1}: lists and mappings nested more than "
-                f"{MAX_YAML_DEPTH} levels deep; no scenario key nests more than 4 below the "
-                "top level (the rows of truth.plant.C). Write the value as the table in "
-                "docs/scenario.md gives it: a number, a string, a list or a list of rows."
+                f"{MAX_YAML_DEPTH} levels deep"
             )
         self.depth += 1
         try:
@@ -1200,7 +1198,14 @@ def check_yaml(
     except yaml.YAMLError as err:
         raise error(str(_not_yaml(path, err))) from None
     except ScenarioError as err:  # nested too deep
-        raise error(f"{path}: {err}") from None
+        fix = (
+            "no scenario key nests more than 4 below the top level (the rows of "
+            "truth.plant.C). Write the value as the table in docs/scenario.md gives it: a "
+            "number, a string, a list or a list of rows."
+            if what == "scenario"
+            else f"no {what} needs that; write its values as lists of numbers or of rows."
+        )
+        raise error(f"{path}: {err}; {fix}") from None
     stack = [] if root is None else [root]
     expanded = 0
     checked: set[int] = set()

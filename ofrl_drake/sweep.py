@@ -15,11 +15,18 @@ sweep, and advances the progress bar by the rows that task completed: none
 while a row waits for another task, one or more otherwise (a task of one
 variant from many initial states would complete several). What the rows are
 and where they go is the sweep's business (:mod:`ofrl_drake.sweep_store`).
+
+On a cluster, the warnings a task raises (in a worker process, where Python
+prints them in its own format, two lines with the source line) are recorded
+with its result (:func:`_warnings_recorded`) and warned again in this process
+as the task is handed back: they reach the command's one-line printer
+(``ofrl_drake.cli``), as those of a task run serially do.
 """
 
 from __future__ import annotations
 
 import sys
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -34,6 +41,40 @@ class _Ref:
     """The result of the serial task ``handle``, as an argument of a later task."""
 
     handle: int
+
+
+@dataclass(frozen=True)
+class _Warned:
+    """What a task returned on a cluster, and the warnings it raised there.
+
+    ``warned`` holds ``(category, message, filename, lineno)`` of each, the
+    message as text (a warning's own class may not survive pickling).
+    """
+
+    value: Any
+    warned: tuple[tuple[type[Warning], str, str, int], ...]
+
+
+def _warnings_recorded(fn: Callable[..., Any], *args: Any) -> _Warned:
+    """``fn(*args)`` on a cluster's worker, with the warnings it raised (:class:`_Warned`).
+
+    A task's argument that is an earlier task's result (:meth:`Engine.ref`)
+    arrives as that task's :class:`_Warned`: its value is passed on.
+    """
+    args = tuple(a.value if isinstance(a, _Warned) else a for a in args)
+    with warnings.catch_warnings(record=True) as caught:
+        value = fn(*args)
+    warned = tuple((w.category, str(w.message), w.filename, w.lineno) for w in caught)
+    return _Warned(value, warned)
+
+
+def _warn_again(result: Any) -> Any:
+    """The value of a cluster task's ``result`` (:class:`_Warned`), its warnings warned here."""
+    if not isinstance(result, _Warned):
+        return result
+    for category, message, filename, lineno in result.warned:
+        warnings.warn_explicit(message, category, filename, lineno)
+    return result.value
 
 
 class Engine:
@@ -56,7 +97,7 @@ class Engine:
             handle = len(self._submitted)
             self._submitted.append((handle, fn, args))
             return handle
-        future = self.client.submit(fn, *args, pure=False)
+        future = self.client.submit(_warnings_recorded, fn, *args, pure=False)
         self._submitted.append(future)
         return future
 
@@ -71,7 +112,7 @@ class Engine:
 
             for future in as_completed(self._submitted):
                 try:
-                    yield future, future.result(), None
+                    yield future, _warn_again(future.result()), None
                 except Exception as err:
                     yield future, None, err
             return

@@ -370,6 +370,19 @@ def test_a_variants_file_that_repeats_a_key_is_refused(tmp_path, text, match):
         load_variants(path)
 
 
+def test_a_variants_file_nested_too_deep_is_refused_as_a_variants_file(tmp_path):
+    from ofrl_drake.ablation_grid import load_variants
+
+    path = tmp_path / "variants.yaml"
+    path.write_text("baseline: " + "[" * 30 + "1" + "]" * 30 + "\n")
+    with pytest.raises(
+        AblationError,
+        match=r"variants\.yaml: line 1: lists and mappings nested more than 20 levels deep; "
+        r"no variants file needs that",
+    ):
+        load_variants(path)
+
+
 def test_a_variants_file_that_is_not_utf8_is_refused(tmp_path):
     from ofrl_drake.ablation_grid import load_variants
 

@@ -90,6 +90,18 @@ def test_observer_blocks_refuse_non_finite_gains(block):
         block(make_system("two_state"), nan_gains)
 
 
+@pytest.mark.parametrize("L", ["abc", [[1j], [0.0]]], ids=["text", "complex"])
+def test_gains_that_are_not_numbers_are_refused_naming_them(L):
+    # Before: a bare ValueError / TypeError from numpy's conversion.
+    from ofrl_drake.observer import ObserverGains
+
+    system = make_system("two_state")
+    arrays = dataclasses.asdict(random_gains(system))
+    arrays = {k: v for k, v in arrays.items() if k in ("H", "K", "Mf1", "Mg1", "Mg2")}
+    with pytest.raises(ModelError, match=r"^observer gain L must be numeric; got"):
+        ObserverGains.from_arrays(system, L=L, **arrays)
+
+
 # ------------------------------------------------------------ Luenberger gain
 def _linearization():
     A, B, C = np.array([[0.0, 1.0], [-1.0, 0.0]]), np.array([[0.0], [1.0]]), np.eye(1, 2)

@@ -560,8 +560,16 @@ def test_policy_iteration_from_an_inadmissible_policy_warns_naming_w0():
         warnings.simplefilter("error")  # the shipped W0 warns nothing
         build_closed_loop(scenario)
     indefinite = _critic(scenario, W0=[15.2321, 5.3705, -0.6065])
-    with pytest.warns(InitialPolicyWarning, match=r"^critic\.W0: policy iteration starts from"):
+    with pytest.warns(
+        InitialPolicyWarning, match=r"^critic\.W0: policy iteration starts from"
+    ) as record:
         build_closed_loop(indefinite)
+    (warning,) = [w for w in record if w.category is InitialPolicyWarning]
+    # Only conditions that fail are named, each with its number; at the caller's line.
+    named = re.findall(r"is (\S+) \(must be ([<>]) 0\)", str(warning.message))
+    assert named, warning.message
+    assert all(float(v) <= 0 if sign == ">" else float(v) >= 0 for v, sign in named), named
+    assert warning.filename == __file__
     # The paper's law has no gate and no such test.
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -648,9 +648,11 @@ def test_a_log_period_whose_logs_would_not_fit_in_memory_is_refused(tmp_path):
         ScenarioError,
         match=r"simulation\.log_period: 1e-12 s over simulation\.duration = 30 s logs 3e\+13 "
         r"samples, about .* GiB \(27 numbers each: x, xhat, W, Gamma, u, \.\.\.\); the logs may "
-        r"take at most 2 GiB\. Use a log_period above 3\.02e-06 s",
+        r"take at most 2 GiB\. Use a log_period of at least 3\.02e-06 s",
     ):
         load_scenario(path)
+    # The period the message names is accepted (before: 'above 2.01e-06' for 20 s, refused).
+    load_scenario(_write_text(tmp_path, "log_period: 0.02", "log_period: 3.02e-06"))
 
 
 def test_the_log_cap_passes_fine_log_periods_and_refuses_just_above_it(paper_scenario):
