@@ -545,9 +545,12 @@ def _connect(scheduler: str, wait: float, error: type[OfrlError]) -> Any:
     after it: a server that accepts and stays silent (an HTTP server, a
     scheduler that hangs) held ``Client`` forever, and one that sends
     something else (an SSH banner) read as a message of exabytes
-    (``MemoryError``). The client is built in a thread given ``wait`` seconds
-    and :data:`CONNECT_GRACE`; one still connecting then is abandoned (the
-    process exits soon after, with exit 2).
+    (``MemoryError``). So the scheduler is asked first by an asynchronous
+    client, in an event loop of its own (in a thread, which ends with it),
+    given ``wait`` seconds and :data:`CONNECT_GRACE`: on time or not, that
+    client is closed, and nothing of it is left running or registered as
+    dask's default client. Only a scheduler that answered it is connected
+    to, by the ``Client`` returned.
 
     Raises
     ------
@@ -555,34 +558,54 @@ def _connect(scheduler: str, wait: float, error: type[OfrlError]) -> Any:
         (``error``) If no dask scheduler answered at ``scheduler`` in time, or
         connecting raised anything at all; naming the address and the cause.
     """
+    import asyncio
+
     from distributed import Client
 
-    built: dict[str, Any] = {}
-
-    def build() -> None:
+    async def ask() -> None:
+        client = Client(scheduler, asynchronous=True, timeout=wait, set_as_default=False)
         try:
-            built["client"] = Client(scheduler, timeout=wait)
-        except Exception as err:  # whatever the server sent: the command's one-line error
-            built["error"] = err
+            await asyncio.wait_for(client, wait + CONNECT_GRACE)
+        except asyncio.TimeoutError as err:  # ours (no text), or distributed's own
+            raise (_NoAnswer() if not str(err) else err) from None
+        finally:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(client.close(), CONNECT_GRACE)
 
-    thread = threading.Thread(target=build, name="ofrl-drake connect", daemon=True)
+    failed: list[BaseException] = []
+
+    def probe() -> None:
+        try:
+            asyncio.run(ask())
+        except Exception as err:  # whatever the server sent: the command's one-line error
+            failed.append(err)
+
+    # A thread of its own, as the caller may be in an event loop (asyncio.run refuses one).
+    thread = threading.Thread(target=probe, name="ofrl-drake connect", daemon=True)
     thread.start()
-    thread.join(wait + CONNECT_GRACE)
-    if "client" in built:
-        return built["client"]
-    err = built.get("error")
-    if err is None:
+    thread.join()  # bounded: wait + CONNECT_GRACE, then CONNECT_GRACE to close
+    try:
+        if not failed:
+            return Client(scheduler, timeout=wait)
+    except Exception as err:
+        failed.append(err)
+    cause = failed[0]
+    if isinstance(cause, _NoAnswer):
         why = f"no dask scheduler answered after {wait:g} s"
-    elif isinstance(err, (OSError, TimeoutError)):
-        why = " ".join(str(err).split())
+    elif isinstance(cause, (OSError, TimeoutError)):
+        why = " ".join(str(cause).split())
     else:
-        text = " ".join(str(err).split())[:200]
-        why = f"what answered there is not a dask scheduler: {type(err).__name__}: {text}"
+        text = " ".join(str(cause).split())[:200]
+        why = f"what answered there is not a dask scheduler: {type(cause).__name__}: {text}"
     raise error(
         f"--scheduler: cannot connect to {scheduler} within --scheduler-timeout {wait:g} s "
         f"({why}); start a dask scheduler there, check the address (a dask scheduler's port, "
         "not another server's), or raise --scheduler-timeout."
     ) from None
+
+
+class _NoAnswer(Exception):
+    """No dask scheduler answered :func:`_connect` in time."""
 
 
 @contextlib.contextmanager
@@ -601,9 +624,10 @@ def _sigint_kept_from_children() -> Iterator[None]:
     start, seconds) is held (:func:`_sigint_held`) and raised as
     ``KeyboardInterrupt`` when the block ends. (Ignoring SIGINT in the block,
     which the workers would inherit as well, would drop that Ctrl-C: the sweep
-    went on to its end.) Outside the main thread the block runs as is.
+    went on to its end.) Outside the main thread, or with SIGINT ignored (the
+    workers inherit that), the block runs as is (:func:`_sigint_handled_here`).
     """
-    if threading.current_thread() is not threading.main_thread():
+    if not _sigint_handled_here():
         yield
         return
     from multiprocessing import resource_tracker
@@ -725,17 +749,19 @@ def _run_sweep(
     sweep or in its report (the figures, ``J*``), keeps the rows finished in
     ``table`` and returns the exit code, after one line saying how to resume.
     ``error`` is the command's exception class, for a scheduler that cannot
-    be used (:func:`_dask_client`).
+    be used (:func:`_dask_client`). An interrupt Python swallowed in the
+    sweep or its report is one too (:func:`_interrupts_not_swallowed`).
     """
     try:
-        if args.workers == 0 and not args.scheduler:
-            rows = sweep(None)
-        else:
-            with _dask_client(
-                args.scheduler, args.workers, args.scheduler_timeout, error
-            ) as client:
-                rows = sweep(client)
-        return report(rows)
+        with _interrupts_not_swallowed():
+            if args.workers == 0 and not args.scheduler:
+                rows = sweep(None)
+            else:
+                with _dask_client(
+                    args.scheduler, args.workers, args.scheduler_timeout, error
+                ) as client:
+                    rows = sweep(client)
+            return report(rows)
     except KeyboardInterrupt as err:
         what = "terminated (SIGTERM)" if isinstance(err, Terminated) else "interrupted"
         kept = (
@@ -1083,6 +1109,20 @@ def _raise_terminated(signum: int, frame: Any) -> None:
     raise Terminated
 
 
+def _sigint_handled_here() -> bool:
+    """True if a SIGINT would interrupt this thread: the main thread, SIGINT not ignored.
+
+    Signals are handled in the main thread only; and a process started with
+    SIGINT ignored (a shell script's background job, ``cmd &``) was told not
+    to stop on it. Elsewhere :func:`_sigint_held` and
+    :func:`_sigint_kept_from_children` leave the handler and the mask alone.
+    """
+    return (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+    )
+
+
 @contextlib.contextmanager
 def _sigint_held() -> Iterator[None]:
     """Hold a SIGINT until the block ends, then raise ``KeyboardInterrupt``.
@@ -1090,9 +1130,10 @@ def _sigint_held() -> Iterator[None]:
     pydrake's C++ initialization catches a ``KeyboardInterrupt`` raised inside
     it, logs a critical message with a 30-line trace and raises ``ImportError``;
     importing with SIGINT held keeps that from happening. Outside the main
-    thread (where signals cannot be handled) the block runs as is.
+    thread (where signals cannot be handled), or with SIGINT ignored, the block
+    runs as is (:func:`_sigint_handled_here`).
     """
-    if threading.current_thread() is not threading.main_thread():
+    if not _sigint_handled_here():
         yield
         return
     received: list[int] = []
@@ -1245,46 +1286,85 @@ RESIGNAL_DELAY = 0.01
 
 @contextlib.contextmanager
 def _interrupts_not_swallowed() -> Iterator[None]:
-    """A Ctrl-C (or SIGTERM) raised where Python cannot raise it comes again, in main.
+    """A Ctrl-C (or SIGTERM) raised where Python cannot raise it comes again, in the block.
 
     A ``KeyboardInterrupt`` that lands in a weakref callback or a ``__del__``
     (frequent while Dask's or matplotlib's objects are released) is "ignored":
     Python printed ``Exception ignored in: <function WeakSet...>`` and a
-    traceback, and the command went on to its end, exit 0. Here the signal is
-    sent to the main thread again, :data:`RESIGNAL_DELAY` later (not from the
-    hook, which it would interrupt in turn), and the command stops as for any
-    Ctrl-C; other unraisable exceptions are reported as before.
+    traceback, and the command went on to its end, exit 0. Here it is
+    recorded, and its signal sent to the main thread again
+    :data:`RESIGNAL_DELAY` later (not from the hook, which it would interrupt
+    in turn), so the command stops as for any Ctrl-C. If the block ends
+    first, the signal is not sent (after the block nothing may interrupt the
+    caller): the recorded interrupt is raised as the block ends, unless one
+    is on its way out of it already. Other unraisable exceptions are reported
+    as before.
     """
     previous = sys.unraisablehook
     main_thread = threading.main_thread().ident
+    lock = threading.Lock()
+    timers: list[threading.Timer] = []
+    pending: list[KeyboardInterrupt] = []  # recorded, its signal not sent again yet
+    open_ = [True]  # the block has not ended: a timer may still send the signal
+
+    def send_again() -> None:
+        with lock:
+            if not (open_[0] and pending) or main_thread is None:
+                return
+            interrupt = pending.pop()
+            pending.clear()
+            signum = signal.SIGTERM if isinstance(interrupt, Terminated) else signal.SIGINT
+            signal.pthread_kill(main_thread, signum)
 
     def hook(unraisable: Any) -> None:
         interrupt = unraisable.exc_value
-        if isinstance(interrupt, KeyboardInterrupt) and main_thread is not None:
-            signum = signal.SIGTERM if isinstance(interrupt, Terminated) else signal.SIGINT
-            again = threading.Timer(RESIGNAL_DELAY, signal.pthread_kill, (main_thread, signum))
-            again.daemon = True
-            again.start()
-        else:
+        if not isinstance(interrupt, KeyboardInterrupt):
             previous(unraisable)
+            return
+        with lock:
+            pending.append(interrupt)
+            again = threading.Timer(RESIGNAL_DELAY, send_again)
+            again.name = "ofrl-drake interrupt again"
+            again.daemon = True
+            timers.append(again)
+        again.start()
 
     sys.unraisablehook = hook
+    cutting_short = False
     try:
         yield
+    except KeyboardInterrupt:
+        cutting_short = True
+        raise
     finally:
         sys.unraisablehook = previous
+        with lock:
+            open_[0] = False
+            for timer in timers:
+                timer.cancel()
+            recorded = pending[-1] if pending else None
+        for timer in timers:  # cancelled: each ends at once
+            timer.join()
+        if recorded is not None and not cutting_short:
+            raise Terminated() if isinstance(recorded, Terminated) else KeyboardInterrupt()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code.
 
     While the command runs, Python warnings are printed as one line each
-    (:class:`_WarningLines`), restored on return.
+    (:class:`_WarningLines`), SIGTERM raises :class:`Terminated` (in the main
+    thread) and an interrupt Python would swallow stops the command
+    (:func:`_interrupts_not_swallowed`); ``warnings.showwarning``, SIGTERM's
+    handler and ``sys.unraisablehook`` are as they were on return.
     """
 
     started = time.perf_counter()
+    # SIGTERM's handler before main's, restored on return; None: not set (not the main thread)
+    sigterm: Any = None
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _raise_terminated)
+        # signal.signal returns None for a handler not set from Python: the default one
+        sigterm = signal.signal(signal.SIGTERM, _raise_terminated) or signal.SIG_DFL
     lines = _WarningLines()
     showwarning = warnings.showwarning
     warnings.showwarning = lines
@@ -1298,7 +1378,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 importlib.import_module(module)
         with _drake_warnings_only(), _interrupts_not_swallowed():
             code = args.func(args)
-        lines.glyph_note()
+        if code in (EXIT_OK, EXIT_STOPPED):  # the figures were drawn: the run was not cut short
+            lines.glyph_note()
         return code
     except OfrlError as err:
         frame = _user_frame_behind(err)
@@ -1324,6 +1405,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERNAL
     finally:
         warnings.showwarning = showwarning
+        if sigterm is not None:
+            signal.signal(signal.SIGTERM, sigterm)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -68,12 +68,25 @@ def _warnings_recorded(fn: Callable[..., Any], *args: Any) -> _Warned:
     return _Warned(value, warned)
 
 
+#: Where :func:`_warn_again` keeps the warnings shown, as Python keeps a module's: a
+#: warning that the filters show once per place is shown once, not once per task.
+_WARNED_AGAIN: dict[Any, Any] = {}
+
+
 def _warn_again(result: Any) -> Any:
-    """The value of a cluster task's ``result`` (:class:`_Warned`), its warnings warned here."""
+    """The value of a cluster task's ``result`` (:class:`_Warned`), its warnings warned here.
+
+    They go through this process's filters and ``warnings.showwarning`` (the
+    command's one-line printer), as the warnings of a task run here do.
+    """
     if not isinstance(result, _Warned):
         return result
     for category, message, filename, lineno in result.warned:
-        warnings.warn_explicit(message, category, filename, lineno)
+        try:
+            warning = category(message)
+        except Exception:  # a class that takes more than the message: its text, as is
+            warning = UserWarning(message)
+        warnings.warn_explicit(warning, type(warning), filename, lineno, registry=_WARNED_AGAIN)
     return result.value
 
 

@@ -888,13 +888,26 @@ def test_ctrl_c_to_the_process_group_of_a_sweep_prints_one_line(tmp_path, moment
         assert 1 <= _table_rows(table) < 40
 
 
-def test_an_interrupt_swallowed_by_python_still_stops_the_command(tmp_path, capsys, monkeypatch):
+def _interrupt_threads():
+    import threading
+
+    return [t for t in threading.enumerate() if t.name == "ofrl-drake interrupt again"]
+
+
+@pytest.mark.parametrize("when", ["mid-sweep", "as the sweep ends"])
+def test_an_interrupt_swallowed_by_python_still_stops_the_command(
+    tmp_path, capsys, monkeypatch, when
+):
     # A KeyboardInterrupt that lands in a __del__ or a weakref callback (Dask releases many
     # objects) is "ignored" by Python: it printed "Exception ignored in: ..." with a
-    # traceback, and the sweep went on to its end, exit 0.
+    # traceback, and the sweep went on to its end, exit 0. Its signal, sent again from a
+    # timer, came after main() had returned when the command ended first: the caller (a
+    # user's Python, pytest) was interrupted. Mid-sweep, the timer's signal interrupts the
+    # wait; as the sweep ends (the timer never fires in time), the interrupt is raised then.
+    import threading
     from unittest import mock
 
-    from ofrl_drake.cli import main
+    from ofrl_drake import cli
 
     class Doomed:
         def __del__(self):
@@ -902,17 +915,27 @@ def test_an_interrupt_swallowed_by_python_still_stops_the_command(tmp_path, caps
 
     def runs(*args, **kwargs):
         Doomed()  # interrupted where Python cannot raise it
-        time.sleep(0.5)  # the interrupt is raised here, in the command, again
+        if when == "mid-sweep":
+            threading.Event().wait(600)  # until the interrupt comes again, here
         return []
 
+    if when == "as the sweep ends":
+        monkeypatch.setattr(cli, "RESIGNAL_DELAY", 3600.0)
     unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
     monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
     monkeypatch.setattr("ofrl_drake.monte_carlo.run_seeds", runs)
     out = tmp_path / "o"
     args = ["montecarlo", str(PAPER_SCENARIO), "--runs", "2", "--workers", "0", "--out", str(out)]
-    assert main(args) == 130
+    assert cli.main(args) == 130
     err = capsys.readouterr().err
-    assert err == "error: interrupted; no output written\n", err
+    kept = (
+        "no output written"  # the sweep stopped before it wrote anything
+        if when == "mid-sweep"
+        else f"finished rows are in {out / 'montecarlo.csv'}; rerun with --resume to complete "
+        "the sweep"
+    )
+    assert err == f"error: interrupted; {kept}\n", err
+    assert _interrupt_threads() == []  # nothing left to interrupt the caller
 
 
 def test_an_interrupt_while_a_sweep_writes_its_report_keeps_the_rows(tmp_path, capsys, monkeypatch):
@@ -1063,3 +1086,149 @@ def test_a_python_warning_is_one_line_without_its_source_line(tmp_path):
         "broadcast."
     ), proc.stderr
     assert lines[1].startswith("error: scalar_only: f and g must accept pydrake.symbolic"), lines
+
+
+# --------------------------------------------------- what main leaves behind in its caller
+def test_an_unanswered_scheduler_leaves_no_thread_and_no_client(tmp_path):
+    # The thread connecting to a silent server went on connecting after the error (for
+    # ever: "ofrl-drake connect" and distributed's "IO loop" alive 20 s later); a scheduler
+    # answering late would then have left a client registered as dask's default.
+    import threading
+
+    import distributed
+
+    from ofrl_drake.cli import _connect
+    from ofrl_drake.errors import OfrlError
+
+    before = set(threading.enumerate())
+    server = _FakeServer(b"")
+    try:
+        with pytest.raises(
+            OfrlError, match=rf"cannot connect to {re.escape(server.address)} .*no dask scheduler"
+        ):
+            _connect(server.address, 0.5, OfrlError)
+    finally:
+        server.close()
+    left = [t.name for t in set(threading.enumerate()) - before if t.is_alive()]
+    left = [name for name in left if not name.startswith("Thread-")]  # the fake server's
+    assert left == [], left
+    assert list(distributed.client._global_clients.values()) == []
+    with pytest.raises(ValueError):
+        distributed.client.default_client()
+
+
+def test_a_dask_workers_warning_is_one_line(capfd):
+    # A warning raised in a Dask worker process kept Python's format there, on the
+    # command's stderr: its file and line ("ofrl_drake/diagram.py:466:
+    # InitialPolicyWarning: ...") and the source line, once per task.
+    import warnings
+    from unittest import mock
+
+    from distributed import Client, LocalCluster
+
+    from ofrl_drake.cli import _WarningLines
+    from ofrl_drake.sweep import Engine
+
+    def task(k):  # pickled by value: runs in the worker process
+        import warnings
+
+        warnings.warn("critic.W0: the start   is not admissible", UserWarning, stacklevel=1)
+        return k
+
+    cluster = LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+    )
+    with (
+        cluster,
+        Client(cluster) as client,
+        mock.patch.object(warnings, "showwarning", _WarningLines()),
+    ):
+        engine = Engine(client)
+        for k in (1, 2):
+            engine.submit(task, k)
+        assert sorted(value for _, value, _ in engine.completed()) == [1, 2]
+    err = capfd.readouterr().err
+    assert err == "warning: critic.W0: the start is not admissible\n", err
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="needs signal masks")
+def test_an_ignored_sigint_is_not_taken_by_the_command():
+    # A script's background job (cmd &) starts with SIGINT ignored; the command recorded a
+    # SIGINT while importing or starting workers and raised it: exit 130 on a signal it was
+    # told to ignore.
+    from ofrl_drake.cli import _sigint_held, _sigint_kept_from_children
+
+    was = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+        for block in (_sigint_held, _sigint_kept_from_children):
+            with block():
+                assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN, block
+                assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == mask, block
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0)  # the signal, were it handled, is handled by now
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN, block
+    finally:
+        signal.signal(signal.SIGINT, was)
+
+
+def test_an_interrupted_sweep_prints_one_line_not_the_glyph_note(tmp_path, capsys, monkeypatch):
+    # The note on the figures' missing glyphs came after "error: interrupted; ...": two
+    # lines for a command that stopped.
+    from pathlib import Path
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+    from ofrl_drake.plotting import MissingGlyphWarning
+
+    def report(*args, **kwargs):
+        import warnings
+
+        warnings.warn(MissingGlyphWarning("倒立", "DejaVu Sans", Path("f.png")), stacklevel=1)
+        raise KeyboardInterrupt
+
+    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    monkeypatch.setattr("ofrl_drake.monte_carlo.write_montecarlo_report", report)
+    out = tmp_path / "o"
+    scenario = _short_scenario(tmp_path, duration=0.2)
+    args = ["montecarlo", str(scenario), "--runs", "1", "--workers", "0", "--out", str(out)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert err == (
+        f"error: interrupted; finished rows are in {out / 'montecarlo.csv'}; rerun with "
+        "--resume to complete the sweep\n"
+    ), err
+
+
+@pytest.mark.parametrize("command", ["bad input", "sweep"])
+def test_main_leaves_sigterm_and_the_warning_and_unraisable_hooks_as_they_were(
+    tmp_path, capsys, monkeypatch, command
+):
+    # SIGTERM stayed set to raise Terminated after main() returned, in the caller's Python.
+    import warnings
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+
+    def on_sigterm(signum, frame):  # the caller's own handler
+        pass
+
+    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    monkeypatch.setattr("ofrl_drake.monte_carlo.write_montecarlo_report", mock.Mock())
+    if command == "bad input":
+        args = ["design-observer", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "d")]
+    else:
+        scenario = _short_scenario(tmp_path, duration=0.2)
+        args = ["montecarlo", str(scenario), "--runs", "1", "--workers", "0"]
+        args += ["--out", str(tmp_path / "o")]
+    was = signal.signal(signal.SIGTERM, on_sigterm)
+    hook, show = sys.unraisablehook, warnings.showwarning
+    try:
+        assert main(args) == (2 if command == "bad input" else 0), capsys.readouterr().err
+        assert signal.getsignal(signal.SIGTERM) is on_sigterm
+        assert sys.unraisablehook is hook
+        assert warnings.showwarning is show
+    finally:
+        signal.signal(signal.SIGTERM, was)
