@@ -689,7 +689,7 @@ def validate_scenario(scenario: Scenario) -> None:
             )
     elif p.number < 1:
         raise ScenarioError(f"points.number: must be >= 1; got {p.number}.")
-    integer_at_least("points.seed", p.seed, 0, error=ScenarioError)  # numpy takes any size
+    integer_at_least("points.seed:", p.seed, 0, error=ScenarioError)  # numpy takes any size
     count = p.number if p.kind == "uniform" else int(np.prod([float(c) for c in p.counts]))
     need = 8.0 * count * (L * n + 2 * m * L + L + n + 8)  # gradients and per-point data
     if need > MAX_POINT_BYTES:
@@ -897,7 +897,7 @@ def _validate_real_world(scenario: Scenario, m: int, q: int) -> None:
                 "measurement.period: noise is drawn once per sample, so it needs a sampling "
                 f"period > 0; got 0 with noise_std = {meas.noise_std}. Set e.g. period: 0.01."
             )
-        drake_seed("measurement.seed", meas.seed, error=ScenarioError)
+        drake_seed("measurement.seed:", meas.seed, error=ScenarioError)
     act = scenario.actuation
     if act is not None:
         _positive("actuation.period", act.period, allow_zero=True)

@@ -331,7 +331,7 @@ def test_a_measurement_seed_beyond_what_drake_keeps_is_refused(tmp_path, paper_s
     from ofrl_drake.scenario import MeasurementConfig, validate_scenario
 
     # Drake's RandomGenerator keeps 32 bits: 2**32 would draw seed 0's noise.
-    refused = rf"measurement\.seed must be at most 2\*\*32 - 1 = 4294967295 .*got {seed}\."
+    refused = rf"measurement\.seed: must be at most 2\*\*32 - 1 = 4294967295 .*got {seed}\."
     path = tmp_path / "seed.yaml"
     path.write_text(PAPER_SCENARIO.read_text() + f"measurement:\n  seed: {seed}\n")
     with pytest.raises(ScenarioError, match=rf"seed\.yaml: {refused}"):
