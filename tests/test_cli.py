@@ -938,18 +938,16 @@ def test_an_interrupt_swallowed_by_python_still_stops_the_command(
     assert _interrupt_threads() == []  # nothing left to interrupt the caller
 
 
-def test_an_interrupt_while_a_sweep_writes_its_report_keeps_the_rows(tmp_path, capsys, monkeypatch):
-    # The sweep's rows were all written; an interrupt in its report (figures, J*) said
-    # "no output written", beside a folder holding every row.
+def _montecarlo_interrupted_in_its_report(tmp_path, capsys, monkeypatch, report):
+    """Run a one-row montecarlo whose report is ``report`` (it raises KeyboardInterrupt):
+    exit 130, one line naming the finished rows. Returns the output folder."""
     from unittest import mock
 
     from ofrl_drake.cli import main
 
     unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
     monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
-    monkeypatch.setattr(
-        "ofrl_drake.monte_carlo.write_montecarlo_report", mock.Mock(side_effect=KeyboardInterrupt)
-    )
+    monkeypatch.setattr("ofrl_drake.monte_carlo.write_montecarlo_report", report)
     out = tmp_path / "o"
     scenario = _short_scenario(tmp_path, duration=0.2)
     args = ["montecarlo", str(scenario), "--runs", "1", "--workers", "0", "--out", str(out)]
@@ -959,6 +957,17 @@ def test_an_interrupt_while_a_sweep_writes_its_report_keeps_the_rows(tmp_path, c
         f"error: interrupted; finished rows are in {out / 'montecarlo.csv'}; rerun with "
         "--resume to complete the sweep\n"
     ), err
+    return out
+
+
+def test_an_interrupt_while_a_sweep_writes_its_report_keeps_the_rows(tmp_path, capsys, monkeypatch):
+    # The sweep's rows were all written; an interrupt in its report (figures, J*) said
+    # "no output written", beside a folder holding every row.
+    from unittest import mock
+
+    out = _montecarlo_interrupted_in_its_report(
+        tmp_path, capsys, monkeypatch, mock.Mock(side_effect=KeyboardInterrupt)
+    )
     assert _table_rows(out / "montecarlo.csv") == 1
 
 
@@ -1176,9 +1185,7 @@ def test_an_interrupted_sweep_prints_one_line_not_the_glyph_note(tmp_path, capsy
     # The note on the figures' missing glyphs came after "error: interrupted; ...": two
     # lines for a command that stopped.
     from pathlib import Path
-    from unittest import mock
 
-    from ofrl_drake.cli import main
     from ofrl_drake.plotting import MissingGlyphWarning
 
     def report(*args, **kwargs):
@@ -1187,18 +1194,7 @@ def test_an_interrupted_sweep_prints_one_line_not_the_glyph_note(tmp_path, capsy
         warnings.warn(MissingGlyphWarning("倒立", "DejaVu Sans", Path("f.png")), stacklevel=1)
         raise KeyboardInterrupt
 
-    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
-    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
-    monkeypatch.setattr("ofrl_drake.monte_carlo.write_montecarlo_report", report)
-    out = tmp_path / "o"
-    scenario = _short_scenario(tmp_path, duration=0.2)
-    args = ["montecarlo", str(scenario), "--runs", "1", "--workers", "0", "--out", str(out)]
-    assert main(args) == 130
-    err = capsys.readouterr().err
-    assert err == (
-        f"error: interrupted; finished rows are in {out / 'montecarlo.csv'}; rerun with "
-        "--resume to complete the sweep\n"
-    ), err
+    _montecarlo_interrupted_in_its_report(tmp_path, capsys, monkeypatch, report)
 
 
 @pytest.mark.parametrize("command", ["bad input", "sweep"])
