@@ -517,6 +517,14 @@ def test_an_unreachable_scheduler_is_given_up_after_scheduler_timeout(tmp_path, 
     assert list(tmp_path.iterdir()) == []
 
 
+def _no_optimal(monkeypatch):
+    """J* is not solved in this test: every ``optimal_control`` call returns "not solved here"."""
+    from unittest import mock
+
+    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
+    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+
+
 # Mocks, not functions of this file: a frame of this file would read as the user's own code.
 # (command, stop) -> (what fails, its exception, exit code, message)
 SWEEP_STOPS = {
@@ -567,8 +575,7 @@ def test_a_sweep_leaves_nothing_when_it_stops_before_its_first_row(
     target, raised, code, message = SWEEP_STOPS[command, stop]
     runs = []
     if command == "montecarlo":
-        unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
-        monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+        _no_optimal(monkeypatch)
         runs = ["--runs", "2"]
     monkeypatch.setattr(target, mock.Mock(side_effect=raised))
     out = tmp_path / "sub" / "sweep"
@@ -905,7 +912,6 @@ def test_an_interrupt_swallowed_by_python_still_stops_the_command(
     # user's Python, pytest) was interrupted. Mid-sweep, the timer's signal interrupts the
     # wait; as the sweep ends (the timer never fires in time), the interrupt is raised then.
     import threading
-    from unittest import mock
 
     from ofrl_drake import cli
 
@@ -921,8 +927,7 @@ def test_an_interrupt_swallowed_by_python_still_stops_the_command(
 
     if when == "as the sweep ends":
         monkeypatch.setattr(cli, "RESIGNAL_DELAY", 3600.0)
-    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
-    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    _no_optimal(monkeypatch)
     monkeypatch.setattr("ofrl_drake.monte_carlo.run_seeds", runs)
     out = tmp_path / "o"
     args = ["montecarlo", str(PAPER_SCENARIO), "--runs", "2", "--workers", "0", "--out", str(out)]
@@ -941,12 +946,10 @@ def test_an_interrupt_swallowed_by_python_still_stops_the_command(
 def _montecarlo_interrupted_in_its_report(tmp_path, capsys, monkeypatch, report):
     """Run a one-row montecarlo whose report is ``report`` (it raises KeyboardInterrupt):
     exit 130, one line naming the finished rows. Returns the output folder."""
-    from unittest import mock
 
     from ofrl_drake.cli import main
 
-    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
-    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    _no_optimal(monkeypatch)
     monkeypatch.setattr("ofrl_drake.monte_carlo.write_montecarlo_report", report)
     out = tmp_path / "o"
     scenario = _short_scenario(tmp_path, duration=0.2)
@@ -1210,8 +1213,7 @@ def test_main_leaves_sigterm_and_the_warning_and_unraisable_hooks_as_they_were(
     def on_sigterm(signum, frame):  # the caller's own handler
         pass
 
-    unsolved = types.SimpleNamespace(converged=False, cost=math.nan, status="not solved here")
-    monkeypatch.setattr("ofrl_drake.optimal.optimal_control", mock.Mock(return_value=unsolved))
+    _no_optimal(monkeypatch)
     monkeypatch.setattr("ofrl_drake.monte_carlo.write_montecarlo_report", mock.Mock())
     if command == "bad input":
         args = ["design-observer", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "d")]
