@@ -107,26 +107,31 @@ def gains_resolved(scenario: Scenario) -> Scenario:
     return build_closed_loop(scenario).resolved_scenario()
 
 
+def _loop_arguments(scenario: Scenario, design: Any) -> dict[str, Any]:
+    """The keyword arguments both baselines' loops take: scenario data and gains."""
+    b = design.bounds
+    return {
+        "system": scenario.system,
+        "points": extrapolation_points(scenario),
+        "degrees": list(scenario.critic.basis_degrees),
+        "Q": np.asarray(scenario.cost.Q, dtype=float),
+        "r": np.asarray(scenario.cost.R, dtype=float),
+        "input_bound": scenario.input_bound,
+        "kc": scenario.critic.kc,
+        "nu": scenario.critic.nu,
+        "beta": scenario.critic.beta,
+        "L": np.asarray(design.L),
+        "H": np.asarray(design.H),
+        "K": np.asarray(design.K),
+        "Mf1": np.asarray(b.Mf1),
+        "Mg1": np.asarray(b.Mg1),
+        "Mg2": np.asarray(b.Mg2),
+    }
+
+
 def fused_loop(scenario: Scenario, design: Any) -> FusedClosedLoop:
     """The fused numpy closed loop of ``scenario`` with the gains of ``design``."""
-    b = design.bounds
-    return FusedClosedLoop(
-        system=scenario.system,
-        points=extrapolation_points(scenario),
-        degrees=list(scenario.critic.basis_degrees),
-        Q=np.asarray(scenario.cost.Q, dtype=float),
-        r=np.asarray(scenario.cost.R, dtype=float),
-        input_bound=scenario.input_bound,
-        kc=scenario.critic.kc,
-        nu=scenario.critic.nu,
-        beta=scenario.critic.beta,
-        L=np.asarray(design.L),
-        H=np.asarray(design.H),
-        K=np.asarray(design.K),
-        Mf1=np.asarray(b.Mf1),
-        Mg1=np.asarray(b.Mg1),
-        Mg2=np.asarray(b.Mg2),
-    )
+    return FusedClosedLoop(**_loop_arguments(scenario, design))
 
 
 def precomputed_loop(scenario: Scenario, design: Any) -> PrecomputedClosedLoop:
@@ -136,28 +141,10 @@ def precomputed_loop(scenario: Scenario, design: Any) -> PrecomputedClosedLoop:
     functions (:data:`~benchmarks.fused_numpy.SYSTEMS`), not from
     :mod:`ofrl_drake`.
     """
-    b = design.bounds
+    arguments = _loop_arguments(scenario, design)
     f, g, _ = SYSTEMS[scenario.system]
-    X = extrapolation_points(scenario)
-    return PrecomputedClosedLoop(
-        system=scenario.system,
-        points=X,
-        f_points=f(X),
-        g_points=g(X),
-        degrees=list(scenario.critic.basis_degrees),
-        Q=np.asarray(scenario.cost.Q, dtype=float),
-        r=np.asarray(scenario.cost.R, dtype=float),
-        input_bound=scenario.input_bound,
-        kc=scenario.critic.kc,
-        nu=scenario.critic.nu,
-        beta=scenario.critic.beta,
-        L=np.asarray(design.L),
-        H=np.asarray(design.H),
-        K=np.asarray(design.K),
-        Mf1=np.asarray(b.Mf1),
-        Mg1=np.asarray(b.Mg1),
-        Mg2=np.asarray(b.Mg2),
-    )
+    X = arguments["points"]
+    return PrecomputedClosedLoop(**arguments, f_points=f(X), g_points=g(X))
 
 
 def initial_state(scenario: Scenario, loop: FusedClosedLoop | PrecomputedClosedLoop) -> np.ndarray:

@@ -113,8 +113,54 @@ def _log_cosh(a: np.ndarray) -> np.ndarray:
     return a + np.log1p(np.exp(-2.0 * a)) - np.log(2.0)
 
 
+class _SolveIvpLoop:
+    """``initial_state``, ``solve`` and ``weights`` of a baseline loop.
+
+    Field-less, so each baseline stays a plain dataclass of its own fields;
+    the subclass provides ``rhs(t, z)``, the state size ``n`` and the basis
+    size ``size`` (``z = [x, xhat, W, vec(Gamma), J]``).
+    """
+
+    n: int
+    size: int
+    rhs: Callable[[float, np.ndarray], np.ndarray]
+
+    def initial_state(
+        self, x0: np.ndarray, xhat0: np.ndarray, W0: np.ndarray, Gamma0: np.ndarray
+    ) -> np.ndarray:
+        """``z(0) = [x0, xhat0, W0, vec(Gamma0), 0]``."""
+        return np.concatenate([x0, xhat0, W0, np.ravel(Gamma0), [0.0]])
+
+    def solve(
+        self,
+        z0: np.ndarray,
+        duration: float,
+        *,
+        method: str = "LSODA",
+        rtol: float = 1e-9,
+        atol: float = 1e-11,
+        t_eval: np.ndarray | None = None,
+        dense_output: bool = False,
+    ):
+        """``scipy.integrate.solve_ivp`` of :meth:`rhs` over ``[0, duration]``."""
+        return solve_ivp(
+            self.rhs,
+            (0.0, duration),
+            z0,
+            method=method,
+            rtol=rtol,
+            atol=atol,
+            t_eval=t_eval,
+            dense_output=dense_output,
+        )
+
+    def weights(self, z: np.ndarray) -> np.ndarray:
+        """The ``W`` part of a state ``z``."""
+        return z[2 * self.n : 2 * self.n + self.size]
+
+
 @dataclass
-class FusedClosedLoop:
+class FusedClosedLoop(_SolveIvpLoop):
     """The whole closed loop as one function ``rhs(t, z)``.
 
     Parameters
@@ -176,12 +222,6 @@ class FusedClosedLoop:
         self._ur = self.input_bound**2 * self.r
         self._correction = self.L - self.Mf1 @ self.H
 
-    def initial_state(
-        self, x0: np.ndarray, xhat0: np.ndarray, W0: np.ndarray, Gamma0: np.ndarray
-    ) -> np.ndarray:
-        """``z(0) = [x0, xhat0, W0, vec(Gamma0), 0]``."""
-        return np.concatenate([x0, xhat0, W0, np.ravel(Gamma0), [0.0]])
-
     def rhs(self, t: float, z: np.ndarray) -> np.ndarray:
         """``z'`` of the whole closed loop."""
         n, size, lbar = self.n, self.size, self.input_bound
@@ -219,30 +259,3 @@ class FusedClosedLoop:
         # Cost (costfunction) at u = -lbar tanh(D).
         dJ = x @ self.Q @ x + self._ur @ (2.0 * D * tD - 2.0 * _log_cosh(D))
         return np.concatenate([dx, dxh, dW, dG.ravel(), [dJ]])
-
-    def solve(
-        self,
-        z0: np.ndarray,
-        duration: float,
-        *,
-        method: str = "LSODA",
-        rtol: float = 1e-9,
-        atol: float = 1e-11,
-        t_eval: np.ndarray | None = None,
-        dense_output: bool = False,
-    ):
-        """``scipy.integrate.solve_ivp`` of :meth:`rhs` over ``[0, duration]``."""
-        return solve_ivp(
-            self.rhs,
-            (0.0, duration),
-            z0,
-            method=method,
-            rtol=rtol,
-            atol=atol,
-            t_eval=t_eval,
-            dense_output=dense_output,
-        )
-
-    def weights(self, z: np.ndarray) -> np.ndarray:
-        """The ``W`` part of a state ``z``."""
-        return z[2 * self.n : 2 * self.n + self.size]

@@ -33,12 +33,14 @@ from ofrl_drake.optimal import optimal_control
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _critic(scenario, **changes):
+def with_critic(scenario, **changes):
+    """``scenario`` with ``changes`` to its critic configuration."""
     return dataclasses.replace(scenario, critic=dataclasses.replace(scenario.critic, **changes))
 
 
-def _policy_iteration(scenario):
-    return _critic(
+def with_policy_iteration(scenario):
+    """``scenario`` under the default law with derived gains."""
+    return with_critic(
         scenario,
         law="policy_iteration",
         gains="auto",
@@ -63,7 +65,7 @@ def cases() -> dict[str, object]:
     for name in ("two_state_paper", "two_state_sound", "coupled_two_state"):
         shipped = load_scenario(ROOT / "diagrams" / f"{name}.yaml")
         out[f"{name} (law: paper, as shipped)"] = shipped
-        out[f"{name} (law: policy_iteration)"] = _policy_iteration(shipped)
+        out[f"{name} (law: policy_iteration)"] = with_policy_iteration(shipped)
     return out
 
 
@@ -76,7 +78,7 @@ def measure(label: str, scenario) -> list[dict]:
     J_lqr = evaluate_policy(base_loop, W_lqr).cost
     rows = []
     for start, W0 in (("shipped W0", np.asarray(scenario.critic.W0)), ("3 x LQR", 3 * W_lqr)):
-        s = _critic(scenario, W0=np.asarray(W0).tolist())
+        s = with_critic(scenario, W0=np.asarray(W0).tolist())
         loop = build_closed_loop(s)
         result = simulate(s, loop=loop, progress=False)
         frozen = simulate(_variant(s, controller="frozen_critic"), progress=False)

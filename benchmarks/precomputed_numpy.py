@@ -31,9 +31,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
-from benchmarks.fused_numpy import _exponents, _gradient_table
+from benchmarks.fused_numpy import _exponents, _gradient_table, _SolveIvpLoop
 
 __all__ = ["ONE_STATE", "PrecomputedClosedLoop"]
 
@@ -75,7 +74,7 @@ ONE_STATE: dict[str, tuple[Callable, np.ndarray]] = {
 
 
 @dataclass
-class PrecomputedClosedLoop:
+class PrecomputedClosedLoop(_SolveIvpLoop):
     """The whole closed loop as ``rhs(t, z)``, point and gain data precomputed.
 
     Parameters
@@ -168,12 +167,6 @@ class PrecomputedClosedLoop:
         self._kcN = self.kc / self.N
         self._cuts = (n, 2 * n, 2 * n + L, 2 * n + L + L * L)
 
-    def initial_state(
-        self, x0: np.ndarray, xhat0: np.ndarray, W0: np.ndarray, Gamma0: np.ndarray
-    ) -> np.ndarray:
-        """``z(0) = [x0, xhat0, W0, vec(Gamma0), 0]``."""
-        return np.concatenate([x0, xhat0, W0, np.ravel(Gamma0), [0.0]])
-
     def rhs(self, t: float, z: np.ndarray) -> np.ndarray:
         """``z'`` of the whole closed loop."""
         fg, lbar, n, m, L = self._fg, self.input_bound, self.n, self.m, self.size
@@ -239,30 +232,3 @@ class PrecomputedClosedLoop:
         out.append(dJ)
         head = np.array(out)  # [x', xhat', J']
         return np.concatenate((head[:b], dW, dG.ravel(), head[b:]))
-
-    def solve(
-        self,
-        z0: np.ndarray,
-        duration: float,
-        *,
-        method: str = "LSODA",
-        rtol: float = 1e-9,
-        atol: float = 1e-11,
-        t_eval: np.ndarray | None = None,
-        dense_output: bool = False,
-    ):
-        """``scipy.integrate.solve_ivp`` of :meth:`rhs` over ``[0, duration]``."""
-        return solve_ivp(
-            self.rhs,
-            (0.0, duration),
-            z0,
-            method=method,
-            rtol=rtol,
-            atol=atol,
-            t_eval=t_eval,
-            dense_output=dense_output,
-        )
-
-    def weights(self, z: np.ndarray) -> np.ndarray:
-        """The ``W`` part of a state ``z``."""
-        return z[2 * self.n : 2 * self.n + self.size]

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from benchmarks.learning_table import with_critic, with_policy_iteration
 from ofrl_drake import build_closed_loop, load_scenario, simulate
 from ofrl_drake.errors import InitialPolicyWarning
 from ofrl_drake.examples import EXAMPLES, register
@@ -44,25 +45,6 @@ from .conftest import ROOT
 PENDULUM = ROOT / "diagrams" / "pendulum_upright.yaml"
 CART_POLE = ROOT / "diagrams" / "cart_pole.yaml"
 PAPER = ROOT / "diagrams" / "two_state_paper.yaml"
-
-
-def _critic(scenario, **changes):
-    return dataclasses.replace(scenario, critic=dataclasses.replace(scenario.critic, **changes))
-
-
-def _policy_iteration(scenario):
-    """``scenario`` under the default law with derived gains."""
-    return _critic(
-        scenario,
-        law="policy_iteration",
-        gains="auto",
-        kc=None,
-        nu=None,
-        beta=None,
-        Gamma0=None,
-        policy_period=None,
-        gamma_bound=None,
-    )
 
 
 def _lqr(scenario):
@@ -153,7 +135,7 @@ def _registered_user_plants():
 
 def _with_lqr_start(scenario, multiple):
     W_lqr = _lqr(scenario)
-    return _critic(scenario, W0=(multiple * W_lqr).tolist()), W_lqr
+    return with_critic(scenario, W0=(multiple * W_lqr).tolist()), W_lqr
 
 
 def _targets(scenario, W_lqr, W_learned, W_initial):
@@ -188,7 +170,7 @@ def test_one_policy_evaluator_runs_as_a_diagram_built_per_policy(blocks):
 CASES = {
     "pendulum_upright": lambda: load_scenario(PENDULUM),
     "cart_pole": lambda: load_scenario(CART_POLE),
-    "two_state_paper": lambda: _policy_iteration(load_scenario(PAPER)),
+    "two_state_paper": lambda: with_policy_iteration(load_scenario(PAPER)),
     "damped_pendulum": lambda: _user_scenario("damped_pendulum", 2),
     "cart_spring": lambda: _user_scenario("cart_spring", 4, duration=20.0),
 }
@@ -224,7 +206,7 @@ def test_the_critic_learns_from_three_times_the_lqr_value(name):
 @pytest.mark.parametrize("multiple", [1.0, 3.0])
 def test_cart_pole_runs_five_horizons_regulated_with_a_bounded_gain(multiple):
     base = load_scenario(CART_POLE)
-    start = _critic(base, W0=(multiple * np.asarray(base.critic.W0)).tolist())
+    start = with_critic(base, W0=(multiple * np.asarray(base.critic.W0)).tolist())
     loop = build_closed_loop(start)
     resolved = loop.resolved_scenario()  # the gains derived for the horizon T
     T = resolved.simulation.duration
@@ -293,7 +275,7 @@ def test_a_plant_and_its_rescaled_twin_learn_the_same_policy(unit):
                 variant=dataclasses.replace(scenario.variant, observer="true_state"),
             )
             W_lqr = _lqr(scenario)
-            scenario = _critic(scenario, W0=(3.0 * W_lqr).tolist())
+            scenario = with_critic(scenario, W0=(3.0 * W_lqr).tolist())
             runs.append(simulate(scenario, progress=False))
     finally:
         EXAMPLES.pop(twin, None)
@@ -505,7 +487,7 @@ def test_a_learning_report_names_a_bad_budget(options, match):
 
 def test_derived_gains_follow_the_scenario_policy_period():
     """Before: beta stayed 5 / (T/10) when critic.policy_period was given with gains: auto."""
-    scenario = _critic(_policy_iteration(load_scenario(PENDULUM)), policy_period=0.25)
+    scenario = with_critic(with_policy_iteration(load_scenario(PENDULUM)), policy_period=0.25)
     gains = build_closed_loop(scenario).parts.critic.gains
     assert gains.policy_period == 0.25
     assert gains.beta == pytest.approx(5.0 / 0.25, rel=1e-12)
@@ -513,7 +495,7 @@ def test_derived_gains_follow_the_scenario_policy_period():
 
 def test_every_gate_decision_is_counted_when_several_share_a_log_sample():
     """policy_period < log_period: the summary's counts are the gate's own, one time each."""
-    scenario = _critic(_policy_iteration(load_scenario(PENDULUM)), policy_period=0.005)
+    scenario = with_critic(with_policy_iteration(load_scenario(PENDULUM)), policy_period=0.005)
     scenario = dataclasses.replace(
         scenario, simulation=dataclasses.replace(scenario.simulation, duration=0.5)
     )
@@ -559,11 +541,11 @@ def test_a_policy_evaluation_leaving_the_domain_of_f_is_diverged_not_an_internal
 
 def test_policy_iteration_from_an_inadmissible_policy_warns_naming_w0():
     """Kleinman's iteration needs a stabilizing start: a W0 that is not one is named."""
-    scenario = _policy_iteration(load_scenario(PENDULUM))
+    scenario = with_policy_iteration(load_scenario(PENDULUM))
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the shipped W0 warns nothing
         build_closed_loop(scenario)
-    indefinite = _critic(scenario, W0=[15.2321, 5.3705, -0.6065])
+    indefinite = with_critic(scenario, W0=[15.2321, 5.3705, -0.6065])
     with pytest.warns(
         InitialPolicyWarning, match=r"^critic\.W0: policy iteration starts from"
     ) as record:
@@ -577,4 +559,6 @@ def test_policy_iteration_from_an_inadmissible_policy_warns_naming_w0():
     # The paper's law has no gate and no such test.
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        build_closed_loop(_critic(indefinite, law="paper", policy_period=None, gamma_bound=None))
+        build_closed_loop(
+            with_critic(indefinite, law="paper", policy_period=None, gamma_bound=None)
+        )
