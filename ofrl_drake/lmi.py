@@ -104,11 +104,12 @@ the gains; the polytopic certificate finds rates just below 1.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 
+from ofrl_drake.checks import array_of_shape, finite_array
 from ofrl_drake.errors import OfrlError
 from ofrl_drake.sector import input_sector, input_vertices, paper_input_sector
 
@@ -121,16 +122,19 @@ __all__ = [
     "bounds_arrays",
     "box_corners",
     "certificate",
+    "certifies",
     "corner_count",
     "corner_matrices",
     "decay_certificate",
     "decay_matrices",
+    "gain_matrix",
     "is_certified",
     "is_decay_certified",
     "lmi2_blocks",
     "lmi_matrix",
     "polytopic_lmi",
     "thin_perturbation",
+    "vertex_corners",
     "vertex_data",
 ]
 
@@ -228,6 +232,41 @@ def vertex_data(
     return A, Jf21, Jg21
 
 
+def gain_matrix(name: str, G: Any, n: int, q: int, error: type[OfrlError] = LmiError) -> np.ndarray:
+    """``G`` as a finite ``(n, q)`` float array; a 1-D ``G`` is a column when ``q == 1``.
+
+    Parameters
+    ----------
+    name : str
+        The gain's name in the message (``"L"``, ``"H"``, ``"K"``).
+    G : array_like
+        The gain.
+    n, q : int
+        State and output dimensions.
+    error : type of OfrlError
+        What to raise (default :class:`LmiError`).
+
+    Returns
+    -------
+    ndarray, shape (n, q)
+
+    Raises
+    ------
+    OfrlError
+        ``error``, if ``G`` is not numeric, has a NaN or infinite entry, or
+        does not have shape ``(n, q)``.
+
+    Examples
+    --------
+    >>> gain_matrix("L", [1.0, 2.0], 2, 1).tolist()
+    [[1.0], [2.0]]
+    """
+    G = finite_array(name, G, error=error)
+    if G.ndim == 1 and q == 1:
+        G = G.reshape(-1, 1)
+    return array_of_shape(name, G, (n, q), meaning="(n, q)", error=error)
+
+
 def _gains(
     P: Any, L: Any, H: Any, K: Any, C: Any
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -236,15 +275,8 @@ def _gains(
     P = np.asarray(P, dtype=float)
     if P.shape != (n, n):
         raise LmiError(f"P must have shape ({n}, {n}) to match C; got {P.shape}.")
-    out = [P]
-    for name, G in (("L", L), ("H", H), ("K", K)):
-        G = np.asarray(G, dtype=float)
-        if G.ndim == 1 and q == 1:
-            G = G.reshape(-1, 1)
-        if G.shape != (n, q):
-            raise LmiError(f"{name} must have shape (n, q) = ({n}, {q}); got {G.shape}.")
-        out.append(G)
-    return out[0], out[1], out[2], out[3], C
+    L, H, K = (gain_matrix(name, G, n, q) for name, G in (("L", L), ("H", H), ("K", K)))
+    return P, L, H, K, C
 
 
 def lmi_matrix(
@@ -281,6 +313,12 @@ def lmi_matrix(
     -------
     ndarray, shape (2n, 2n)
         Symmetric; the certificate needs it negative definite.
+
+    Raises
+    ------
+    LmiError
+        For bad shapes, gains that are not finite (:func:`gain_matrix`), a
+        ``sector`` not in :data:`SECTORS` or an ``alpha`` that is not finite.
 
     Examples
     --------
@@ -410,6 +448,11 @@ def certificate(
     list of (ndarray, float)
         ``(u, max eigenvalue)`` per vertex; all negative (and ``P`` positive
         definite) means certified.
+
+    Raises
+    ------
+    LmiError
+        As :func:`lmi_matrix`, or for an ``input_bound`` that is not finite and >= 0.
     """
     if not (np.isfinite(input_bound) and input_bound >= 0):
         raise LmiError(f"input_bound must be finite and >= 0; got {input_bound!r}.")
@@ -419,6 +462,40 @@ def certificate(
         M = lmi_matrix(P, L, H, K, C, bounds, u, alpha, sector)
         out.append((u, float(np.linalg.eigvalsh(M)[-1])))
     return out
+
+
+def certifies(P: Any, cert: Callable[[], Iterable[tuple[Any, float]]]) -> bool:
+    """True if ``P`` is finite and positive definite and every certificate value is < 0.
+
+    The one test of every certificate here and in :mod:`ofrl_drake.design`:
+    ``P`` is judged on its symmetric part ``(P + P^T) / 2``, the matrix of
+    ``V = e^T P e`` (the certificates symmetrize it too).
+
+    Parameters
+    ----------
+    P : array_like, shape (n, n)
+        The Lyapunov matrix.
+    cert : callable
+        Returns the certificate, ``(u vertex, value)`` pairs; called only when
+        ``P`` passes, so an unusable ``P`` never reaches it.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> certifies([[1.0, 3.0], [-3.0, 1.0]], lambda: [(None, -1.0)])
+    True
+    >>> certifies([[1.0, 0.0], [0.0, 0.0]], lambda: [(None, -1.0)])
+    False
+    """
+    P = np.asarray(P, dtype=float)
+    if not np.all(np.isfinite(P)):
+        return False
+    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] <= 0:
+        return False
+    return all(ev < 0 for _, ev in cert())
 
 
 def is_certified(
@@ -432,14 +509,8 @@ def is_certified(
     alpha: float,
     sector: str = "sign_correct",
 ) -> bool:
-    """True if ``P`` is positive definite and every vertex eigenvalue is < 0."""
-    P = np.asarray(P, dtype=float)
-    if not np.all(np.isfinite(P)):
-        return False
-    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] <= 0:
-        return False
-    cert = certificate(P, L, H, K, C, bounds, input_bound, alpha, sector)
-    return all(ev < 0 for _, ev in cert)
+    """True if ``P`` is positive definite and every vertex eigenvalue is < 0 (:func:`certifies`)."""
+    return certifies(P, lambda: certificate(P, L, H, K, C, bounds, input_bound, alpha, sector))
 
 
 # ------------------------------------------------- polytopic decay certificate
@@ -543,20 +614,12 @@ def _injection(H: Any, K: Any, C: Any, n: int) -> tuple[np.ndarray, np.ndarray, 
         raise LmiError("give H, K and C together (or neither, for H = K = 0).")
     C = np.atleast_2d(np.asarray(C, dtype=float))
     q = C.shape[0]
-    out = []
-    for name, G in (("H", H), ("K", K)):
-        G = np.asarray(G, dtype=float)
-        if G.ndim == 1 and q == 1:
-            G = G.reshape(-1, 1)
-        if G.shape != (n, q) or C.shape != (q, n):
-            raise LmiError(
-                f"{name} must have shape (n, q) = ({n}, {q}) and C ({q}, {n}); "
-                f"got {G.shape} and {C.shape}."
-            )
-        out.append(G)
-    if not (np.any(out[0]) or np.any(out[1])):
+    if C.shape != (q, n):
+        raise LmiError(f"C must have shape (q, n) = ({q}, {n}); got {C.shape}.")
+    H, K = gain_matrix("H", H, n, q), gain_matrix("K", K, n, q)
+    if not (np.any(H) or np.any(K)):
         return None
-    return out[0], out[1], C
+    return H, K, C
 
 
 def corner_count(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = None) -> int:
@@ -607,7 +670,8 @@ def corner_matrices(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any = 
     Raises
     ------
     LmiError
-        For bad shapes or more than :data:`MAX_CORNERS` corners.
+        For bad shapes, ``H`` or ``K`` not finite, or more than
+        :data:`MAX_CORNERS` corners.
     """
     Mf1, Mf2, Mg1, Mg2 = bounds_arrays(bounds)
     n = Mf1.shape[0]
@@ -666,6 +730,49 @@ def thin_perturbation(bounds: Any, u: Any, H: Any = None, K: Any = None, C: Any 
     if Dg:
         out += Dg * float(np.linalg.norm(eye - K @ C, 2))
     return float(out)
+
+
+def vertex_corners(
+    bounds: Any, input_bound: float, H: Any = None, K: Any = None, C: Any = None, hint: str = ""
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """:func:`corner_matrices` at each input vertex, all of them within :data:`MAX_CORNERS`.
+
+    The total is checked at once; each vertex's corners are built as the
+    iterator reaches it, so only one vertex's are held at a time.
+
+    Parameters
+    ----------
+    bounds, H, K, C
+        As for :func:`corner_matrices`.
+    input_bound : float
+        ``lambda_bar``, checked by the caller: the vertices of
+        :func:`ofrl_drake.sector.input_vertices`.
+    hint : str
+        One more way out, after "tighten the Jacobian bounds" and "use a
+        smaller box", in the message past :data:`MAX_CORNERS`.
+
+    Returns
+    -------
+    iterator of (ndarray, ndarray)
+        ``(u vertex, corner matrices at u)``, in the order of the vertices.
+
+    Raises
+    ------
+    LmiError
+        For bad shapes, or more than :data:`MAX_CORNERS` corner matrices over
+        all the vertices.
+    """
+    m = bounds_arrays(bounds)[2].shape[2]
+    vertices = input_vertices(float(input_bound), m)
+    total = sum(corner_count(bounds, u, H, K, C) for u in vertices)
+    if total > MAX_CORNERS:
+        fixes = ["tighten the Jacobian bounds", "use a smaller box", *([hint] if hint else [])]
+        raise LmiError(
+            f"the decay certificate needs {total} corner matrices over {len(vertices)} "
+            f"input vertices, more than MAX_CORNERS = {MAX_CORNERS}; "
+            f"{', '.join(fixes[:-1])} or {fixes[-1]}."
+        )
+    return ((u, corner_matrices(bounds, u, H, K, C)) for u in vertices)
 
 
 def decay_matrices(P: np.ndarray, A_cl: np.ndarray, alpha: float) -> np.ndarray:
@@ -788,20 +895,12 @@ def decay_certificate(
     n = P.shape[0]
     if Mf1.shape != (n, n):
         raise LmiError(f"bounds are for n = {Mf1.shape[0]} but P is {n} x {n}.")
-    m = bounds_arrays(bounds)[2].shape[2]
-    vertices = input_vertices(float(input_bound), m)
-    total = sum(corner_count(bounds, u, H, K, C) for u in vertices)
-    if total > MAX_CORNERS:
-        raise LmiError(
-            f"the decay certificate needs {total} corner matrices over {len(vertices)} "
-            f"input vertices, more than MAX_CORNERS = {MAX_CORNERS}; tighten the "
-            "Jacobian bounds or use a smaller box."
-        )
+    corners = vertex_corners(bounds, input_bound, H, K, C)
     P = 0.5 * (P + P.T)
     P_norm = float(np.linalg.norm(P, 2))
     out = []
-    for u in vertices:
-        A_cl = corner_matrices(bounds, u, H, K, C) - L @ C
+    for u, A in corners:
+        A_cl = A - L @ C
         S = decay_matrices(P, A_cl, alpha)
         thin = 2.0 * P_norm * thin_perturbation(bounds, u, H, K, C)
         out.append((u, float(np.linalg.eigvalsh(S)[:, -1].max()) + thin))
@@ -818,11 +917,5 @@ def is_decay_certified(
     input_bound: float,
     alpha: float,
 ) -> bool:
-    """True if ``P`` is positive definite and :func:`decay_certificate` is < 0."""
-    P = np.asarray(P, dtype=float)
-    if not np.all(np.isfinite(P)):
-        return False
-    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] <= 0:
-        return False
-    cert = decay_certificate(P, L, H, K, C, bounds, input_bound, alpha)
-    return all(ev < 0 for _, ev in cert)
+    """True if ``P > 0`` and :func:`decay_certificate` is < 0 (:func:`certifies`)."""
+    return certifies(P, lambda: decay_certificate(P, L, H, K, C, bounds, input_bound, alpha))

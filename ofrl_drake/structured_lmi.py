@@ -92,6 +92,7 @@ from ofrl_drake.lmi import (
     block_matrix,
     bounds_arrays,
     decay_matrices,
+    gain_matrix,
     thin_perturbation,
 )
 from ofrl_drake.sector import input_sector, input_vertices
@@ -439,11 +440,9 @@ def _numbers(
     problem: StructuredLmi, P: Any, L: Any, tau: Any
 ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     n, q = problem.n, problem.q
+    L = gain_matrix("L", L, n, q)
     P = np.asarray(P, dtype=float)
-    L = np.asarray(L, dtype=float)
-    if L.ndim == 1 and q == 1:
-        L = L.reshape(-1, 1)
-    if P.shape != (n, n) or L.shape != (n, q):
+    if P.shape != (n, n):
         raise LmiError(f"P must be ({n}, {n}) and L ({n}, {q}); got {P.shape} and {L.shape}.")
     counts = problem.multiplier_counts
     tau = [np.asarray(t, dtype=float).ravel() for t in tau]
@@ -480,6 +479,12 @@ def structured_certificate(
     -------
     list of (ndarray, float)
         ``(u vertex, value)`` per model.
+
+    Raises
+    ------
+    LmiError
+        If ``P`` is not ``(n, n)``, ``L`` not a finite ``(n, q)`` array, or
+        ``tau`` does not hold one array of multipliers of the right size per model.
 
     Examples
     --------

@@ -23,7 +23,7 @@ from ofrl_drake.design import (
 from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.examples import make_system
 from ofrl_drake.jacobian_bounds import BoxError, JacobianBounds, jacobian_bounds
-from ofrl_drake.lmi import certificate, decay_certificate, lmi_matrix
+from ofrl_drake.lmi import certificate, decay_certificate, is_decay_certified, lmi_matrix
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs
 
@@ -819,3 +819,98 @@ def test_design_observer_max_gain_argument_raises_design_error(two_state, bounds
 def test_from_gains_names_a_system_that_is_not_a_model(poly2):
     with pytest.raises(DesignError, match=r"system must be a ControlAffineSystem; got str"):
         ObserverDesign.from_gains("two_state", BOX2, 3.0, 0.9, poly2.L, poly2.H, poly2.K)
+
+
+def test_from_gains_judges_p_on_its_symmetric_part(two_state, certified2, poly2):
+    # V = e^T P e sees only (P + P^T) / 2, which every certificate uses. Before: the
+    # design tested eigvalsh(P) on the raw P, which reads its lower triangle only, so
+    # a skew part made a certified P look indefinite (is_decay_certified False while
+    # lmi.is_decay_certified of the same numbers was True).
+    d = poly2
+    skew = 5.0 * np.linalg.norm(d.P) * np.array([[0.0, 1.0], [-1.0, 0.0]])
+    given = ObserverDesign.from_gains(
+        two_state, BOX2, 3.0, 0.9, d.L, d.H, d.K, P=d.P + skew, bounds=certified2
+    )
+    assert is_decay_certified(*given._numbers())
+    assert given.is_decay_certified and given.is_certified
+    assert given.to_dict()["is_decay_certified"] is True
+    # A P whose symmetric part is not positive definite is refused whatever its skew part.
+    flipped = ObserverDesign.from_gains(
+        two_state, BOX2, 3.0, 0.9, d.L, d.H, d.K, P=-d.P + skew, bounds=certified2
+    )
+    assert not flipped.is_decay_certified and not flipped.is_certified
+
+
+@pytest.mark.parametrize("P", [None, "given"])
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"alpha": -1.0}, r"alpha must be a finite number >= 0; got -1\.0"),
+        ({"input_bound": float("nan")}, r"input_bound must be a finite number >= 0; got nan"),
+        ({"margin": -1e-3}, r"margin must be a finite number >= 0; got -0\.001"),
+        ({"backend": "matlab"}, r"backend must be one of \('drake', 'cvxpy'\); got 'matlab'"),
+        ({"solver": "gurobi"}, r"solver must be one of .*; got 'gurobi'"),
+    ],
+)
+def test_from_gains_refuses_bad_arguments_before_computing_bounds(
+    two_state, poly2, monkeypatch, kwargs, match, P
+):
+    # Before: from_gains computed the Jacobian bounds (seconds on a large plant) and
+    # only then checked alpha, input_bound and margin; the backend and solver were
+    # checked only by the solve, never with P given.
+    import ofrl_drake.design.pipeline as pipeline
+
+    def no_bounds(*args, **kwargs):
+        raise AssertionError("the Jacobian bounds were computed before the argument checks")
+
+    monkeypatch.setattr(pipeline, "jacobian_bounds", no_bounds)
+    args = {"input_bound": 3.0, "alpha": 0.9, "P": None if P is None else poly2.P} | kwargs
+    with pytest.raises(DesignError, match=match):
+        ObserverDesign.from_gains(two_state, BOX2, L=poly2.L, H=poly2.H, K=poly2.K, **args)
+
+
+@pytest.mark.parametrize(
+    ("P", "match"),
+    [
+        (np.full((2, 2), np.nan), r"P must be finite; got \[\[nan, nan\], \[nan, nan\]\]"),
+        (np.eye(3), r"P must have shape \(2, 2\); got \(3, 3\)"),
+    ],
+)
+def test_from_gains_checks_a_given_p_before_computing_bounds(
+    two_state, poly2, monkeypatch, P, match
+):
+    import ofrl_drake.design.pipeline as pipeline
+
+    def no_bounds(*args, **kwargs):
+        raise AssertionError("the Jacobian bounds were computed before P was checked")
+
+    monkeypatch.setattr(pipeline, "jacobian_bounds", no_bounds)
+    with pytest.raises(DesignError, match=match):
+        ObserverDesign.from_gains(two_state, BOX2, 3.0, 0.9, poly2.L, poly2.H, poly2.K, P=P)
+
+
+@pytest.mark.parametrize("which", ["poly2", "paper2"])
+@pytest.mark.parametrize("key", ["P", "L", "H"])
+def test_a_design_with_a_value_that_is_not_finite_is_named(request, which, key):
+    # Before: numpy's LinAlgError ("SVD did not converge", "Eigenvalues did not
+    # converge") from deep in the certificate, or a NaN L read as merely uncertified.
+    data = json.loads(json.dumps(request.getfixturevalue(which).to_dict()))
+    data[key][0][0] = float("nan")
+    with pytest.raises(DesignError, match=rf"the design's {key} must be finite; got \[\[nan"):
+        ObserverDesign.from_dict(data)
+
+
+def test_a_solution_whose_l_overflows_is_inaccurate(two_state, bounds2, monkeypatch):
+    # P finite and invertible but so small that L = P^-1 R overflows. Before: the
+    # design was built with an infinite L and its certificate failed inside numpy.
+    import ofrl_drake.design.pipeline as design_module
+
+    real = design_module._solve
+
+    def tiny(problem, solver, backend, time_limit):
+        sol = real(problem, solver, backend, time_limit)
+        return dataclasses.replace(sol, P=1e-310 * np.eye(2), R=np.ones((2, 1)))
+
+    monkeypatch.setattr(design_module, "_solve", tiny)
+    with pytest.raises(ObserverDesignInaccurate, match=r"P too close to singular for L = P\^-1 R"):
+        design_observer(two_state, BOX2, 3.0, 0.5, bounds=bounds2, formulation="paper")

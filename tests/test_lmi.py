@@ -426,3 +426,59 @@ def test_thin_entries_stay_sound_through_the_perturbation_bound(monkeypatch, see
         # ... and not by an absurd margin: within the perturbation term.
         slack = 2 * np.linalg.norm(P, 2) * thin_perturbation(bounds, u, H, K, C)
         assert ev <= brute + slack + 1e-9
+
+
+@pytest.mark.parametrize(
+    "check", [certificate, decay_certificate, is_certified, is_decay_certified]
+)
+def test_a_gain_that_is_not_finite_is_named(check):
+    # Before: certificate raised numpy's LinAlgError ("Eigenvalues did not converge")
+    # and decay_certificate returned NaN values; now one check, lmi.gain_matrix, names L.
+    g = np.zeros((2, 1))
+    nan = np.array([[np.nan], [0.0]])
+    with pytest.raises(LmiError, match=r"L must be finite; got \[\[nan\], \[0\.0\]\]"):
+        check(np.eye(2), nan, g, g, C2, TWO_STATE, 1.0, 0.5)
+
+
+def test_gain_matrix_reads_a_column_and_names_the_shape():
+    np.testing.assert_array_equal(lmi.gain_matrix("L", [1.0, 2.0], 2, 1), [[1.0], [2.0]])
+    with pytest.raises(LmiError, match=r"K must have shape \(n, q\) = \(2, 2\); got \(2,\)"):
+        lmi.gain_matrix("K", [1.0, 2.0], 2, 2)
+    with pytest.raises(OfrlError, match=r"L must be numeric; got 'x'") as caught:
+        lmi.gain_matrix("L", "x", 2, 1, error=OfrlError)
+    assert type(caught.value) is OfrlError
+    g = np.zeros((2, 1))
+    with pytest.raises(LmiError, match=r"H must be finite; got \[\[inf\], \[0\.0\]\]"):
+        corner_matrices(TWO_STATE, [1.0], np.array([[np.inf], [0.0]]), g, C2)
+
+
+def test_certifies_judges_p_on_its_symmetric_part():
+    negative = lambda: [(np.zeros(1), -1.0)]  # noqa: E731
+    skew = np.array([[0.0, 10.0], [-10.0, 0.0]])
+    assert lmi.certifies(np.eye(2) + skew, negative)  # lower triangle alone: indefinite
+    assert not lmi.certifies(-np.eye(2) + skew, negative)
+    assert not lmi.certifies(np.eye(2), lambda: [(np.zeros(1), -1.0), (np.ones(1), 0.0)])
+
+    def never():
+        raise AssertionError("the certificate of a P that is not positive definite")
+
+    assert not lmi.certifies(np.full((2, 2), np.nan), never)
+    assert not lmi.certifies(np.diag([1.0, 0.0]), never)
+
+
+def test_vertex_corners_are_corner_matrices_per_vertex_within_max_corners():
+    H = K = np.array([[0.3], [0.1]])
+    got = list(lmi.vertex_corners(TWO_STATE, 3.0, H, K, C2))
+    assert [u.tolist() for u, _ in got] == [[-3.0], [0.0], [3.0]]
+    for u, corners in got:
+        np.testing.assert_array_equal(corners, corner_matrices(TWO_STATE, u, H, K, C2))
+    n = 5
+    wide = (-np.ones((n, n)), np.ones((n, n)), np.zeros((n, n, 1)), np.zeros((n, n, 1)))
+    with pytest.raises(
+        LmiError,
+        match=r"needs 100663296 corner matrices over 3 input vertices, more than MAX_CORNERS = "
+        r"65536; tighten the Jacobian bounds, use a smaller box or formulation='paper'\.$",
+    ):
+        lmi.vertex_corners(wide, 1.0, hint="formulation='paper'")
+    with pytest.raises(LmiError, match=r"tighten the Jacobian bounds or use a smaller box\.$"):
+        lmi.vertex_corners(wide, 1.0)

@@ -419,6 +419,23 @@ def test_pinned_gains():
     _assert_sound(inj, bounds)
 
 
+def test_a_skew_part_of_p_changes_nothing():
+    # V = e^T P e sees (P + P^T) / 2 only, and so does the structured certificate.
+    # Before: is_certified tested eigvalsh(P) on the raw P (its lower triangle), so a
+    # skew part made a certified design look uncertified with the same certificate.
+    import dataclasses
+
+    system, box = synthetic_system(4, 6)
+    bounds = jacobian_bounds(system, box, "certified")
+    design = _structured(system, bounds, 1.0, 0.5)
+    upper = np.triu(np.ones((4, 4)), 1)
+    skew = 5.0 * np.linalg.norm(design.P) * (upper - upper.T)
+    given = dataclasses.replace(design, P=design.P + skew)
+    want = [v for _, v in design.certificate()]
+    assert [v for _, v in given.certificate()] == pytest.approx(want, rel=1e-9)
+    assert given.is_certified and given.is_decay_certified
+
+
 @pytest.mark.parametrize("backend", ["drake", "cvxpy"])
 def test_json_round_trip_rechecks_the_multipliers(tmp_path, backend):
     scenario, system, _, bounds = _scenario("pendulum_upright")

@@ -11,19 +11,8 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
-from ofrl_drake.design.backends import SOLVERS, get_backend
-from ofrl_drake.design.errors import DesignError
-from ofrl_drake.design.formulations import get_formulation
-from ofrl_drake.design.pipeline import (
-    _box_and_bounds,
-    _check_max_gain,
-    _check_numbers,
-    _check_time_limit,
-    _finish,
-    _problem,
-)
+from ofrl_drake.design.formulations import _zero_injection
+from ofrl_drake.design.pipeline import _box_and_bounds, _check_request, _finish, _problem
 from ofrl_drake.design.result import ObserverDesign
 from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import JacobianBounds
@@ -119,10 +108,12 @@ def design_observer(
         If the design ran out of ``time_limit``: the bounds left nothing of it,
         or the solve ran out of what they left.
     DesignError
-        For an unknown solver, backend, objective, sector or formulation, a
+        For an unknown solver, backend, objective, sector or formulation, or a
+        bad ``alpha``, ``input_bound``, ``margin``, ``time_limit`` or
+        ``max_gain`` (all checked before any Jacobian bounds are computed); a
         solver that is not usable here (MOSEK without licence), bounds that do
-        not match, too many corners for the polytopic formulation, a bad
-        ``time_limit``, or a ``time_limit`` with CSDP.
+        not match, too many corners for the polytopic formulation, or a
+        ``time_limit`` with CSDP.
 
     Examples
     --------
@@ -135,16 +126,21 @@ def design_observer(
     >>> p.is_certified, p.is_decay_certified
     (True, False)
     """
-    if solver not in SOLVERS:
-        raise DesignError(f"solver must be one of {SOLVERS}; got {solver!r}.")
-    get_backend(backend)
-    get_formulation(formulation, sector)
-    alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
-    time_limit = _check_time_limit(time_limit)
-    max_gain = _check_max_gain(max_gain)  # before the bounds, which can take seconds
+    # All of it before the bounds, which can take seconds.
+    alpha, input_bound, margin, time_limit, max_gain = _check_request(
+        solver,
+        backend,
+        formulation,
+        sector,
+        alpha,
+        input_bound,
+        margin,
+        time_limit,
+        max_gain,
+        objective,
+    )
     box, bounds, time_limit = _box_and_bounds(system, box, bounds, jacobian_method, time_limit)
-    n, q = system.n, system.q
-    pinned = None if injection_gains else (np.zeros((n, q)), np.zeros((n, q)))
+    pinned = None if injection_gains else _zero_injection(system.n, system.q)
     problem = _problem(
         system.output_matrix,
         bounds,

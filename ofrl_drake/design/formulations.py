@@ -46,15 +46,14 @@ from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.sdp import LmiProblem
 from ofrl_drake.jacobian_bounds import JacobianBounds
 from ofrl_drake.lmi import (
-    MAX_CORNERS,
     SECTORS,
     LmiError,
     certificate,
-    corner_count,
-    corner_matrices,
+    certifies,
     is_certified,
     lmi2_blocks,
     polytopic_lmi,
+    vertex_corners,
     vertex_data,
 )
 from ofrl_drake.sector import input_vertices
@@ -82,6 +81,11 @@ def _sym(M: Any) -> Any:
     return 0.5 * (M + M.T)
 
 
+def _zero_injection(n: int, q: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, K) = (0, 0)``, shapes ``(n, q)``: no injection, a linear Luenberger observer."""
+    return np.zeros((n, q)), np.zeros((n, q))
+
+
 class Formulation(ABC):
     """One way to pose the observer LMI: its SDP data, LMI blocks and numpy re-check.
 
@@ -89,14 +93,23 @@ class Formulation(ABC):
     ----------
     name : str
         Its key in :data:`FORMULATIONS` and in ``ObserverDesign.formulation``.
+    sign_correct_only : bool
+        True if it always uses the sign-correct input sector (every
+        formulation but ``"paper"``).
     """
 
     name: ClassVar[str]
+    sign_correct_only: ClassVar[bool] = True
 
     def check_sector(self, sector: str) -> None:
         """Raise :class:`DesignError` unless ``sector`` can be used with this formulation."""
         if sector not in SECTORS:
             raise DesignError(f"sector must be one of {SECTORS}; got {sector!r}.")
+        if self.sign_correct_only and sector != "sign_correct":
+            raise DesignError(
+                f"sector={sector!r} applies to formulation='paper' only; the {self.name} "
+                "formulation always uses the sign-correct input sector."
+            )
 
     @abstractmethod
     def problem(
@@ -188,15 +201,6 @@ class PolytopicFormulation(Formulation):
 
     name = "polytopic"
 
-    def check_sector(self, sector: str) -> None:
-        """Only the sign-correct input sector."""
-        super().check_sector(sector)
-        if sector != "sign_correct":
-            raise DesignError(
-                f"sector={sector!r} applies to formulation='paper' only; the polytopic "
-                "formulation always uses the sign-correct input sector."
-            )
-
     def problem(
         self,
         C: np.ndarray,
@@ -218,20 +222,12 @@ class PolytopicFormulation(Formulation):
         DesignError
             If there are more than :data:`ofrl_drake.lmi.MAX_CORNERS` corners.
         """
-        n, q = C.shape[1], C.shape[0]
         if HK is None:
-            HK = (np.zeros((n, q)), np.zeros((n, q)))
+            HK = _zero_injection(C.shape[1], C.shape[0])
         H, K = HK
-        us = input_vertices(input_bound, bounds.m)
         try:
-            total = sum(corner_count(bounds, u, H, K, C) for u in us)
-            if total > MAX_CORNERS:
-                raise LmiError(
-                    f"{total} corner matrices over {len(us)} input vertices, more than "
-                    f"MAX_CORNERS = {MAX_CORNERS}; tighten the Jacobian bounds, use a "
-                    "smaller box or formulation='paper'."
-                )
-            stacks = [corner_matrices(bounds, u, H, K, C) for u in us]
+            vertices = vertex_corners(bounds, input_bound, H, K, C, "formulation='paper'")
+            stacks = [corners for _, corners in vertices]
         except LmiError as err:
             raise DesignError(f"formulation='polytopic': {err}") from err
         corners = np.unique(np.concatenate(stacks), axis=0)
@@ -278,6 +274,7 @@ class PaperFormulation(Formulation):
     """The paper's (lmi2) at the ``3**m`` input vertices, in the chosen input sector."""
 
     name = "paper"
+    sign_correct_only = False
 
     def problem(
         self,
@@ -375,15 +372,6 @@ class StructuredFormulation(Formulation):
         self.name = name  # type: ignore[misc]  # per-instance registry key
         self.grouping = grouping
 
-    def check_sector(self, sector: str) -> None:
-        """Only the sign-correct input sector."""
-        super().check_sector(sector)
-        if sector != "sign_correct":
-            raise DesignError(
-                f"sector={sector!r} applies to formulation='paper' only; the {self.name} "
-                "formulation always uses the sign-correct input sector."
-            )
-
     def data(
         self,
         C: np.ndarray,
@@ -425,7 +413,7 @@ class StructuredFormulation(Formulation):
         """The norm-bounded model at each distinct input vertex, ``H, K`` pinned (0 if None)."""
         n, q = C.shape[1], C.shape[0]
         if HK is None:
-            HK = (np.zeros((n, q)), np.zeros((n, q)))
+            HK = _zero_injection(n, q)
         data = self.data(C, bounds, input_bound, alpha, margin, HK)
         return LmiProblem(
             self.name,
@@ -503,10 +491,8 @@ class StructuredFormulation(Formulation):
             ) from err
 
     def is_certified(self, design: ObserverDesign) -> bool:
-        """True if ``P > 0`` and every structured certificate value is < 0."""
-        if not np.all(np.isfinite(design.P)) or np.linalg.eigvalsh(design.P)[0] <= 0:
-            return False
-        return all(ev < 0 for _, ev in design.certificate())
+        """True if ``P > 0`` and every structured certificate value is < 0 (``lmi.certifies``)."""
+        return certifies(design.P, design.certificate)
 
 
 #: The formulations by name; the first is the default.

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ofrl_drake.checks import is_real_number
-from ofrl_drake.design.backends import get_backend
+from ofrl_drake.design.backends import SOLVERS, get_backend
 from ofrl_drake.design.errors import DesignError, ObserverDesignInaccurate, ObserverDesignInfeasible
 from ofrl_drake.design.formulations import get_formulation
 from ofrl_drake.design.sdp import OBJECTIVES, LmiProblem, SdpSolution
@@ -32,6 +32,51 @@ from ofrl_drake.model import ControlAffineSystem, require_system
 
 if TYPE_CHECKING:
     from ofrl_drake.design.result import ObserverDesign
+
+
+def _check_request(
+    solver: str,
+    backend: str,
+    formulation: str,
+    sector: str,
+    alpha: float,
+    input_bound: float,
+    margin: float,
+    time_limit: float | None,
+    max_gain: float | None = None,
+    objective: str = "min_condition",
+) -> tuple[float, float, float, float | None, float | None]:
+    """Check a design request before anything slow (the Jacobian bounds) runs.
+
+    The one argument check of :func:`~ofrl_drake.design.design_observer` and
+    :meth:`~ofrl_drake.design.ObserverDesign.from_gains`, in this order:
+    solver, backend, formulation and sector, ``alpha``, ``input_bound``,
+    ``margin``, ``time_limit``, ``max_gain``, objective.
+
+    Returns
+    -------
+    alpha, input_bound, margin : float
+    time_limit, max_gain : float or None
+
+    Raises
+    ------
+    DesignError
+        Naming the first bad argument.
+    """
+    if solver not in SOLVERS:
+        raise DesignError(f"solver must be one of {SOLVERS}; got {solver!r}.")
+    get_backend(backend)
+    get_formulation(formulation, sector)
+    alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
+    time_limit = _check_time_limit(time_limit)
+    max_gain = _check_max_gain(max_gain)
+    _check_objective(objective)
+    return alpha, input_bound, margin, time_limit, max_gain
+
+
+def _check_objective(objective: str) -> None:
+    if objective not in OBJECTIVES:
+        raise DesignError(f"objective must be one of {OBJECTIVES}; got {objective!r}.")
 
 
 def _check_numbers(alpha: float, input_bound: float, margin: float) -> tuple[float, float, float]:
@@ -109,8 +154,7 @@ def _problem(
     HK: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LmiProblem:
     form = get_formulation(formulation, sector)
-    if objective not in OBJECTIVES:
-        raise DesignError(f"objective must be one of {OBJECTIVES}; got {objective!r}.")
+    _check_objective(objective)
     max_gain = _check_max_gain(max_gain)
     return form.problem(
         C, bounds, input_bound, alpha, margin, objective, max_gain, sector, L=L, HK=HK
@@ -240,6 +284,11 @@ def _finish(
             raise fail(
                 f"solver status {sol.status}, singular P", kind=ObserverDesignInaccurate
             ) from None
+        if not np.all(np.isfinite(L)):
+            raise fail(
+                f"solver status {sol.status}, P too close to singular for L = P^-1 R",
+                kind=ObserverDesignInaccurate,
+            )
     design = design_type(
         P=P,
         L=L,

@@ -9,18 +9,18 @@ from typing import Any
 
 import numpy as np
 
+from ofrl_drake.checks import array_of_shape, finite_array
 from ofrl_drake.design.errors import DesignError
 from ofrl_drake.design.formulations import get_formulation
 from ofrl_drake.design.pipeline import (
     _box_and_bounds,
-    _check_numbers,
-    _check_time_limit,
+    _check_request,
     _finish,
     _problem,
 )
 from ofrl_drake.design.sdp import DEFAULT_MARGIN
 from ofrl_drake.jacobian_bounds import Box, JacobianBounds
-from ofrl_drake.lmi import LmiError, decay_certificate
+from ofrl_drake.lmi import LmiError, certifies, decay_certificate, gain_matrix
 from ofrl_drake.model import ControlAffineSystem, require_system
 from ofrl_drake.structured_lmi import DeltaCheck, StructuredLmi, delta_check
 
@@ -31,6 +31,11 @@ def _array(a: Any) -> np.ndarray:
     arr = np.array(a, dtype=float)
     arr.setflags(write=False)
     return arr
+
+
+def _finite(key: str, a: Any) -> np.ndarray:
+    """A read-only copy of the design's ``key``, checked numeric and finite."""
+    return _array(finite_array(f"the design's {key}", a, error=DesignError))
 
 
 def _cert_list(cert: list[tuple[np.ndarray, float]]) -> list[dict[str, Any]]:
@@ -93,6 +98,12 @@ class ObserverDesign:
     tau : tuple of ndarray
         The S-procedure multipliers of each structured LMI (one array per
         distinct input vertex); empty for the other formulations.
+
+    Raises
+    ------
+    DesignError
+        If ``P, L, H, K, R`` or ``C`` is not numeric and finite (the message
+        names it), or the formulation or sector is unknown.
     """
 
     P: np.ndarray
@@ -119,7 +130,7 @@ class ObserverDesign:
 
     def __post_init__(self) -> None:
         for key in ("P", "L", "H", "K", "R", "C"):
-            object.__setattr__(self, key, _array(getattr(self, key)))
+            object.__setattr__(self, key, _finite(key, getattr(self, key)))
         object.__setattr__(self, "box", Box.coerce(self.box))
         object.__setattr__(self, "alpha", float(self.alpha))
         object.__setattr__(self, "input_bound", float(self.input_bound))
@@ -196,12 +207,9 @@ class ObserverDesign:
         if self.is_structured:
             return self.is_certified
         try:
-            cert = self.decay_certificate()
+            return certifies(self.P, self.decay_certificate)
         except LmiError:
             return False
-        if not np.all(np.isfinite(self.P)) or np.linalg.eigvalsh(self.P)[0] <= 0:
-            return False
-        return all(ev < 0 for _, ev in cert)
 
     @property
     def is_structured(self) -> bool:
@@ -330,7 +338,8 @@ class ObserverDesign:
         Raises
         ------
         DesignError
-            If a required key is missing or the formulation is unknown.
+            If a required key is missing, the formulation is unknown, or a
+            matrix is not numeric and finite.
         """
         required = [
             "P",
@@ -430,31 +439,30 @@ class ObserverDesign:
         ObserverDesignInfeasible
             If ``P`` is None and no certifying ``P`` is found.
         DesignError
-            For a ``system`` that is not a ControlAffineSystem, gains of the
-            wrong shape or a bad formulation, solver or backend,
-            or (``P`` None) too many corners for the polytopic formulation.
+            Before any Jacobian bounds are computed: for a ``system`` that is
+            not a ControlAffineSystem, gains (or a given ``P``) that are not
+            finite or of the wrong shape, a bad solver, backend, formulation or
+            sector (checked even with ``P`` given), or a bad ``alpha``,
+            ``input_bound``, ``margin`` or ``time_limit``; later, for bounds
+            that do not match, or (``P`` None) too many corners for the
+            polytopic formulation.
         LmiError
             If ``P`` is given and the polytopic corner enumeration is too large.
         """
         require_system(system, "the observer design's system", DesignError)
         C = system.output_matrix
         n, q = system.n, system.q
-        gains = []
-        for name, G in (("L", L), ("H", H), ("K", K)):
-            G = np.asarray(G, dtype=float)
-            if G.ndim == 1 and q == 1:
-                G = G.reshape(-1, 1)
-            if G.shape != (n, q) or not np.all(np.isfinite(G)):
-                raise DesignError(f"{name} must be a finite ({n}, {q}) array; got {G.tolist()}.")
-            gains.append(G)
-        get_formulation(formulation, sector)
-        time_limit = _check_time_limit(time_limit)  # before any bounds are computed
-        box, bounds, time_limit = _box_and_bounds(system, box, bounds, jacobian_method, time_limit)
-        alpha, input_bound, margin = _check_numbers(alpha, input_bound, margin)
+        gains = [
+            gain_matrix(name, G, n, q, DesignError) for name, G in (("L", L), ("H", H), ("K", K))
+        ]
         if P is not None:
-            P = np.asarray(P, dtype=float)
-            if P.shape != (n, n):
-                raise DesignError(f"P must have shape ({n}, {n}); got {P.shape}.")
+            P = array_of_shape("P", P, (n, n), error=DesignError)
+        # All of it before the bounds, which can take seconds.
+        alpha, input_bound, margin, time_limit, _ = _check_request(
+            solver, backend, formulation, sector, alpha, input_bound, margin, time_limit
+        )
+        box, bounds, time_limit = _box_and_bounds(system, box, bounds, jacobian_method, time_limit)
+        if P is not None:
             return cls(
                 P=P,
                 L=gains[0],
