@@ -21,6 +21,7 @@ __all__ = [
     "drake_seed",
     "finite_array",
     "finite_vector",
+    "initial_vector",
     "integer_at_least",
     "is_real_number",
     "nonnegative_matrix",
@@ -149,6 +150,21 @@ def finite_vector(name: str, value: Any, size: int | None = None) -> np.ndarray:
     if size is not None and arr.size != size:
         raise ModelError(f"{name} must have length {size}; got {arr.size}.")
     return arr
+
+
+def initial_vector(name: str, value: Any, size: int) -> np.ndarray:
+    """A block's default state: zeros of length ``size`` if ``value`` is None, else
+    ``value`` as a :func:`finite_vector` of length ``size``.
+
+    Raises
+    ------
+    ModelError
+        If ``value`` is given and is not a finite vector of length ``size``;
+        the message starts with ``name`` (``"ControlAffinePlant: initial_state"``).
+    """
+    if value is None:
+        return np.zeros(size)
+    return finite_vector(name, value, size)
 
 
 def positive_vector(name: str, value: Any, size: int | None = None) -> np.ndarray:

@@ -21,6 +21,7 @@ block's whole derivative. The array functions below are thin loops over them.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit, vectorize
@@ -29,9 +30,11 @@ from pydrake.symbolic import max as symbolic_max
 from pydrake.symbolic import min as symbolic_min
 
 from ofrl_drake._jit import JIT
+from ofrl_drake.checks import nonnegative_matrix, positive_number, positive_vector
 from ofrl_drake.errors import ModelError
 
 __all__ = [
+    "check_cost_arguments",
     "input_cost",
     "input_cost_from_D",
     "log_cosh",
@@ -50,6 +53,30 @@ __all__ = [
 _LOG_COSH_SMALL = 0.5
 
 _LN2 = math.log(2.0)
+
+
+def check_cost_arguments(
+    block: str, Q: Any, r: Any, input_bound: Any
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Check a running-cost block's ``Q``, ``r`` and ``input_bound``.
+
+    Returns
+    -------
+    Q : ndarray, shape (n, n)
+    r : ndarray, shape (m,)
+    input_bound : float
+
+    Raises
+    ------
+    ModelError
+        If ``Q`` is not a finite symmetric positive semidefinite matrix, ``r``
+        not a finite vector of entries > 0, or ``input_bound`` not a finite
+        number > 0; the message starts with ``block`` (``"RunningCost: Q"``).
+    """
+    Q_arr = nonnegative_matrix(f"{block}: Q", Q)
+    r_arr = positive_vector(f"{block}: r", r)
+    lbar = positive_number(f"{block}: input_bound", input_bound)
+    return Q_arr, r_arr, lbar
 
 
 def state_cost(x: np.ndarray, Q: np.ndarray) -> np.ndarray:

@@ -14,7 +14,8 @@ vector ports (:func:`vector_value`, or :func:`vector_reader` in a block's
 per-evaluation code), whose stub says ``object``.
 
 :func:`input_port_names` and :func:`output_port_names` list a system's ports
-for messages that name what a block has.
+for messages that name what a block has. :func:`set_state_vector` is the
+blocks' state setter: the value checked, then written into a context.
 
 None changes a value: :func:`drake_array` is ``np.asarray(values,
 dtype=float)``, :func:`vector_value` is ``port.Eval(context)``, and
@@ -29,6 +30,8 @@ from typing import TYPE_CHECKING, Any, TypeAlias, cast
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ofrl_drake.checks import finite_vector
+
 if TYPE_CHECKING:  # annotations only
     from pydrake.systems.framework import Context, InputPort, OutputPort
 
@@ -38,6 +41,7 @@ __all__ = [
     "drake_array",
     "input_port_names",
     "output_port_names",
+    "set_state_vector",
     "vector_reader",
     "vector_value",
 ]
@@ -81,3 +85,17 @@ def input_port_names(system: Any) -> list[str]:
 def output_port_names(system: Any) -> list[str]:
     """The names of ``system``'s output ports, in port order (a System of any scalar type)."""
     return [system.get_output_port(i).get_name() for i in range(system.num_output_ports())]
+
+
+def set_state_vector(context: Context, value: ArrayLike, n: int, what: str) -> None:
+    """Write ``value``, checked to be a finite vector of length ``n``, as the continuous
+    state of ``context``, the context of a block whose whole continuous state it is.
+
+    Raises
+    ------
+    ModelError
+        If ``value`` is not a finite vector of length ``n``; the message
+        starts with ``what`` (``"ControlAffinePlant: x"``).
+    """
+    x: DrakeArray = finite_vector(what, value, n)
+    context.SetContinuousState(x)

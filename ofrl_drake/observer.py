@@ -26,7 +26,7 @@ from pydrake.symbolic import if_then_else
 from ofrl_drake._jit import JIT
 from ofrl_drake.checks import array_of_shape
 from ofrl_drake.errors import ModelError
-from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
+from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics, require_system
 
 if TYPE_CHECKING:  # annotations only
     from ofrl_drake.design import ObserverDesign
@@ -38,7 +38,10 @@ __all__ = [
     "observer_rhs",
     "observer_rhs_batch",
     "observer_rhs_expression",
+    "pack_gains",
     "require_gains",
+    "require_observer_arguments",
+    "unpack_gains",
 ]
 
 
@@ -184,6 +187,92 @@ def require_gains(value: Any, system: ControlAffineSystem, what: str) -> Observe
     for name, shape in _gain_shapes(system).items():
         _matrix(name, getattr(value, name), shape, what=f"{what}.", fix=fix)
     return value
+
+
+def require_observer_arguments(
+    block: str,
+    system: Any,
+    gains: Any,
+    design: ObserverDesign | None = None,
+) -> ObserverGains:
+    """Check an observer block's ``system``, ``gains`` and ``design``; return ``gains``.
+
+    Parameters
+    ----------
+    block : str
+        The block's name, which starts each message (``"ThreeGainObserver"``).
+    system : object
+        What was given as the model.
+    gains : object
+        What was given as the gains.
+    design : ObserverDesign, optional
+        The design ``gains`` are said to come from.
+
+    Raises
+    ------
+    ModelError
+        If ``system`` is not a :class:`~ofrl_drake.model.ControlAffineSystem`
+        (:func:`~ofrl_drake.model.require_system`), ``gains`` do not fit it
+        (:func:`require_gains`), or ``design`` is given and has other L, H
+        or K (:meth:`ObserverGains.check_design`).
+    """
+    model = require_system(system, f"{block}: system")
+    checked = require_gains(gains, model, f"{block}: gains")
+    if design is not None:
+        checked.check_design(design)
+    return checked
+
+
+def pack_gains(L: np.ndarray, H: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``[vec(L), vec(H), vec(K)]``, each row-major: ``3 n q`` entries.
+
+    The layout of the scheduled observer's ``observer_gains`` output; read it
+    back with :func:`unpack_gains`.
+    """
+    return np.concatenate([np.ravel(L), np.ravel(H), np.ravel(K)])
+
+
+def unpack_gains(
+    packed: Any, n: int, q: int, *, name: str = "observer_gains"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(L, H, K)`` from :func:`pack_gains`'s layout along the last axis of ``packed``.
+
+    Parameters
+    ----------
+    packed : array_like, shape (..., 3 n q)
+        One packed vector, or any stack of them (a log, shape ``(T, 3 n q)``).
+    n, q : int
+        The model's state and output sizes.
+    name : str, optional
+        How a message names ``packed``.
+
+    Returns
+    -------
+    L, H, K : ndarray, shape (..., n, q)
+        Views of ``packed`` (as a float array), the leading axes kept.
+
+    Raises
+    ------
+    ModelError
+        If ``packed`` is not numeric or its last axis has not ``3 n q``
+        entries.
+    """
+    try:
+        arr = np.asarray(packed, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ModelError(f"{name} must be numeric; got {packed!r}.") from err
+    k = n * q
+    if arr.ndim == 0 or arr.shape[-1] != 3 * k:
+        raise ModelError(
+            f"{name} must have 3 n q = {3 * k} entries on its last axis "
+            f"([vec(L), vec(H), vec(K)]); got shape {arr.shape}."
+        )
+    lead = arr.shape[:-1]
+    return (
+        arr[..., :k].reshape(*lead, n, q),
+        arr[..., k : 2 * k].reshape(*lead, n, q),
+        arr[..., 2 * k :].reshape(*lead, n, q),
+    )
 
 
 @njit(**JIT)

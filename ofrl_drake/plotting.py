@@ -553,12 +553,21 @@ def plot_gain_schedule(t: np.ndarray, gains: np.ndarray, failed: np.ndarray) -> 
         The ``observer_gains`` log, ``[vec(L), vec(H), vec(K)]`` row-major.
     failed : ndarray of bool, shape (T,)
         True where the latest re-solve failed (previous gains kept).
+
+    Raises
+    ------
+    ModelError
+        If the columns of ``gains`` are not three equal blocks
+        (:func:`~ofrl_drake.observer.unpack_gains`).
     """
+    from ofrl_drake.observer import unpack_gains
+
+    # Each gain's n q entries as one column of k = n q rows (n and q are not needed).
     k = gains.shape[1] // 3
+    parts = [gain[..., 0] for gain in unpack_gains(gains, k, 1)]
     with plt.rc_context(_STYLE):
         fig, axes = plt.subplots(3, 1, sharex=True, figsize=(7.0, 6.4), layout="constrained")
-    for ax, (name, block) in zip(axes, (("L", 0), ("H", 1), ("K", 2)), strict=True):
-        part = gains[:, block * k : (block + 1) * k]
+    for ax, name, part in zip(axes, ("L", "H", "K"), parts, strict=True):
         for j in range(k):
             ax.step(t, part[:, j], where="post", lw=1.4, label=rf"${name}_{{{j + 1}}}$")
         if np.any(failed):

@@ -22,6 +22,7 @@ from ofrl_drake.checks import positive_number
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ModelError, ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
+from ofrl_drake.observer import unpack_gains
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
 from ofrl_drake.progress import ProgressBar
 from ofrl_drake.provenance import provenance
@@ -761,20 +762,16 @@ def _injection_gains(
 
     A ``"design"`` certificate's fixed gains; a ``"scheduled"`` observer's gains
     in force at each sample, from its ``observer_gains`` log (``[vec(L), vec(H),
-    vec(K)]``, row-major). A design dict without ``H`` and ``K`` (a user's own
-    certificate may omit them) leaves them unchecked (``injection_check ==
-    "no_gains"``); any other certificate has no box to check them against.
+    vec(K)]``, row-major: :func:`~ofrl_drake.observer.unpack_gains`). A design
+    dict without ``H`` and ``K`` (a user's own certificate may omit them) leaves
+    them unchecked (``injection_check == "no_gains"``); any other certificate
+    has no box to check them against.
     """
     C = np.asarray(loop.parts.system.output_matrix, dtype=float)
     q, n = C.shape
     if cert.kind == "scheduled" and "observer_gains" in logs:
-        gains = np.asarray(logs["observer_gains"], dtype=float)
-        k = n * q
-        return {
-            "C": C,
-            "H": gains[:, k : 2 * k].reshape(-1, n, q),
-            "K": gains[:, 2 * k :].reshape(-1, n, q),
-        }
+        _, H, K = unpack_gains(logs["observer_gains"], n, q)
+        return {"C": C, "H": H, "K": K}
     design = cert.design if cert.kind == "design" else None
     if design is not None and "H" in design and "K" in design:
         return {

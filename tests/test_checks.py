@@ -12,6 +12,7 @@ from ofrl_drake.checks import (
     drake_seed,
     finite_array,
     finite_vector,
+    initial_vector,
     nonnegative_matrix,
     positive_number,
     positive_vector,
@@ -112,3 +113,15 @@ def test_a_drake_seed_is_a_32_bit_integer():
         drake_seed("seed", 2**32, error=ScenarioError)
     with pytest.raises(ModelError, match=r"^seed must be an integer >= 0; got -1"):
         drake_seed("seed", -1)
+
+
+def test_initial_vector_is_zeros_when_omitted_else_a_checked_vector():
+    """The blocks' default state: one check for every block that takes ``initial_state``."""
+    zeros = initial_vector("B: initial_state", None, 3)
+    assert zeros.dtype == float
+    np.testing.assert_array_equal(zeros, np.zeros(3))
+    np.testing.assert_array_equal(initial_vector("B: initial_state", [1, -2], 2), [1.0, -2.0])
+    with pytest.raises(ModelError, match=r"^B: initial_state must have length 2; got 3\.$"):
+        initial_vector("B: initial_state", [1.0, 2.0, 3.0], 2)
+    with pytest.raises(ModelError, match=r"^B: initial_state must be finite; got \[nan, 0\.0\]"):
+        initial_vector("B: initial_state", [np.nan, 0.0], 2)

@@ -62,16 +62,18 @@ def test_every_gain_in_force_rechecks_in_numpy_from_the_logs(paper_scenario, pap
     """P, box and gains of each design in force are logged; numpy re-certifies them."""
     from ofrl_drake.design import ObserverDesign
     from ofrl_drake.examples import make_system
+    from ofrl_drake.observer import unpack_gains
 
     s = _scheduled(paper_scenario, schedule_period=1.0, schedule_half_width=[1.0, 1.0])
     r = simulate(s, design=paper_design, progress=False)
-    system, n = make_system("two_state"), 2
+    system = make_system("two_state")
+    n, q = system.n, system.q
     P, cert, box = (
         r.extra["lyapunov_matrix"],
         r.extra["certificate"][:, 0],
         r.extra["certified_box"],
     )
-    gains = r.extra["observer_gains"]
+    L, H, K = unpack_gains(r.extra["observer_gains"], n, q)
     np.testing.assert_allclose(P[0], paper_design.P.ravel(), rtol=0, atol=0)
     # One sample per design in force: before the first re-solve, and after each one.
     for t in (0.5, 1.5, 2.5):
@@ -81,10 +83,10 @@ def test_every_gain_in_force_rechecks_in_numpy_from_the_logs(paper_scenario, pap
             (box[k, :n], box[k, n:]),
             s.input_bound,
             s.observer.alpha,
-            L=gains[k, 0:2].reshape(2, 1),
-            H=gains[k, 2:4].reshape(2, 1),
-            K=gains[k, 4:6].reshape(2, 1),
-            P=P[k].reshape(2, 2),
+            L=L[k],
+            H=H[k],
+            K=K[k],
+            P=P[k].reshape(n, n),
             jacobian_method=s.observer.jacobian_method,
             formulation=s.observer.formulation,
         )
@@ -178,3 +180,75 @@ def test_bad_arguments_are_named_up_front(paper_design, given, message):
 
     with pytest.raises(ModelError, match=message):
         _observer(paper_design, **given)
+
+
+def test_the_blocks_own_unpacking_reads_the_layout_of_unpack_gains(mimo_scenario):
+    """The per-evaluation ``_unpack`` reads the gains inline: pinned to ``unpack_gains``."""
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.observer import pack_gains, unpack_gains
+    from ofrl_drake.systems import ScheduledThreeGainObserver
+    from ofrl_drake.variants import design_for
+
+    system = make_system("coupled_two_state")  # n = 4, q = 2, m = 2: row-major order shows
+    n, q, m = system.n, system.q, system.m
+    design = design_for(mimo_scenario)
+    block = ScheduledThreeGainObserver(
+        system, design, period=1.0, half_width=[1.0] * n, input_bound=3.0, alpha=0.5
+    )
+    context = block.CreateDefaultContext()
+    # What the block logs is pack_gains of the design in force.
+    logged = block.get_observer_gains_output_port().Eval(context)
+    np.testing.assert_array_equal(logged, pack_gains(design.L, design.H, design.K))
+    # Any gains and bounds written into the state are read back as unpack_gains reads them.
+    rng = np.random.default_rng(3)
+    packed = rng.normal(size=3 * n * q)
+    Mf1, Mg1, Mg2 = rng.normal(size=(n, n)), rng.normal(size=(n, n, m)), rng.normal(size=(n, n, m))
+    context.get_mutable_discrete_state(block._gains_index).SetFromVector(packed)
+    context.get_mutable_discrete_state(block._bounds_index).SetFromVector(
+        np.concatenate([Mf1.ravel(), Mg1.ravel(), Mg2.ravel()])
+    )
+    got = block._unpack(context)
+    for name, want in zip("LHK", unpack_gains(packed, n, q), strict=True):
+        np.testing.assert_array_equal(getattr(got, name), want)
+    for name, want in (("Mf1", Mf1), ("Mg1", Mg1), ("Mg2", Mg2)):
+        np.testing.assert_array_equal(getattr(got, name), want)
+
+
+def test_a_subclass_is_named_in_the_initial_state_message(paper_design):
+    """The initial state's message names the block like its other arguments' messages."""
+    # Before: "ScheduledThreeGainObserver: initial_state" was written out, for a subclass too.
+    from ofrl_drake.errors import ModelError
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.systems import ScheduledThreeGainObserver
+
+    class MyObserver(ScheduledThreeGainObserver):
+        pass
+
+    arguments = {"period": 1.0, "half_width": [1.0, 1.0], "input_bound": 3.0, "alpha": 0.5}
+    system = make_system("two_state")
+    with pytest.raises(ModelError, match=r"^MyObserver: initial_state must have length 2; got 3"):
+        MyObserver(system, paper_design, initial_state=[0.0, 0.0, 0.0], **arguments)
+    with pytest.raises(ModelError, match=r"^MyObserver: half_width must have length 2; got 3"):
+        MyObserver(system, paper_design, **(arguments | {"half_width": [1.0] * 3}))
+
+
+def test_the_gain_schedule_plot_reads_the_log_with_unpack_gains():
+    """Its three panels are L, H and K; a log that is not three equal blocks is refused."""
+    # Before: 7 columns were read as three blocks of 2, the last column dropped unseen.
+    import matplotlib.pyplot as plt
+
+    from ofrl_drake.errors import ModelError
+    from ofrl_drake.plotting import plot_gain_schedule
+
+    t = np.linspace(0.0, 1.0, 5)
+    gains = np.arange(30.0).reshape(5, 6)  # n q = 2: L = columns 0-1, H = 2-3, K = 4-5
+    fig = plot_gain_schedule(t, gains, np.zeros(5, dtype=bool))
+    try:
+        for ax, first in zip(fig.axes[:3], (0, 2, 4), strict=True):
+            lines = ax.get_lines()
+            np.testing.assert_array_equal(lines[0].get_ydata(), gains[:, first])
+            np.testing.assert_array_equal(lines[1].get_ydata(), gains[:, first + 1])
+    finally:
+        plt.close(fig)
+    with pytest.raises(ModelError, match=r"observer_gains must have 3 n q = 6 entries .*\(5, 7\)"):
+        plot_gain_schedule(t, np.zeros((5, 7)), np.zeros(5, dtype=bool))

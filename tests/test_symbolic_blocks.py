@@ -111,9 +111,12 @@ def test_set_state_writes_the_state_the_ports_read():
         context = observer.CreateDefaultContext()
         observer.set_estimated_state(context, x)
         np.testing.assert_array_equal(observer.get_estimated_state_output_port().Eval(context), x)
-    with pytest.raises(ModelError, match=r"two_state: x must have length 2; got 3"):
+    # The block is named, as in its other messages and the Python blocks' setters.
+    with pytest.raises(ModelError, match=r"^SymbolicPlant: x must have length 2; got 3"):
         SymbolicPlant(system).set_state(context, [1.0, 2.0, 3.0])
-    with pytest.raises(ModelError, match=r"two_state: xhat must be finite; got \[nan, 0.0\]"):
+    with pytest.raises(
+        ModelError, match=r"^SymbolicObserver: xhat must be finite; got \[nan, 0.0\]"
+    ):
         SymbolicObserver(system, gains).set_estimated_state(context, [np.nan, 0.0])
 
 

@@ -114,6 +114,31 @@ def test_plant_derivative_closed_form(x):
     )
 
 
+def _expected_observer_rhs(system, gains, xhat, y, u):
+    """The paper's form (eq:observerdynamics_x) with the sign-correct sector, summed over inputs.
+
+    ``M_ug1(u) = sum_k min(M_g1[..., k] u_k, M_g2[..., k] u_k)``; ``u`` has shape (m,).
+    """
+    ytil = y - system.output_matrix @ xhat
+    Mug1 = sum(
+        np.minimum(gains.Mg1[..., k] * u[k], gains.Mg2[..., k] * u[k]) for k in range(system.m)
+    )
+
+    def fbar(z):
+        return system.f(z) - gains.Mf1 @ z
+
+    def gbar(z):
+        return system.g(z) @ u - Mug1 @ z
+
+    return (
+        gains.Mf1 @ xhat
+        + Mug1 @ xhat
+        + fbar(xhat + gains.H @ ytil)
+        + gbar(xhat + gains.K @ ytil)
+        + gains.L @ ytil
+    )
+
+
 @pytest.mark.parametrize("xhat", GRID)
 @pytest.mark.parametrize("u", [-2.0, 0.0, 1.5])
 def test_observer_derivative_closed_form(xhat, u):
@@ -121,23 +146,7 @@ def test_observer_derivative_closed_form(xhat, u):
     system = make_system("two_state")
     gains = random_gains(system, seed=4)
     y, uu = np.array([0.4]), np.array([u])
-    C = system.output_matrix
-    ytil = y - C @ xhat
-    Mug1 = np.minimum(gains.Mg1[..., 0] * u, gains.Mg2[..., 0] * u)
-
-    def fbar(z):
-        return system.f(z) - gains.Mf1 @ z
-
-    def gbar(z):
-        return system.g(z) @ uu - Mug1 @ z
-
-    expected = (
-        gains.Mf1 @ xhat
-        + Mug1 @ xhat
-        + fbar(xhat + gains.H @ ytil)
-        + gbar(xhat + gains.K @ ytil)
-        + gains.L @ ytil
-    )
+    expected = _expected_observer_rhs(system, gains, xhat, y, uu)
     got = _derivatives(ThreeGainObserver(system, gains), xhat, {"y": y, "u": uu})
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
 
@@ -265,22 +274,7 @@ def test_mimo_observer_derivative_closed_form(xhat, u):
     system = make_system("coupled_two_state")
     gains = random_gains(system, seed=7)
     y = np.array([0.4, -0.2])
-    ytil = y - system.output_matrix @ xhat
-    Mug1 = sum(np.minimum(gains.Mg1[..., k] * u[k], gains.Mg2[..., k] * u[k]) for k in range(2))
-
-    def fbar(z):
-        return system.f(z) - gains.Mf1 @ z
-
-    def gbar(z):
-        return system.g(z) @ u - Mug1 @ z
-
-    expected = (
-        gains.Mf1 @ xhat
-        + Mug1 @ xhat
-        + fbar(xhat + gains.H @ ytil)
-        + gbar(xhat + gains.K @ ytil)
-        + gains.L @ ytil
-    )
+    expected = _expected_observer_rhs(system, gains, xhat, y, u)
     got = _derivatives(ThreeGainObserver(system, gains), xhat, {"y": y, "u": u})
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
 
@@ -647,3 +641,98 @@ def test_measured_plant_without_a_state_output_says_so():
         r"cannot be read; give it one\.$",
     ):
         plant.get_state_output_port()
+
+
+# --------------------------------------------- shared set-up of the blocks
+def test_pack_gains_and_unpack_gains_are_inverse_with_leading_axes():
+    from ofrl_drake.observer import pack_gains, unpack_gains
+
+    system = make_system("coupled_two_state")  # n = 4, q = 2: the row-major order shows
+    n, q = system.n, system.q
+    gains = [random_gains(system, seed=seed) for seed in range(3)]
+    packed = np.array([pack_gains(g.L, g.H, g.K) for g in gains])
+    assert packed.shape == (3, 3 * n * q)
+    np.testing.assert_array_equal(packed[0, : n * q], gains[0].L.ravel())
+    L, H, K = unpack_gains(packed, n, q)  # a log: one row per sample
+    assert L.shape == H.shape == K.shape == (3, n, q)
+    for i, g in enumerate(gains):
+        np.testing.assert_array_equal(L[i], g.L)
+        np.testing.assert_array_equal(H[i], g.H)
+        np.testing.assert_array_equal(K[i], g.K)
+    one = unpack_gains(packed[1], n, q)  # one vector
+    for got, want in zip(one, (gains[1].L, gains[1].H, gains[1].K), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize(
+    ("packed", "message"),
+    [
+        (
+            np.zeros(7),
+            r"^observer_gains must have 3 n q = 6 entries on its last axis .*got shape \(7,\)",
+        ),
+        (np.zeros((4, 5)), r"^observer_gains must have 3 n q = 6 .*got shape \(4, 5\)\.$"),
+        (np.float64(1.0), r"^observer_gains must have 3 n q = 6 .*got shape \(\)\.$"),
+        (["a"] * 6, r"^observer_gains must be numeric; got \['a'"),
+    ],
+)
+def test_unpack_gains_names_a_wrong_layout(packed, message):
+    from ofrl_drake.observer import unpack_gains
+
+    with pytest.raises(ModelError, match=message):
+        unpack_gains(packed, 2, 1)
+
+
+def test_set_state_vector_checks_then_writes_the_whole_continuous_state():
+    from ofrl_drake.drake_typing import set_state_vector
+
+    plant = ControlAffinePlant(make_system("two_state"))
+    context = plant.CreateDefaultContext()
+    set_state_vector(context, [0.5, -1], 2, "ControlAffinePlant: x")
+    np.testing.assert_array_equal(context.get_continuous_state_vector().CopyToVector(), [0.5, -1])
+    with pytest.raises(ModelError, match=r"^ControlAffinePlant: x must have length 2; got 3\.$"):
+        set_state_vector(context, [1.0, 2.0, 3.0], 2, "ControlAffinePlant: x")
+    np.testing.assert_array_equal(context.get_continuous_state_vector().CopyToVector(), [0.5, -1])
+
+
+@pytest.mark.parametrize(
+    ("setter", "message"),
+    [
+        (lambda s, c: ControlAffinePlant(s).set_state(c, [np.nan, 0.0]), "ControlAffinePlant: x"),
+        (
+            lambda s, c: ThreeGainObserver(s, random_gains(s)).set_estimated_state(c, [1.0]),
+            "ThreeGainObserver: xhat",
+        ),
+    ],
+)
+def test_state_setters_name_their_block(setter, message):
+    system = make_system("two_state")
+    context = ControlAffinePlant(system).CreateDefaultContext()
+    with pytest.raises(ModelError, match=rf"^{message} must "):
+        setter(system, context)
+
+
+def test_check_cost_arguments_returns_the_checked_values_and_names_the_block():
+    from ofrl_drake.cost import check_cost_arguments
+
+    Q, r, lbar = check_cost_arguments("RunningCost", [[1, 0], [0, 2]], [1], np.float32(3.0))
+    np.testing.assert_array_equal(Q, [[1.0, 0.0], [0.0, 2.0]])
+    np.testing.assert_array_equal(r, [1.0])
+    assert lbar == 3.0 and type(lbar) is float
+    with pytest.raises(ModelError, match=r"^SymbolicRunningCost: input_bound must be > 0; got 0"):
+        check_cost_arguments("SymbolicRunningCost", np.eye(2), [1.0], 0.0)
+
+
+def test_require_observer_arguments_checks_system_gains_and_design(paper_design):
+    from ofrl_drake.observer import require_observer_arguments
+
+    system = make_system("two_state")
+    gains = ObserverGains.from_design(system, paper_design)
+    assert require_observer_arguments("Obs", system, gains, paper_design) is gains
+    with pytest.raises(ModelError, match=r"^Obs: system must be a ControlAffineSystem"):
+        require_observer_arguments("Obs", "two_state", gains)
+    with pytest.raises(ModelError, match=r"^Obs: gains must be an ObserverGains; got dict"):
+        require_observer_arguments("Obs", system, {})
+    other = random_gains(system)
+    with pytest.raises(ModelError, match=r"^gains\.L differs from design\.L"):
+        require_observer_arguments("Obs", system, other, paper_design)

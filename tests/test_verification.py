@@ -204,6 +204,7 @@ def test_scheduled_observer_verifies_every_design_it_puts_in_force(paper_scenari
     import dataclasses
 
     from ofrl_drake import simulate
+    from ofrl_drake.observer import unpack_gains
     from ofrl_drake.systems.scheduled_observer import VERIFY_SAMPLES
 
     s = dataclasses.replace(
@@ -216,7 +217,8 @@ def test_scheduled_observer_verifies_every_design_it_puts_in_force(paper_scenari
     r = simulate(s, design=paper_design, progress=False)
     system = make_system("two_state")
     logged, P, box = r.extra["verification"], r.extra["lyapunov_matrix"], r.extra["certified_box"]
-    gains = r.extra["observer_gains"]
+    n, q = system.n, system.q
+    L, H, K = unpack_gains(r.extra["observer_gains"], n, q)
     assert logged.shape == (r.t.size, 3)
     # Before the first re-solve: the initial (paper) design, falsified.
     first = verify_observer(paper_design, system, samples=VERIFY_SAMPLES, seed=0, refine=False)
@@ -226,13 +228,13 @@ def test_scheduled_observer_verifies_every_design_it_puts_in_force(paper_scenari
         k = int(np.argmin(np.abs(r.t - t)))
         design = ObserverDesign.from_gains(
             system,
-            (box[k, :2], box[k, 2:]),
+            (box[k, :n], box[k, n:]),
             s.input_bound,
             s.observer.alpha,
-            L=gains[k, 0:2].reshape(2, 1),
-            H=gains[k, 2:4].reshape(2, 1),
-            K=gains[k, 4:6].reshape(2, 1),
-            P=P[k].reshape(2, 2),
+            L=L[k],
+            H=H[k],
+            K=K[k],
+            P=P[k].reshape(n, n),
             formulation=s.observer.formulation,
         )
         again = verify_observer(design, system, samples=VERIFY_SAMPLES, seed=count, refine=False)

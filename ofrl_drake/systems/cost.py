@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import BasicVector, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.checks import nonnegative_matrix, positive_number, positive_vector
-from ofrl_drake.cost import raise_input_out_of_bound, stage_cost_rate
+from ofrl_drake.cost import check_cost_arguments, raise_input_out_of_bound, stage_cost_rate
 from ofrl_drake.drake_typing import drake_array, vector_value
 
 __all__ = ["RunningCost"]
@@ -45,10 +44,7 @@ class RunningCost(LeafSystem):
         self.Q = Q
         self.r = r
         self.input_bound = input_bound
-        self._Q = nonnegative_matrix("RunningCost: Q", Q)
-        self._r = positive_vector("RunningCost: r", r)
-        positive_number("RunningCost: input_bound", input_bound)
-        self._lbar = float(input_bound)
+        self._Q, self._r, self._lbar = check_cost_arguments("RunningCost", Q, r, input_bound)
         n, m = self._Q.shape[0], self._r.size
         self._state_index = self.DeclareContinuousState(BasicVector(drake_array([0.0])))
         self._x_port = self.DeclareVectorInputPort("state", n)

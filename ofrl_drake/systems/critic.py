@@ -10,7 +10,7 @@ from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSyste
 
 from ofrl_drake.bellman import critic_rate, packed_size
 from ofrl_drake.checks import finite_vector, positive_number
-from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_reader
+from ofrl_drake.drake_typing import DrakeArray, drake_array, set_state_vector, vector_reader
 
 __all__ = ["CriticWeights"]
 
@@ -78,8 +78,7 @@ class CriticWeights(LeafSystem):
 
     def set_weights(self, context: Context, W: ArrayLike) -> None:
         """Set the weights to ``W`` in ``context``, this block's own context."""
-        value: DrakeArray = finite_vector("CriticWeights: W", W, self._size)
-        context.SetContinuousState(value)
+        set_state_vector(context, W, self._size, "CriticWeights: W")
 
     def get_kc(self, context: Context) -> float:
         """The adaptation gain k_c in ``context`` (this block's own)."""

@@ -11,7 +11,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import AffineSystem
 
-from ofrl_drake.checks import finite_vector
+from ofrl_drake.checks import finite_vector, initial_vector
 from ofrl_drake.drake_typing import DrakeArray, drake_array
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, require_system
@@ -91,12 +91,7 @@ class DrakePlant(Diagram):
         n, m = system.n, system.m
         x_star, u_star = system.equilibrium
         x_eq, u_eq = drake_array(x_star), drake_array(u_star)
-        z0 = (
-            np.zeros(n)
-            if initial_state is None
-            else finite_vector(f"{system.name}: initial_state", initial_state, n)
-        )
-        x0: DrakeArray = z0 + x_eq
+        x0: DrakeArray = initial_vector(f"{system.name}: initial_state", initial_state, n) + x_eq
         plant = cast(MultibodyPlant, source_plant.Clone())  # pydrake stub: Clone() -> System
         nq = plant.num_positions()
         plant.SetDefaultPositions(drake_array(x0[:nq]))

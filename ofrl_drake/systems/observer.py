@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.checks import finite_vector
-from ofrl_drake.drake_typing import DrakeArray, vector_value
-from ofrl_drake.model import ControlAffineSystem, require_system
-from ofrl_drake.observer import ObserverGains, observer_rhs, require_gains
+from ofrl_drake.checks import initial_vector
+from ofrl_drake.drake_typing import DrakeArray, set_state_vector, vector_value
+from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.observer import ObserverGains, observer_rhs, require_observer_arguments
 from ofrl_drake.observer_certificate import ObserverCertificate
 
 if TYPE_CHECKING:  # annotations only
@@ -73,15 +72,8 @@ class ThreeGainObserver(LeafSystem):
         self.gains = gains
         self.initial_state = initial_state
         self.design = design
-        require_system(system, "ThreeGainObserver: system")
-        require_gains(gains, system, "ThreeGainObserver: gains")
-        if design is not None:
-            gains.check_design(design)
-        x0: DrakeArray = (
-            np.zeros(system.n)
-            if initial_state is None
-            else finite_vector("ThreeGainObserver: initial_state", initial_state, system.n)
-        )
+        require_observer_arguments("ThreeGainObserver", system, gains, design)
+        x0: DrakeArray = initial_vector("ThreeGainObserver: initial_state", initial_state, system.n)
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
         self._y_port = self.DeclareVectorInputPort("y", system.q)
         self._u_port = self.DeclareVectorInputPort("u", system.m)
@@ -101,8 +93,7 @@ class ThreeGainObserver(LeafSystem):
 
     def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        value: DrakeArray = finite_vector("ThreeGainObserver: xhat", xhat, self.system.n)
-        context.SetContinuousState(value)
+        set_state_vector(context, xhat, self.system.n, "ThreeGainObserver: xhat")
 
     def observer_certificate(self) -> ObserverCertificate:
         """The design and its box, or nothing when built without a design."""

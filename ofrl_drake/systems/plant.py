@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.checks import finite_vector
-from ofrl_drake.drake_typing import DrakeArray, vector_value
+from ofrl_drake.checks import initial_vector
+from ofrl_drake.drake_typing import DrakeArray, set_state_vector, vector_value
 from ofrl_drake.model import ControlAffineSystem, require_system
 
 __all__ = ["ControlAffinePlant"]
@@ -50,10 +49,8 @@ class ControlAffinePlant(LeafSystem):
         self.system = system
         self.initial_state = initial_state
         require_system(system, "ControlAffinePlant: system")
-        x0: DrakeArray = (
-            np.zeros(system.n)
-            if initial_state is None
-            else finite_vector("ControlAffinePlant: initial_state", initial_state, system.n)
+        x0: DrakeArray = initial_vector(
+            "ControlAffinePlant: initial_state", initial_state, system.n
         )
         self._C = system.output_matrix
         self._state_index = self.DeclareContinuousState(BasicVector(x0))
@@ -77,8 +74,7 @@ class ControlAffinePlant(LeafSystem):
 
     def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
-        value: DrakeArray = finite_vector("ControlAffinePlant: x", x, self.system.n)
-        context.SetContinuousState(value)
+        set_state_vector(context, x, self.system.n, "ControlAffinePlant: x")
 
     def _calc_y(self, context, output) -> None:
         x = context.get_continuous_state_vector().CopyToVector()

@@ -17,11 +17,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.systems.framework import BasicVector, Context, InputPort, LeafSystem, OutputPort
 
-from ofrl_drake.checks import finite_vector, positive_number, positive_vector
-from ofrl_drake.drake_typing import DrakeArray, drake_array, vector_value
+from ofrl_drake.checks import initial_vector, positive_number, positive_vector
+from ofrl_drake.drake_typing import DrakeArray, drake_array, set_state_vector, vector_value
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, require_system
-from ofrl_drake.observer import ObserverGains, observer_rhs
+from ofrl_drake.observer import ObserverGains, observer_rhs, pack_gains
 from ofrl_drake.observer_certificate import ObserverCertificate
 
 if TYPE_CHECKING:  # annotations only
@@ -133,14 +133,15 @@ class ScheduledThreeGainObserver(LeafSystem):
     Notes
     -----
     ``observer_gains`` is ``[vec(L), vec(H), vec(K)]`` (row-major, ``3 n q``
-    entries); ``certified_box`` is ``[lower, upper]`` (``2 n``) of the box
-    the gains in force are certified on; ``lyapunov_matrix`` is their ``P``
-    (row-major, ``n^2``) and ``certificate`` the largest eigenvalue of their
-    LMI over the input vertices (negative when certified), so every gain in
-    force can be re-checked in numpy from the logs
-    (:meth:`ObserverDesign.from_gains` with ``P`` and the logged box);
-    ``solve_failed`` is 1 after a
-    re-solve that found no certified design (the previous gains and box stay
+    entries: :func:`~ofrl_drake.observer.pack_gains`, read back with
+    :func:`~ofrl_drake.observer.unpack_gains`); ``certified_box`` is ``[lower,
+    upper]`` (``2 n``) of the box the gains in force are certified on;
+    ``lyapunov_matrix`` is their ``P`` (row-major, ``n^2``) and
+    ``certificate`` the largest eigenvalue of their LMI over the input
+    vertices (negative when certified), so every gain in force can be
+    re-checked in numpy from the logs (:meth:`ObserverDesign.from_gains` with
+    ``P`` and the logged box); ``solve_failed`` is 1 after a re-solve that
+    found no certified design (the previous gains and box stay
     in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
     failed]`` since the start; ``verification`` is ``[worst rate found, claimed
     rate -2 alpha, 1 if falsified else 0]`` of a falsification attempt
@@ -183,11 +184,7 @@ class ScheduledThreeGainObserver(LeafSystem):
         n, q = system.n, system.q
         self._gain_shape = (n, q)
         gains = ObserverGains.from_design(system, initial_design)
-        x0: DrakeArray = (
-            np.zeros(n)
-            if initial_state is None
-            else finite_vector("ScheduledThreeGainObserver: initial_state", initial_state, n)
-        )
+        x0: DrakeArray = initial_vector(f"{name}: initial_state", initial_state, n)
         self._xhat_index = self.DeclareContinuousState(BasicVector(x0))
         self._gains_index = self.DeclareDiscreteState(self._pack_gains(gains))
         self._bounds_index = self.DeclareDiscreteState(self._pack_bounds(gains))
@@ -268,8 +265,7 @@ class ScheduledThreeGainObserver(LeafSystem):
 
         The gains in force stay the initial design's until the first re-solve.
         """
-        value: DrakeArray = finite_vector("ScheduledThreeGainObserver: xhat", xhat, self.system.n)
-        context.get_mutable_continuous_state_vector().SetFromVector(value)
+        set_state_vector(context, xhat, self.system.n, f"{type(self).__name__}: xhat")
 
     def observer_certificate(self) -> ObserverCertificate:
         """Kind ``"scheduled"``: the initial design; the boxes in force are logged."""
@@ -293,13 +289,15 @@ class ScheduledThreeGainObserver(LeafSystem):
     # --------------------------------------------------------------- packing
     @staticmethod
     def _pack_gains(gains: ObserverGains) -> DrakeArray:
-        return np.concatenate([gains.L.ravel(), gains.H.ravel(), gains.K.ravel()])
+        return pack_gains(gains.L, gains.H, gains.K)
 
     @staticmethod
     def _pack_bounds(gains: ObserverGains) -> DrakeArray:
         return np.concatenate([gains.Mf1.ravel(), gains.Mg1.ravel(), gains.Mg2.ravel()])
 
     def _unpack(self, context) -> ObserverGains:
+        # Per derivative evaluation: the layout of pack_gains, read inline (no call
+        # to unpack_gains); tests/test_scheduled_observer.py pins the two together.
         n, m, q = self.system.n, self.system.m, self.system.q
         g = context.get_discrete_state(self._gains_index).get_value()
         b = context.get_discrete_state(self._bounds_index).get_value()

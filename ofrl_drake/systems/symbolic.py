@@ -58,16 +58,14 @@ from pydrake.systems.framework import (
 from pydrake.systems.primitives import MatrixGain, Multiplexer, SymbolicVectorSystem
 
 from ofrl_drake.basis import PolynomialBasis
-from ofrl_drake.checks import (
-    finite_vector,
-    nonnegative_matrix,
-    positive_number,
-    positive_vector,
-)
-from ofrl_drake.cost import stage_cost_expression
-from ofrl_drake.drake_typing import DrakeArray, SymbolicArray
+from ofrl_drake.cost import check_cost_arguments, stage_cost_expression
+from ofrl_drake.drake_typing import DrakeArray, SymbolicArray, set_state_vector
 from ofrl_drake.model import ControlAffineSystem, require_system
-from ofrl_drake.observer import ObserverGains, observer_rhs_expression, require_gains
+from ofrl_drake.observer import (
+    ObserverGains,
+    observer_rhs_expression,
+    require_observer_arguments,
+)
 from ofrl_drake.observer_certificate import ObserverCertificate
 from ofrl_drake.policy import check_policy_arguments, policy_expression
 
@@ -80,12 +78,6 @@ __all__ = [
     "SymbolicPlant",
     "SymbolicRunningCost",
 ]
-
-
-def _set_state(context: Context, value: ArrayLike, n: int, what: str) -> None:
-    """Write the state ``value`` (length ``n``) into a block's own ``context``."""
-    x: DrakeArray = finite_vector(what, value, n)
-    context.SetContinuousState(x)
 
 
 def _add_symbolic_system(
@@ -190,7 +182,7 @@ class SymbolicPlant(Diagram):
 
     def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the plant's state to ``x`` in ``context``, this block's own context."""
-        _set_state(context, x, self.system.n, f"{self.system.name}: x")
+        set_state_vector(context, x, self.system.n, "SymbolicPlant: x")
 
 
 class SymbolicObserver(Diagram):
@@ -241,10 +233,7 @@ class SymbolicObserver(Diagram):
         self.system = system
         self.gains = gains
         self.design = design
-        require_system(system, "SymbolicObserver: system")
-        require_gains(gains, system, "SymbolicObserver: gains")
-        if design is not None:
-            gains.check_design(design)
+        require_observer_arguments("SymbolicObserver", system, gains, design)
         model = system.symbolic()
         xhat: SymbolicArray = MakeVectorVariable(system.n, "xhat")
         y: SymbolicArray = MakeVectorVariable(system.q, "y")
@@ -274,7 +263,7 @@ class SymbolicObserver(Diagram):
 
     def set_estimated_state(self, context: Context, xhat: ArrayLike) -> None:
         """Set the estimate to ``xhat`` in ``context``, this block's own context."""
-        _set_state(context, xhat, self.system.n, f"{self.system.name}: xhat")
+        set_state_vector(context, xhat, self.system.n, "SymbolicObserver: xhat")
 
     def observer_certificate(self) -> ObserverCertificate:
         """The design and its box, or nothing when built without a design."""
@@ -400,14 +389,12 @@ class SymbolicRunningCost(Diagram):
         self.Q = Q
         self.r = r
         self.input_bound = input_bound
-        Q_arr = nonnegative_matrix("SymbolicRunningCost: Q", Q)
-        r_arr = positive_vector("SymbolicRunningCost: r", r)
-        positive_number("SymbolicRunningCost: input_bound", input_bound)
+        Q_arr, r_arr, lbar = check_cost_arguments("SymbolicRunningCost", Q, r, input_bound)
         n, m = Q_arr.shape[0], r_arr.size
         J: SymbolicArray = MakeVectorVariable(1, "J")
         x: SymbolicArray = MakeVectorVariable(n, "x")
         u: SymbolicArray = MakeVectorVariable(m, "u")
-        rate = stage_cost_expression(x, u, Q_arr, r_arr, float(input_bound))
+        rate = stage_cost_expression(x, u, Q_arr, r_arr, lbar)
         builder = DiagramBuilder()
         integrand, (state_index, u_index) = _add_symbolic_system(
             builder, "stage_cost", [("state", x), ("u", u)], state=J, dynamics=[rate], output=J
