@@ -451,25 +451,42 @@ def _check_output_file(out: str, scenario: str) -> Path:
     return check_writable(target)
 
 
-def _cmd_design_observer(args: argparse.Namespace) -> int:
+def _scenario_design(
+    args: argparse.Namespace, out: str | None
+) -> tuple[Any, ControlAffineSystem, ObserverDesign]:
+    """The scenario, system and observer design of ``design-observer`` and ``verify-observer``.
+
+    ``out`` (the ``--out`` file, None for none) is checked after the scenario
+    is read and before the design: fail before the work, not after.
+
+    Raises
+    ------
+    OfrlError
+        From :func:`_with_max_wall`, :func:`_check_output_file` (``OutputError``),
+        loading the scenario, resolving its system or designing.
+    """
     from ofrl_drake.plants import resolve_system
     from ofrl_drake.scenario import load_scenario
     from ofrl_drake.variants import design_for
-    from ofrl_drake.verification import verify_observer
 
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
-    _check_output_file(args.out, args.scenario)  # fail before the work, not after
+    if out is not None:
+        _check_output_file(out, args.scenario)  # fail before the work, not after
     system = resolve_system(scenario)
-    design = design_for(scenario, system)
+    return scenario, system, design_for(scenario, system)
+
+
+def _cmd_design_observer(args: argparse.Namespace) -> int:
+    from ofrl_drake.verification import verify_observer
+
+    _, system, design = _scenario_design(args, args.out)
     verification = verify_observer(design, system)  # the fast check shown next to every design
     data = design.to_dict()
     data["verification"] = verification.to_dict()
     atomic_write_text(Path(args.out), json.dumps(data, indent=2) + "\n")
-    worst = max(v for _, v in design.certificate())
     print(
-        f"wrote {args.out}: alpha = {design.alpha}, ||L|| = "
-        f"{float(__import__('numpy').linalg.norm(design.L, 2)):.4g}, "
-        f"max certificate eigenvalue = {worst:.3g}"
+        f"wrote {args.out}: alpha = {design.alpha}, ||L|| = {design.gain_norm:.4g}, "
+        f"max certificate eigenvalue = {design.max_eigenvalue:.3g}"
     )
     print(f"observer: {verification.verdict(design.is_decay_certified)}")
     return EXIT_OK
@@ -487,16 +504,9 @@ def _verify(
 
 
 def _cmd_verify_observer(args: argparse.Namespace) -> int:
-    from ofrl_drake.plants import resolve_system
-    from ofrl_drake.scenario import load_scenario
-    from ofrl_drake.variants import design_for
     from ofrl_drake.verification import verify_observer
 
-    scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
-    if args.out:
-        _check_output_file(args.out, args.scenario)  # fail before the work, not after
-    system = resolve_system(scenario)
-    design = design_for(scenario, system)
+    scenario, system, design = _scenario_design(args, args.out or None)
     report = verify_observer(design, system, samples=args.samples, seed=args.seed)
     if args.out:
         data = {

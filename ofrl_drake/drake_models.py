@@ -48,7 +48,7 @@ from ofrl_drake.checks import integer_at_least
 from ofrl_drake.drake_typing import input_port_names
 from ofrl_drake.errors import ModelError
 from ofrl_drake.expression_function import ExpressionFunction
-from ofrl_drake.multibody_bounds import MultibodyStructure, multibody_structure
+from ofrl_drake.multibody_bounds import MultibodyStructure, _symbolic_state, multibody_structure
 
 __all__ = [
     "AFFINITY_POINTS",
@@ -713,18 +713,8 @@ def _multibody_equations(
     plant: Any, nq: int, nv: int, nu: int
 ) -> tuple[ExpressionFunction, ExpressionFunction]:
     """``f`` and ``g`` of :func:`extract_multibody` from the symbolic plant."""
-    from pydrake.multibody.tree import MultibodyForces_
-
-    symbolic = plant.ToSymbolic()
-    context = symbolic.CreateDefaultContext()
-    q = MakeVectorVariable(nq, "q")
-    v = MakeVectorVariable(nv, "v")
-    symbolic.SetPositions(context, [Expression(s) for s in q])
-    symbolic.SetVelocities(context, [Expression(s) for s in v])
-    qdot = np.asarray(symbolic.MapVelocityToQDot(context, [Expression(s) for s in v]))
+    symbolic, context, q, v, qdot, forces = _symbolic_state(plant)
     M = np.asarray(symbolic.CalcMassMatrix(context))
-    forces = MultibodyForces_[Expression](symbolic)
-    symbolic.CalcForceElementsContribution(context, forces)
     if plant.num_force_elements() == 1:  # the gravity field only
         tau = (
             np.asarray(symbolic.CalcGravityGeneralizedForces(context))

@@ -266,6 +266,44 @@ def _jacobian_evaluator(structure: MultibodyStructure) -> ExpressionEvaluator:
     return evaluator
 
 
+def _symbolic_state(
+    plant: Any,
+) -> tuple[Any, Any, np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray, Any]:
+    """``plant`` made symbolic at the state ``x = [q; v]`` of new variables.
+
+    Parameters
+    ----------
+    plant : MultibodyPlant
+        Finalized and continuous.
+
+    Returns
+    -------
+    symbolic : MultibodyPlant_[Expression]
+        ``plant.ToSymbolic()``.
+    context : Context_[Expression]
+        Its default context, with positions ``q`` and velocities ``v``.
+    q, v : numpy.ndarray of Variable
+        The variables ``q(0), ...`` and ``v(0), ...``.
+    qdot : numpy.ndarray of Expression
+        ``MapVelocityToQDot(v)``.
+    forces : MultibodyForces_[Expression]
+        The forces of the force elements (``CalcForceElementsContribution``).
+    """
+    from pydrake.multibody.tree import MultibodyForces_
+    from pydrake.symbolic import MakeVectorVariable
+
+    symbolic = plant.ToSymbolic()
+    context = symbolic.CreateDefaultContext()
+    q = MakeVectorVariable(plant.num_positions(), "q")
+    v = MakeVectorVariable(plant.num_velocities(), "v")
+    symbolic.SetPositions(context, [Expression(s) for s in q])
+    symbolic.SetVelocities(context, [Expression(s) for s in v])
+    qdot = np.asarray(symbolic.MapVelocityToQDot(context, [Expression(s) for s in v]))
+    forces = MultibodyForces_[Expression](symbolic)
+    symbolic.CalcForceElementsContribution(context, forces)
+    return symbolic, context, q, v, qdot, forces
+
+
 def multibody_structure(plant: Any) -> MultibodyStructure:
     """The :class:`MultibodyStructure` of a finalized continuous ``MultibodyPlant``.
 
@@ -291,19 +329,10 @@ def multibody_structure(plant: Any) -> MultibodyStructure:
     -------
     MultibodyStructure
     """
-    from pydrake.multibody.tree import JointIndex, MultibodyForces_
-    from pydrake.symbolic import MakeVectorVariable
+    from pydrake.multibody.tree import JointIndex
 
-    nq, nv = plant.num_positions(), plant.num_velocities()
-    symbolic = plant.ToSymbolic()
-    context = symbolic.CreateDefaultContext()
-    q = MakeVectorVariable(nq, "q")
-    v = MakeVectorVariable(nv, "v")
-    symbolic.SetPositions(context, [Expression(s) for s in q])
-    symbolic.SetVelocities(context, [Expression(s) for s in v])
-    qdot = np.asarray(symbolic.MapVelocityToQDot(context, [Expression(s) for s in v]))
-    forces = MultibodyForces_[Expression](symbolic)
-    symbolic.CalcForceElementsContribution(context, forces)
+    nq = plant.num_positions()
+    symbolic, context, q, v, qdot, forces = _symbolic_state(plant)
     applied = np.asarray(symbolic.CalcGeneralizedForces(context, forces))
     rooted = np.zeros(nq, dtype=bool)
     for i in range(plant.num_joints()):
@@ -319,7 +348,7 @@ def multibody_structure(plant: Any) -> MultibodyStructure:
     # numpy's object loops flag "invalid value" on Drake expressions; harmless.
     with np.errstate(invalid="ignore"):
         tau = applied - bias
-    return MultibodyStructure(q, v, qdot, M, tau, B)  # type: ignore[arg-type]  # pydrake array stub
+    return MultibodyStructure(q, v, qdot, M, tau, B)
 
 
 # --------------------------------------------------------------- the encloser

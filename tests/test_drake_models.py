@@ -79,25 +79,34 @@ def test_from_drake_input_port_by_name_and_errors():
         ControlAffineSystem.from_drake(plant, [[1.0, 0.0, 0.0]])
 
 
-@TemplateSystem.define("_Quadratic_")
-def _Quadratic_(T):
-    class Impl(LeafSystem_[T]):
-        """x0' = x1, x1' = u**2 - x0: not affine in u (row 1)."""
+def _affine_test_system(name, n, rhs):
+    """The ``TemplateSystem`` ``name``: ``n`` states, one input port ``u``, ``x' = rhs(T, x, u)``.
 
-        def _construct(self, converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            self.DeclareContinuousState(2)
-            self._u = self.DeclareVectorInputPort("u", 1)
+    ``T`` is the scalar type, ``x`` the state and ``u`` the input, both as vectors.
+    """
 
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, converter=converter)
+    def instantiate(T):
+        class Impl(LeafSystem_[T]):
+            def _construct(self, converter=None):
+                LeafSystem_[T].__init__(self, converter)
+                self.DeclareContinuousState(n)
+                self._u = self.DeclareVectorInputPort("u", 1)
 
-        def DoCalcTimeDerivatives(self, context, derivatives):
-            x = context.get_continuous_state_vector().CopyToVector()
-            u = self._u.Eval(context)
-            derivatives.get_mutable_vector().SetFromVector([x[1], u[0] ** 2 - x[0]])
+            def _construct_copy(self, other, converter=None):
+                Impl._construct(self, converter=converter)
 
-    return Impl
+            def DoCalcTimeDerivatives(self, context, derivatives):
+                x = context.get_continuous_state_vector().CopyToVector()
+                xdot = rhs(T, x, self._u.Eval(context))
+                derivatives.get_mutable_vector().SetFromVector(xdot)
+
+        return Impl
+
+    return TemplateSystem.define(name)(instantiate)
+
+
+# x0' = x1, x1' = u**2 - x0: not affine in u (row 1).
+_Quadratic_ = _affine_test_system("_Quadratic_", 2, lambda T, x, u: [x[1], u[0] ** 2 - x[0]])
 
 
 def test_from_drake_non_affine_leaf_system_names_its_row():
@@ -239,48 +248,19 @@ def test_quadrotor_check_points_at_gimbal_lock_are_left_out():
     assert extract_drake_system(QuadrotorPlant(), seed=0).n == 12
 
 
-@TemplateSystem.define("_SineAndIdentity_")
-def _SineAndIdentity_(T):
-    class Impl(LeafSystem_[T]):
-        """x0' = sin(u) (not affine, row 0); x1' = u (sin^2 u + cos^2 u) - x0 (affine)."""
-
-        def _construct(self, converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            self.DeclareContinuousState(2)
-            self._u = self.DeclareVectorInputPort("u", 1)
-
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, converter=converter)
-
-        def DoCalcTimeDerivatives(self, context, derivatives):
-            x = context.get_continuous_state_vector().CopyToVector()
-            u = self._u.Eval(context)[0]
-            one = pmath.sin(u) ** 2 + pmath.cos(u) ** 2  # 1, which Expand does not see
-            derivatives.get_mutable_vector().SetFromVector([pmath.sin(u), u * one - x[0]])
-
-    return Impl
+def _one(u):
+    """``sin^2 u + cos^2 u``: 1, which Expand does not see."""
+    return pmath.sin(u) ** 2 + pmath.cos(u) ** 2
 
 
-@TemplateSystem.define("_TrigIdentity_")
-def _TrigIdentity_(T):
-    class Impl(LeafSystem_[T]):
-        """x0' = x1, x1' = u (sin^2 u + cos^2 u) - x0: affine, but u survives Expand."""
-
-        def _construct(self, converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            self.DeclareContinuousState(2)
-            self._u = self.DeclareVectorInputPort("u", 1)
-
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, converter=converter)
-
-        def DoCalcTimeDerivatives(self, context, derivatives):
-            x = context.get_continuous_state_vector().CopyToVector()
-            u = self._u.Eval(context)[0]
-            one = pmath.sin(u) ** 2 + pmath.cos(u) ** 2
-            derivatives.get_mutable_vector().SetFromVector([x[1], u * one - x[0]])
-
-    return Impl
+# x0' = sin(u) (not affine, row 0); x1' = u (sin^2 u + cos^2 u) - x0 (affine).
+_SineAndIdentity_ = _affine_test_system(
+    "_SineAndIdentity_", 2, lambda T, x, u: [pmath.sin(u[0]), u[0] * _one(u[0]) - x[0]]
+)
+# x0' = x1, x1' = u (sin^2 u + cos^2 u) - x0: affine, but u survives Expand.
+_TrigIdentity_ = _affine_test_system(
+    "_TrigIdentity_", 2, lambda T, x, u: [x[1], u[0] * _one(u[0]) - x[0]]
+)
 
 
 def test_from_drake_sin_u_is_refused_naming_its_row_the_tolerance_and_the_points():
@@ -305,26 +285,14 @@ def test_from_drake_accepts_an_input_matrix_that_is_constant_only_numerically():
     np.testing.assert_allclose(model.f_batch(X), [X[1], -X[0]], rtol=0, atol=0)
 
 
-@TemplateSystem.define("_DoubleFails_")
-def _DoubleFails_(T):
-    class Impl(LeafSystem_[T]):
-        """x' = -x + u symbolically; the double path always throws."""
+def _double_fails(T, x, u):
+    """x' = -x + u symbolically; the double path always throws."""
+    if T is float:
+        raise RuntimeError("no double derivatives here")
+    return [-x[0] + u[0]]
 
-        def _construct(self, converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            self.DeclareContinuousState(1)
-            self._u = self.DeclareVectorInputPort("u", 1)
 
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, converter=converter)
-
-        def DoCalcTimeDerivatives(self, context, derivatives):
-            if T is float:
-                raise RuntimeError("no double derivatives here")
-            x = context.get_continuous_state_vector().CopyToVector()
-            derivatives.get_mutable_vector().SetFromVector([-x[0] + self._u.Eval(context)[0]])
-
-    return Impl
+_DoubleFails_ = _affine_test_system("_DoubleFails_", 1, _double_fails)
 
 
 @pytest.mark.parametrize("points", [0, -3, 2.5, True])
@@ -364,26 +332,13 @@ def test_drake_models_sits_below_model_in_the_import_graph():
     assert "drake_models" in GRAPH["model"]
 
 
-@TemplateSystem.define("_TwoFaced_")
-def _TwoFaced_(T):
-    class Impl(LeafSystem_[T]):
-        """Affine for symbolic scalars, but u**3 in row 1 in double precision."""
+def _two_faced(T, x, u):
+    """Affine for symbolic scalars, but u**3 in row 1 in double precision."""
+    push = u[0] ** 3 if T is float else u[0]
+    return [x[1], push - x[0]]
 
-        def _construct(self, converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            self.DeclareContinuousState(2)
-            self._u = self.DeclareVectorInputPort("u", 1)
 
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, converter=converter)
-
-        def DoCalcTimeDerivatives(self, context, derivatives):
-            x = context.get_continuous_state_vector().CopyToVector()
-            u = self._u.Eval(context)[0]
-            push = u**3 if T is float else u
-            derivatives.get_mutable_vector().SetFromVector([x[1], push - x[0]])
-
-    return Impl
+_TwoFaced_ = _affine_test_system("_TwoFaced_", 2, _two_faced)
 
 
 def test_from_drake_numerical_check_compares_with_the_double_system():
