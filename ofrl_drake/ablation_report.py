@@ -23,12 +23,13 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from ofrl_drake.ablation import load_run
 from ofrl_drake.ablation_metrics import settling_time
 from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.optimal import Trajectory
-from ofrl_drake.plotting import numerical_floor, save_png, shade_numerical_floor
+from ofrl_drake.plotting import _power_of_ten, numerical_floor, save_png
 
 __all__ = [
     "REPORT_METRICS",
@@ -127,6 +128,34 @@ def plot_optimality_ratio(rows: Sequence[Mapping[str, Any]], variants: Sequence[
     return fig
 
 
+def _at_floor(t: np.ndarray, norm: np.ndarray) -> int | None:
+    """Index from which a run's ``norm`` shows only integration error, or None.
+
+    The first sample at or below the run's own floor
+    (:func:`~ofrl_drake.plotting.numerical_floor`); None when the run has no
+    floor (it still decays, or never settled).
+    """
+    floor = numerical_floor(t, norm)
+    if floor is None:
+        return None
+    below = np.flatnonzero(norm <= floor)
+    return int(below[0]) if below.size else None
+
+
+def _log_magnitude(values: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``values`` with exact zeros as NaN (a log axis cannot draw them); whether any were."""
+    zero = values == 0.0
+    return np.where(zero, np.nan, values), bool(np.any(zero))
+
+
+def _window(start: float, end: float) -> str:
+    return f"t = {start:g} to {end:.4g} s"
+
+
+#: Alpha of the part of a run's ``|x|`` that is only integrator error.
+FLOOR_ALPHA = 0.3
+
+
 def plot_trajectories(
     runs_dir: str | os.PathLike[str],
     variants: Sequence[str],
@@ -139,13 +168,21 @@ def plot_trajectories(
 
     One panel per state component, zoomed on the transient (until every run has
     settled, :func:`~ofrl_drake.ablation_metrics.settling_time`), and a last
-    panel with ``|x(t)|`` on a log scale over the whole horizon. The optimal
-    trajectory behind ``J*``, if given, is drawn dashed in black. With an
-    ``equilibrium`` x* the runs are in ``x - x*``, and the axes say so. On the log
-    panel, the band below the level where the settled runs show only integration
-    error (:func:`~ofrl_drake.plotting.numerical_floor`, the integrator's
-    ``accuracy`` if given) is shaded and labelled. The legend sits outside the
-    axes.
+    panel with ``|x(t)|`` on a log scale over the whole horizon; the titles name
+    the time window of each. The optimal trajectory behind ``J*``, if given, is
+    drawn dashed in black. With an ``equilibrium`` x* the runs are in
+    ``x - x*``, and the axes say so. The legend sits outside the axes.
+
+    On the log panel, each run that ends on its own integrator error floor
+    (:func:`~ofrl_drake.plotting.numerical_floor`) is drawn faded, in its own
+    colour, from the first time it reaches that floor; the legend names the
+    integrator's ``accuracy`` if given. The floor is per run, not a band across
+    the axes: the runs of one sweep end on different floors, and some (a linear
+    loop, the true state fed back) decay cleanly through the others' floors to
+    round-off, which a band at the highest floor would label integration
+    error. The lower y-limit is the smallest positive value drawn; exact zeros
+    cannot be drawn on a log axis, and the panel's title says so when a run has
+    any (no value is clipped).
     """
     runs = {name: run for name in variants if (run := load_run(runs_dir, name, initial_state))}
     curves = [(name, run["t"], run["x"]) for name, run in runs.items()]
@@ -155,11 +192,24 @@ def plot_trajectories(
     fig = Figure(figsize=(9.0, 2.2 * (n + 1) + 0.6), layout="constrained")
     axes = fig.subplots(n + 1, 1, squeeze=False)[:, 0]
     horizon, settled = 0.0, 0.0
+    smallest, zeros, faded = math.inf, [], False
     for k, (name, t, x) in enumerate(curves):
-        style = {"color": "k", "ls": "--"} if name == "optimal (J*)" else {"color": f"C{k % 10}"}
+        optimal = name == "optimal (J*)"
+        style = {"color": "k", "ls": "--"} if optimal else {"color": f"C{k % 10}"}
         for i in range(n):
             axes[i].plot(t, x[:, i], lw=1.3, label=name, **style)
-        axes[n].semilogy(t, np.maximum(np.linalg.norm(x, axis=1), 1e-16), lw=1.1, **style)
+        norm, has_zero = _log_magnitude(np.linalg.norm(x, axis=1))
+        if has_zero:
+            zeros.append(name)
+        positive = norm[np.isfinite(norm)]
+        smallest = min(smallest, float(positive.min()) if positive.size else math.inf)
+        # The sawtooth a settled run ends in is the integrator's error, not behaviour.
+        start = None if optimal else _at_floor(t, np.linalg.norm(x, axis=1))
+        end = norm.size if start is None else start + 1
+        axes[n].semilogy(t[:end], norm[:end], lw=1.1, **style)
+        if start is not None:
+            axes[n].semilogy(t[start:], norm[start:], lw=0.9, alpha=FLOOR_ALPHA, **style)
+            faded = True
         horizon = max(horizon, float(t[-1]))
         ts = settling_time(t, x)
         settled = max(settled, ts if math.isfinite(ts) else float(t[-1]))
@@ -170,23 +220,25 @@ def plot_trajectories(
         axes[i].set_xlim(0.0, zoom or 1.0)
     axes[n].set_ylabel(r"$\|x\|$" if equilibrium is None else r"$\|x - x^*\|$")
     axes[n].set_xlim(0.0, horizon or 1.0)
-    simulated = [(t, x) for name, t, x in curves if name != "optimal (J*)"]
-    floors = [numerical_floor(t, np.linalg.norm(x, axis=1)) for t, x in simulated]
-    known = [f for f in floors if f is not None]
-    # The sawtooth every settled run ends in is the integrator's error, not behaviour.
-    shade_numerical_floor(axes[n], max(known) if known else None, accuracy)
+    if math.isfinite(smallest):
+        axes[n].set_ylim(bottom=10.0 ** math.floor(math.log10(smallest)))
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.set_xlabel(r"time $t$ [s]")
     title = f"state from x0 = {initial_state}"
     if equilibrium is not None:
         title = f"state relative to x* = {list(equilibrium)}, from x0 - x* = {initial_state}"
-    axes[0].set_title(title, fontsize=10)
+    window = "the whole horizon" if zoom >= horizon else "the transient"
+    axes[0].set_title(f"{title}; state panels {_window(0.0, zoom or 1.0)} ({window})", fontsize=10)
+    log_title = f"norm on a log scale, {_window(0.0, horizon or 1.0)} (the whole horizon)"
+    if zeros:
+        log_title += f"; exact zeros not drawn ({', '.join(zeros)})"
+    axes[n].set_title(log_title, fontsize=9)
     handles, labels = axes[0].get_legend_handles_labels()
-    for h, lab in zip(*axes[n].get_legend_handles_labels(), strict=True):
-        if lab.startswith("integrator"):
-            handles.append(h)
-            labels.append(lab)
+    if faded:
+        note = f", accuracy {_power_of_ten(accuracy)}" if accuracy else ""
+        handles.append(Line2D([], [], color="0.3", lw=2.0, alpha=FLOOR_ALPHA))
+        labels.append(f"faded: at the run's integrator\nerror floor (log panel{note})")
     if handles:
         fig.legend(handles, labels, loc="outside right upper", fontsize=8, frameon=False)
     return fig

@@ -30,6 +30,7 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -48,8 +49,10 @@ __all__ = [
     "CSV_COLUMNS",
     "FILES",
     "RUNS_PER_TASK",
+    "IdenticalRunsWarning",
     "MonteCarloError",
     "envelope_samples",
+    "identical_runs",
     "montecarlo",
     "montecarlo_table",
     "read_montecarlo_rows",
@@ -201,7 +204,10 @@ def _one_run(
     row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)
     row["cost"] = float(result.cost[-1])
     row["wall_time"] = time.perf_counter() - start
-    return {"row": row, "logs": {"t": result.t, "x": result.original("x")}}
+    logs = {"t": result.t, "x": result.original("x")}
+    if result.state_units is not None:  # for the envelope's axes
+        logs["state_units"] = np.asarray(result.state_units, dtype=str)
+    return {"row": row, "logs": logs}
 
 
 def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) -> list[dict]:
@@ -425,13 +431,82 @@ def envelope_samples(
     return grid, stack
 
 
+class IdenticalRunsWarning(UserWarning):
+    """Every run of a Monte Carlo sweep gave the same trajectory (nothing varied)."""
+
+
+def identical_runs(logs: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
+    """Whether two or more runs' ``(t, x)`` logs are all equal, bit for bit.
+
+    Without a mass spread the runs differ only in their measurement seed, which
+    changes nothing when the scenario has no measurement noise: the envelope
+    is then a band of width 0, and the report says so instead.
+    """
+    if len(logs) < 2:
+        return False
+    t0, x0 = logs[0]
+    return all(np.array_equal(t, t0) and np.array_equal(x, x0) for t, x in logs[1:])
+
+
+def _identical_note(rows: Sequence[dict], count: int) -> str:
+    """One line: the ``count`` runs logged in ``runs/`` are identical, why, and the fix."""
+    spread = any(json.loads(r["perturbation"]) for r in rows)
+    why = (
+        ""
+        if spread
+        else " (no --mass-spread, and the scenario has no measurement noise: the runs' "
+        "noise seeds change nothing)"
+    )
+    return (
+        f"the {count} runs are identical, bit for bit{why}; the envelope is their one curve. "
+        "For runs that differ, give measurement.noise_std (with measurement.period > 0) "
+        "or --mass-spread."
+    )
+
+
+def _state_units(runs: Sequence[Mapping[str, Any]]) -> list[str] | None:
+    """The model's state units saved with the runs (``state_units``), or None if unknown."""
+    for arrays in runs:
+        if "state_units" in arrays:
+            return [str(u) for u in arrays["state_units"]]
+    return None
+
+
+def _unit(units: Sequence[str] | None, i: int) -> str:
+    """`` [m]`` for state entry ``i``, as the run's figures write it; empty if unknown.
+
+    (:mod:`ofrl_drake.plotting` reads the units off a ``SimulationResult``; a
+    sweep keeps only its runs' arrays.)
+    """
+    return f" [{units[i]}]" if units and units[i] else ""
+
+
 def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], name: str) -> None:
-    """``montecarlo.md`` and ``figures/envelope.png`` (the state envelope across runs)."""
+    """``montecarlo.md`` and ``figures/envelope.png`` (the state envelope across runs).
+
+    The envelope has one panel per state component (in the plant's own
+    coordinates, with the model's units when it knows them), the legend below
+    the panels. When the logged runs are all identical (:func:`identical_runs`),
+    it draws their one curve instead of a band of width 0, and ``montecarlo.md``
+    and an :class:`IdenticalRunsWarning` say so in one line.
+
+    Warns
+    -----
+    IdenticalRunsWarning
+        If two or more runs were logged and they are all identical.
+    """
     import matplotlib.pyplot as plt
 
     from ofrl_drake.plotting import save_png  # matplotlib only when a report is written
 
     out = Path(out)
+    saved = [
+        arrays
+        for r in rows
+        if (arrays := load_arrays(out / "runs" / f"seed_{r['seed']}.npz")) is not None
+    ]
+    logs = [(arrays["t"], arrays["x"]) for arrays in saved]
+    same = identical_runs(logs)
     failed = [r for r in rows if not (r["status"] == "ok" and r["regulated"] == "true")]
     text = [
         f"# Monte Carlo: {name}",
@@ -441,29 +516,34 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
         "and x, xhat inside the box).",
         "",
         montecarlo_table(rows),
-        "Runs that did not succeed:" if failed else "Every run succeeded.",
-        "",
     ]
+    if same:
+        note = _identical_note(rows, len(logs))
+        text += [note[0].upper() + note[1:], ""]
+        warnings.warn(IdenticalRunsWarning(f"montecarlo {name}: {note}"), stacklevel=2)
+    text += ["Runs that did not succeed:" if failed else "Every run succeeded.", ""]
     text += [f"- seed {r['seed']} ({r['perturbation']}): {r['status']}" for r in failed]
     atomic_write_text(out / "montecarlo.md", "\n".join(text) + "\n")
-    logs = []
-    for r in rows:
-        arrays = load_arrays(out / "runs" / f"seed_{r['seed']}.npz")
-        if arrays is not None:
-            logs.append((arrays["t"], arrays["x"]))
     if not logs:
         return
     n = logs[0][1].shape[1]
-    fig, axes = plt.subplots(n, 1, figsize=(6.5, 1.8 * n), sharex=True, layout="constrained")
+    units = _state_units(saved)
+    fig, axes = plt.subplots(n, 1, figsize=(6.5, 1.8 * n + 0.4), sharex=True, layout="constrained")
     axes = np.atleast_1d(axes)
     grid, stack = envelope_samples(logs)
     for i, ax in enumerate(axes):
-        lower, upper = np.nanmin(stack[:, :, i], axis=0), np.nanmax(stack[:, :, i], axis=0)
-        ax.fill_between(grid, lower, upper, alpha=0.3, label="min-max")
-        ax.plot(grid, np.nanmedian(stack[:, :, i], axis=0), lw=1.2, label="median")
-        ax.set_ylabel(f"$x_{i + 1}$")
-    axes[-1].set_xlabel("t [s]")
-    axes[0].legend(loc="upper right", fontsize=8)
-    fig.suptitle(f"{name}: state envelope over {len(logs)} runs")
+        if same:
+            ax.plot(grid, stack[0, :, i], lw=1.2, label=f"all {len(logs)} runs (identical)")
+        else:
+            lower, upper = np.nanmin(stack[:, :, i], axis=0), np.nanmax(stack[:, :, i], axis=0)
+            ax.fill_between(grid, lower, upper, alpha=0.3, label="min-max")
+            ax.plot(grid, np.nanmedian(stack[:, :, i], axis=0), lw=1.2, label="median")
+        ax.set_ylabel(f"$x_{{{i + 1}}}${_unit(units, i)}")
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel(r"time $t$ [s]")
+    what = f"{len(logs)} identical runs" if same else f"state envelope over {len(logs)} runs"
+    fig.suptitle(f"{name}: {what}")
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncols=len(handles), frameon=False)
     (out / "figures").mkdir(exist_ok=True)
     save_png(fig, out / "figures" / "envelope.png", 150)

@@ -733,3 +733,106 @@ def test_a_count_of_initial_states_is_a_whole_number(count):
 
     with pytest.raises(AblationError, match=r"^count \(--initial-states\) must be an integer >= 0"):
         sample_initial_states(load_scenario(PAPER_SCENARIO), count, 0)
+
+
+# ------------------------------------------------------------ trajectories.png
+def _saved_runs(tmp_path, runs, label="[1.0, 0.0]"):
+    """``runs/`` holding ``{variant: (t, x)}`` as ``ablate`` saves them."""
+    from ofrl_drake.ablation import _run_name
+
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    for name, (t, x) in runs.items():
+        np.savez(folder / _run_name(name, label), t=t, x=x)
+    return folder, label
+
+
+#: 30 s sampled every 10 ms, as a paper run's log.
+T = np.linspace(0.0, 30.0, 3001)
+
+
+def _clean_and_floored():
+    """A run that decays to 1e-13 (no floor) and one that ends on a sawtooth at 1e-6."""
+    clean = np.exp(-T)
+    saw = 1e-6 * (0.1 + 0.9 * ((T * 2.0) % 1.0))  # an error-controlled integrator's floor
+    floored = np.maximum(np.exp(-T), saw)
+    zero = np.zeros_like(T)
+    return {
+        "clean": (T, np.column_stack([clean, zero])),
+        "floored": (T, np.column_stack([floored, zero])),
+    }
+
+
+def _log_lines(ax, color):
+    from matplotlib.colors import to_hex
+
+    return [line for line in ax.get_lines() if to_hex(line.get_color()) == to_hex(color)]
+
+
+def test_trajectories_shade_no_floor_a_clean_run_decays_through(tmp_path):
+    # The band "integrator error floor" was the largest floor of all runs, across the
+    # whole axes: the linear observers and the true state, which decay cleanly to 1e-16,
+    # crossed it and read as integration error.
+    from ofrl_drake.ablation_report import plot_trajectories
+    from ofrl_drake.plotting import numerical_floor
+
+    runs = _clean_and_floored()
+    folder, label = _saved_runs(tmp_path, runs)
+    fig = plot_trajectories(folder, ["clean", "floored"], label, accuracy=1e-4)
+    log = fig.axes[-1]
+    clean = np.linalg.norm(runs["clean"][1], axis=1)
+    to_data = log.transData.inverted()
+    for artist in [*log.patches, *log.collections]:  # any shading on the log panel
+        (_, y0), (_, y1) = to_data.transform(artist.get_window_extent().get_points())
+        inside = (clean >= min(y0, y1) * (1 - 1e-9)) & (clean <= max(y0, y1) * (1 + 1e-9))
+        assert not np.any(inside), (artist, y0, y1)
+    # The clean run: one solid line, down to its last value (nothing clipped).
+    (line,) = _log_lines(log, "C0")
+    assert line.get_alpha() in (None, 1.0)
+    np.testing.assert_array_equal(line.get_ydata(), clean)
+    # The floored run: solid until it first reaches its own floor, faded from there.
+    solid, faded = _log_lines(log, "C1")
+    assert solid.get_alpha() in (None, 1.0) and 0.0 < faded.get_alpha() <= 0.5
+    floored = np.linalg.norm(runs["floored"][1], axis=1)
+    floor = numerical_floor(T, floored)  # the largest sawtooth value over the last quarter
+    assert floor == pytest.approx(1e-6, rel=0.05)
+    assert solid.get_ydata()[-1] <= floor and np.all(solid.get_ydata()[:-1] > floor)
+    assert faded.get_xdata()[0] == solid.get_xdata()[-1] == pytest.approx(13.8, abs=0.05)
+    assert faded.get_xdata()[-1] == 30.0
+    np.testing.assert_array_equal(faded.get_ydata(), floored[T >= faded.get_xdata()[0]])
+    labels = fig.legends[0].get_texts()
+    assert any("integrator" in t.get_text() and "$10^{-4}$" in t.get_text() for t in labels)
+
+
+def test_trajectories_name_each_panel_s_time_window(tmp_path):
+    # The state panels showed t = 0 to 8 s and the log panel 0 to 30 s; neither said so.
+    from ofrl_drake.ablation_report import plot_trajectories
+
+    folder, label = _saved_runs(tmp_path, _clean_and_floored())
+    fig = plot_trajectories(folder, ["clean", "floored"], label)
+    state, *_, log = fig.axes
+    end = state.get_xlim()[1]
+    assert 4.0 < end < 30.0  # zoomed: 1.5 x the settling time
+    assert f"state panels t = 0 to {end:.4g} s (the transient)" in state.get_title()
+    assert "t = 0 to 30 s (the whole horizon)" in log.get_title()
+    assert log.get_xlim() == (0.0, 30.0)
+    # No faded lines and no floor entry when no run sits on a floor.
+    fig = plot_trajectories(folder, ["clean"], label)
+    assert not any("integrator" in t.get_text() for t in fig.legends[0].get_texts())
+
+
+def test_trajectories_do_not_clip_exact_zeros_to_an_invented_floor(tmp_path):
+    # ||x|| was np.maximum(||x||, 1e-16): exact zeros were drawn at 1e-16 and the
+    # axis went down to it whatever the data.
+    x = np.column_stack([np.exp(-T / 3.0), np.zeros_like(T)])
+    x[-100:] = 0.0  # the run ends exactly at the origin
+    folder, label = _saved_runs(tmp_path, {"zeroes": (T, x)})
+    from ofrl_drake.ablation_report import plot_trajectories
+
+    log = plot_trajectories(folder, ["zeroes"], label).axes[-1]
+    (line,) = log.get_lines()
+    drawn = line.get_ydata()
+    assert np.all(np.isnan(drawn[-100:])) and np.all(drawn[:-100] > 0)
+    smallest = float(np.exp(-T[-101] / 3.0))  # 5.0e-5
+    assert smallest / 10 <= log.get_ylim()[0] <= smallest
+    assert "exact zeros not drawn (zeroes)" in log.get_title()

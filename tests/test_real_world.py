@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from matplotlib.collections import PolyCollection
 from pydrake.common import RandomGenerator
 from pydrake.common.yaml import yaml_dump, yaml_load
 from pydrake.multibody.plant import MultibodyPlant
@@ -82,7 +83,10 @@ def test_a_montecarlo_of_six_runs_succeeds_in_five(real, tmp_path):
     assert good >= 5, rows
     write_montecarlo_report(tmp_path, rows, real.name)
     assert "| 6 |" in (tmp_path / "montecarlo.md").read_text()
+    assert "identical" not in (tmp_path / "montecarlo.md").read_text()
     assert (tmp_path / "figures" / "envelope.png").stat().st_size > 10_000
+    with np.load(tmp_path / "runs" / "seed_0.npz") as run:  # the envelope's units
+        assert run["state_units"].tolist() == ["m", "rad", "m/s", "rad/s"]
 
 
 # ----------------------------------------------------------------- sensors
@@ -531,3 +535,83 @@ def test_a_statistic_over_fewer_runs_than_the_table_says_names_its_count():
     assert "| 1 ± 0 |" in table  # every run: no count
     assert "| 3 ± 1.4 (n = 2) |" in table
     assert table.rstrip().endswith("| n/a |")
+
+
+# ---------------------------------------------------------------- envelope.png
+def _envelope(tmp_path, monkeypatch, runs, perturbation="{}"):
+    """``write_montecarlo_report`` on ``runs`` ({seed: (t, x)}): its figure, kept open."""
+    from ofrl_drake import plotting
+
+    (tmp_path / "runs").mkdir()
+    rows = []
+    for seed, (t, x) in runs.items():
+        np.savez(tmp_path / "runs" / f"seed_{seed}.npz", t=t, x=x, state_units=["m", "rad"])
+        rows.append(
+            {
+                "seed": str(seed),
+                "perturbation": perturbation,
+                "status": "ok",
+                "regulated": "true",
+                "final_state_norm": float(np.linalg.norm(x[-1])),
+                "rms_estimation_error": 0.1,
+                "cost": 1.0,
+                "optimality_ratio": 1.1,
+            }
+        )
+    figures = []
+    save = plotting.save_png
+    monkeypatch.setattr(plotting, "save_png", lambda fig, *a: (figures.append(fig), save(fig, *a)))
+    write_montecarlo_report(tmp_path, rows, "toy")
+    (fig,) = figures
+    fig.canvas.draw()
+    return fig
+
+
+def _two_runs(noise=0.05):
+    t = np.linspace(0.0, 5.0, 501)
+    x = np.column_stack([np.exp(-t), -np.exp(-2 * t)])
+    return {0: (t, x), 1: (t, x + noise * np.sin(7 * t)[:, None])}
+
+
+def test_the_envelope_names_units_and_time_and_keeps_its_legend_off_the_curves(
+    tmp_path, monkeypatch
+):
+    # The legend sat inside the upper right of x1's panel, over the curve; the axes had
+    # no units and read "t [s]" where every other figure reads "time t [s]".
+    fig = _envelope(tmp_path, monkeypatch, _two_runs())
+    axes = fig.axes
+    assert [ax.get_ylabel() for ax in axes] == ["$x_{1}$ [m]", "$x_{2}$ [rad]"]
+    assert axes[-1].get_xlabel() == r"time $t$ [s]"
+    assert all(ax.get_legend() is None for ax in axes)
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == ["min-max", "median"]
+    box = legend.get_window_extent()
+    for ax in axes:  # outside every panel, with a pixel to spare
+        assert not box.padded(1.0).overlaps(ax.get_window_extent()), ax.get_ylabel()
+    assert any(isinstance(c, PolyCollection) for c in axes[0].collections)  # the band
+
+
+def test_identical_runs_are_one_curve_and_said_so_once(tmp_path, monkeypatch):
+    # A noise-free scenario without --mass-spread ran N identical runs: the figure drew a
+    # band of width 0 and the table "± 0", with no word on why.
+    from ofrl_drake.monte_carlo import IdenticalRunsWarning, identical_runs
+
+    runs = _two_runs(noise=0.0)
+    assert identical_runs(list(runs.values())) and not identical_runs([runs[0]])
+    assert not identical_runs(list(_two_runs().values()))
+    message = (
+        r"^montecarlo toy: the 2 runs are identical, bit for bit \(no --mass-spread, and the "
+        r"scenario has no measurement noise: the runs' noise seeds change nothing\); "
+        r"the envelope is their one curve\. For runs that differ, give "
+        r"measurement\.noise_std \(with measurement\.period > 0\) or --mass-spread\.$"
+    )
+    with pytest.warns(IdenticalRunsWarning, match=message) as caught:
+        fig = _envelope(tmp_path, monkeypatch, runs)
+    assert len(caught) == 1
+    text = (tmp_path / "montecarlo.md").read_text()
+    assert text.count("The 2 runs are identical, bit for bit (no --mass-spread") == 1
+    assert fig.get_suptitle() == "toy: 2 identical runs"
+    for ax in fig.axes:
+        assert not any(isinstance(c, PolyCollection) for c in ax.collections)  # no band
+        (line,) = ax.get_lines()
+        assert line.get_label() == "all 2 runs (identical)"
