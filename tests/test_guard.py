@@ -3,6 +3,7 @@
 import dataclasses
 import io
 import json
+import re
 import sys
 
 import numpy as np
@@ -172,8 +173,14 @@ def test_max_wall_bounds_the_observer_design_too(tmp_path, command):
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    assert lines[0].startswith("error: the observer design's Jacobian bounds took ")
-    assert "max_wall_time (--max-wall) = 0.001 s, leaving nothing for the LMI" in lines[0]
+    # The budget runs out in the bounds or, on a loaded machine, already in the symbolic
+    # Jacobians before them: either phase names --max-wall and stops the design.
+    assert re.match(
+        r"error: (the observer design's Jacobian bounds took .* of max_wall_time \(--max-wall\) "
+        r"= 0\.001 s, leaving nothing for the LMI|the symbolic Jacobians of f and g were not done "
+        r"by the deadline \(max_wall_time, --max-wall\))",
+        lines[0],
+    ), lines[0]
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
