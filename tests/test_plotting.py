@@ -1,17 +1,29 @@
 """Figures fit for a paper: zoom, box, labelled bounds, legends off the data, error floor."""
 
 import dataclasses
+import math
+from unittest import mock
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from matplotlib.legend import Legend
+from matplotlib.text import Text
 
+from ofrl_drake import plotting
+from ofrl_drake.errors import OutputError
 from ofrl_drake.guard import StopReport
+from ofrl_drake.learning_curve import LearningHealth
 from ofrl_drake.plotting import (
     numerical_floor,
+    plot_comparison,
+    plot_cost,
+    plot_estimation_error,
     plot_estimation_error_log,
     plot_input,
+    plot_learning_condition,
+    plot_learning_curve,
+    plot_learning_health,
     plot_overview,
     plot_state,
     plot_weights,
@@ -191,3 +203,326 @@ def test_figures_are_drawn_one_at_a_time_and_none_is_left_open(tmp_path, monkeyp
     paths = save_figures(r, tmp_path, input_bound=3.0)
     assert len(paths) == len(open_at_save) == 19  # 12 states and 7 other figures
     assert max(open_at_save) == 1 and plt.get_fignums() == []
+
+
+# --- figures for a paper: labels that fit, honest axes, formats and sizes ---------------
+
+CART_POLE_EQ = np.array([0.0, math.pi, 0.0, 0.0])
+
+
+def _cart_pole_like(T=20.0, samples=1001):
+    """Four states with units about x* = (0, pi, 0, 0), ten weights settling by 0.3 s."""
+    r = _result(n=4, m=1, L=10, T=T, samples=samples)
+    settle = np.exp(-15.0 * r.t)[:, None]
+    W = np.linspace(-200.0, 700.0, 10) * (1.0 + 0.4 * settle)
+    return dataclasses.replace(
+        r,
+        W=W,
+        W_policy=W,
+        x_equilibrium=CART_POLE_EQ,
+        u_equilibrium=np.zeros(1),
+        state_units=("m", "rad", "m/s", "rad/s"),
+        input_units=("N",),
+        scenario_name="cart_pole_real_world",
+    )
+
+
+def _health(t, *, accepted=(), rejected=()):
+    """Learning health like cart_pole's: cond(Gamma) flat up to round-off, eig of both signs."""
+    rng = np.random.default_rng(0)
+    return LearningHealth(
+        t=t,
+        learning_condition=0.031 + 0.013 * np.exp(-t),  # less than a decade: linear
+        gamma_norm=50.0 + 550.0 * (1.0 - np.exp(-t / 5.0)),  # 50..600: log
+        gamma_condition=42048.8 * (1.0 + 1e-10 * rng.standard_normal(t.size)),  # round-off
+        value_eigenvalues=np.column_stack(
+            [-100.0 + 100.05 * (1 - np.exp(-t)), np.full_like(t, 3.0), 30.0 + 0 * t, 1e4 + 0 * t]
+        ),
+        spectral_abscissa=np.full_like(t, -0.69),
+        accepted_times=list(accepted),
+        rejected_times=list(rejected),
+    )
+
+
+def _texts(fig):
+    """Every non-empty text ``fig`` draws (labels, ticks in view, titles, legends, notes)."""
+    drawn = []
+    draw = Text.draw
+
+    def recording(text, renderer):
+        if text.get_visible() and text.get_text().strip():
+            drawn.append(text)
+        return draw(text, renderer)
+
+    with mock.patch.object(Text, "draw", recording):
+        fig.canvas.draw()
+    return drawn
+
+
+def _all_figures(r, size):
+    t = r.t
+    kw = {} if size == "page" else {"size": size}  # the page is the default
+    entries = [{"t": 0.0, "policy_cost": 12.0}, {"t": 10.0, "policy_cost": None}]
+    return {
+        "state": plot_state(r, 1, box=([-2.0] * 4, [2.0] * 4), **kw),
+        "error": plot_estimation_error(r, **kw),
+        "error_log": plot_estimation_error_log(r, **kw),
+        "weights": plot_weights(r, [f"x{i}^2" for i in range(1, 11)], **kw),
+        "input": plot_input(r, 50.0, **kw),
+        "condition": plot_learning_condition(r, **kw),
+        "cost": plot_cost(r, **kw),
+        "overview": plot_overview(
+            r,
+            50.0,
+            ([-2.0] * 4, [2.0] * 4),
+            **kw,
+            **({"weight_labels": [f"x{i} x{i}" for i in range(1, 11)]} if kw else {}),
+        ),
+        "curve": plot_learning_curve(entries, optimal_cost=10.0, lqr_cost=11.0, **kw),
+        "health": plot_learning_health(_health(t, rejected=[2.0, 4.0]), **kw),
+    }
+
+
+@pytest.mark.parametrize("size", ["page", "column"])
+def test_every_label_fits_inside_its_figure(size):
+    # "state x2 and estimate (plant coordinates) [rad]" was taller than the 3 in
+    # figure and read "ate x2 and estimate (plant coordinates) [ra".
+    r = _cart_pole_like()
+    for name, fig in _all_figures(r, size).items():
+        box = fig.bbox
+        for text in _texts(fig):
+            extent = text.get_window_extent()
+            inside = (
+                extent.x0 >= box.x0 - 1.0
+                and extent.y0 >= box.y0 - 1.0
+                and extent.x1 <= box.x1 + 1.0
+                and extent.y1 <= box.y1 + 1.0
+            )
+            assert inside, f"{name} ({size}): {text.get_text()!r} is cut off at {extent}"
+        plt.close(fig)
+
+
+def test_plant_coordinates_go_in_the_title_and_the_y_label_stays_short():
+    r = _cart_pole_like()
+    for ax in plot_state(r, 1).axes:
+        assert ax.get_ylabel() in ("", r"$x_{2}$, $\hat{x}_{2}$ [rad]")
+        assert "plant coordinates" in ax.get_title()
+    assert "plant coordinates" in plot_input(r, 50.0).axes[0].get_title()
+
+
+def test_column_size_is_3_5_in_wide_with_8_to_9_pt_text_and_legends_off_the_data():
+    r = _cart_pole_like()
+    for name, fig in _all_figures(r, "column").items():
+        assert fig.get_figwidth() == pytest.approx(3.5), name
+        sizes = {round(t.get_fontsize(), 2) for t in _texts(fig)}
+        assert min(sizes) >= 8.0 and max(sizes) <= 9.0, f"{name}: font sizes {sorted(sizes)}"
+        if _legends(fig):
+            _assert_legends_outside_axes(fig)
+        plt.close(fig)
+    # The page size is today's: 7 x 3 in for a state, 10 x 6 in for the overview.
+    assert plot_state(_result(), 0).get_size_inches() == pytest.approx((7.0, 3.0))
+    assert plot_overview(_result()).get_size_inches() == pytest.approx((10.0, 6.0))
+
+
+def test_magnitudes_within_a_decade_are_linear_and_round_off_is_drawn_flat():
+    t = np.linspace(0.0, 20.0, 1001)
+    fig = plot_learning_health(_health(t))
+    c_ax, norm_ax, cond_ax, eig_ax, _ = fig.axes
+    fig.canvas.draw()
+    assert c_ax.get_yscale() == "linear"  # 0.031..0.044: not a log axis
+    assert norm_ax.get_yscale() == "log"  # 50..600
+    assert cond_ax.get_yscale() == "linear"
+    labels = [t.get_text() for t in cond_ax.get_yticklabels() if t.get_text()]
+    assert len(labels) >= 2 and len(set(labels)) == len(labels), labels
+    # 1e-10 relative noise spans under 1 % of the panel (it spanned all of it).
+    lo, hi = cond_ax.get_ylim()
+    data = cond_ax.get_lines()[0].get_ydata()
+    assert (data.max() - data.min()) / (hi - lo) < 0.01
+    # eig P(W) from -100 to 1e4: at most 8 tick labels (the symlog axis had 13).
+    assert eig_ax.get_yscale() == "symlog"
+    eig_labels = [t.get_text() for t in eig_ax.get_yticklabels() if t.get_text()]
+    assert 3 <= len(eig_labels) <= 8, eig_labels
+    plt.close(fig)
+
+
+def test_policy_updates_are_a_strip_by_time_and_each_panel_has_its_own_legend():
+    t = np.linspace(0.0, 20.0, 1001)
+    fig = plot_learning_health(_health(t, accepted=[1.0], rejected=[2.0, 4.0]))
+    assert fig.legends == []  # no figure legend far from its panel
+    strip = fig.axes[-1]
+    marks = {line.get_label(): line for line in strip.get_lines()}
+    assert set(marks) == {"update accepted", "update rejected"}
+    for line in marks.values():
+        assert line.get_transform() is strip.get_xaxis_transform()  # y in axes coordinates
+        assert np.all((line.get_ydata() > 0.0) & (line.get_ydata() < 1.0))
+    assert list(marks["update rejected"].get_xdata()) == [2.0, 4.0]
+    # No update mark on the spectral abscissa's data axis.
+    abscissa = fig.axes[-2]
+    assert abscissa.get_lines()[0].get_label() == "policy in force"
+    assert not any("update" in line.get_label() for line in abscissa.get_lines())
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        if legend is None:
+            continue
+        own = {line.get_label() for line in ax.get_lines()}
+        assert {text.get_text() for text in legend.get_texts()} <= own
+    eig_legend = fig.axes[3].get_legend()
+    assert [t.get_text() for t in eig_legend.get_texts()] == [
+        r"$\lambda_{\min}$",
+        r"$\lambda_{2}$",
+        r"$\lambda_{3}$",
+        r"$\lambda_{\max}$",
+    ]
+    _assert_legends_outside_axes(fig)
+    plt.close(fig)
+
+
+def test_a_diverged_checkpoint_is_marked_by_time_not_at_an_invented_cost():
+    fig = plot_learning_curve([{"t": 0.0, "policy_cost": None}])
+    (ax,) = fig.axes
+    (mark,) = [line for line in ax.get_lines() if "diverged" in line.get_label()]
+    assert mark.get_transform() is ax.get_xaxis_transform()
+    assert list(ax.get_yticks()) == []  # no cost scale for a curve without a cost
+    assert any("finite cost" in t.get_text() for t in ax.texts)
+    # Beside finite costs, the cross sits above them, in axes coordinates.
+    fig = plot_learning_curve(
+        [{"t": 0.0, "policy_cost": 4.0}, {"t": 1.0, "policy_cost": None}], optimal_cost=2.0
+    )
+    (ax,) = fig.axes
+    (mark,) = [line for line in ax.get_lines() if "diverged" in line.get_label()]
+    assert mark.get_transform() is ax.get_xaxis_transform()
+    assert list(mark.get_xdata()) == [1.0]
+    plt.close("all")
+
+
+def test_the_zoom_is_dropped_past_half_the_run_and_noise_is_no_transient():
+    # x settles at about 13 s of 20: a "first 20 s" zoom was the whole run again.
+    r = _result(T=20.0, samples=1001)
+    slow = np.exp(-0.3 * r.t)[:, None] * np.array([1.0, 2.0])
+    late = dataclasses.replace(r, x=slow, xhat=slow - r.e)
+    assert transient_end(late) > 10.0
+    fig = plot_state(late, 0)
+    assert len(fig.axes) == 1 and fig.axes[0].get_xlim() == (0.0, 20.0)
+    # e decays in 1 s onto measurement noise of 1 % of its peak: the zoom ends
+    # near the decay, not at the horizon (noise was read as a transient).
+    rng = np.random.default_rng(1)
+    noisy_e = r.e + 0.01 * rng.standard_normal(r.e.shape)
+    noisy = dataclasses.replace(r, xhat=r.x - noisy_e)
+    assert transient_end(noisy) <= 3.0
+    zoom, whole = plot_state(noisy, 0).axes
+    assert zoom.get_xlim()[1] <= 3.0 and whole.get_xlim() == (0.0, 20.0)
+    plt.close("all")
+
+
+def test_the_log_error_axis_starts_at_the_data_not_at_a_round_off_sample():
+    r = _result(T=20.0, samples=1001, sawtooth=0.0)
+    e = 1e-3 * (1.5 + np.sin(r.t))[:, None] * np.ones(2)  # 5e-4 .. 2.5e-3
+    e[0, 1] = 1e-17  # x0 and xhat0 agree in x2 but for the last bit
+    fig = plot_estimation_error_log(dataclasses.replace(r, xhat=r.x - e))
+    (ax,) = fig.axes
+    assert ax.get_yscale() == "log"
+    assert ax.get_ylim()[0] > 1e-5, ax.get_ylim()  # reached 1e-17
+    plt.close(fig)
+
+
+def test_weights_that_settle_early_get_a_zoom_and_the_overview_names_them():
+    r = _cart_pole_like()
+    labels = [f"x{i}^2" for i in range(1, 11)]
+    fig = plot_weights(r, labels)
+    zoom, whole = fig.axes  # W settles within 0.3 s of 20 s
+    assert 0.3 <= zoom.get_xlim()[1] <= 1.0 and whole.get_xlim() == (0.0, 20.0)
+    entries = [
+        t.get_text() for t in plot_overview(r, 50.0, None, labels).axes[2].get_legend().get_texts()
+    ]
+    assert entries[0] == "$W_{1}$ ($x_{1}^{2}$)"
+    # Weights still moving over the run, or never moving, keep one panel.
+    drifting = _result(L=3)
+    drifting.W = drifting.W + drifting.t[:, None]
+    assert len(plot_weights(drifting).axes) == 1
+    assert len(plot_weights(_result(L=3)).axes) == 1
+    plt.close("all")
+
+
+def test_the_overview_draws_states_about_the_equilibrium_and_says_so():
+    r = _cart_pole_like()
+    ax = plot_overview(r, 50.0, ([-2.0] * 4, [2.0] * 4)).axes[0]
+    np.testing.assert_allclose(ax.get_lines()[2].get_ydata(), r.x[:, 1])  # x2 - pi, not x2
+    assert "x^*" in ax.get_ylabel()
+    assert "observer box" in [t.get_text() for t in ax.get_legend().get_texts()]
+    plt.close("all")
+
+
+def test_a_stop_mark_has_room_after_it_and_learning_health_marks_it():
+    r = _result(T=2.0, samples=101)
+    r.stop = StopReport("diverged", "x_1 left the abort box", 2.0, [30.0, 1.0], [0.0, 0.0], 0.1)
+    whole = plot_state(r, 0).axes[-1]
+    assert whole.get_xlim()[1] > 2.0 * 1.02  # the line is not on the right edge
+    fig = plot_learning_health(_health(r.t), stop=r.stop)
+    stops = [line for ax in fig.axes for line in ax.get_lines() if line.get_xdata()[0] == 2.0]
+    assert len(stops) == len(fig.axes)
+    assert "run stopped (diverged)" in _labels(fig)
+    assert fig.axes[-1].get_xlim()[1] > 2.0 * 1.02
+    plt.close("all")
+
+
+def test_the_weights_are_W_in_every_figure():
+    r = _result(n=2, L=3)
+    figures = [plot_weights(r), plot_overview(r), plot_comparison({"a": r, "b": r}, "W")]
+    texts = [t.get_text() for fig in figures for t in _texts(fig)]
+    assert not [t for t in texts if r"\hat{W}" in t or r"\hat W" in t]
+    assert "$W_{1}$" in texts and r"critic weights $W$" in texts
+    plt.close("all")
+
+
+def test_the_learning_plots_are_public():
+    assert {"plot_learning_curve", "plot_learning_health"} <= set(plotting.__all__)
+    assert plotting.FIGURE_FORMATS == ("png", "pdf", "svg")
+    assert plotting.FIGURE_SIZES == ("page", "column")
+
+
+def test_save_figures_writes_every_format_and_size(tmp_path):
+    from matplotlib.image import imread
+
+    r = _result(T=5.0, samples=251)
+    r.scenario_name = "toy"
+    default = save_figures(r, tmp_path / "default")
+    assert {p.suffix for p in default} == {".png"} and len(default) == 9
+    assert imread(tmp_path / "default" / "state_1.png").shape[:2] == (
+        600,
+        1400,
+    )  # 7 x 3 in, 200 dpi
+    paths = save_figures(r, tmp_path / "all", formats=("png", "pdf", "svg"), size="column")
+    assert len(paths) == 3 * len(default)
+    assert {p.stem for p in paths} == {p.stem for p in default}
+    assert all(p.is_file() and p.stat().st_size > 0 for p in paths)
+    assert (tmp_path / "all" / "overview.pdf").read_bytes().startswith(b"%PDF")
+    assert "<svg" in (tmp_path / "all" / "overview.svg").read_text()[:1000]
+    assert imread(tmp_path / "all" / "state_1.png").shape[1] == 700  # 3.5 in at 200 dpi
+    assert not list((tmp_path / "all").glob(".*"))  # no temporary file left
+    # The same run gives the same PDF (no creation date inside).
+    again = save_figures(r, tmp_path / "again", formats=["pdf"], size="column")
+    assert [p.name for p in again] == [p.name for p in paths if p.suffix == ".pdf"]
+    assert (tmp_path / "again" / "cost.pdf").read_bytes() == (
+        tmp_path / "all" / "cost.pdf"
+    ).read_bytes()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (
+            {"formats": ("png", "jpg")},
+            r"formats: unknown value 'jpg'; choose one of 'png', 'pdf', 'svg'",
+        ),
+        ({"formats": ()}, r"formats: empty, so no figure would be written"),
+        ({"formats": None}, r"formats: expected a list of format names.*got None"),
+        ({"size": "poster"}, r"size: unknown value 'poster'; choose one of 'page', 'column'"),
+        ({"size": None}, r"size: unknown value None"),
+    ],
+)
+def test_an_unknown_format_or_size_is_refused_before_anything_is_written(tmp_path, kwargs, message):
+    with pytest.raises(OutputError, match=message):
+        save_figures(_result(T=1.0, samples=51), tmp_path / "figs", **kwargs)
+    assert not (tmp_path / "figs").exists()
+    with pytest.raises(OutputError, match=r"size: unknown value 'A4'"):
+        plot_state(_result(), 0, size="A4")
