@@ -6,6 +6,8 @@ Subcommands::
     ofrl-drake design-observer SCENARIO --out F    certified observer gains as JSON
     ofrl-drake verify-observer SCENARIO            falsify the design against the dynamics
     ofrl-drake ablate SCENARIO --out DIR           every variant vs the optimum, on Dask
+    ofrl-drake montecarlo SCENARIO --runs N --out DIR  N noise seeds (and sampled truths)
+    ofrl-drake plot RUN_DIR [--out DIR]            redraw a run's figures from its files
 
 Exit codes (docs/cli.md has the table): 0 success; 1 internal error (a bug:
 please report it); 2 bad input, printed on one line (``error: ...``); 3 ``run``
@@ -56,7 +58,16 @@ if TYPE_CHECKING:  # annotations only: the commands import what they run when th
     from ofrl_drake.model import ControlAffineSystem
     from ofrl_drake.verification import VerificationReport
 
-__all__ = ["OUTPUT_MARKER", "OutputError", "atomic_directory", "check_output_directory", "main"]
+__all__ = [
+    "FIGURES_MARKER",
+    "OUTPUT_MARKER",
+    "OutputError",
+    "atomic_directory",
+    "check_figures_directory",
+    "check_output_directory",
+    "main",
+    "save_run_figures",
+]
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -70,8 +81,15 @@ EXIT_TERMINATED = 143
 #: Written into every output folder of ``run``; only such folders are replaced.
 OUTPUT_MARKER = ".ofrl_drake_output"
 
+#: Written into every output folder of ``plot``; only such folders (and a run's own
+#: :data:`FIGURES_FOLDER`) are replaced.
+FIGURES_MARKER = ".ofrl_drake_figures"
+
 #: The resolved scenario as run, in every output folder of ``run``.
 SCENARIO_FILE = "scenario.yaml"
+
+#: The folder of a run's figures, in every output folder of ``run`` (``plot``'s default ``--out``).
+FIGURES_FOLDER = "figures"
 
 #: Where the docs explain a falsified observer design, and a state outside its box.
 CERTIFICATE_DOCS = (
@@ -107,6 +125,25 @@ def check_output_directory(target: Path) -> Path:
     """
     target = _check_output_place(check_output_target(target, folder=True))
     check_output_folder(target, marker=OUTPUT_MARKER, command="run")
+    return check_writable(target)
+
+
+def check_figures_directory(target: Path) -> Path:
+    """Resolve ``plot``'s ``--out`` and refuse to replace anything it may not.
+
+    ``target`` may be absent, an empty folder, a folder an earlier ``plot``
+    wrote (it holds :data:`FIGURES_MARKER`), or the :data:`FIGURES_FOLDER` of a
+    run folder (one holding :data:`OUTPUT_MARKER`), which ``run`` drew.
+
+    Raises
+    ------
+    OutputError
+        If ``target`` is a file, a link, a filesystem root, the current folder
+        or one holding it, someone else's non-empty folder, or cannot be written.
+    """
+    target = _check_output_place(check_output_target(target, folder=True))
+    if not (target.name == FIGURES_FOLDER and (target.parent / OUTPUT_MARKER).is_file()):
+        check_output_folder(target, marker=FIGURES_MARKER, command="plot")
     return check_writable(target)
 
 
@@ -153,14 +190,18 @@ def _remove_stale_partials(target: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_directory(target: Path) -> Iterator[Path]:
+def atomic_directory(target: Path, command: str = "run") -> Iterator[Path]:
     """Yield a temporary folder that replaces ``target`` only on success.
 
     The folder is built beside ``target`` and renamed into place, so a failure
     at any point leaves ``target`` as it was and no temporary folder behind. The
-    temporary folder's name holds ``partial`` and the process id.
+    temporary folder's name holds ``partial`` and the process id. ``command``
+    (``"run"`` or ``"plot"``) says which folders ``target`` may replace
+    (:func:`check_output_directory`, :func:`check_figures_directory`) and
+    which marker the new folder gets (:data:`OUTPUT_MARKER`, :data:`FIGURES_MARKER`).
     """
-    target = check_output_directory(target)
+    check, marker = _OUTPUT_FOLDERS[command]
+    target = check(target)
     ensure_parent(target)
     _remove_stale_partials(target)
     try:
@@ -174,7 +215,7 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     try:
         tmp.chmod(umask_mode(0o777))
         yield tmp
-        (tmp / OUTPUT_MARKER).write_text("written by ofrl-drake run\n")
+        (tmp / marker).write_text(f"written by ofrl-drake {command}\n")
         shutil.rmtree(backup, ignore_errors=True)
         if target.exists():
             target.rename(backup)
@@ -185,6 +226,13 @@ def atomic_directory(target: Path) -> Iterator[Path]:
             backup.rename(target)
         raise
     shutil.rmtree(backup, ignore_errors=True)
+
+
+#: What each command's output folder may replace, and the marker it gets (:func:`atomic_directory`).
+_OUTPUT_FOLDERS: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "run": (check_output_directory, OUTPUT_MARKER),
+    "plot": (check_figures_directory, FIGURES_MARKER),
+}
 
 
 def _write_animation(scenario, result, folder: Path) -> str | None:
@@ -324,7 +372,6 @@ def _run(args: argparse.Namespace) -> int:
 
     from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.graph import render_diagram
-    from ofrl_drake.plotting import save_figures
     from ofrl_drake.scenario import dump_scenario, load_scenario
     from ofrl_drake.simulation import simulate
 
@@ -352,17 +399,7 @@ def _run(args: argparse.Namespace) -> int:
         with open(tmp / LEARNING_HEALTH_FILE, "wb") as fh:
             np.savez(fh, **learning.health.arrays())
         (tmp / SCENARIO_FILE).write_text(dump_scenario(loop.resolved_scenario()))
-        save_figures(
-            result,
-            tmp / "figures",
-            input_bound=scenario.input_bound,
-            weight_labels=loop.parts.basis.labels(),
-            box=(scenario.observer.box.lower, scenario.observer.box.upper),
-            learning_curve=learning.curve,
-            optimal_cost=learning.optimal_cost,
-            lqr_cost=learning.lqr_policy_cost,
-            health=learning.health,
-        )
+        save_run_figures(result, scenario, learning, tmp / FIGURES_FOLDER)
         if loop.design is not None:
             design = loop.design.to_dict()
             if verification is not None:
@@ -420,6 +457,199 @@ def _run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_STOPPED
+    return EXIT_OK
+
+
+def save_run_figures(
+    result: Any,
+    scenario: Any,
+    learning: Any,
+    directory: Path,
+    *,
+    formats: Sequence[str] = ("png",),
+    size: str = "page",
+) -> list[Path]:
+    """Every figure of a run into ``directory``: what ``run`` draws and ``plot`` redraws.
+
+    Parameters
+    ----------
+    result : SimulationResult
+        The run, as simulated or as read back (:meth:`~ofrl_drake.SimulationResult.load`).
+    scenario : Scenario
+        The scenario it ran: the input bound, the observer box and the critic's basis.
+    learning : LearningReport or None
+        Its learning curve and health (:func:`ofrl_drake.learning_curve.learning_report`,
+        or :func:`_saved_learning`); None: neither figure.
+    directory : Path
+    formats, size
+        As for :func:`ofrl_drake.plotting.save_figures`.
+
+    Returns
+    -------
+    list of Path
+        Every file written.
+    """
+    from ofrl_drake.basis import PolynomialBasis
+    from ofrl_drake.plotting import save_figures
+
+    basis = PolynomialBasis(result.x.shape[1], scenario.critic.basis_degrees)
+    return save_figures(
+        result,
+        directory,
+        input_bound=scenario.input_bound,
+        weight_labels=basis.labels(),
+        box=(scenario.observer.box.lower, scenario.observer.box.upper),
+        learning_curve=None if learning is None else learning.curve,
+        optimal_cost=None if learning is None else learning.optimal_cost,
+        lqr_cost=None if learning is None else learning.lqr_policy_cost,
+        health=None if learning is None else learning.health,
+        formats=formats,
+        size=size,
+    )
+
+
+def _saved_learning(run_dir: Path, result: Any) -> Any:
+    """The learning curve and health ``run`` saved in ``run_dir``; None if it saved none.
+
+    The series from :data:`LEARNING_HEALTH_FILE`; the policy updates, ``J*``,
+    the LQR policy's cost and the curve from ``summary.json`` (``result.reports``).
+
+    Raises
+    ------
+    RunFolderError
+        If ``summary.json`` has a ``learning_health`` entry but the file is
+        missing or damaged, lacks a series, holds other sample times than the
+        run, or an entry of ``summary.json`` it needs has the wrong type.
+    """
+    from ofrl_drake.learning_curve import LearningHealth, LearningReport
+    from ofrl_drake.simulation import SUMMARY_FILE, read_run_series, summary_entry
+
+    reports = result.reports
+    if "learning_health" not in reports:  # a folder written before the learning health
+        return None
+    summary = run_dir / SUMMARY_FILE
+    entries = summary_entry(summary, reports, "learning_health", _learning_entries)
+    curve = summary_entry(summary, reports, "learning_curve", _curve_entries)
+    series = read_run_series(
+        run_dir / LEARNING_HEALTH_FILE,
+        result.t,
+        required=("learning_condition", "gamma_norm", "gamma_condition"),
+    )
+    assert entries is not None  # "learning_health" is in reports
+    return LearningReport(
+        curve=curve,
+        health=LearningHealth(
+            t=result.t,
+            learning_condition=series["learning_condition"],
+            gamma_norm=series["gamma_norm"],
+            gamma_condition=series["gamma_condition"],
+            value_eigenvalues=series.get("value_eigenvalues"),
+            spectral_abscissa=series.get("spectral_abscissa"),
+            accepted_times=entries["accepted_times"],
+            rejected_times=entries["rejected_times"],
+        ),
+        optimal_cost=entries["optimal_cost"],
+        lqr_policy_cost=entries["lqr_policy_cost"],
+        curve_stop=reports.get("learning_curve_stop"),
+    )
+
+
+def _saved_number(value: Any, *, none: bool = False) -> float | None:
+    """A number of ``summary.json`` (``null`` too, with ``none``)."""
+    from ofrl_drake.simulation import _json_number
+
+    return None if none and value is None else _json_number(value)
+
+
+def _learning_entries(value: Any) -> dict[str, Any]:
+    """``summary.json`` -> ``learning_health``: what its figures need."""
+    return {
+        "accepted_times": [_saved_number(t) for t in value["accepted_times"]],
+        "rejected_times": [_saved_number(t) for t in value["rejected_times"]],
+        "optimal_cost": _saved_number(value.get("optimal_cost"), none=True),
+        "lqr_policy_cost": _saved_number(value.get("lqr_policy_cost"), none=True),
+    }
+
+
+def _curve_entries(value: Any) -> list[dict[str, Any]]:
+    """``summary.json`` -> ``learning_curve``, each checkpoint's time and cost checked."""
+    if not isinstance(value, list):
+        raise TypeError(f"expected a list of checkpoints, got {type(value).__name__}")
+    for entry in value:
+        _saved_number(entry["t"])
+        _saved_number(entry["policy_cost"], none=True)
+    return value
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    """``plot``, holding the locks of the run folder and of ``--out``.
+
+    The run folder's lock is the one ``run`` holds while it writes that
+    folder (:func:`ofrl_drake.atomic.output_lock`): a run folder being
+    written is refused, not read half-way.
+    """
+    run_dir = _run_folder(args.run_dir)
+    out = run_dir / FIGURES_FOLDER if args.out is None else Path(args.out)
+    resolved = out.expanduser().resolve()
+    if resolved == run_dir or resolved in run_dir.parents:
+        raise OutputError(
+            f"--out: {resolved} is the run folder or holds it, which the figures would "
+            f"replace; name another folder (default RUN_DIR/{FIGURES_FOLDER})."
+        )
+    target = check_figures_directory(out)
+    with output_lock(run_dir, "RUN_DIR"), output_lock(target):
+        return _plot(args, run_dir, target)
+
+
+def _run_folder(run_dir: str) -> Path:
+    """``plot``'s RUN_DIR, resolved; refused unless a folder ``run`` wrote.
+
+    Raises
+    ------
+    RunFolderError
+        If ``run_dir`` is empty, not a folder, or holds no :data:`SCENARIO_FILE`
+        (a folder :meth:`~ofrl_drake.SimulationResult.save` wrote, not ``run``).
+    """
+    from ofrl_drake.errors import RunFolderError
+
+    if not run_dir:
+        raise RunFolderError("RUN_DIR: the path is empty; name the --out folder of a run.")
+    path = Path(run_dir).expanduser().resolve()
+    if not path.is_dir():
+        raise RunFolderError(
+            f"RUN_DIR: {run_dir} is not a folder; name the --out folder of ofrl-drake run."
+        )
+    if not (path / SCENARIO_FILE).is_file():
+        raise RunFolderError(
+            f"RUN_DIR: {path / SCENARIO_FILE}: no such file, so {run_dir} is not the --out "
+            "folder of ofrl-drake run (which writes the scenario it ran there); name one."
+        )
+    return path
+
+
+def _plot(args: argparse.Namespace, run_dir: Path, target: Path) -> int:
+    from ofrl_drake.errors import RunFolderError
+    from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.simulation import SimulationResult
+
+    result = SimulationResult.load(run_dir)
+    scenario = load_scenario(run_dir / SCENARIO_FILE)
+    if scenario.name != result.scenario_name:
+        raise RunFolderError(
+            f"{run_dir / SCENARIO_FILE}: the scenario {scenario.name!r}, but summary.json "
+            f"holds a run of {result.scenario_name!r}; the files are of two runs: write "
+            "the run again (ofrl-drake run SCENARIO --out NEW_DIR)."
+        )
+    learning = _saved_learning(run_dir, result)
+    with atomic_directory(target, "plot") as tmp:
+        written = save_run_figures(
+            result, scenario, learning, tmp, formats=args.format, size=args.size
+        )
+    names = sorted({path.stem for path in written})
+    print(
+        f"wrote {target}: {len(names)} figures ({', '.join(dict.fromkeys(args.format))}, "
+        f"{args.size} size) of {run_dir}"
+    )
     return EXIT_OK
 
 
@@ -1089,7 +1319,52 @@ def _parser() -> argparse.ArgumentParser:
     )
     _scheduler_timeout_option(mc)
     mc.set_defaults(func=_locked(_cmd_montecarlo))
+
+    plot = sub.add_parser(
+        "plot", help="redraw a run's figures from its saved files, without simulating"
+    )
+    plot.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of ofrl-drake run")
+    plot.add_argument(
+        "--out",
+        metavar="DIR",
+        help=f"output folder, replaced atomically (default RUN_DIR/{FIGURES_FOLDER}, where "
+        "run drew them)",
+    )
+    plot.add_argument(
+        "--format",
+        nargs="+",
+        type=_figure_choice("FIGURE_FORMATS"),
+        default=["png"],
+        metavar="FORMAT",
+        help="file formats: one or more of png, pdf, svg (default png)",
+    )
+    plot.add_argument(
+        "--size",
+        type=_figure_choice("FIGURE_SIZES"),
+        default="page",
+        help="page (about 7 in wide, as run draws them) or column (3.5 in); default page",
+    )
+    plot.set_defaults(func=_cmd_plot)
     return parser
+
+
+def _figure_choice(choices: str) -> Callable[[str], str]:
+    """An argparse type: one of ``ofrl_drake.plotting``'s ``choices`` (a constant's name).
+
+    matplotlib is imported only when the option is given, not for every command.
+    """
+
+    def parse(text: str) -> str:
+        from ofrl_drake import plotting
+
+        allowed = getattr(plotting, choices)
+        if text not in allowed:
+            raise argparse.ArgumentTypeError(
+                f"unknown value {text!r}; choose one of {', '.join(allowed)}"
+            )
+        return text
+
+    return parse
 
 
 #: Modules each command needs, imported with SIGINT held (:func:`_sigint_held`).
@@ -1097,6 +1372,11 @@ _COMMAND_MODULES = {
     "run": (
         "ofrl_drake.diagram",
         "ofrl_drake.graph",
+        "ofrl_drake.plotting",
+        "ofrl_drake.simulation",
+    ),
+    "plot": (
+        "ofrl_drake.learning_curve",
         "ofrl_drake.plotting",
         "ofrl_drake.simulation",
     ),

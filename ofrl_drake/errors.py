@@ -14,6 +14,7 @@ __all__ = [
     "ModelError",
     "OfrlError",
     "OutputError",
+    "RunFolderError",
     "ScenarioError",
     "ScenarioTypeError",
     "SwapError",
@@ -45,6 +46,15 @@ class SwapError(OfrlError):
 
 class OutputError(OfrlError):
     """An output path cannot be written safely (a file in the way, a foreign folder...)."""
+
+
+class RunFolderError(OfrlError):
+    """A run folder cannot be read back: a file missing, damaged, or not fitting the others.
+
+    Raised by :meth:`ofrl_drake.SimulationResult.load` and ``ofrl-drake plot``
+    for the folder ``ofrl-drake run`` (or :meth:`~ofrl_drake.SimulationResult.save`)
+    writes; the message names the file and how to get a good one.
+    """
 
 
 class WallTimeExceeded(OfrlError):

@@ -8,9 +8,12 @@ import json
 import math
 import sys
 import time
+import zipfile
+import zlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
@@ -20,7 +23,7 @@ from ofrl_drake.atomic import atomic_file, ensure_parent
 from ofrl_drake.bellman import unpack_symmetric
 from ofrl_drake.checks import positive_number
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
-from ofrl_drake.errors import ModelError, ScenarioError, SwapError
+from ofrl_drake.errors import ModelError, RunFolderError, ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.observer import unpack_gains
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
@@ -45,31 +48,79 @@ __all__ = [
     "RUN_MEASUREMENT_VALUES",
     "RUN_VALUES",
     "SAMPLED_KEYS",
+    "SHIFTED_KEYS",
+    "SUMMARY_FILE",
+    "SUMMARY_KEYS",
+    "TRAJECTORIES_FILE",
     "TRAJECTORY_KEYS",
     "SimulationResult",
     "is_domain_error",
+    "read_run_arrays",
+    "read_run_series",
     "simulate",
     "simulator_config",
+    "summary_entry",
 ]
 
-#: Keys of ``trajectories.npz``, in order.
-TRAJECTORY_KEYS = (
-    "t",
-    "x",
-    "xhat",
-    "W",
-    "W_policy",
-    "Gamma",
-    "u",
-    "learning_condition",
-    "cost",
-)
+_T = TypeVar("_T")
 
+#: Number of dimensions of each array of ``trajectories.npz``, time first, in order.
+_TRAJECTORY_NDIM = {
+    "t": 1,
+    "x": 2,
+    "xhat": 2,
+    "W": 2,
+    "W_policy": 2,
+    "Gamma": 3,
+    "u": 2,
+    "learning_condition": 1,
+    "cost": 1,
+}
+#: Keys of ``trajectories.npz``, in order.
+TRAJECTORY_KEYS = tuple(_TRAJECTORY_NDIM)
+
+#: Files :meth:`SimulationResult.save` writes and :meth:`SimulationResult.load` reads.
+TRAJECTORIES_FILE = "trajectories.npz"
+SUMMARY_FILE = "summary.json"
 #: File written by :meth:`SimulationResult.save` when there are extra logs.
 EXTRA_LOGS_FILE = "extra_logs.npz"
 
 #: Keys :meth:`SimulationResult.original` shifts back to the plant's own coordinates.
 ORIGINAL_KEYS = ("x", "xhat", "u")
+
+#: Keys of ``trajectories.npz`` that hold, for a run with an equilibrium, ``x - x*``,
+#: ``xhat - x*`` and ``u - u*`` as the result held them. ``x``, ``xhat`` and ``u`` there
+#: are in the plant's own coordinates, ``x*`` plus those, rounded: subtracting ``x*``
+#: again gives them back only to within that rounding.
+SHIFTED_KEYS = {key: f"{key}_shifted" for key in ORIGINAL_KEYS}
+
+#: Entries of ``summary.json`` that :meth:`SimulationResult.summary` computes from the
+#: result itself; every other entry is one of its :attr:`~SimulationResult.reports`.
+SUMMARY_KEYS = (
+    "scenario",
+    "status",
+    "final_time",
+    "final_state",
+    "final_state_norm",
+    "final_estimation_error",
+    "final_estimation_error_norm",
+    "final_weights",
+    "final_gamma_eigenvalues",
+    "min_learning_condition",
+    "final_cost",
+    "wall_time",
+    "integrator",
+    "units",
+    "equilibrium",
+    "stop",
+    "provenance",
+    "validity",
+    "observer_design",
+    "extra_logs",
+    "failed_solves",
+    "observer_resolves",
+)
+
 #: Keys :meth:`SimulationResult.at` reads: the logged arrays and the estimation error.
 SAMPLED_KEYS = (*TRAJECTORY_KEYS, "e")
 
@@ -302,8 +353,9 @@ class SimulationResult:
         """Write the result's files into ``directory``.
 
         * ``trajectories.npz``: :data:`TRAJECTORY_KEYS`, with ``x``, ``xhat``
-          and ``u`` in the plant's own coordinates, and ``x_equilibrium`` and
-          ``u_equilibrium`` when there is an equilibrium;
+          and ``u`` in the plant's own coordinates, and ``x_equilibrium``,
+          ``u_equilibrium`` and :data:`SHIFTED_KEYS` (the coordinates the
+          result holds, for :meth:`load`) when there is an equilibrium;
         * ``extra_logs.npz`` (only if there are extra logs): ``t`` and every
           key of :attr:`extra` under its own name (a stale file from an
           earlier save is removed when there are none);
@@ -319,13 +371,14 @@ class SimulationResult:
             created or written.
         """
         directory = Path(directory)
-        ensure_parent(directory / "trajectories.npz", "SimulationResult.save: directory")
-        with atomic_file(directory / "trajectories.npz", "wb") as fh:
+        ensure_parent(directory / TRAJECTORIES_FILE, "SimulationResult.save: directory")
+        with atomic_file(directory / TRAJECTORIES_FILE, "wb") as fh:
             arrays = {k: getattr(self, k) for k in TRAJECTORY_KEYS}
             if self.x_equilibrium is not None:
-                arrays.update({k: self.original(k) for k in ("x", "xhat", "u")})
+                arrays.update({k: self.original(k) for k in ORIGINAL_KEYS})
                 arrays["x_equilibrium"] = np.asarray(self.x_equilibrium, float)
                 arrays["u_equilibrium"] = np.asarray(self.u_equilibrium, float)
+                arrays.update({SHIFTED_KEYS[k]: getattr(self, k) for k in ORIGINAL_KEYS})
             np.savez(fh, **arrays)
         # dict[str, Any]: numpy's stub reads a **dict of arrays as savez's allow_pickle too
         extra: dict[str, Any] = self._extra_log_arrays()
@@ -335,9 +388,86 @@ class SimulationResult:
         else:
             with contextlib.suppress(FileNotFoundError):
                 (directory / EXTRA_LOGS_FILE).unlink()
-        with atomic_file(directory / "summary.json", "w") as fh:
+        with atomic_file(directory / SUMMARY_FILE, "w") as fh:
             json.dump(self.summary(), fh, indent=2)
             fh.write("\n")
+
+    @classmethod
+    def load(cls, directory: str | Path) -> SimulationResult:
+        """The result :meth:`save` wrote into ``directory``: its inverse.
+
+        ``directory`` is the ``--out`` folder of ``ofrl-drake run``, or one
+        :meth:`save` wrote. The arrays are those the result held, bit for
+        bit: with an equilibrium, ``x``, ``xhat`` and ``u`` are again the
+        method's coordinates ``x - x*``, ``u - u*`` (:data:`SHIFTED_KEYS`; a
+        folder written before those were saved gives the plant's own minus
+        ``x*``, to within rounding), so :meth:`original` and the figures show
+        the plant's own. ``summary.json`` gives the scenario's name,
+        ``wall_time``, ``integrator`` (its ``accuracy``), the units (None
+        when it has none), ``stop`` (its ``x`` and ``xhat`` shifted back by
+        ``x*``, to within rounding), ``provenance``, ``validity``, the
+        observer design and, as :attr:`reports`, every other entry
+        (``regulation``, ``learning_curve``, ``learning_health``, ...);
+        ``extra_logs.npz`` gives :attr:`extra`. So ``load(d).summary()`` is
+        what ``summary.json`` holds.
+
+        Raises
+        ------
+        RunFolderError
+            If ``directory`` is not a folder or lacks ``trajectories.npz`` or
+            ``summary.json`` (not a run folder); if a file is not a readable
+            ``.npz`` archive, resp. JSON object (truncated, damaged, pickled
+            objects); if an array of :data:`TRAJECTORY_KEYS` is missing, not
+            numeric, has the wrong number of dimensions, another length than
+            ``t`` or another width than its partner (``xhat`` and ``x``,
+            ``W_policy`` and ``W``, ``Gamma`` and ``W``); if the equilibrium
+            does not fit ``x`` and ``u``, or ``x* +`` a shifted array is not
+            its partner in the plant's coordinates (an edited file); if
+            ``extra_logs.npz`` does not hold what ``summary.json`` lists, or
+            other samples; or if an entry of ``summary.json`` the result
+            holds has the wrong type or size. The message names the file and
+            the fix.
+        """
+        directory = Path(directory)
+        if not directory.is_dir():
+            raise RunFolderError(
+                f"{directory}: not a folder, so not a run folder; {_RUN_FOLDER_FIX}."
+            )
+        path = directory / TRAJECTORIES_FILE
+        arrays = read_run_arrays(path)
+        logs = _trajectories(arrays, path)
+        summary_path = directory / SUMMARY_FILE
+        summary = _read_summary(summary_path)
+        n, m = logs["x"].shape[1], logs["u"].shape[1]
+        x_eq = arrays.get("x_equilibrium")
+
+        def entry(key: str, convert: Callable[[Any], _T]) -> _T | None:
+            return summary_entry(summary_path, summary, key, convert)
+
+        units = entry("units", lambda d: (_units_of(d["state"], n), _units_of(d["input"], m)))
+        result = cls(
+            **logs,
+            wall_time=entry("wall_time", _json_number) or 0.0,
+            integrator=entry("integrator", _json_dict) or {},
+            validity=entry("validity", _validity_from_dict),
+            design=entry("observer_design", _json_dict),
+            scenario_name=entry("scenario", _json_str) or "",
+            extra=_read_extra_logs(directory, logs["t"], summary.get("extra_logs")),
+            state_units=None if units is None else units[0],
+            input_units=None if units is None else units[1],
+            stop=entry("stop", lambda d: _stop_from_dict(d, n, x_eq)),
+            provenance=entry("provenance", _json_dict) or {},
+            reports={k: v for k, v in summary.items() if k not in SUMMARY_KEYS},
+        )
+        if "x_equilibrium" in arrays:
+            result.x_equilibrium = arrays["x_equilibrium"]
+            result.u_equilibrium = arrays["u_equilibrium"]
+        if summary.get("status", result.status) != result.status:
+            raise RunFolderError(
+                f"{summary_path}: status = {summary['status']!r} but stop says "
+                f"{result.status!r}; {_REWRITE_FIX}."
+            )
+        return result
 
 
 def simulator_config(scenario: Scenario) -> SimulatorConfig:
@@ -852,3 +982,297 @@ def _json_list(values: np.ndarray) -> list[float | None]:
 
 def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
+
+
+#: What to do about a folder that is not a run folder.
+_RUN_FOLDER_FIX = (
+    "give the --out folder of ofrl-drake run (or one SimulationResult.save wrote), which "
+    f"holds {TRAJECTORIES_FILE} and {SUMMARY_FILE}"
+)
+#: What to do about a damaged run folder.
+_REWRITE_FIX = (
+    "the file is damaged or was not written by SimulationResult.save; write the run again "
+    "(ofrl-drake run RUN_DIR/scenario.yaml --out NEW_DIR)"
+)
+
+
+def _run_file(path: Path) -> Path:
+    """``path`` of a run folder, refused when it is missing or not a regular file.
+
+    Raises
+    ------
+    RunFolderError
+        If ``path`` does not exist (the folder is not a run folder) or is not a
+        regular file (a folder, a FIFO: never opened).
+    """
+    if not path.exists():
+        raise RunFolderError(
+            f"{path}: no such file, so {path.parent} is not a run folder; {_RUN_FOLDER_FIX}."
+        )
+    if not path.is_file():
+        raise RunFolderError(f"{path}: not a regular file; {_REWRITE_FIX}.")
+    return path
+
+
+def read_run_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` archive ``path`` of a run folder, each numeric.
+
+    What :meth:`SimulationResult.load` reads ``trajectories.npz`` and
+    ``extra_logs.npz`` with (``ofrl-drake plot``: ``learning_health.npz``).
+
+    Raises
+    ------
+    RunFolderError
+        If the file is missing, not an ``.npz`` archive (truncated, damaged, a
+        CRC error), holds pickled objects, or an array that is not numbers.
+    """
+    path = _run_file(Path(path))
+    try:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):  # a .npy file gives one array
+            raise ValueError("one .npy array, not an .npz archive of the run's arrays")
+        with data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        why = " ".join(str(err).split())[:200]
+        raise RunFolderError(
+            f"{path}: not a readable .npz archive ({why}); {_REWRITE_FIX}."
+        ) from None
+    for key, value in arrays.items():
+        if not (np.issubdtype(value.dtype, np.number) or value.dtype == np.bool_):
+            raise RunFolderError(
+                f"{path}: {key} holds {value.dtype} values, not numbers; {_REWRITE_FIX}."
+            )
+    return arrays
+
+
+def _trajectories(arrays: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarray]:
+    """The logs of ``trajectories.npz`` in the result's coordinates, their shapes checked.
+
+    Raises
+    ------
+    RunFolderError
+        See :meth:`SimulationResult.load`.
+    """
+    missing = [key for key in TRAJECTORY_KEYS if key not in arrays]
+    if missing:
+        raise RunFolderError(
+            f"{path}: no {', '.join(missing)}; a run's trajectories hold "
+            f"{list(TRAJECTORY_KEYS)}; {_REWRITE_FIX}."
+        )
+    logs = {key: arrays[key] for key in TRAJECTORY_KEYS}
+    for key, ndim in _TRAJECTORY_NDIM.items():
+        if logs[key].ndim != ndim:
+            raise RunFolderError(
+                f"{path}: {key} has shape {logs[key].shape}; expected {ndim} "
+                f"dimension{'s' if ndim > 1 else ''}, time first; {_REWRITE_FIX}."
+            )
+    T = logs["t"].size
+    if T == 0:
+        raise RunFolderError(f"{path}: t is empty, a run logs at least one sample; {_REWRITE_FIX}.")
+    for key in TRAJECTORY_KEYS:
+        if logs[key].shape[0] != T:
+            raise RunFolderError(
+                f"{path}: {key} has {logs[key].shape[0]} samples but t has {T}; {_REWRITE_FIX}."
+            )
+    L = logs["W"].shape[1]
+    for key, shape in (
+        ("xhat", logs["x"].shape),
+        ("W_policy", logs["W"].shape),
+        ("Gamma", (T, L, L)),
+    ):
+        if logs[key].shape != shape:
+            raise RunFolderError(
+                f"{path}: {key} has shape {logs[key].shape}; expected {shape} (from x and W); "
+                f"{_REWRITE_FIX}."
+            )
+    has_x, has_u = "x_equilibrium" in arrays, "u_equilibrium" in arrays
+    if not (has_x or has_u):
+        return logs
+    sizes = {"x": logs["x"].shape[1], "u": logs["u"].shape[1]}
+    for key in ("x", "u"):
+        eq = arrays.get(f"{key}_equilibrium")
+        if eq is None or eq.shape != (sizes[key],):
+            shown = "missing" if eq is None else f"of shape {eq.shape}"
+            raise RunFolderError(
+                f"{path}: {key}_equilibrium is {shown}; expected shape ({sizes[key]},) "
+                f"beside {'u' if key == 'x' else 'x'}_equilibrium; {_REWRITE_FIX}."
+            )
+    for key in ORIGINAL_KEYS:
+        offset = arrays["u_equilibrium" if key == "u" else "x_equilibrium"]
+        shifted = arrays.get(SHIFTED_KEYS[key])
+        if shifted is None:  # written before the shifted logs were saved: within rounding
+            logs[key] = logs[key] - offset
+            continue
+        if shifted.shape != logs[key].shape or not np.array_equal(
+            shifted + offset, logs[key], equal_nan=True
+        ):
+            raise RunFolderError(
+                f"{path}: {SHIFTED_KEYS[key]} + the equilibrium is not {key} (the file was "
+                f"edited or is damaged; edit neither by hand); {_REWRITE_FIX}."
+            )
+        logs[key] = shifted
+    return logs
+
+
+def summary_entry(
+    path: Path, summary: dict[str, Any], key: str, convert: Callable[[Any], _T]
+) -> _T | None:
+    """``convert(summary[key])`` of the ``summary.json`` at ``path``; None when there is none.
+
+    Raises
+    ------
+    RunFolderError
+        If ``convert`` raises ``TypeError``, ``ValueError``, ``KeyError`` or
+        ``AttributeError`` (an entry of the wrong type or size), naming the
+        file, the key, the value and the fix.
+    """
+    if key not in summary:
+        return None
+    try:
+        return convert(summary[key])
+    except (TypeError, ValueError, KeyError, AttributeError) as err:
+        shown = repr(summary[key])
+        shown = shown if len(shown) <= 80 else f"{shown[:77]}..."
+        raise RunFolderError(
+            f"{path}: {key} = {shown} cannot be read back ({err}); {_REWRITE_FIX}."
+        ) from None
+
+
+def _read_summary(path: Path) -> dict[str, Any]:
+    """``summary.json`` of a run folder, a JSON object.
+
+    Raises
+    ------
+    RunFolderError
+        If the file is missing, unreadable, not JSON, or not an object.
+    """
+    _run_file(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        why = " ".join(str(err).split())[:200]
+        raise RunFolderError(f"{path}: not readable JSON ({why}); {_REWRITE_FIX}.") from None
+    if not isinstance(data, dict):
+        raise RunFolderError(
+            f"{path}: a JSON {type(data).__name__}, not an object of the run's entries; "
+            f"{_REWRITE_FIX}."
+        )
+    return data
+
+
+def read_run_series(
+    path: str | Path, t: np.ndarray, required: Sequence[str] = ()
+) -> dict[str, np.ndarray]:
+    """The arrays of the ``.npz`` file ``path`` of a run folder, each sampled at ``t``.
+
+    Files that hold series logged beside ``trajectories.npz`` and its times
+    ``t``: ``extra_logs.npz``, ``learning_health.npz``. The file's own ``t``
+    is dropped from the arrays returned.
+
+    Raises
+    ------
+    RunFolderError
+        As :func:`read_run_arrays`; if the file has no ``t`` or no array of
+        ``required``, its ``t`` is not ``t`` (another run's file), or an
+        array does not have ``t.size`` samples first.
+    """
+    path = Path(path)
+    arrays = read_run_arrays(path)
+    missing = [key for key in ("t", *required) if key not in arrays]
+    if missing:
+        raise RunFolderError(f"{path}: no {', '.join(missing)}; {_REWRITE_FIX}.")
+    if not np.array_equal(arrays["t"], t):
+        raise RunFolderError(
+            f"{path}: its t is not the t of {TRAJECTORIES_FILE} (another run's file?); "
+            f"{_REWRITE_FIX}."
+        )
+    for key, value in arrays.items():
+        if value.ndim == 0 or value.shape[0] != t.size:
+            raise RunFolderError(
+                f"{path}: {key} has shape {value.shape}, not {t.size} samples first; "
+                f"{_REWRITE_FIX}."
+            )
+    return {key: value for key, value in arrays.items() if key != "t"}
+
+
+def _read_extra_logs(directory: Path, t: np.ndarray, listed: Any) -> dict[str, np.ndarray]:
+    """:data:`EXTRA_LOGS_FILE` of a run folder, checked against what ``summary.json`` lists.
+
+    Raises
+    ------
+    RunFolderError
+        If the file is missing while ``listed`` names logs, holds other keys
+        than ``listed`` (or any when none are listed), or is refused by
+        :func:`read_run_series`.
+    """
+    path = directory / EXTRA_LOGS_FILE
+    if listed is None and not path.exists():
+        return {}
+    logs = read_run_series(path, t)  # refused when missing: summary.json lists logs
+    held = sorted(["t", *logs])
+    if not isinstance(listed, list) or held != sorted(map(str, listed)):
+        raise RunFolderError(
+            f"{path}: holds {held} but {SUMMARY_FILE} lists extra_logs = {listed!r}; "
+            f"{_REWRITE_FIX}."
+        )
+    return logs
+
+
+def _json_number(value: Any) -> float:
+    """A number of ``summary.json`` (not a bool), as a float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"expected a number, got {type(value).__name__}")
+    return float(value)
+
+
+def _json_str(value: Any) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"expected a string, got {type(value).__name__}")
+    return value
+
+
+def _json_dict(value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise TypeError(f"expected an object, got {type(value).__name__}")
+    return value
+
+
+def _json_vector(value: Any, size: int) -> list[float]:
+    """A list of ``size`` numbers from JSON, ``null`` (a non-finite value) as NaN."""
+    if not isinstance(value, list) or len(value) != size:
+        raise ValueError(f"expected a list of {size} numbers")
+    return [math.nan if v is None else _json_number(v) for v in value]
+
+
+def _units_of(value: Any, size: int) -> tuple[str, ...] | None:
+    """Units of ``size`` entries (``summary.json`` → ``units``), or None."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != size:
+        raise ValueError(f"expected {size} units, one per entry")
+    return tuple(_json_str(u) for u in value)
+
+
+def _stop_from_dict(data: Any, n: int, x_equilibrium: np.ndarray | None) -> StopReport:
+    """The :class:`StopReport` of ``summary.json``, its states in the result's coordinates."""
+    data = _json_dict(data)
+    x, xhat = (np.asarray(_json_vector(data[k], n)) for k in ("x", "xhat"))
+    if x_equilibrium is not None:  # saved in the plant's own coordinates
+        x, xhat = x - x_equilibrium, xhat - x_equilibrium
+    return StopReport(
+        status=_json_str(data["status"]),
+        reason=_json_str(data["reason"]),
+        time=_json_number(data["time"]),
+        x=x.tolist(),
+        xhat=xhat.tolist(),
+        wall_time=_json_number(data["wall_time"]),
+    )
+
+
+def _validity_from_dict(data: Any) -> ValidityReport:
+    """The :class:`ValidityReport` of ``summary.json`` (its derived entries dropped)."""
+    data = dict(_json_dict(data))
+    data.pop("valid", None)
+    data.pop("box_checked", None)
+    return ValidityReport(**data)

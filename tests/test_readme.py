@@ -199,8 +199,9 @@ def example_problems(examples: list[list[str]]) -> list[str]:
         except SystemExit:
             found.append(f"{shown}: the parser refuses it")
             continue
-        if not (ROOT / args.scenario).is_file():
-            found.append(f"{shown}: no scenario file {args.scenario}")
+        scenario = getattr(args, "scenario", None)  # plot takes a run folder, not a scenario
+        if scenario is not None and not (ROOT / scenario).is_file():
+            found.append(f"{shown}: no scenario file {scenario}")
     return found
 
 

@@ -2,7 +2,9 @@
 
 import copy
 import dataclasses
+import io
 import json
+import re
 
 import numpy as np
 import pytest
@@ -11,13 +13,14 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from ofrl_drake import (
     ModelError,
     OutputError,
+    RunFolderError,
     ScenarioError,
     SimulationResult,
     SwapError,
     build_closed_loop,
     simulate,
 )
-from ofrl_drake.simulation import EXTRA_LOGS_FILE, TRAJECTORY_KEYS
+from ofrl_drake.simulation import EXTRA_LOGS_FILE, SHIFTED_KEYS, SUMMARY_KEYS, TRAJECTORY_KEYS
 from ofrl_drake.systems import CriticWeights
 from ofrl_drake.systems.baselines import FullStateObserver
 from ofrl_drake.validity import validity_report
@@ -750,3 +753,230 @@ def test_progress_bar_gives_the_same_schedule(scheduled, paper_design, capsys):
     np.testing.assert_array_equal(shown.extra["certified_box"], r.extra["certified_box"])
     np.testing.assert_array_equal(shown.x, r.x)
     assert shown.validity.box_check == "scheduled"
+
+
+# ------------------------------------------------------------------------ load
+def _assert_same_result(loaded, saved):
+    """Every array and every figure input of ``saved``, bit for bit, in ``loaded``."""
+    _assert_same_run(loaded, saved)
+    for key in ("x_equilibrium", "u_equilibrium"):
+        np.testing.assert_array_equal(getattr(loaded, key), getattr(saved, key))
+    for key in ("x", "xhat", "u"):
+        np.testing.assert_array_equal(loaded.original(key), saved.original(key))
+    np.testing.assert_array_equal(loaded.e, saved.e)
+    for key in (
+        "scenario_name",
+        "state_units",
+        "input_units",
+        "wall_time",
+        "integrator",
+        "design",
+        "provenance",
+        "reports",
+        "status",
+        "regulated",
+    ):
+        assert getattr(loaded, key) == getattr(saved, key), key
+    assert (loaded.stop.status, loaded.stop.reason, loaded.stop.time) == (
+        saved.stop.status,
+        saved.stop.reason,
+        saved.stop.time,
+    )
+    np.testing.assert_allclose(loaded.stop.x, saved.stop.x, rtol=0, atol=1e-14)
+    assert loaded.validity.to_dict() == json.loads(json.dumps(saved.validity.to_dict()))
+    assert json.loads(json.dumps(loaded.summary())) == json.loads(json.dumps(saved.summary()))
+
+
+@pytest.fixture(scope="module")
+def cart_pole_result():
+    """A run with an equilibrium (x* = [0, pi, 0, 0]), units and extra logs."""
+    return simulate(_load("cart_pole", 0.5), progress=False)
+
+
+def test_load_gives_back_what_save_wrote_with_an_equilibrium(cart_pole_result, tmp_path):
+    r = cart_pole_result
+    r.save(tmp_path)
+    loaded = SimulationResult.load(tmp_path)
+    _assert_same_result(loaded, r)
+    assert loaded.state_units == ("m", "rad", "m/s", "rad/s")
+    assert loaded.original("x")[0, 1] == pytest.approx(np.pi + 0.15)  # x*_2 added once
+    assert sorted(loaded.extra) == ["policy_updates"]
+    assert loaded.integrator["accuracy"] == 1e-4
+    # The plant's own coordinates in the file, the method's beside them, bit for bit.
+    with np.load(tmp_path / "trajectories.npz") as data:
+        np.testing.assert_array_equal(data["x"], r.original("x"))
+        np.testing.assert_array_equal(data[SHIFTED_KEYS["x"]], r.x)
+    loaded.save(tmp_path / "again")
+    for name in ("trajectories.npz", "extra_logs.npz"):
+        with np.load(tmp_path / name) as a, np.load(tmp_path / "again" / name) as b:
+            assert a.files == b.files
+            for key in a.files:
+                np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_load_gives_back_a_scheduled_observers_logs_and_validity(scheduled, tmp_path):
+    _, r = scheduled
+    r.save(tmp_path)
+    loaded = SimulationResult.load(tmp_path)
+    _assert_same_result(loaded, r)
+    assert loaded.validity.box_check == "scheduled"
+    assert loaded.solve_counts() == r.solve_counts()
+
+
+def test_load_of_a_folder_saved_before_the_shifted_logs_shifts_back_within_rounding(
+    cart_pole_result, tmp_path
+):
+    r = cart_pole_result
+    r.save(tmp_path)
+    with np.load(tmp_path / "trajectories.npz") as data:
+        old = {k: data[k] for k in data.files if k not in SHIFTED_KEYS.values()}
+    np.savez(tmp_path / "trajectories.npz", **old)
+    loaded = SimulationResult.load(tmp_path)
+    np.testing.assert_allclose(loaded.x, r.x, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(loaded.original("x"), r.original("x"))
+
+
+def test_load_without_units_reads_none(paper_result, tmp_path):
+    paper_result.save(tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert "units" not in summary  # the paper's toy has no units
+    loaded = SimulationResult.load(tmp_path)
+    assert loaded.state_units is loaded.input_units is None
+    assert loaded.x_equilibrium is None
+    _assert_same_result(loaded, paper_result)
+
+
+def test_summary_keys_are_every_entry_summary_computes(cart_pole_result, scheduled):
+    for r in (cart_pole_result, scheduled[1]):
+        own = set(r.summary()) - set(r.reports)
+        assert own <= set(SUMMARY_KEYS)
+    assert not set(SUMMARY_KEYS) & set(cart_pole_result.reports)
+
+
+def _edit_npz(path, **changes):
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update(changes)
+    for key in [k for k, v in arrays.items() if v is None]:
+        del arrays[key]
+    np.savez(path, **arrays)
+
+
+def _npy_bytes(array):
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def _edit_summary(path, **changes):
+    data = json.loads(path.read_text())
+    data.update(changes)
+    path.write_text(json.dumps(data))
+
+
+#: A damaged run folder, what is refused, and the message (after the folder's path).
+LOAD_ERRORS = {
+    "no trajectories": (
+        lambda d: (d / "trajectories.npz").unlink(),
+        r"trajectories\.npz: no such file, so .* is not a run folder; give the --out folder "
+        r"of ofrl-drake run",
+    ),
+    "no summary": (
+        lambda d: (d / "summary.json").unlink(),
+        r"summary\.json: no such file, so .* is not a run folder",
+    ),
+    "truncated npz": (
+        lambda d: (d / "trajectories.npz").write_bytes((d / "trajectories.npz").read_bytes()[:200]),
+        r"trajectories\.npz: not a readable \.npz archive \(File is not a zip file\); the file "
+        r"is damaged or was not written by SimulationResult\.save; write the run again "
+        r"\(ofrl-drake run RUN_DIR/scenario\.yaml --out NEW_DIR\)\.$",
+    ),
+    "a .npy file": (
+        lambda d: d.joinpath("trajectories.npz").write_bytes(_npy_bytes(np.zeros(3))),
+        r"trajectories\.npz: not a readable \.npz archive \(one \.npy array",
+    ),
+    "pickled objects": (
+        lambda d: _edit_npz(d / "trajectories.npz", t=np.array([{}], dtype=object)),
+        r"trajectories\.npz: not a readable \.npz archive \(Object arrays cannot be loaded",
+    ),
+    "text in an array": (
+        lambda d: _edit_npz(d / "trajectories.npz", cost=np.array(["a"])),
+        r"trajectories\.npz: cost holds <U1 values, not numbers",
+    ),
+    "a missing array": (
+        lambda d: _edit_npz(d / "trajectories.npz", Gamma=None),
+        r"trajectories\.npz: no Gamma; a run's trajectories hold \['t', 'x'",
+    ),
+    "a shorter array": (
+        lambda d: _edit_npz(d / "trajectories.npz", cost=np.zeros(3)),
+        r"trajectories\.npz: cost has 3 samples but t has 26; ",
+    ),
+    "a flat state": (
+        lambda d: _edit_npz(d / "trajectories.npz", x=np.zeros(26)),
+        r"trajectories\.npz: x has shape \(26,\); expected 2 dimensions, time first",
+    ),
+    "xhat narrower than x": (
+        lambda d: _edit_npz(d / "trajectories.npz", xhat=np.zeros((26, 3))),
+        r"trajectories\.npz: xhat has shape \(26, 3\); expected \(26, 4\) \(from x and W\)",
+    ),
+    "an equilibrium of another size": (
+        lambda d: _edit_npz(d / "trajectories.npz", x_equilibrium=np.zeros(2)),
+        r"trajectories\.npz: x_equilibrium is of shape \(2,\); expected shape \(4,\)",
+    ),
+    "x edited by hand": (
+        lambda d: _edit_npz(d / "trajectories.npz", x=np.ones((26, 4))),
+        r"trajectories\.npz: x_shifted \+ the equilibrium is not x \(the file was edited",
+    ),
+    "corrupt summary": (
+        lambda d: (d / "summary.json").write_text('{"scenario": '),
+        r"summary\.json: not readable JSON \(Expecting value: line 1 column 14",
+    ),
+    "a summary that is a list": (
+        lambda d: (d / "summary.json").write_text("[]"),
+        r"summary\.json: a JSON list, not an object of the run's entries",
+    ),
+    "units of another size": (
+        lambda d: _edit_summary(d / "summary.json", units={"state": ["m"], "input": None}),
+        r"summary\.json: units = \{'state': \['m'\], 'input': None\} cannot be read back "
+        r"\(expected 4 units, one per entry\)",
+    ),
+    "a stop without its time": (
+        lambda d: _edit_summary(d / "summary.json", stop={"status": "ok"}),
+        r"summary\.json: stop = \{'status': 'ok'\} cannot be read back \('x'\)",
+    ),
+    "a status the stop does not say": (
+        lambda d: _edit_summary(d / "summary.json", status="diverged"),
+        r"summary\.json: status = 'diverged' but stop says 'ok'",
+    ),
+    "no extra logs file": (
+        lambda d: (d / "extra_logs.npz").unlink(),
+        r"extra_logs\.npz: no such file, so .* is not a run folder",
+    ),
+    "extra logs not listed": (
+        lambda d: _edit_summary(d / "summary.json", extra_logs=["t"]),
+        r"extra_logs\.npz: holds \['policy_updates', 't'\] but summary\.json lists "
+        r"extra_logs = \['t'\]",
+    ),
+    "extra logs of other samples": (
+        lambda d: _edit_npz(d / "extra_logs.npz", t=np.zeros(26)),
+        r"extra_logs\.npz: its t is not the t of trajectories\.npz",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(LOAD_ERRORS))
+def test_load_refuses_a_damaged_run_folder_naming_the_file(cart_pole_result, tmp_path, case):
+    cart_pole_result.save(tmp_path)
+    damage, message = LOAD_ERRORS[case]
+    damage(tmp_path)
+    with pytest.raises(RunFolderError, match=rf"^{re.escape(str(tmp_path))}/{message}"):
+        SimulationResult.load(tmp_path)
+
+
+def test_load_refuses_what_is_not_a_folder(tmp_path):
+    with pytest.raises(
+        RunFolderError,
+        match=rf"^{re.escape(str(tmp_path))}/nothing: not a folder, so not a run folder; "
+        r"give the --out folder of ofrl-drake run",
+    ):
+        SimulationResult.load(tmp_path / "nothing")
