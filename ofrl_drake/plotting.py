@@ -897,15 +897,10 @@ def plot_learning_condition(result: SimulationResult, *, size: str = "page") -> 
     OutputError
         If ``size`` is not one of :data:`FIGURE_SIZES`.
     """
-    sz = _size(size)
-    fig, (ax,) = _figure(sz, 1, page=(6.0, 3.2), column=(3.5, 2.4))
-    ax.plot(result.t, result.learning_condition, lw=1.4, color="C3")
-    _windows(result, [ax], sz, None)
-    _mark_stop(_stop(result), [ax])
-    ax.set_ylabel(r"$c(t)$")
-    ax.set_title("learning condition", fontsize=sz.title)
-    ax.set_ylim(bottom=0)
-    _legend(fig, [ax], sz)
+    fig = _one_series(
+        result, result.learning_condition, "C3", r"$c(t)$", "learning condition", size
+    )
+    fig.axes[0].set_ylim(bottom=0)
     return fig
 
 
@@ -918,13 +913,21 @@ def plot_cost(result: SimulationResult, *, size: str = "page") -> Figure:
     OutputError
         If ``size`` is not one of :data:`FIGURE_SIZES`.
     """
+    title = r"$J(t)=\int_0^t Q(x)+U(u)\,d\tau$"
+    return _one_series(result, result.cost, "C4", r"cost $J(t)$", title, size)
+
+
+def _one_series(
+    result: SimulationResult, y: np.ndarray, color: str, ylabel: str, title: str, size: str
+) -> Figure:
+    """One logged scalar over the whole run, in one panel, the stop marked."""
     sz = _size(size)
     fig, (ax,) = _figure(sz, 1, page=(6.0, 3.2), column=(3.5, 2.4))
-    ax.plot(result.t, result.cost, lw=1.4, color="C4")
+    ax.plot(result.t, y, lw=1.4, color=color)
     _windows(result, [ax], sz, None)
     _mark_stop(_stop(result), [ax])
-    ax.set_ylabel(r"cost $J(t)$")
-    ax.set_title(r"$J(t)=\int_0^t Q(x)+U(u)\,d\tau$", fontsize=sz.title)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=sz.title)
     _legend(fig, [ax], sz)
     return fig
 
