@@ -4,6 +4,8 @@ Every file ofrl_drake writes goes through :func:`atomic_file`, so a crash, a
 full disk or a bad value half-way through never leaves a half-written file,
 and the finished file gets the permissions the user's umask asks for (as a
 plain ``open`` would), not the ``0600`` of :func:`tempfile.mkstemp`.
+:func:`output_lock` keeps two commands from writing one output (or one from
+writing what another reads).
 """
 
 from __future__ import annotations
@@ -144,19 +146,22 @@ def check_output_target(target: str | Path, what: str = "--out", *, folder: bool
 
 
 @contextlib.contextmanager
-def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
-    """Hold an exclusive lock on ``target`` for the block; refuse if another process holds it.
+def output_lock(target: str | Path, what: str = "--out", *, shared: bool = False) -> Iterator[None]:
+    """Hold a lock on ``target`` for the block; refuse if another process holds a clashing one.
 
     The lock is ``flock`` on a file named by a hash of ``target``'s absolute
     path (links and ``..`` resolved) in ``<tmp>/ofrl_drake-locks`` (nothing is
     added beside the output), released when the block ends or the process
-    dies, so two ``ofrl-drake`` commands writing the same output cannot
-    interleave.
+    dies. A writer takes it exclusive (the default), so two ``ofrl-drake``
+    commands writing the same output cannot interleave; a reader takes it
+    ``shared`` (``plot`` reading a run folder), so any number of readers may
+    hold it together, but none while a writer does, and no writer while one
+    reads.
 
     Raises
     ------
     OutputError
-        If another process holds the lock.
+        If another process holds the lock exclusive, or (not ``shared``) at all.
     """
     import fcntl
     import hashlib
@@ -167,10 +172,11 @@ def output_lock(target: str | Path, what: str = "--out") -> Iterator[None]:
     name = hashlib.sha256(str(path).encode()).hexdigest()[:32]
     with open(folder / f"{name}.lock", "a+") as fh:
         try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fh.fileno(), (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
+            doing = "writing" if shared else "writing or reading"
             raise OutputError(
-                f"{what}: another ofrl-drake command is writing {path} now; wait for it to "
+                f"{what}: another ofrl-drake command is {doing} {path} now; wait for it to "
                 "finish, or choose another path."
             ) from None
         try:

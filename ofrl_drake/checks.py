@@ -9,6 +9,7 @@ the source.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -25,9 +26,14 @@ __all__ = [
     "integer_at_least",
     "is_real_number",
     "nonnegative_matrix",
+    "number_from_json",
+    "object_from_json",
+    "optional_number_from_json",
     "positive_number",
     "positive_vector",
     "spd_matrix",
+    "string_from_json",
+    "vector_from_json",
 ]
 
 
@@ -205,3 +211,43 @@ def nonnegative_matrix(name: str, value: Any, size: int | None = None) -> np.nda
             f"{name} must be positive semidefinite; its smallest eigenvalue is {lam:.3g}."
         )
     return arr
+
+
+def number_from_json(value: Any) -> float:
+    """A number read back from JSON (``summary.json``), as a float: not a bool, string or null.
+
+    Raises ``TypeError`` for anything else.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise TypeError(f"expected a number, got {type(value).__name__}")
+    return float(value)
+
+
+def optional_number_from_json(value: Any) -> float | None:
+    """A number read back from JSON, or None for ``null`` (a non-finite number, or none)."""
+    return None if value is None else number_from_json(value)
+
+
+def vector_from_json(value: Any, size: int | None = None) -> list[float]:
+    """A list of ``size`` numbers (None: any number) read back from JSON, ``null`` as NaN.
+
+    ``null`` is how a non-finite value is written. Raises ``ValueError`` for a
+    list of another length, ``TypeError`` for an entry that is not a number.
+    """
+    if not isinstance(value, list) or (size is not None and len(value) != size):
+        raise ValueError(f"expected a list of {'' if size is None else f'{size} '}numbers")
+    return [math.nan if v is None else number_from_json(v) for v in value]
+
+
+def string_from_json(value: Any) -> str:
+    """A string read back from JSON; ``TypeError`` for anything else."""
+    if not isinstance(value, str):
+        raise TypeError(f"expected a string, got {type(value).__name__}")
+    return value
+
+
+def object_from_json(value: Any) -> dict[str, Any]:
+    """An object (dict) read back from JSON; ``TypeError`` for anything else."""
+    if not isinstance(value, dict):
+        raise TypeError(f"expected an object, got {type(value).__name__}")
+    return value

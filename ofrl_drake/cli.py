@@ -60,7 +60,9 @@ if TYPE_CHECKING:  # annotations only: the commands import what they run when th
 
 __all__ = [
     "FIGURES_MARKER",
+    "FIGURE_INPUTS_KEY",
     "OUTPUT_MARKER",
+    "FigureInputs",
     "OutputError",
     "atomic_directory",
     "check_figures_directory",
@@ -97,8 +99,9 @@ CERTIFICATE_DOCS = (
 )
 VALIDITY_DOCS = "(why: docs/theory.md, 'Where the certificate holds')"
 
-#: The learning-health series of a run (:class:`ofrl_drake.learning_curve.LearningHealth`).
-LEARNING_HEALTH_FILE = "learning_health.npz"
+#: The entry of ``summary.json`` where ``run`` writes what its figures need of the
+#: scenario (:class:`FigureInputs`), so that ``plot`` needs neither the scenario nor its plant.
+FIGURE_INPUTS_KEY = "figure_inputs"
 
 #: Most ``run --checkpoints``: each checkpoint is one more closed-loop simulation over the
 #: whole horizon (milliseconds to seconds each), so 10^4 already take minutes to hours,
@@ -128,21 +131,35 @@ def check_output_directory(target: Path) -> Path:
     return check_writable(target)
 
 
-def check_figures_directory(target: Path) -> Path:
-    """Resolve ``plot``'s ``--out`` and refuse to replace anything it may not.
+def check_figures_directory(target: Path, run_dir: Path) -> Path:
+    """Resolve ``plot``'s ``--out`` for the run folder ``run_dir``; refuse what it may not replace.
 
     ``target`` may be absent, an empty folder, a folder an earlier ``plot``
-    wrote (it holds :data:`FIGURES_MARKER`), or the :data:`FIGURES_FOLDER` of a
-    run folder (one holding :data:`OUTPUT_MARKER`), which ``run`` drew.
+    wrote (it holds :data:`FIGURES_MARKER`), or the :data:`FIGURES_FOLDER` of
+    ``run_dir`` itself, which ``run`` drew. Nothing directly inside another
+    run folder (one holding :data:`OUTPUT_MARKER`): its figures are its own.
 
     Raises
     ------
     OutputError
         If ``target`` is a file, a link, a filesystem root, the current folder
-        or one holding it, someone else's non-empty folder, or cannot be written.
+        or one holding it, ``run_dir`` or a folder holding it, a folder inside
+        another run folder, someone else's non-empty folder, or cannot be
+        written.
     """
+    run_dir = Path(run_dir).expanduser().resolve()
     target = _check_output_place(check_output_target(target, folder=True))
-    if not (target.name == FIGURES_FOLDER and (target.parent / OUTPUT_MARKER).is_file()):
+    if target == run_dir or target in run_dir.parents:
+        raise OutputError(
+            f"--out: {target} is the run folder or holds it, which the figures would "
+            f"replace; name another folder (default RUN_DIR/{FIGURES_FOLDER})."
+        )
+    if target.parent != run_dir and (target.parent / OUTPUT_MARKER).is_file():
+        raise OutputError(
+            f"--out: {target} is inside {target.parent}, the folder of another run, whose "
+            f"files are its own; name a folder outside it (default RUN_DIR/{FIGURES_FOLDER})."
+        )
+    if target != run_dir / FIGURES_FOLDER:
         check_output_folder(target, marker=FIGURES_MARKER, command="plot")
     return check_writable(target)
 
@@ -190,18 +207,22 @@ def _remove_stale_partials(target: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_directory(target: Path, command: str = "run") -> Iterator[Path]:
+def atomic_directory(target: Path, run_dir: Path | None = None) -> Iterator[Path]:
     """Yield a temporary folder that replaces ``target`` only on success.
 
     The folder is built beside ``target`` and renamed into place, so a failure
     at any point leaves ``target`` as it was and no temporary folder behind. The
-    temporary folder's name holds ``partial`` and the process id. ``command``
-    (``"run"`` or ``"plot"``) says which folders ``target`` may replace
-    (:func:`check_output_directory`, :func:`check_figures_directory`) and
-    which marker the new folder gets (:data:`OUTPUT_MARKER`, :data:`FIGURES_MARKER`).
+    temporary folder's name holds ``partial`` and the process id. Without
+    ``run_dir`` it is ``run``'s output (:func:`check_output_directory` says
+    which folders it may replace; it gets :data:`OUTPUT_MARKER`); with it,
+    ``plot``'s figures of that run folder (:func:`check_figures_directory`,
+    :data:`FIGURES_MARKER`).
     """
-    check, marker = _OUTPUT_FOLDERS[command]
-    target = check(target)
+    if run_dir is None:
+        target, command, marker = check_output_directory(target), "run", OUTPUT_MARKER
+    else:
+        target, command = check_figures_directory(target, run_dir), "plot"
+        marker = FIGURES_MARKER
     ensure_parent(target)
     _remove_stale_partials(target)
     try:
@@ -226,13 +247,6 @@ def atomic_directory(target: Path, command: str = "run") -> Iterator[Path]:
             backup.rename(target)
         raise
     shutil.rmtree(backup, ignore_errors=True)
-
-
-#: What each command's output folder may replace, and the marker it gets (:func:`atomic_directory`).
-_OUTPUT_FOLDERS: dict[str, tuple[Callable[[Path], Path], str]] = {
-    "run": (check_output_directory, OUTPUT_MARKER),
-    "plot": (check_figures_directory, FIGURES_MARKER),
-}
 
 
 def _write_animation(scenario, result, folder: Path) -> str | None:
@@ -372,6 +386,7 @@ def _run(args: argparse.Namespace) -> int:
 
     from ofrl_drake.diagram import build_closed_loop
     from ofrl_drake.graph import render_diagram
+    from ofrl_drake.learning_curve import LEARNING_HEALTH_FILE
     from ofrl_drake.scenario import dump_scenario, load_scenario
     from ofrl_drake.simulation import simulate
 
@@ -393,13 +408,15 @@ def _run(args: argparse.Namespace) -> int:
         result.design = {**result.design, "verification": verification.to_dict()}
     learning = _learning_report(args, loop, result, started)
     result.reports.update(learning.to_dict())
+    figure_inputs = FigureInputs.of(scenario)
+    result.reports[FIGURE_INPUTS_KEY] = figure_inputs.to_dict()
     out = Path(args.out)
     with atomic_directory(out) as tmp:
         result.save(tmp)
         with open(tmp / LEARNING_HEALTH_FILE, "wb") as fh:
             np.savez(fh, **learning.health.arrays())
         (tmp / SCENARIO_FILE).write_text(dump_scenario(loop.resolved_scenario()))
-        save_run_figures(result, scenario, learning, tmp / FIGURES_FOLDER)
+        save_run_figures(result, figure_inputs, learning, tmp / FIGURES_FOLDER)
         if loop.design is not None:
             design = loop.design.to_dict()
             if verification is not None:
@@ -460,9 +477,217 @@ def _run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+@dataclasses.dataclass(frozen=True)
+class FigureInputs:
+    """What a run's figures need of its scenario, beside the run's own files.
+
+    ``run`` writes it into ``summary.json`` (:data:`FIGURE_INPUTS_KEY`),
+    ``plot`` reads it back (:meth:`read`): neither the scenario nor its
+    plant's code is needed to redraw a run.
+
+    Attributes
+    ----------
+    input_bound : float
+        ``lambda_bar``, drawn as ``+-lambda_bar`` on the input.
+    inputs : int
+        The number of inputs ``m`` (``u`` of the run has ``m`` columns).
+    box_lower, box_upper : tuple of float
+        The observer box, drawn on the states (``n`` entries each).
+    basis_degrees : tuple of int
+        The critic's basis (``critic.basis_degrees``), which names the weights.
+    """
+
+    input_bound: float
+    inputs: int
+    box_lower: tuple[float, ...]
+    box_upper: tuple[float, ...]
+    basis_degrees: tuple[int, ...]
+
+    @classmethod
+    def of(cls, scenario: Any) -> FigureInputs:
+        """The figure inputs of a loaded, validated ``scenario``."""
+        box = scenario.observer.box
+        return cls(
+            input_bound=float(scenario.input_bound),
+            inputs=len(scenario.cost.R),
+            box_lower=tuple(float(v) for v in box.lower),
+            box_upper=tuple(float(v) for v in box.upper),
+            basis_degrees=tuple(int(d) for d in scenario.critic.basis_degrees),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """For ``summary.json`` -> :data:`FIGURE_INPUTS_KEY`."""
+        return {
+            "input_bound": self.input_bound,
+            "inputs": self.inputs,
+            "observer_box": {"lower": list(self.box_lower), "upper": list(self.box_upper)},
+            "basis_degrees": list(self.basis_degrees),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> FigureInputs:
+        """The inputs :meth:`to_dict` wrote (also the same keys of a scenario file).
+
+        Raises
+        ------
+        TypeError, ValueError, KeyError
+            If an entry is missing or of the wrong type, ``input_bound`` is
+            not a number > 0, ``inputs`` or a degree not an integer >= 1, or
+            the box's corners are not finite numbers of one length, lower
+            below upper.
+        """
+        from ofrl_drake.checks import number_from_json, object_from_json, vector_from_json
+
+        data = object_from_json(data)
+        box = object_from_json(data["observer_box"])
+        lower, upper = vector_from_json(box["lower"]), vector_from_json(box["upper"])
+        input_bound = number_from_json(data["input_bound"])
+        if not (math.isfinite(input_bound) and input_bound > 0):
+            raise ValueError(f"input_bound {input_bound} is not a number > 0")
+        if not (
+            len(lower) == len(upper) >= 1
+            and all(math.isfinite(v) for v in (*lower, *upper))
+            and all(lo < hi for lo, hi in zip(lower, upper, strict=True))
+        ):
+            raise ValueError(
+                f"the observer box {lower} to {upper} is not finite corners of one length, "
+                "lower below upper"
+            )
+        degrees = data["basis_degrees"]
+        if not (
+            isinstance(degrees, list)
+            and degrees
+            and all(type(k) is int and k >= 1 for k in [data["inputs"], *degrees])
+        ):
+            raise ValueError("inputs and basis_degrees are integers >= 1 (a list of them)")
+        return cls(
+            input_bound=input_bound,
+            inputs=data["inputs"],
+            box_lower=tuple(lower),
+            box_upper=tuple(upper),
+            basis_degrees=tuple(degrees),
+        )
+
+    @classmethod
+    def read(cls, run_dir: Path, result: Any) -> FigureInputs:
+        """The figure inputs of the run folder ``run_dir``, checked against its run ``result``.
+
+        From ``summary.json`` -> :data:`FIGURE_INPUTS_KEY` (``result.reports``);
+        a folder written before ``run`` wrote it gives them from its
+        :data:`SCENARIO_FILE`, read as data (its plant is not loaded), whose
+        ``name`` must be the run's.
+
+        Raises
+        ------
+        RunFolderError
+            If neither holds them, one cannot be read (not YAML, an entry
+            missing or of the wrong type), the scenario file is another
+            scenario's, or they do not fit the run's arrays: a box of
+            another length than the columns of ``x``, another number of
+            inputs than the columns of ``u``, a basis of another size than
+            the columns of ``W``. The message names the file, both values and
+            the fix.
+        """
+        from ofrl_drake.basis import PolynomialBasis
+        from ofrl_drake.errors import ModelError, RunFolderError
+        from ofrl_drake.simulation import SUMMARY_FILE, TRAJECTORIES_FILE, summary_entry
+
+        if FIGURE_INPUTS_KEY in result.reports:
+            source = run_dir / SUMMARY_FILE
+            inputs = summary_entry(source, result.reports, FIGURE_INPUTS_KEY, cls.from_dict)
+        else:
+            source = run_dir / SCENARIO_FILE
+            inputs = _scenario_figure_inputs(source, result.scenario_name)
+        assert inputs is not None  # the key is there, or the scenario file gave them
+        n, m, L = result.x.shape[1], result.u.shape[1], result.W.shape[1]
+        try:
+            size = PolynomialBasis(n, list(inputs.basis_degrees)).size
+        except ModelError:
+            size = None
+        basis = f"the critic basis of degrees {list(inputs.basis_degrees)} has {size} terms"
+        for theirs, ours, columns, said in (
+            (
+                len(inputs.box_lower),
+                n,
+                "x",
+                f"the observer box has {len(inputs.box_lower)} entries",
+            ),
+            (inputs.inputs, m, "u", f"the scenario has {inputs.inputs} inputs"),
+            (size, L, "W", basis),
+        ):
+            if theirs != ours:
+                raise RunFolderError(
+                    f"{source}: {said}, but {columns} in {TRAJECTORIES_FILE} has {ours} columns; "
+                    "the files are of two runs, or one is damaged: write the run again "
+                    "(ofrl-drake run SCENARIO --out NEW_DIR)."
+                )
+        return inputs
+
+
+def _scenario_figure_inputs(path: Path, name: str) -> FigureInputs:
+    """:class:`FigureInputs` from a run folder's scenario file, read as data (no plant loaded).
+
+    Raises
+    ------
+    RunFolderError
+        If the file is missing, too large, not YAML, not the scenario
+        ``name``, or lacks an entry (or has one of the wrong type).
+    """
+    import yaml
+
+    from ofrl_drake.errors import RunFolderError
+    from ofrl_drake.scenario import MAX_SCENARIO_BYTES, check_yaml
+
+    fix = "write the run again (ofrl-drake run SCENARIO --out NEW_DIR)"
+    if not path.is_file():
+        raise RunFolderError(
+            f"RUN_DIR: {path}: no such file, and {path.parent / 'summary.json'} has no "
+            f"{FIGURE_INPUTS_KEY} (a run written before it was saved there), so {path.parent} "
+            "is not the --out folder of ofrl-drake run (which writes the scenario it ran "
+            "there); name one."
+        )
+    if path.stat().st_size > MAX_SCENARIO_BYTES:
+        raise RunFolderError(f"{path}: larger than a scenario file may be; {fix}.")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise RunFolderError(f"{path}: cannot be read ({err}); {fix}.") from None
+    try:
+        check_yaml(path, text, error=RunFolderError)
+        data = yaml.safe_load(text)
+    except RunFolderError as err:
+        raise RunFolderError(f"{str(err).rstrip('.')}; {fix}.") from None
+    except yaml.YAMLError as err:
+        why = " ".join(str(err).split())[:200]
+        raise RunFolderError(f"{path}: not valid YAML ({why}); {fix}.") from None
+    if not isinstance(data, dict):
+        raise RunFolderError(
+            f"{path}: a YAML {type(data).__name__}, not a scenario's mapping of keys; {fix}."
+        )
+    if data.get("name") != name:
+        raise RunFolderError(
+            f"{path}: the scenario {data.get('name')!r}, but summary.json holds a run of "
+            f"{name!r}; the files are of two runs: {fix}."
+        )
+    try:
+        return FigureInputs.from_dict(
+            {
+                "input_bound": data["input_bound"],
+                "inputs": len(data["cost"]["R"]),
+                "observer_box": data["observer"]["box"],
+                "basis_degrees": data["critic"]["basis_degrees"],
+            }
+        )
+    except (TypeError, ValueError, KeyError) as err:
+        raise RunFolderError(
+            f"{path}: the input bound, cost.R, observer.box or critic.basis_degrees cannot "
+            f"be read ({err}); {fix}."
+        ) from None
+
+
 def save_run_figures(
     result: Any,
-    scenario: Any,
+    inputs: FigureInputs,
     learning: Any,
     directory: Path,
     *,
@@ -475,11 +700,13 @@ def save_run_figures(
     ----------
     result : SimulationResult
         The run, as simulated or as read back (:meth:`~ofrl_drake.SimulationResult.load`).
-    scenario : Scenario
-        The scenario it ran: the input bound, the observer box and the critic's basis.
+    inputs : FigureInputs
+        What the figures need of the scenario it ran (:meth:`FigureInputs.of`,
+        or :meth:`FigureInputs.read`): the input bound, the observer box and
+        the critic's basis.
     learning : LearningReport or None
         Its learning curve and health (:func:`ofrl_drake.learning_curve.learning_report`,
-        or :func:`_saved_learning`); None: neither figure.
+        or :meth:`~ofrl_drake.learning_curve.LearningReport.load`); None: neither figure.
     directory : Path
     formats, size
         As for :func:`ofrl_drake.plotting.save_figures`.
@@ -492,13 +719,13 @@ def save_run_figures(
     from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.plotting import save_figures
 
-    basis = PolynomialBasis(result.x.shape[1], scenario.critic.basis_degrees)
+    basis = PolynomialBasis(result.x.shape[1], list(inputs.basis_degrees))
     return save_figures(
         result,
         directory,
-        input_bound=scenario.input_bound,
+        input_bound=inputs.input_bound,
         weight_labels=basis.labels(),
-        box=(scenario.observer.box.lower, scenario.observer.box.upper),
+        box=(list(inputs.box_lower), list(inputs.box_upper)),
         learning_curve=None if learning is None else learning.curve,
         optimal_cost=None if learning is None else learning.optimal_cost,
         lqr_cost=None if learning is None else learning.lqr_policy_cost,
@@ -508,107 +735,28 @@ def save_run_figures(
     )
 
 
-def _saved_learning(run_dir: Path, result: Any) -> Any:
-    """The learning curve and health ``run`` saved in ``run_dir``; None if it saved none.
-
-    The series from :data:`LEARNING_HEALTH_FILE`; the policy updates, ``J*``,
-    the LQR policy's cost and the curve from ``summary.json`` (``result.reports``).
-
-    Raises
-    ------
-    RunFolderError
-        If ``summary.json`` has a ``learning_health`` entry but the file is
-        missing or damaged, lacks a series, holds other sample times than the
-        run, or an entry of ``summary.json`` it needs has the wrong type.
-    """
-    from ofrl_drake.learning_curve import LearningHealth, LearningReport
-    from ofrl_drake.simulation import SUMMARY_FILE, read_run_series, summary_entry
-
-    reports = result.reports
-    if "learning_health" not in reports:  # a folder written before the learning health
-        return None
-    summary = run_dir / SUMMARY_FILE
-    entries = summary_entry(summary, reports, "learning_health", _learning_entries)
-    curve = summary_entry(summary, reports, "learning_curve", _curve_entries)
-    series = read_run_series(
-        run_dir / LEARNING_HEALTH_FILE,
-        result.t,
-        required=("learning_condition", "gamma_norm", "gamma_condition"),
-    )
-    assert entries is not None  # "learning_health" is in reports
-    return LearningReport(
-        curve=curve,
-        health=LearningHealth(
-            t=result.t,
-            learning_condition=series["learning_condition"],
-            gamma_norm=series["gamma_norm"],
-            gamma_condition=series["gamma_condition"],
-            value_eigenvalues=series.get("value_eigenvalues"),
-            spectral_abscissa=series.get("spectral_abscissa"),
-            accepted_times=entries["accepted_times"],
-            rejected_times=entries["rejected_times"],
-        ),
-        optimal_cost=entries["optimal_cost"],
-        lqr_policy_cost=entries["lqr_policy_cost"],
-        curve_stop=reports.get("learning_curve_stop"),
-    )
-
-
-def _saved_number(value: Any, *, none: bool = False) -> float | None:
-    """A number of ``summary.json`` (``null`` too, with ``none``)."""
-    from ofrl_drake.simulation import _json_number
-
-    return None if none and value is None else _json_number(value)
-
-
-def _learning_entries(value: Any) -> dict[str, Any]:
-    """``summary.json`` -> ``learning_health``: what its figures need."""
-    return {
-        "accepted_times": [_saved_number(t) for t in value["accepted_times"]],
-        "rejected_times": [_saved_number(t) for t in value["rejected_times"]],
-        "optimal_cost": _saved_number(value.get("optimal_cost"), none=True),
-        "lqr_policy_cost": _saved_number(value.get("lqr_policy_cost"), none=True),
-    }
-
-
-def _curve_entries(value: Any) -> list[dict[str, Any]]:
-    """``summary.json`` -> ``learning_curve``, each checkpoint's time and cost checked."""
-    if not isinstance(value, list):
-        raise TypeError(f"expected a list of checkpoints, got {type(value).__name__}")
-    for entry in value:
-        _saved_number(entry["t"])
-        _saved_number(entry["policy_cost"], none=True)
-    return value
-
-
 def _cmd_plot(args: argparse.Namespace) -> int:
-    """``plot``, holding the locks of the run folder and of ``--out``.
+    """``plot``, holding the run folder's lock shared and ``--out``'s exclusive.
 
-    The run folder's lock is the one ``run`` holds while it writes that
-    folder (:func:`ofrl_drake.atomic.output_lock`): a run folder being
-    written is refused, not read half-way.
+    ``run`` holds the run folder's lock exclusive while it writes that folder
+    (:func:`ofrl_drake.atomic.output_lock`): a run folder being written is
+    refused, not read half-way, and a run into a folder ``plot`` reads is
+    refused too; two plots of one run may read it together.
     """
     run_dir = _run_folder(args.run_dir)
     out = run_dir / FIGURES_FOLDER if args.out is None else Path(args.out)
-    resolved = out.expanduser().resolve()
-    if resolved == run_dir or resolved in run_dir.parents:
-        raise OutputError(
-            f"--out: {resolved} is the run folder or holds it, which the figures would "
-            f"replace; name another folder (default RUN_DIR/{FIGURES_FOLDER})."
-        )
-    target = check_figures_directory(out)
-    with output_lock(run_dir, "RUN_DIR"), output_lock(target):
+    target = check_figures_directory(out, run_dir)
+    with output_lock(run_dir, "RUN_DIR", shared=True), output_lock(target):
         return _plot(args, run_dir, target)
 
 
 def _run_folder(run_dir: str) -> Path:
-    """``plot``'s RUN_DIR, resolved; refused unless a folder ``run`` wrote.
+    """``plot``'s RUN_DIR, resolved; refused unless a folder.
 
     Raises
     ------
     RunFolderError
-        If ``run_dir`` is empty, not a folder, or holds no :data:`SCENARIO_FILE`
-        (a folder :meth:`~ofrl_drake.SimulationResult.save` wrote, not ``run``).
+        If ``run_dir`` is empty or not a folder.
     """
     from ofrl_drake.errors import RunFolderError
 
@@ -619,35 +767,22 @@ def _run_folder(run_dir: str) -> Path:
         raise RunFolderError(
             f"RUN_DIR: {run_dir} is not a folder; name the --out folder of ofrl-drake run."
         )
-    if not (path / SCENARIO_FILE).is_file():
-        raise RunFolderError(
-            f"RUN_DIR: {path / SCENARIO_FILE}: no such file, so {run_dir} is not the --out "
-            "folder of ofrl-drake run (which writes the scenario it ran there); name one."
-        )
     return path
 
 
 def _plot(args: argparse.Namespace, run_dir: Path, target: Path) -> int:
-    from ofrl_drake.errors import RunFolderError
-    from ofrl_drake.scenario import load_scenario
+    from ofrl_drake.learning_curve import LearningReport
     from ofrl_drake.simulation import SimulationResult
 
     result = SimulationResult.load(run_dir)
-    scenario = load_scenario(run_dir / SCENARIO_FILE)
-    if scenario.name != result.scenario_name:
-        raise RunFolderError(
-            f"{run_dir / SCENARIO_FILE}: the scenario {scenario.name!r}, but summary.json "
-            f"holds a run of {result.scenario_name!r}; the files are of two runs: write "
-            "the run again (ofrl-drake run SCENARIO --out NEW_DIR)."
-        )
-    learning = _saved_learning(run_dir, result)
-    with atomic_directory(target, "plot") as tmp:
-        written = save_run_figures(
-            result, scenario, learning, tmp, formats=args.format, size=args.size
-        )
+    inputs = FigureInputs.read(run_dir, result)
+    learning = LearningReport.load(run_dir, result)
+    formats = list(dict.fromkeys(args.format or ["png"]))
+    with atomic_directory(target, run_dir) as tmp:
+        written = save_run_figures(result, inputs, learning, tmp, formats=formats, size=args.size)
     names = sorted({path.stem for path in written})
     print(
-        f"wrote {target}: {len(names)} figures ({', '.join(dict.fromkeys(args.format))}, "
+        f"wrote {target}: {len(names)} figures ({', '.join(formats)}, "
         f"{args.size} size) of {run_dir}"
     )
     return EXIT_OK
@@ -1333,8 +1468,8 @@ def _parser() -> argparse.ArgumentParser:
     plot.add_argument(
         "--format",
         nargs="+",
+        action="extend",  # --format pdf --format svg: both (a default list would be extended)
         type=_figure_choice("FIGURE_FORMATS"),
-        default=["png"],
         metavar="FORMAT",
         help="file formats: one or more of png, pdf, svg (default png)",
     )

@@ -30,9 +30,11 @@ from numba import njit
 from pydrake.systems.framework import Context, Diagram, EventStatus, System
 
 from ofrl_drake._jit import JIT
+from ofrl_drake.checks import number_from_json, object_from_json, string_from_json, vector_from_json
 from ofrl_drake.progress import ProgressBar
 
 __all__ = [
+    "STATUSES",
     "STATUS_DIVERGED",
     "STATUS_OK",
     "STATUS_TIMEOUT",
@@ -46,6 +48,8 @@ STATUS_OK = "ok"
 STATUS_DIVERGED = "diverged"
 #: The run used up its wall-time budget.
 STATUS_TIMEOUT = "timeout"
+#: Every status a run can end with.
+STATUSES = (STATUS_OK, STATUS_DIVERGED, STATUS_TIMEOUT)
 
 
 @dataclass(frozen=True)
@@ -84,13 +88,43 @@ class StopReport:
             "status": self.status,
             "reason": self.reason,
             "time": self.time,
-            "x": [_json_number(v) for v in self.x],
-            "xhat": [_json_number(v) for v in self.xhat],
+            "x": [_finite_or_none(v) for v in self.x],
+            "xhat": [_finite_or_none(v) for v in self.xhat],
             "wall_time": self.wall_time,
         }
 
+    @classmethod
+    def from_dict(cls, data: Any, size: int | None = None) -> StopReport:
+        """The report :meth:`to_dict` wrote (``None`` in x, xhat read back as NaN).
 
-def _json_number(value: float) -> float | None:
+        ``size`` is the number of states x and xhat must hold (None: any).
+
+        Raises
+        ------
+        TypeError, ValueError, KeyError
+            If ``data`` is not an object with every entry of :meth:`to_dict`,
+            an entry has the wrong type, a status is not one of
+            :data:`STATUS_OK`, :data:`STATUS_DIVERGED`, :data:`STATUS_TIMEOUT`,
+            or x, xhat do not hold ``size`` numbers (a reader of a file, such
+            as :meth:`ofrl_drake.SimulationResult.load`, names the file).
+        """
+        data = object_from_json(data)
+        status = string_from_json(data["status"])
+        if status not in STATUSES:
+            raise ValueError(f"status {status!r} is not one of {list(STATUSES)}")
+        x = vector_from_json(data["x"], size)
+        return cls(
+            status=status,
+            reason=string_from_json(data["reason"]),
+            time=number_from_json(data["time"]),
+            x=x,
+            xhat=vector_from_json(data["xhat"], len(x)),
+            wall_time=number_from_json(data["wall_time"]),
+        )
+
+
+def _finite_or_none(value: float) -> float | None:
+    """``value`` for JSON: a float, or None (``null``) when it is not finite."""
     return float(value) if np.isfinite(value) else None
 
 

@@ -20,7 +20,9 @@ policy update was accepted or rejected (:class:`~ofrl_drake.systems.PolicyGate`)
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,7 +30,13 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder, EventStatus
 from pydrake.systems.primitives import ConstantVectorSource
 
-from ofrl_drake.checks import integer_at_least, positive_number
+from ofrl_drake.checks import (
+    integer_at_least,
+    number_from_json,
+    optional_number_from_json,
+    positive_number,
+    string_from_json,
+)
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
 from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded
 from ofrl_drake.learning import (
@@ -38,11 +46,20 @@ from ofrl_drake.learning import (
     value_weights,
 )
 from ofrl_drake.scenario import Scenario, abort_box
-from ofrl_drake.simulation import SimulationResult, is_domain_error, simulator_config
+from ofrl_drake.simulation import (
+    SUMMARY_FILE,
+    SimulationResult,
+    damaged_run_file,
+    is_domain_error,
+    read_run_series,
+    simulator_config,
+    summary_entry,
+)
 from ofrl_drake.variants import controller_block, plant_block, running_cost_block
 
 __all__ = [
     "DEFAULT_CHECKPOINTS",
+    "LEARNING_HEALTH_FILE",
     "LearningHealth",
     "LearningReport",
     "PolicyEvaluator",
@@ -56,6 +73,9 @@ __all__ = [
 
 #: Checkpoints of the learning curve by default (``run --checkpoints``).
 DEFAULT_CHECKPOINTS = 10
+
+#: The file of a run folder holding :meth:`LearningHealth.arrays` (``ofrl-drake run``).
+LEARNING_HEALTH_FILE = "learning_health.npz"
 
 
 @dataclass(frozen=True)
@@ -466,6 +486,54 @@ class LearningHealth:
             out["spectral_abscissa"] = self.spectral_abscissa
         return out
 
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        result: SimulationResult,
+        accepted_times: Sequence[float] = (),
+        rejected_times: Sequence[float] = (),
+    ) -> LearningHealth:
+        """The series :meth:`arrays` wrote into ``path``, of the run ``result`` read back.
+
+        The policy updates are not in the file (``summary.json`` ->
+        ``learning_health`` holds them): pass them as ``accepted_times``,
+        ``rejected_times``.
+
+        Raises
+        ------
+        RunFolderError
+            As :func:`~ofrl_drake.simulation.read_run_series` (a missing or
+            damaged file, another run's samples); if a series of
+            :meth:`arrays` is missing (but the optional two), the file holds
+            another, or one has the wrong shape: ``value_eigenvalues`` is
+            ``(T, n)`` for the ``n`` states of ``result``, the others ``(T,)``.
+        """
+        path = Path(path)
+        series = read_run_series(path, result.t, required=_HEALTH_SERIES[:3])
+        unknown = sorted(set(series) - set(_HEALTH_SERIES))
+        if unknown:
+            raise damaged_run_file(
+                path, f"holds {unknown}, no series of a run's learning health {_HEALTH_SERIES}"
+            )
+        n = result.x.shape[1]
+        for key, value in series.items():
+            shape = (result.t.size, n) if key == "value_eigenvalues" else (result.t.size,)
+            if value.shape != shape:
+                raise damaged_run_file(
+                    path, f"{key} has shape {value.shape}; expected {shape} (from trajectories.npz)"
+                )
+        return cls(
+            t=result.t,
+            learning_condition=series["learning_condition"],
+            gamma_norm=series["gamma_norm"],
+            gamma_condition=series["gamma_condition"],
+            value_eigenvalues=series.get("value_eigenvalues"),
+            spectral_abscissa=series.get("spectral_abscissa"),
+            accepted_times=list(accepted_times),
+            rejected_times=list(rejected_times),
+        )
+
     def summary(self) -> dict[str, Any]:
         """Extremes and final values, for ``summary.json`` → ``learning_health``."""
         out: dict[str, Any] = {
@@ -605,6 +673,77 @@ class LearningReport:
         if self.curve_stop is not None:
             out["learning_curve_stop"] = self.curve_stop
         return out
+
+    @classmethod
+    def load(cls, directory: str | Path, result: SimulationResult) -> LearningReport | None:
+        """The report ``run`` saved in the run folder ``directory``; None if it saved none.
+
+        ``result`` is the run read back (:meth:`SimulationResult.load`): its
+        :attr:`~SimulationResult.reports` hold what :meth:`to_dict` wrote into
+        ``summary.json`` (the curve, the policy updates, ``J*``, the LQR
+        policy's cost); the series are read from :data:`LEARNING_HEALTH_FILE`
+        (:meth:`LearningHealth.load`). A folder written before the learning
+        health (no ``learning_health`` entry) gives None.
+
+        Raises
+        ------
+        RunFolderError
+            If an entry of ``summary.json`` has the wrong type (a time or
+            cost that is not a number, a checkpoint without one), or as
+            :meth:`LearningHealth.load`.
+        """
+        reports = result.reports
+        if "learning_health" not in reports:
+            return None
+        directory = Path(directory)
+        summary = directory / SUMMARY_FILE
+
+        def entry(key: str, convert: Any) -> Any:
+            return summary_entry(summary, reports, key, convert)
+
+        saved = entry("learning_health", _saved_health)
+        return cls(
+            curve=entry("learning_curve", _saved_curve),
+            health=LearningHealth.load(
+                directory / LEARNING_HEALTH_FILE,
+                result,
+                saved["accepted_times"],
+                saved["rejected_times"],
+            ),
+            optimal_cost=saved["optimal_cost"],
+            lqr_policy_cost=saved["lqr_policy_cost"],
+            curve_stop=entry("learning_curve_stop", string_from_json),
+        )
+
+
+#: The series of :meth:`LearningHealth.arrays` (but ``t``): three always, two optional.
+_HEALTH_SERIES = (
+    "learning_condition",
+    "gamma_norm",
+    "gamma_condition",
+    "value_eigenvalues",
+    "spectral_abscissa",
+)
+
+
+def _saved_health(value: Any) -> dict[str, Any]:
+    """``summary.json`` -> ``learning_health``: what :meth:`LearningReport.load` reads of it."""
+    return {
+        "accepted_times": [number_from_json(t) for t in value["accepted_times"]],
+        "rejected_times": [number_from_json(t) for t in value["rejected_times"]],
+        "optimal_cost": optional_number_from_json(value.get("optimal_cost")),
+        "lqr_policy_cost": optional_number_from_json(value.get("lqr_policy_cost")),
+    }
+
+
+def _saved_curve(value: Any) -> list[dict[str, Any]]:
+    """``summary.json`` -> ``learning_curve``, each checkpoint's time and cost checked."""
+    if not isinstance(value, list):
+        raise TypeError(f"expected a list of checkpoints, got {type(value).__name__}")
+    for checkpoint in value:
+        number_from_json(checkpoint["t"])
+        optional_number_from_json(checkpoint["policy_cost"])
+    return value
 
 
 def learning_report(

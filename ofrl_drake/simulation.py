@@ -21,7 +21,13 @@ from pydrake.systems.framework import Context, System
 
 from ofrl_drake.atomic import atomic_file, ensure_parent
 from ofrl_drake.bellman import unpack_symmetric
-from ofrl_drake.checks import positive_number
+from ofrl_drake.checks import (
+    number_from_json,
+    object_from_json,
+    optional_number_from_json,
+    positive_number,
+    string_from_json,
+)
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ModelError, RunFolderError, ScenarioError, SwapError
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
@@ -54,6 +60,7 @@ __all__ = [
     "TRAJECTORIES_FILE",
     "TRAJECTORY_KEYS",
     "SimulationResult",
+    "damaged_run_file",
     "is_domain_error",
     "read_run_arrays",
     "read_run_series",
@@ -418,15 +425,16 @@ class SimulationResult:
             ``summary.json`` (not a run folder); if a file is not a readable
             ``.npz`` archive, resp. JSON object (truncated, damaged, pickled
             objects); if an array of :data:`TRAJECTORY_KEYS` is missing, not
-            numeric, has the wrong number of dimensions, another length than
-            ``t`` or another width than its partner (``xhat`` and ``x``,
-            ``W_policy`` and ``W``, ``Gamma`` and ``W``); if the equilibrium
+            real numbers (complex, text), has the wrong number of dimensions,
+            another length than ``t`` or another width than its partner
+            (``xhat`` and ``x``, ``W_policy`` and ``W``, ``Gamma`` and ``W``);
+            if ``t`` is not floats, finite and non-decreasing; if the equilibrium
             does not fit ``x`` and ``u``, or ``x* +`` a shifted array is not
             its partner in the plant's coordinates (an edited file); if
             ``extra_logs.npz`` does not hold what ``summary.json`` lists, or
             other samples; or if an entry of ``summary.json`` the result
-            holds has the wrong type or size. The message names the file and
-            the fix.
+            holds has the wrong type or size (``integrator`` -> ``accuracy``
+            not a number > 0). The message names the file and the fix.
         """
         directory = Path(directory)
         if not directory.is_dir():
@@ -447,16 +455,16 @@ class SimulationResult:
         units = entry("units", lambda d: (_units_of(d["state"], n), _units_of(d["input"], m)))
         result = cls(
             **logs,
-            wall_time=entry("wall_time", _json_number) or 0.0,
-            integrator=entry("integrator", _json_dict) or {},
-            validity=entry("validity", _validity_from_dict),
-            design=entry("observer_design", _json_dict),
-            scenario_name=entry("scenario", _json_str) or "",
+            wall_time=entry("wall_time", number_from_json) or 0.0,
+            integrator=entry("integrator", _integrator_from_json) or {},
+            validity=entry("validity", ValidityReport.from_dict),
+            design=entry("observer_design", object_from_json),
+            scenario_name=entry("scenario", string_from_json) or "",
             extra=_read_extra_logs(directory, logs["t"], summary.get("extra_logs")),
             state_units=None if units is None else units[0],
             input_units=None if units is None else units[1],
-            stop=entry("stop", lambda d: _stop_from_dict(d, n, x_eq)),
-            provenance=entry("provenance", _json_dict) or {},
+            stop=entry("stop", lambda d: _shifted_stop(StopReport.from_dict(d, n), x_eq)),
+            provenance=entry("provenance", object_from_json) or {},
             reports={k: v for k, v in summary.items() if k not in SUMMARY_KEYS},
         )
         if "x_equilibrium" in arrays:
@@ -989,11 +997,23 @@ _RUN_FOLDER_FIX = (
     "give the --out folder of ofrl-drake run (or one SimulationResult.save wrote), which "
     f"holds {TRAJECTORIES_FILE} and {SUMMARY_FILE}"
 )
+#: How to write a run folder again.
+_RERUN = "ofrl-drake run RUN_DIR/scenario.yaml --out NEW_DIR"
 #: What to do about a damaged run folder.
 _REWRITE_FIX = (
-    "the file is damaged or was not written by SimulationResult.save; write the run again "
-    "(ofrl-drake run RUN_DIR/scenario.yaml --out NEW_DIR)"
+    f"the file is damaged or was not written by SimulationResult.save; write the run again "
+    f"({_RERUN})"
 )
+
+
+def damaged_run_file(path: str | Path, why: str) -> RunFolderError:
+    """The error for the file ``path`` of a run folder that is damaged: ``why``, then the fix.
+
+    One message for every reader of a run folder (:meth:`SimulationResult.load`,
+    ``ofrl-drake plot``): ``"<path>: <why>; the file is damaged or was not
+    written by SimulationResult.save; write the run again (...)."``
+    """
+    return RunFolderError(f"{path}: {why}; {_REWRITE_FIX}.")
 
 
 def _run_file(path: Path) -> Path:
@@ -1002,12 +1022,19 @@ def _run_file(path: Path) -> Path:
     Raises
     ------
     RunFolderError
-        If ``path`` does not exist (the folder is not a run folder) or is not a
-        regular file (a folder, a FIFO: never opened).
+        If ``path`` does not exist (for ``trajectories.npz`` and
+        ``summary.json``: the folder is not a run folder; for another file:
+        the run folder lacks it) or is not a regular file (a folder, a FIFO:
+        never opened).
     """
-    if not path.exists():
+    if not path.exists() and path.name in (TRAJECTORIES_FILE, SUMMARY_FILE):
         raise RunFolderError(
             f"{path}: no such file, so {path.parent} is not a run folder; {_RUN_FOLDER_FIX}."
+        )
+    if not path.exists():
+        raise RunFolderError(
+            f"{path}: no such file, though the run folder needs it (removed?); write the run "
+            f"again ({_RERUN})."
         )
     if not path.is_file():
         raise RunFolderError(f"{path}: not a regular file; {_REWRITE_FIX}.")
@@ -1024,7 +1051,8 @@ def read_run_arrays(path: str | Path) -> dict[str, np.ndarray]:
     ------
     RunFolderError
         If the file is missing, not an ``.npz`` archive (truncated, damaged, a
-        CRC error), holds pickled objects, or an array that is not numbers.
+        CRC error), holds pickled objects, or an array that is not real
+        numbers (floats, integers or booleans: not complex, not text).
     """
     path = _run_file(Path(path))
     try:
@@ -1039,10 +1067,10 @@ def read_run_arrays(path: str | Path) -> dict[str, np.ndarray]:
             f"{path}: not a readable .npz archive ({why}); {_REWRITE_FIX}."
         ) from None
     for key, value in arrays.items():
-        if not (np.issubdtype(value.dtype, np.number) or value.dtype == np.bool_):
-            raise RunFolderError(
-                f"{path}: {key} holds {value.dtype} values, not numbers; {_REWRITE_FIX}."
-            )
+        if not any(
+            np.issubdtype(value.dtype, real) for real in (np.floating, np.integer, np.bool_)
+        ):
+            raise damaged_run_file(path, f"{key} holds {value.dtype} values, not real numbers")
     return arrays
 
 
@@ -1067,9 +1095,22 @@ def _trajectories(arrays: dict[str, np.ndarray], path: Path) -> dict[str, np.nda
                 f"{path}: {key} has shape {logs[key].shape}; expected {ndim} "
                 f"dimension{'s' if ndim > 1 else ''}, time first; {_REWRITE_FIX}."
             )
-    T = logs["t"].size
+    t = logs["t"]
+    T = t.size
     if T == 0:
         raise RunFolderError(f"{path}: t is empty, a run logs at least one sample; {_REWRITE_FIX}.")
+    if not np.issubdtype(t.dtype, np.floating):
+        raise damaged_run_file(path, f"t holds {t.dtype} values, not the float times of a run")
+    if not np.all(np.isfinite(t)):
+        bad = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise damaged_run_file(path, f"t[{bad}] = {t[bad]}; a run's times are finite")
+    if np.any(np.diff(t) < 0):
+        bad = int(np.flatnonzero(np.diff(t) < 0)[0])
+        raise damaged_run_file(
+            path,
+            f"t[{bad + 1}] = {t[bad + 1]:g} comes before t[{bad}] = {t[bad]:g}; a run's "
+            "times do not decrease",
+        )
     for key in TRAJECTORY_KEYS:
         if logs[key].shape[0] != T:
             raise RunFolderError(
@@ -1219,60 +1260,27 @@ def _read_extra_logs(directory: Path, t: np.ndarray, listed: Any) -> dict[str, n
     return logs
 
 
-def _json_number(value: Any) -> float:
-    """A number of ``summary.json`` (not a bool), as a float."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"expected a number, got {type(value).__name__}")
-    return float(value)
-
-
-def _json_str(value: Any) -> str:
-    if not isinstance(value, str):
-        raise TypeError(f"expected a string, got {type(value).__name__}")
-    return value
-
-
-def _json_dict(value: Any) -> dict[str, Any]:
-    if not isinstance(value, dict):
-        raise TypeError(f"expected an object, got {type(value).__name__}")
-    return value
-
-
-def _json_vector(value: Any, size: int) -> list[float]:
-    """A list of ``size`` numbers from JSON, ``null`` (a non-finite value) as NaN."""
-    if not isinstance(value, list) or len(value) != size:
-        raise ValueError(f"expected a list of {size} numbers")
-    return [math.nan if v is None else _json_number(v) for v in value]
-
-
 def _units_of(value: Any, size: int) -> tuple[str, ...] | None:
     """Units of ``size`` entries (``summary.json`` → ``units``), or None."""
     if value is None:
         return None
     if not isinstance(value, list) or len(value) != size:
         raise ValueError(f"expected {size} units, one per entry")
-    return tuple(_json_str(u) for u in value)
+    return tuple(string_from_json(u) for u in value)
 
 
-def _stop_from_dict(data: Any, n: int, x_equilibrium: np.ndarray | None) -> StopReport:
-    """The :class:`StopReport` of ``summary.json``, its states in the result's coordinates."""
-    data = _json_dict(data)
-    x, xhat = (np.asarray(_json_vector(data[k], n)) for k in ("x", "xhat"))
-    if x_equilibrium is not None:  # saved in the plant's own coordinates
-        x, xhat = x - x_equilibrium, xhat - x_equilibrium
-    return StopReport(
-        status=_json_str(data["status"]),
-        reason=_json_str(data["reason"]),
-        time=_json_number(data["time"]),
-        x=x.tolist(),
-        xhat=xhat.tolist(),
-        wall_time=_json_number(data["wall_time"]),
-    )
+def _shifted_stop(stop: StopReport, x_equilibrium: np.ndarray | None) -> StopReport:
+    """``stop`` as ``summary.json`` holds it (the plant's own x, xhat), in the result's own."""
+    if x_equilibrium is None:
+        return stop
+    x, xhat = (np.asarray(v, float) - x_equilibrium for v in (stop.x, stop.xhat))
+    return dataclasses.replace(stop, x=x.tolist(), xhat=xhat.tolist())
 
 
-def _validity_from_dict(data: Any) -> ValidityReport:
-    """The :class:`ValidityReport` of ``summary.json`` (its derived entries dropped)."""
-    data = dict(_json_dict(data))
-    data.pop("valid", None)
-    data.pop("box_checked", None)
-    return ValidityReport(**data)
+def _integrator_from_json(value: Any) -> dict[str, Any]:
+    """``summary.json`` -> ``integrator``, its ``accuracy`` (the figures draw it) a number > 0."""
+    integrator = object_from_json(value)
+    accuracy = optional_number_from_json(integrator.get("accuracy"))
+    if accuracy is not None and not (math.isfinite(accuracy) and accuracy > 0):
+        raise ValueError(f"accuracy {accuracy} is not a number > 0")
+    return integrator

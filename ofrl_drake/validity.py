@@ -23,13 +23,19 @@ Which box applies depends on the observer:
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ofrl_drake.checks import finite_array
+from ofrl_drake.checks import (
+    finite_array,
+    number_from_json,
+    object_from_json,
+    optional_number_from_json,
+    string_from_json,
+)
 from ofrl_drake.errors import ModelError
 
 __all__ = [
@@ -234,6 +240,47 @@ class ValidityReport:
         out["valid"] = self.valid
         out["box_checked"] = self.box_checked
         return out
+
+    @classmethod
+    def from_dict(cls, data: Any) -> ValidityReport:
+        """The report :meth:`to_dict` wrote (its derived ``valid``, ``box_checked`` dropped).
+
+        Raises
+        ------
+        TypeError, ValueError, KeyError
+            If ``data`` is not an object, lacks an entry without a default,
+            holds an entry the report does not have, or one of the wrong
+            type (``box_check``, ``injection_check`` not one of
+            :data:`BOX_CHECKS`, :data:`INJECTION_CHECKS`); a reader of a
+            file, such as :meth:`ofrl_drake.SimulationResult.load`, names the
+            file.
+        """
+        data = dict(object_from_json(data))
+        data.pop("valid", None)
+        data.pop("box_checked", None)
+        unknown = sorted(set(data) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"no entries {unknown} in a validity report")
+        flags = ("state_outside", "estimate_outside", "injection_h_outside", "injection_k_outside")
+        for key in ("input_exceeded", *flags):
+            if key in data and not (
+                isinstance(data[key], bool) or (key != "input_exceeded" and data[key] is None)
+            ):
+                raise TypeError(f"{key}: expected true or false, got {data[key]!r}")
+        for key, choices in (("box_check", BOX_CHECKS), ("injection_check", INJECTION_CHECKS)):
+            if key in data and data[key] not in choices:
+                raise ValueError(f"{key}: {data[key]!r} is not one of {list(choices)}")
+        if data.get("note") is not None:
+            string_from_json(data["note"])
+        if data.get("box_excursions") is not None:
+            object_from_json(data["box_excursions"])
+        return cls(
+            **{
+                **data,
+                "first_exit_time": optional_number_from_json(data["first_exit_time"]),
+                "fraction_outside": number_from_json(data["fraction_outside"]),
+            }
+        )
 
 
 def _injection_points(

@@ -51,3 +51,19 @@ def test_one_output_has_one_lock_whatever_its_spelling(tmp_path):
             with pytest.raises(OutputError, match=r"another ofrl-drake command is writing .*sweep"):
                 with output_lock(spelling):
                     pass
+
+
+def test_readers_share_a_lock_that_a_writer_cannot_take(tmp_path):
+    # plot reads a run folder under a shared lock: two plots of one run, but no run into it.
+    with output_lock(tmp_path / "run", shared=True), output_lock(tmp_path / "run", shared=True):
+        with pytest.raises(
+            OutputError, match=r"another ofrl-drake command is writing or reading .*run now"
+        ):
+            with output_lock(tmp_path / "run"):
+                pass
+    with output_lock(tmp_path / "run"):
+        with pytest.raises(OutputError, match=r"another ofrl-drake command is writing .*run now"):
+            with output_lock(tmp_path / "run", shared=True):
+                pass
+    with output_lock(tmp_path / "run"):  # released
+        pass

@@ -214,3 +214,23 @@ def test_an_integrator_that_gives_up_ends_the_run_as_diverged(paper_scenario, pa
     )
     assert 0.4 < result.stop.time < 0.5 + 1e-3
     assert result.t[-1] == result.stop.time
+
+
+def test_a_stop_report_reads_back_what_to_dict_wrote():
+    from ofrl_drake.guard import StopReport
+
+    stop = StopReport(STATUS_DIVERGED, "x_1 left", 1.5, [float("nan"), 2.0], [0.5, 1.0], 0.25)
+    back = StopReport.from_dict(json.loads(json.dumps(stop.to_dict())), 2)
+    assert back.status == STATUS_DIVERGED and back.x[1] == 2.0 and np.isnan(back.x[0])
+    assert (back.reason, back.time, back.xhat, back.wall_time) == (
+        "x_1 left",
+        1.5,
+        [0.5, 1.0],
+        0.25,
+    )
+    with pytest.raises(ValueError, match=r"status 'finished' is not one of \['ok', 'diverged'"):
+        StopReport.from_dict({**stop.to_dict(), "status": "finished"})
+    with pytest.raises(ValueError, match=r"expected a list of 3 numbers"):
+        StopReport.from_dict(stop.to_dict(), 3)
+    with pytest.raises(TypeError, match=r"expected a number, got str"):
+        StopReport.from_dict({**stop.to_dict(), "time": "1.5"})

@@ -128,6 +128,37 @@ def _bad_curve(path):
     path.write_text(json.dumps(data))
 
 
+def _edit_summary(folder, edit):
+    data = json.loads((folder / "summary.json").read_text())
+    edit(data)
+    (folder / "summary.json").write_text(json.dumps(data))
+
+
+def _older(folder):
+    """``folder`` as ``run`` wrote it before it saved the figure inputs in summary.json."""
+    _edit_summary(folder, lambda data: data.pop("figure_inputs"))
+    return folder
+
+
+def _edit_npz(path, **changes):
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update({key: change(arrays[key]) for key, change in changes.items()})
+    np.savez(path, **arrays)
+
+
+def _wider_box(data):
+    box = data["figure_inputs"]["observer_box"]
+    box["lower"], box["upper"] = [*box["lower"], -1.0], [*box["upper"], 1.0]
+
+
+def _other_basis(folder):
+    path = _older(folder) / "scenario.yaml"
+    text = path.read_text()
+    assert "basis_degrees: [2]" in text
+    path.write_text(text.replace("basis_degrees: [2]", "basis_degrees: [3]"))
+
+
 #: Damage done to a copy of a run folder, and the one error line ``plot`` prints.
 DAMAGE = {
     "truncated trajectories": (
@@ -140,13 +171,47 @@ DAMAGE = {
         lambda d: (d / "summary.json").write_text("{"),
         r"^error: .*/summary\.json: not readable JSON \(Expecting property name",
     ),
-    "no scenario.yaml": (
-        lambda d: (d / "scenario.yaml").unlink(),
-        r"^error: RUN_DIR: .*/scenario\.yaml: no such file, so .* is not the --out folder of "
-        r"ofrl-drake run",
+    "an older folder without scenario.yaml": (
+        lambda d: (_older(d) / "scenario.yaml").unlink(),
+        r"^error: RUN_DIR: .*/scenario\.yaml: no such file, and .*/summary\.json has no "
+        r"figure_inputs \(a run written before it was saved there\), so .* is not the --out "
+        r"folder of ofrl-drake run",
+    ),
+    "an older folder's scenario of another basis": (
+        _other_basis,
+        r"^error: .*/scenario\.yaml: the critic basis of degrees \[3\] has \d+ terms, but W "
+        r"in trajectories\.npz has \d+ columns; the files are of two runs, or one is damaged: "
+        r"write the run again \(ofrl-drake run SCENARIO --out NEW_DIR\)\.$",
+    ),
+    "figure inputs of another box": (
+        lambda d: _edit_summary(d, _wider_box),
+        r"^error: .*/summary\.json: the observer box has (\d+) entries, but x in "
+        r"trajectories\.npz has (?!\1)\d+ columns; the files are of two runs",
+    ),
+    "figure inputs of more inputs than u has": (
+        lambda d: _edit_summary(d, lambda data: data["figure_inputs"].update(inputs=2)),
+        r"^error: .*/summary\.json: the scenario has 2 inputs, but u in trajectories\.npz has "
+        r"1 columns; the files are of two runs",
+    ),
+    "an accuracy that is text": (  # was an internal error (exit 1) while drawing
+        lambda d: _edit_summary(d, lambda data: data["integrator"].update(accuracy="1e-4")),
+        r"^error: .*/summary\.json: integrator = .* cannot be read back \(expected a number, "
+        r"got str\); the file is damaged",
+    ),
+    "value eigenvalues of one dimension": (  # was an internal error (exit 1) while drawing
+        lambda d: _edit_npz(d / "learning_health.npz", value_eigenvalues=lambda v: v[:, 0]),
+        r"^error: .*/learning_health\.npz: value_eigenvalues has shape \(\d+,\); expected "
+        r"\(\d+, \d\) \(from trajectories\.npz\); the file is damaged",
+    ),
+    "a learning condition of two columns": (
+        lambda d: _edit_npz(
+            d / "learning_health.npz", learning_condition=lambda c: np.stack([c, c], axis=1)
+        ),
+        r"^error: .*/learning_health\.npz: learning_condition has shape \(\d+, 2\); expected "
+        r"\(\d+,\)",
     ),
     "another run's scenario": (
-        lambda d: _rename_scenario(d / "scenario.yaml"),
+        lambda d: _rename_scenario(_older(d) / "scenario.yaml"),
         r"^error: .*/scenario\.yaml: the scenario 'other_\w+', but summary\.json holds a run "
         r"of '\w+'; the files are of two runs",
     ),
@@ -156,7 +221,8 @@ DAMAGE = {
     ),
     "no learning health": (
         lambda d: (d / "learning_health.npz").unlink(),
-        r"^error: .*/learning_health\.npz: no such file, so .* is not a run folder",
+        r"^error: .*/learning_health\.npz: no such file, though the run folder needs it "
+        r"\(removed\?\); write the run again",
     ),
     "a curve without costs": (
         lambda d: _bad_curve(d / "summary.json"),
@@ -265,3 +331,59 @@ def test_a_run_folder_being_written_is_refused(copied, capsys):
         r"finish, or choose another path\.",
         err,
     ), err
+
+
+def test_plot_needs_neither_the_scenario_nor_its_plant(copied, tmp_path):
+    older = _older(shutil.copytree(copied, tmp_path / "older"))
+    (copied / "scenario.yaml").unlink()  # run wrote what the figures need in summary.json
+    assert main(["plot", str(copied), "--out", str(tmp_path / "new")]) == 0
+    _assert_same_pixels(tmp_path / "new", copied / "figures")
+    # An older folder reads them from its scenario.yaml, as data: its plant is never loaded.
+    path = older / "scenario.yaml"
+    lines = path.read_text().splitlines()
+    assert sum(line.startswith("system:") for line in lines) == 1
+    gone = "system: /nowhere/gone.py:make_plant"
+    path.write_text("\n".join(gone if x.startswith("system:") else x for x in lines) + "\n")
+    assert main(["plot", str(older), "--out", str(tmp_path / "old")]) == 0
+    _assert_same_pixels(tmp_path / "old", copied / "figures")
+
+
+def test_plot_refuses_the_figures_of_another_run(copied, tmp_path, capsys):
+    other = tmp_path / "other"
+    (other / "figures").mkdir(parents=True)
+    (other / ".ofrl_drake_output").write_text("written by ofrl-drake run\n")
+    (other / "figures" / FIGURES_MARKER).write_text("written by ofrl-drake plot\n")
+    (other / "figures" / "state_1.png").write_bytes(b"its own")
+    assert main(["plot", str(copied), "--out", str(other / "figures")]) == 2
+    _assert_one_error_line(
+        capsys,
+        r"error: --out: .*other/figures is inside .*other, the folder of another run, whose "
+        r"files are its own; name a folder outside it \(default RUN_DIR/figures\)\.",
+    )
+    assert (other / "figures" / "state_1.png").read_bytes() == b"its own"
+
+
+def test_plots_of_one_run_share_it_but_a_run_into_it_is_refused(copied, tmp_path, capsys):
+    from ofrl_drake.atomic import output_lock
+
+    with output_lock(copied, shared=True):  # what another plot of the run holds
+        assert main(["plot", str(copied), "--out", str(tmp_path / "second")]) == 0
+        capsys.readouterr()
+        assert main(["run", str(copied / "scenario.yaml"), "--out", str(copied)]) == 2
+    _assert_one_error_line(
+        capsys,
+        r"error: --out: another ofrl-drake command is writing or reading .*run now; wait for "
+        r"it to finish, or choose another path\.",
+    )
+
+
+def _assert_one_error_line(capsys, pattern):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.fullmatch(pattern, err[0]), err
+
+
+def test_repeated_format_options_add_up(copied, tmp_path, capsys):
+    out = tmp_path / "both"
+    assert main(["plot", str(copied), "--out", str(out), "--format", "pdf", "--format", "svg"]) == 0
+    assert "(pdf, svg, page size)" in capsys.readouterr().out
+    assert {p.suffix for p in out.iterdir() if not p.name.startswith(".")} == {".pdf", ".svg"}

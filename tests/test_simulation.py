@@ -847,9 +847,12 @@ def test_load_without_units_reads_none(paper_result, tmp_path):
 
 
 def test_summary_keys_are_every_entry_summary_computes(cart_pole_result, scheduled):
-    for r in (cart_pole_result, scheduled[1]):
-        own = set(r.summary()) - set(r.reports)
-        assert own <= set(SUMMARY_KEYS)
+    # Both ways: a key summary() adds but SUMMARY_KEYS lacks would be read back as a
+    # report; a key SUMMARY_KEYS keeps but summary() no longer writes is a stale copy.
+    results = (cart_pole_result, scheduled[1])  # between them, every optional entry
+    own = [set(r.summary()) - set(r.reports) for r in results]
+    assert set().union(*own) == set(SUMMARY_KEYS)
+    assert len(SUMMARY_KEYS) == len(set(SUMMARY_KEYS))
     assert not set(SUMMARY_KEYS) & set(cart_pole_result.reports)
 
 
@@ -872,6 +875,22 @@ def _edit_summary(path, **changes):
     data = json.loads(path.read_text())
     data.update(changes)
     path.write_text(json.dumps(data))
+
+
+def _edit_t(folder, change, **others):
+    """``t`` (and the arrays in ``others``) of ``folder``'s trajectories, changed."""
+    with np.load(folder / "trajectories.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["t"] = change(arrays["t"])
+    for key, edit in others.items():
+        arrays[key] = edit(arrays[key])
+    np.savez(folder / "trajectories.npz", **arrays)
+
+
+def _edit_stop(folder, **changes):
+    data = json.loads((folder / "summary.json").read_text())
+    data["stop"].update(changes)
+    (folder / "summary.json").write_text(json.dumps(data))
 
 
 #: A damaged run folder, what is refused, and the message (after the folder's path).
@@ -901,7 +920,39 @@ LOAD_ERRORS = {
     ),
     "text in an array": (
         lambda d: _edit_npz(d / "trajectories.npz", cost=np.array(["a"])),
-        r"trajectories\.npz: cost holds <U1 values, not numbers",
+        r"trajectories\.npz: cost holds <U1 values, not real numbers",
+    ),
+    "complex values": (
+        lambda d: _edit_t(d, lambda t: t, x=lambda x: x + 0j),
+        r"trajectories\.npz: x holds complex128 values, not real numbers; the file is damaged",
+    ),
+    "a time that is not finite": (
+        lambda d: _edit_t(d, lambda t: np.where(np.arange(t.size) == 5, np.nan, t)),
+        r"trajectories\.npz: t\[5\] = nan; a run's times are finite; the file is damaged",
+    ),
+    "times that decrease": (
+        lambda d: _edit_t(d, lambda t: t[::-1].copy()),
+        r"trajectories\.npz: t\[1\] = 0\.48 comes before t\[0\] = 0\.5; a run's times do not "
+        r"decrease; the file is damaged",
+    ),
+    "integer times": (
+        lambda d: _edit_t(d, lambda t: t.astype(int)),
+        r"trajectories\.npz: t holds int64 values, not the float times of a run",
+    ),
+    "an accuracy that is text": (
+        lambda d: _edit_summary(d / "summary.json", integrator={"accuracy": "1e-4"}),
+        r"summary\.json: integrator = \{'accuracy': '1e-4'\} cannot be read back \(expected "
+        r"a number, got str\)",
+    ),
+    "a stop of no status a run has": (
+        lambda d: _edit_stop(d, status="finished"),
+        r"summary\.json: stop = .* cannot be read back \(status 'finished' is not one of "
+        r"\['ok', 'diverged', 'timeout'\]\)",
+    ),
+    "a validity report with an entry it has not": (
+        lambda d: _edit_summary(d / "summary.json", validity={"state_box": "nope"}),
+        r"summary\.json: validity = .* cannot be read back \(no entries \['state_box'\] in a "
+        r"validity report\)",
     ),
     "a missing array": (
         lambda d: _edit_npz(d / "trajectories.npz", Gamma=None),
@@ -950,7 +1001,8 @@ LOAD_ERRORS = {
     ),
     "no extra logs file": (
         lambda d: (d / "extra_logs.npz").unlink(),
-        r"extra_logs\.npz: no such file, so .* is not a run folder",
+        r"extra_logs\.npz: no such file, though the run folder needs it \(removed\?\); write "
+        r"the run again \(ofrl-drake run RUN_DIR/scenario\.yaml --out NEW_DIR\)\.$",
     ),
     "extra logs not listed": (
         lambda d: _edit_summary(d / "summary.json", extra_logs=["t"]),

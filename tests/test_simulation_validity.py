@@ -314,3 +314,25 @@ def test_injection_points_need_x_and_xhat_of_one_shape():
         validity_report(
             T, _inside(), np.zeros((5, 3)), np.zeros((5, 1)), BOX, 2.0, C=C1, H=ZERO, K=ZERO
         )
+
+
+def test_a_validity_report_reads_back_what_to_dict_wrote():
+    report = ValidityReport(
+        first_exit_time=0.5,
+        fraction_outside=0.1,
+        state_outside=True,
+        estimate_outside=None,
+        input_exceeded=False,
+        box_check="scheduled",
+        note="a note",
+        box_excursions={"x": {"outside": True}},
+    )
+    assert ValidityReport.from_dict(json.loads(json.dumps(report.to_dict()))) == report
+    with pytest.raises(ValueError, match=r"no entries \['state_box'\] in a validity report"):
+        ValidityReport.from_dict({**report.to_dict(), "state_box": "nope"})
+    with pytest.raises(ValueError, match=r"box_check: 'round' is not one of \['fixed'"):
+        ValidityReport.from_dict({**report.to_dict(), "box_check": "round"})
+    with pytest.raises(TypeError, match=r"input_exceeded: expected true or false, got 'no'"):
+        ValidityReport.from_dict({**report.to_dict(), "input_exceeded": "no"})
+    with pytest.raises(TypeError, match=r"expected a number, got str"):
+        ValidityReport.from_dict({**report.to_dict(), "fraction_outside": "0.1"})
