@@ -290,6 +290,19 @@ def _transient_zoom(result: SimulationResult) -> float | None:
     return _zoom(np.asarray(result.t), transient_end(result))
 
 
+def _transient_figure(
+    result: SimulationResult, size: _Size
+) -> tuple[float | None, Figure, list[Axes]]:
+    """The transient zoom of ``result`` (None: none) and a figure of one panel per window.
+
+    Two panels, the first for ``[0, zoom]`` (:func:`_windows`), when there is a
+    zoom; one for the whole run otherwise.
+    """
+    zoom = _transient_zoom(result)
+    fig, axes = _figure(size, 1 if zoom is None else 2)
+    return zoom, fig, axes
+
+
 def _weights_zoom(result: SimulationResult) -> float | None:
     """The zoom on the critic weights when they settle within the first half of the run."""
     t = np.asarray(result.t, dtype=float)
@@ -688,8 +701,7 @@ def plot_state(
         If ``size`` is not one of :data:`FIGURE_SIZES`.
     """
     sz = _size(size)
-    zoom = _transient_zoom(result)
-    fig, axes = _figure(sz, 1 if zoom is None else 2)
+    zoom, fig, axes = _transient_figure(result, sz)
     x, xhat = _shown(result, "x")[:, i], _shown(result, "xhat")[:, i]
     x_eq = _equilibrium(result, "x")
     shift = 0.0 if x_eq is None else float(x_eq[i])
@@ -730,8 +742,7 @@ def plot_estimation_error(result: SimulationResult, *, size: str = "page") -> Fi
         If ``size`` is not one of :data:`FIGURE_SIZES`.
     """
     sz = _size(size)
-    zoom = _transient_zoom(result)
-    fig, axes = _figure(sz, 1 if zoom is None else 2)
+    zoom, fig, axes = _transient_figure(result, sz)
     for ax in axes:
         for i in range(result.x.shape[1]):
             ax.plot(
@@ -873,8 +884,7 @@ def plot_input(
         If ``size`` is not one of :data:`FIGURE_SIZES`.
     """
     sz = _size(size)
-    zoom = _transient_zoom(result)
-    fig, axes = _figure(sz, 1 if zoom is None else 2)
+    zoom, fig, axes = _transient_figure(result, sz)
     for ax in axes:
         _input_lines(result, ax, input_bound)
     note = "" if _equilibrium(result, "u") is None else "plant coordinates"
@@ -1121,8 +1131,7 @@ def plot_comparison(
     """
     sz = _size(size)
     first = next(iter(results.values()))
-    zoom = _transient_zoom(first)
-    fig, axes = _figure(sz, 1 if zoom is None else 2)
+    zoom, fig, axes = _transient_figure(first, sz)
     for ax in axes:
         for label, result in results.items():
             data = getattr(result, key)
