@@ -86,9 +86,17 @@ from ofrl_drake.optimal import (
     checked_mesh,
     solver_name,
 )
+from ofrl_drake.plants import dynamics_fingerprints
 from ofrl_drake.scenario import Scenario, check_scenario, validate_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
-from ofrl_drake.sweep_store import SweepFiles, SweepStore, describe_difference, load_arrays
+from ofrl_drake.sweep_store import (
+    DYNAMICS_KEY,
+    SweepFiles,
+    SweepStore,
+    describe_difference,
+    dynamics_difference,
+    load_arrays,
+)
 
 __all__ = [
     "CSV_COLUMNS",
@@ -264,6 +272,7 @@ def _plan(
         "initial_states": list(labels),
         "variants": {v.name: dict(v.choices) for v in variants},
         "scenario_values": dataclasses.asdict(scenario),
+        DYNAMICS_KEY: dynamics_fingerprints(scenario),
     }
 
 
@@ -301,6 +310,9 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
         where = describe_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:
             return f"the scenario differs in {where}"
+    edited = dynamics_difference(old, new)
+    if edited is not None:
+        return edited
     if old.get("scenario_key") != new["scenario_key"]:
         return f"the folder holds a sweep of another scenario ({old.get('scenario')!r})"
     return None

@@ -25,8 +25,10 @@ __all__ = [
     "initial_vector",
     "integer_at_least",
     "is_real_number",
+    "json_ready",
     "nonnegative_matrix",
     "number_from_json",
+    "number_to_json",
     "object_from_json",
     "optional_number_from_json",
     "positive_number",
@@ -34,6 +36,7 @@ __all__ = [
     "spd_matrix",
     "string_from_json",
     "vector_from_json",
+    "vector_to_json",
 ]
 
 
@@ -211,6 +214,48 @@ def nonnegative_matrix(name: str, value: Any, size: int | None = None) -> np.nda
             f"{name} must be positive semidefinite; its smallest eigenvalue is {lam:.3g}."
         )
     return arr
+
+
+def number_to_json(value: Any) -> float | None:
+    """``value`` as a float for JSON, or None (``null``) if it is None or not finite.
+
+    JSON has no NaN or infinity; :func:`optional_number_from_json` reads it back.
+    """
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def vector_to_json(values: Any) -> list[float | None]:
+    """``values`` as a list for JSON, non-finite ones as None.
+
+    :func:`vector_from_json` reads it back.
+    """
+    return [number_to_json(v) for v in np.asarray(values, dtype=float).ravel()]
+
+
+def json_ready(value: Any) -> Any:
+    """``value`` with every float (numpy's too) through :func:`number_to_json`.
+
+    Dicts, lists, tuples and numpy arrays are walked (tuples and arrays become
+    lists, numpy integers and bools Python's), so ``json.dump(json_ready(v),
+    allow_nan=False)`` writes strict JSON: a diverged run's NaN state is
+    ``null``, not the ``NaN`` token strict parsers (JavaScript, jq) refuse.
+    """
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_ready(value.tolist())
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        return number_to_json(value)
+    return value
 
 
 def number_from_json(value: Any) -> float:

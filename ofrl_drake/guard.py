@@ -10,6 +10,12 @@ end ``AdvanceTo`` early when
 
 * a continuous state is non-finite, or x or xhat leaves the abort box
   (status ``diverged``);
+* the integrator stalls: :data:`STALL_STEPS` steps in a row each advance time
+  by less than Drake's smallest working step, ``max(1e-14, 1e-14 t)``
+  (status ``diverged``). Drake's error control answers a NaN or infinite
+  time derivative by shrinking the step, and at this size it keeps taking
+  steps that round to no time at all, so without this check such a run would
+  never end;
 * the wall time since :meth:`RunGuard.start` exceeds ``max_wall_time``
   (status ``timeout``).
 
@@ -30,15 +36,23 @@ from numba import njit
 from pydrake.systems.framework import Context, Diagram, EventStatus, System
 
 from ofrl_drake._jit import JIT
-from ofrl_drake.checks import number_from_json, object_from_json, string_from_json, vector_from_json
+from ofrl_drake.checks import (
+    number_from_json,
+    object_from_json,
+    string_from_json,
+    vector_from_json,
+    vector_to_json,
+)
 from ofrl_drake.progress import ProgressBar
 
 __all__ = [
+    "STALL_STEPS",
     "STATUSES",
     "STATUS_DIVERGED",
     "STATUS_OK",
     "STATUS_TIMEOUT",
     "RunGuard",
+    "StallDetector",
     "StopReport",
 ]
 
@@ -50,6 +64,15 @@ STATUS_DIVERGED = "diverged"
 STATUS_TIMEOUT = "timeout"
 #: Every status a run can end with.
 STATUSES = (STATUS_OK, STATUS_DIVERGED, STATUS_TIMEOUT)
+#: Steps in a row, each shorter than Drake's smallest step, that stop a run as
+#: stalled. Drake documents that its integrators never shrink a step below
+#: ``h_floor`` (below); with a NaN error estimate they do, and a stalled run
+#: takes hundreds of thousands of such steps a second.
+STALL_STEPS = 100
+#: Drake's ``h_floor`` is ``max(STALL_TOLERANCE, STALL_TOLERANCE * |t|)``
+#: (``IntegratorBase::get_working_minimum_step_size``), the shortest step that
+#: still advances time.
+STALL_TOLERANCE = 1e-14
 
 
 @dataclass(frozen=True)
@@ -88,8 +111,8 @@ class StopReport:
             "status": self.status,
             "reason": self.reason,
             "time": self.time,
-            "x": [_finite_or_none(v) for v in self.x],
-            "xhat": [_finite_or_none(v) for v in self.xhat],
+            "x": vector_to_json(self.x),
+            "xhat": vector_to_json(self.xhat),
             "wall_time": self.wall_time,
         }
 
@@ -123,9 +146,37 @@ class StopReport:
         )
 
 
-def _finite_or_none(value: float) -> float | None:
-    """``value`` for JSON: a float, or None (``null``) when it is not finite."""
-    return float(value) if np.isfinite(value) else None
+class StallDetector:
+    """Tells a simulation whose steps no longer advance time.
+
+    Feed it the time after every step (a ``Simulator`` monitor does). It
+    reports a stall after :data:`STALL_STEPS` steps in a row that each advanced
+    time by less than Drake's smallest working step, ``max(1e-14, 1e-14 t)``.
+
+    Examples
+    --------
+    >>> detector = StallDetector()
+    >>> [detector.reason(1.0) for _ in range(STALL_STEPS)][-1][:33]
+    'the integrator stalled at t = 1 s'
+    """
+
+    def __init__(self) -> None:
+        self._last_time = -np.inf
+        self._short_steps = 0
+
+    def reason(self, t: float) -> str:
+        """One line on the stall at time ``t``; "" while the steps advance time."""
+        shortest = STALL_TOLERANCE * max(1.0, abs(t))
+        self._short_steps = self._short_steps + 1 if t - self._last_time < shortest else 0
+        self._last_time = t
+        if self._short_steps < STALL_STEPS:
+            return ""
+        return (
+            f"the integrator stalled at t = {t:.6g} s: {STALL_STEPS} steps in a row "
+            f"each advanced time by less than {shortest:.1e} s; a time derivative is "
+            "probably NaN or infinite just past this state (check the plant's f(x) "
+            "and g(x) there)"
+        )
 
 
 @njit(**JIT)
@@ -190,6 +241,7 @@ class RunGuard:
         self.status = STATUS_OK
         self.reason = ""
         self._root: Context | None = None  # the simulator's context, as last seen
+        self._stall = StallDetector()
         self._subcontexts: tuple[Context, Context] | None = None
 
     @property
@@ -221,7 +273,7 @@ class RunGuard:
         x, xhat = self.states(root_context)
         # one compiled call per step
         if _all_inside(state, x, xhat, self._lower, self._upper):  # type: ignore[arg-type]  # pydrake array stub
-            return self._check_wall_time(root_context)
+            return self._check_progress(root_context)
         t = root_context.get_time()
         if not np.all(np.isfinite(state)):
             bad = int(np.flatnonzero(~np.isfinite(state))[0])
@@ -234,6 +286,13 @@ class RunGuard:
                     f"{name}_{i + 1} = {v[i]:.6g} left the abort box "
                     f"[{self._lower[i]:g}, {self._upper[i]:g}] at t = {t:.6g} s"
                 )
+        return self._check_progress(root_context)
+
+    def _check_progress(self, root_context: Context) -> tuple[str, str]:
+        """Stop a run whose steps no longer advance time, then check the wall time."""
+        stalled = self._stall.reason(root_context.get_time())
+        if stalled:
+            return STATUS_DIVERGED, stalled
         return self._check_wall_time(root_context)
 
     def _check_wall_time(self, root_context: Context) -> tuple[str, str]:

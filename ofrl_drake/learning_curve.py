@@ -33,12 +33,14 @@ from pydrake.systems.primitives import ConstantVectorSource
 from ofrl_drake.checks import (
     integer_at_least,
     number_from_json,
+    number_to_json,
     optional_number_from_json,
     positive_number,
     string_from_json,
 )
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
 from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded
+from ofrl_drake.guard import StallDetector
 from ofrl_drake.learning import (
     linear_policy_gain,
     spectral_abscissa,
@@ -191,14 +193,19 @@ class PolicyEvaluator:
         plant.set_state(plant.GetMyMutableContextFromRoot(root), start)  # type: ignore[attr-defined]  # a plant block (PlantStateSetter)
         lower, upper = abort_box(scenario)
         state_port = plant.GetOutputPort("state")
-        left: list[float] = []
+        left: list[tuple[float, bool]] = []  # when the state left the box, and if non-finite
         late: list[float] = []
+        stall = StallDetector()
+        stalled = [""]  # why the run stalled, once it has
 
         def watch(root) -> EventStatus:
             x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(root)))
             if not np.all(np.isfinite(x)) or np.any((x < lower) | (x > upper)):
-                left.append(root.get_time())
+                left.append((root.get_time(), not np.all(np.isfinite(x))))
                 return EventStatus.ReachedTermination(diagram, "left the abort box")
+            stalled[0] = stall.reason(root.get_time())
+            if stalled[0]:
+                return EventStatus.ReachedTermination(diagram, stalled[0])
             if deadline is not None and time.monotonic() > deadline:
                 late.append(root.get_time())
                 return EventStatus.ReachedTermination(diagram, "past its deadline")
@@ -228,8 +235,12 @@ class PolicyEvaluator:
         context = simulator.get_context()
         x = np.asarray(state_port.Eval(plant.GetMyContextFromRoot(context)))
         if left:
-            status = f"diverged: left the abort box at t = {left[0]:.6g}"
+            when, non_finite = left[0]
+            what = "the state turned NaN or infinite" if non_finite else "left the abort box"
+            status = f"diverged: {what} at t = {when:.6g}"
             return PolicyRun(float("nan"), float(np.linalg.norm(x)), status)
+        if stalled[0]:
+            return PolicyRun(float("nan"), float(np.linalg.norm(x)), f"diverged: {stalled[0]}")
         J = np.asarray(cost.GetOutputPort("cost").Eval(cost.GetMyContextFromRoot(context)))[0]
         return PolicyRun(float(J), float(np.linalg.norm(x)), "ok")
 
@@ -429,9 +440,9 @@ def _curve(
         entries.append(
             {
                 "t": float(result.t[i]),
-                "policy_cost": _number(run.cost),
-                "optimality_ratio": _number(ratio),
-                "final_state_norm": _number(run.final_state_norm),
+                "policy_cost": number_to_json(run.cost),
+                "optimality_ratio": number_to_json(ratio),
+                "final_state_norm": number_to_json(run.final_state_norm),
                 "status": run.status,
             }
         )
@@ -537,11 +548,11 @@ class LearningHealth:
     def summary(self) -> dict[str, Any]:
         """Extremes and final values, for ``summary.json`` → ``learning_health``."""
         out: dict[str, Any] = {
-            "min_learning_condition": _number(_extreme(np.nanmin, self.learning_condition)),
-            "final_learning_condition": _number(self.learning_condition[-1]),
-            "max_gamma_norm": _number(_extreme(np.nanmax, self.gamma_norm)),
-            "final_gamma_norm": _number(self.gamma_norm[-1]),
-            "max_gamma_condition": _number(_extreme(np.nanmax, self.gamma_condition)),
+            "min_learning_condition": number_to_json(_extreme(np.nanmin, self.learning_condition)),
+            "final_learning_condition": number_to_json(self.learning_condition[-1]),
+            "max_gamma_norm": number_to_json(_extreme(np.nanmax, self.gamma_norm)),
+            "final_gamma_norm": number_to_json(self.gamma_norm[-1]),
+            "max_gamma_condition": number_to_json(_extreme(np.nanmax, self.gamma_condition)),
             "policy_updates_accepted": len(self.accepted_times),
             "policy_updates_rejected": len(self.rejected_times),
             "accepted_times": self.accepted_times,
@@ -550,13 +561,13 @@ class LearningHealth:
         if self.value_eigenvalues is not None:
             smallest = self.value_eigenvalues[:, 0]
             indefinite = np.flatnonzero(smallest <= 0.0)
-            out["min_value_eigenvalue"] = _number(np.nanmin(smallest))
-            out["final_value_eigenvalues"] = [_number(v) for v in self.value_eigenvalues[-1]]
+            out["min_value_eigenvalue"] = number_to_json(np.nanmin(smallest))
+            out["final_value_eigenvalues"] = [number_to_json(v) for v in self.value_eigenvalues[-1]]
             out["value_indefinite_from"] = float(self.t[indefinite[0]]) if indefinite.size else None
         if self.spectral_abscissa is not None:
             unstable = np.flatnonzero(self.spectral_abscissa >= 0.0)
-            out["max_spectral_abscissa"] = _number(np.nanmax(self.spectral_abscissa))
-            out["final_spectral_abscissa"] = _number(self.spectral_abscissa[-1])
+            out["max_spectral_abscissa"] = number_to_json(np.nanmax(self.spectral_abscissa))
+            out["final_spectral_abscissa"] = number_to_json(self.spectral_abscissa[-1])
             out["linearized_loop_unstable_from"] = (
                 float(self.t[unstable[0]]) if unstable.size else None
             )
@@ -661,8 +672,8 @@ class LearningReport:
         The last two only when there is a curve, or a reason why there is none.
         """
         health = self.health.summary()
-        health["optimal_cost"] = _number(self.optimal_cost)
-        health["lqr_policy_cost"] = _number(self.lqr_policy_cost)
+        health["optimal_cost"] = number_to_json(self.optimal_cost)
+        health["lqr_policy_cost"] = number_to_json(self.lqr_policy_cost)
         if self.curve:
             first, last = self.curve[0]["policy_cost"], self.curve[-1]["policy_cost"]
             health["initial_policy_cost"] = first
@@ -812,11 +823,3 @@ def _extreme(reduce: Any, values: np.ndarray) -> float:
     """``reduce`` (nanmin or nanmax) of ``values``; NaN, without a warning, when all are NaN."""
     values = np.asarray(values, dtype=float)
     return float(reduce(values)) if np.isfinite(values).any() else float("nan")
-
-
-def _number(value: Any) -> float | None:
-    """A float for JSON; None for a missing or non-finite value."""
-    if value is None:
-        return None
-    value = float(value)
-    return value if np.isfinite(value) else None

@@ -14,6 +14,8 @@ Write constants that must broadcast over a batch as ``0 * x[0]`` or
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import warnings
 from collections.abc import Callable, Sequence
@@ -229,6 +231,7 @@ class ControlAffineSystem:
                     'Use "" for a dimensionless entry, or leave it None.'
                 )
         self.vectorized = self._check_batch()
+        self._fingerprint: str | None = None  # computed by fingerprint() when asked
 
     # ------------------------------------------------------------------ checks
     def _call(self, name: str, fn: ArrayFunction, x: np.ndarray) -> np.ndarray:
@@ -346,6 +349,36 @@ class ControlAffineSystem:
     def output_matrix(self) -> np.ndarray:
         """``C`` as a float array of shape ``(q, n)``."""
         return self._C
+
+    def fingerprint(self) -> str:
+        """A hash of the dynamics: ``C``, and ``f`` and ``g`` at three fixed small states.
+
+        Two systems with the same fingerprint agree there to 12 significant
+        digits; a plant whose code was edited (a mass, a sign) almost surely
+        has a new one. Caches of results keyed by a scenario, whose text names
+        the plant but does not hold its code, add it to their key (the ``J*``
+        cache of :mod:`ofrl_drake.optimal`, a resumed ``ablate``). A state where
+        ``f`` or ``g`` raises or is not finite is hashed as such.
+
+        Returns
+        -------
+        str
+            24 hexadecimal digits.
+        """
+        if self._fingerprint is None:
+            p = _probe_point(self.n)
+            parts: list[Any] = [self._C.tolist()]
+            for x in (p, -p, 0.5 * p[::-1]):
+                for fn in (self.f, self.g):
+                    try:
+                        with np.errstate(all="ignore"):
+                            value = np.asarray(fn(x), dtype=float).ravel()
+                        parts.append([f"{v:.12e}" for v in value])
+                    except Exception as err:  # a state outside the model's domain
+                        parts.append(type(err).__name__)
+            text = json.dumps(parts)
+            self._fingerprint = hashlib.sha256(text.encode()).hexdigest()[:24]
+        return self._fingerprint
 
     def f_batch(self, X: np.ndarray) -> np.ndarray:
         """Drift at each column of ``X`` (shape ``(n, N)``): shape ``(n, N)``."""

@@ -41,9 +41,17 @@ from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.checks import MAX_DRAKE_SEED, drake_seed, integer_at_least, is_real_number
 from ofrl_drake.errors import OfrlError, status_line
+from ofrl_drake.plants import dynamics_fingerprints
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
-from ofrl_drake.sweep_store import SweepFiles, SweepStore, describe_difference, load_arrays
+from ofrl_drake.sweep_store import (
+    DYNAMICS_KEY,
+    SweepFiles,
+    SweepStore,
+    describe_difference,
+    dynamics_difference,
+    load_arrays,
+)
 
 __all__ = [
     "CSV_COLUMNS",
@@ -223,13 +231,19 @@ def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[
         "seed": int(seed),
         "mass_spread": float(mass_spread),
         "scenario_values": dataclasses.asdict(scenario),
+        DYNAMICS_KEY: dynamics_fingerprints(scenario),
     }
 
 
 def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
     """Why a ``--resume`` with plan ``new`` cannot continue the sweep of plan ``old``."""
-    where = describe_difference(old, new)
-    return None if where is None else f"the folder's sweep differs in {where}"
+    where = describe_difference(
+        {k: v for k, v in old.items() if k != DYNAMICS_KEY},
+        {k: v for k, v in new.items() if k != DYNAMICS_KEY},
+    )
+    if where is not None:
+        return f"the folder's sweep differs in {where}"
+    return dynamics_difference(old, new)
 
 
 def _check_seeds(seed: int, runs: int) -> None:

@@ -72,6 +72,7 @@ from ofrl_drake.atomic import atomic_file
 from ofrl_drake.checks import (
     is_real_number,
     nonnegative_matrix,
+    number_to_json,
     positive_number,
     positive_vector,
 )
@@ -236,7 +237,7 @@ class OptimalControlResult:
         """A JSON-ready dict (without the trajectory)."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "trajectory"}
         out["x0"] = list(self.x0)
-        out["cost"] = self.cost if math.isfinite(self.cost) else None
+        out["cost"] = number_to_json(self.cost)
         return out
 
     @classmethod
@@ -550,18 +551,22 @@ def problem_key(
     """A hash of everything ``J*`` depends on: the scenario's problem data and ``x0``.
 
     The problem data are the system (``system``, or ``plant`` and ``equilibrium``
-    when given), ``Q``, ``R``, ``lambda_bar`` and the horizon;
-    the key also covers the mesh and the solver, so a change to either is not
-    served from a stale cache.
+    when given, and the dynamics' :meth:`~ofrl_drake.model.ControlAffineSystem.fingerprint`,
+    so an edited plant module is not served its old ``J*``), ``Q``, ``R``,
+    ``lambda_bar`` and the horizon; the key also covers the mesh and the
+    solver, so a change to either is not served from a stale cache.
 
     Raises
     ------
     OfrlError
         If ``mesh`` is not a :class:`Mesh` or ``solver`` not an available solver.
+    ScenarioError
+        If the scenario's system cannot be built (its fingerprint is part of the key).
     """
     mesh = checked_mesh(mesh)
     payload = {
         "system": scenario.system,
+        "dynamics": resolve_system(scenario).fingerprint(),
         "Q": np.asarray(scenario.cost.Q, dtype=float).tolist(),
         "R": np.asarray(scenario.cost.R, dtype=float).tolist(),
         "input_bound": float(scenario.input_bound),

@@ -310,19 +310,43 @@ def _shift(
         raise ScenarioError(f"equilibrium: {err}") from None
 
 
-def _cache_key(scenario: Any) -> str:
+def _registered_factory(name: Any) -> Any:
+    """The factory registered under ``name`` now (None for an import path or no name)."""
+    if not isinstance(name, str) or not name or is_import_path(name):
+        return None
+    from ofrl_drake.examples import EXAMPLES
+
+    return EXAMPLES.get(name)
+
+
+def _cache_key(scenario: Any) -> tuple[str, Any]:
+    """The key of ``scenario``'s system in :data:`_BUILT`, and its registered factory.
+
+    A name registered again (``register(name, new_factory)``) is a new key: the
+    factory's identity is part of it, and the cache holds the factory, so the
+    identity is not reused while the entry lives.
+    """
     plant = getattr(scenario, "plant", None)
     eq = getattr(scenario, "equilibrium", None)
-    return repr(
+    factory = _registered_factory(scenario.system)
+    key = repr(
         (
             scenario.system,
+            id(factory),
             None if plant is None else dataclasses.astuple(plant),
             None if eq is None else dataclasses.astuple(eq),
         )
     )
+    return key, factory
 
 
-_BUILT: dict[str, ControlAffineSystem] = {}
+#: Systems built for a cache key: ``(factory, system)``.
+_BUILT: dict[str, tuple[Any, ControlAffineSystem]] = {}
+
+
+def _built(key: str) -> ControlAffineSystem | None:
+    hit = _BUILT.get(key)
+    return None if hit is None else hit[1]
 
 
 def resolve_system(scenario: Any) -> ControlAffineSystem:
@@ -338,14 +362,14 @@ def resolve_system(scenario: Any) -> ControlAffineSystem:
     ScenarioError
         Naming the entry, if the system cannot be built.
     """
-    key = _cache_key(scenario)
-    system = _BUILT.get(key)
+    key, factory = _cache_key(scenario)
+    system = _built(key)
     if system is None:
         system = _base_system(scenario)
         equilibrium = getattr(scenario, "equilibrium", None)
         if equilibrium is not None:
             system = _shift(system, equilibrium)
-        _BUILT[key] = system
+        _BUILT[key] = (factory, system)
     return system
 
 
@@ -402,8 +426,9 @@ def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
         proxy = dataclasses.make_dataclass("TruthProxy", ["system", "plant", "equilibrium"])(
             truth.system, truth.plant, getattr(scenario, "equilibrium", None)
         )
-        key = "truth:" + _cache_key(proxy)
-        system = _BUILT.get(key)
+        key, factory = _cache_key(proxy)
+        key = "truth:" + key
+        system = _built(key)
         if system is None:
             try:
                 system = _base_system(proxy)
@@ -416,7 +441,7 @@ def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
                     system = _shift(system, proxy.equilibrium, check=False)
                 except ScenarioError as err:
                     raise ScenarioError(f"truth.{err}") from None
-            _BUILT[key] = system
+            _BUILT[key] = (factory, system)
         else:  # built for a scenario whose model may have other sizes
             _check_truth_sizes(system, model)
     if truth.body_mass_scale:
@@ -433,3 +458,22 @@ def resolve_truth(scenario: Any) -> ControlAffineSystem | None:
                     f"its bodies are {names}."
                 )
     return system
+
+
+def dynamics_fingerprints(scenario: Any) -> dict[str, str | None]:
+    """The :meth:`~ofrl_drake.model.ControlAffineSystem.fingerprint` of the model and truth.
+
+    ``{"model": ..., "truth": ...}``, the truth None when the model is the
+    truth. A scenario's text names its plant's code but does not hold it; a
+    store of results (a sweep's plan) keeps these to tell that the code changed.
+
+    Raises
+    ------
+    ScenarioError
+        If the model or the truth cannot be built.
+    """
+    truth = resolve_truth(scenario)
+    return {
+        "model": resolve_system(scenario).fingerprint(),
+        "truth": None if truth is None else truth.fingerprint(),
+    }

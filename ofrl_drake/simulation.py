@@ -22,11 +22,14 @@ from pydrake.systems.framework import Context, System
 from ofrl_drake.atomic import atomic_file, ensure_parent
 from ofrl_drake.bellman import unpack_symmetric
 from ofrl_drake.checks import (
+    json_ready,
     number_from_json,
+    number_to_json,
     object_from_json,
     optional_number_from_json,
     positive_number,
     string_from_json,
+    vector_to_json,
 )
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
 from ofrl_drake.errors import ModelError, RunFolderError, ScenarioError, SwapError
@@ -332,7 +335,7 @@ class SimulationResult:
             if self.x_equilibrium is not None:  # in the plant's own coordinates, as above
                 for key in ("x", "xhat"):
                     shifted = np.asarray(self.stop.x if key == "x" else self.stop.xhat, float)
-                    out["stop"][key] = _json_list(shifted + self.x_equilibrium)
+                    out["stop"][key] = vector_to_json(shifted + self.x_equilibrium)
         if self.provenance:
             out["provenance"] = self.provenance
         if self.validity is not None:
@@ -366,7 +369,8 @@ class SimulationResult:
         * ``extra_logs.npz`` (only if there are extra logs): ``t`` and every
           key of :attr:`extra` under its own name (a stale file from an
           earlier save is removed when there are none);
-        * ``summary.json``: :meth:`summary`.
+        * ``summary.json``: :meth:`summary`, as strict JSON: a number that is
+          not finite (the NaN state of a diverged run) is ``null``.
 
         Each file is written to a temporary file in ``directory`` and renamed
         into place, so none is ever left half-written.
@@ -396,7 +400,7 @@ class SimulationResult:
             with contextlib.suppress(FileNotFoundError):
                 (directory / EXTRA_LOGS_FILE).unlink()
         with atomic_file(directory / SUMMARY_FILE, "w") as fh:
-            json.dump(self.summary(), fh, indent=2)
+            json.dump(json_ready(self.summary()), fh, indent=2, allow_nan=False)
             fh.write("\n")
 
     @classmethod
@@ -817,8 +821,8 @@ def simulate(
         "num_step_shrinkages_from_error_control": int(
             integ.get_num_step_shrinkages_from_error_control()
         ),
-        "smallest_step": _finite(integ.get_smallest_adapted_step_size_taken()),
-        "largest_step": _finite(integ.get_largest_step_size_taken()),
+        "smallest_step": number_to_json(integ.get_smallest_adapted_step_size_taken()),
+        "largest_step": number_to_json(integ.get_largest_step_size_taken()),
     }
     # Asked once: a design's certificate recomputes its corner eigenvalues.
     cert = certificate_of(loop.blocks["observer"])
@@ -981,15 +985,6 @@ def _flush_logs(loop: ClosedLoop, root_context: Any) -> None:
         times = logger.FindLog(root_context).sample_times()
         if times.size == 0 or times[-1] < root_context.get_time():
             logger.ForcedPublish(context)
-
-
-def _json_list(values: np.ndarray) -> list[float | None]:
-    """Numbers for JSON, non-finite ones as None."""
-    return [float(v) if math.isfinite(v) else None for v in values]
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
 
 
 #: What to do about a folder that is not a run folder.

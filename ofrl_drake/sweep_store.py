@@ -212,6 +212,25 @@ def describe_difference(old: Any, new: Any) -> str | None:
     return f"{where} ({before!r} in the folder, {now!r} now)"
 
 
+#: The key of a plan that holds :func:`~ofrl_drake.plants.dynamics_fingerprints`.
+DYNAMICS_KEY = "dynamics"
+
+
+def dynamics_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
+    """Why the plant's code of plan ``new`` is not that of the folder's plan ``old``, or None.
+
+    Both plans hold :data:`DYNAMICS_KEY` (an older folder's plan, without it, is
+    not compared): the model and truth fingerprints.
+    """
+    if DYNAMICS_KEY not in old or old[DYNAMICS_KEY] == new[DYNAMICS_KEY]:
+        return None
+    which = [k for k, v in new[DYNAMICS_KEY].items() if old[DYNAMICS_KEY].get(k) != v]
+    return (
+        f"the {' and '.join(which) or 'plant'} dynamics differ from the folder's sweep: "
+        "f, g or C give other values at the same states (was the plant's code edited?)"
+    )
+
+
 def load_arrays(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The arrays of one ``runs/*.npz`` file, or None if there is none."""
     path = Path(path)

@@ -572,6 +572,33 @@ def test_resume_refuses_another_scenario(paper_scenario, tmp_path):
         ablate(paper_scenario, [Variant("baseline")], out=tmp_path, resume=True, duration=2.0)
 
 
+def test_resume_refuses_a_plant_whose_code_changed(paper_scenario, tmp_path):
+    """Before: the scenario's text was the same, so the sweep resumed with another plant."""
+    from ofrl_drake.examples import EXAMPLES, register, two_state
+    from ofrl_drake.model import ControlAffineSystem
+
+    def edited():  # the same plant with a slower drift: what an edit of its module gives
+        base = two_state()
+        return ControlAffineSystem(lambda x: 0.9 * base.f(x), base.g, C=base.C)
+
+    scenario = dataclasses.replace(paper_scenario, system="user_two_state")
+    try:
+        register("user_two_state", two_state)
+        ablate(scenario, [Variant("baseline")], out=tmp_path, duration=0.5)
+        register("user_two_state", edited)
+        with pytest.raises(
+            AblationError,
+            match=r"--resume: the model dynamics differ from the folder's sweep: f, g or C "
+            r"give other values at the same states \(was the plant's code edited\?\)",
+        ):
+            ablate(scenario, [Variant("baseline")], out=tmp_path, resume=True, duration=0.5)
+        register("user_two_state", two_state)  # the code as it was: the sweep resumes
+        rows = ablate(scenario, [Variant("baseline")], out=tmp_path, resume=True, duration=0.5)
+    finally:
+        EXAMPLES.pop("user_two_state")
+    assert [row["status"] for row in rows] == ["ok"]
+
+
 # -------------------------------------------------------- Dask and CLI
 def test_dask_cluster_gives_the_serial_rows_and_the_report(short_files, tmp_path, capsys):
     import matplotlib.pyplot as plt

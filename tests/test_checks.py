@@ -1,5 +1,7 @@
 """ofrl_drake.checks: accepted values pass through; bad ones raise, naming themselves."""
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -125,3 +127,39 @@ def test_initial_vector_is_zeros_when_omitted_else_a_checked_vector():
         initial_vector("B: initial_state", [1.0, 2.0, 3.0], 2)
     with pytest.raises(ModelError, match=r"^B: initial_state must be finite; got \[nan, 0\.0\]"):
         initial_vector("B: initial_state", [np.nan, 0.0], 2)
+
+
+def test_numbers_written_to_json_read_back_with_non_finite_ones_as_null():
+    from ofrl_drake.checks import (
+        number_to_json,
+        optional_number_from_json,
+        vector_from_json,
+        vector_to_json,
+    )
+
+    values = np.array([1.5, np.nan, -np.inf, np.inf, -0.0, 3])
+    text = json.dumps(vector_to_json(values), allow_nan=False)  # strict JSON
+    assert text == "[1.5, null, null, null, -0.0, 3.0]"
+    back = vector_from_json(json.loads(text), values.size)
+    np.testing.assert_array_equal(back, [1.5, np.nan, np.nan, np.nan, -0.0, 3.0])
+    assert [number_to_json(v) for v in (None, np.float32(2.5), np.nan, 7)] == [None, 2.5, None, 7.0]
+    assert optional_number_from_json(json.loads(json.dumps(number_to_json(np.inf)))) is None
+    assert vector_to_json(np.array([[1.0, np.nan]])) == [1.0, None]
+
+
+def test_json_ready_makes_nested_numpy_values_strict_json():
+    from ofrl_drake.checks import json_ready
+
+    value = {
+        "a": np.array([[1.0, np.nan], [np.inf, 2.0]]),
+        "b": (np.float32(0.5), np.int64(3), np.bool_(True), None, "text"),
+        "c": [{"d": -np.inf}],
+    }
+    ready = json_ready(value)
+    assert ready == {
+        "a": [[1.0, None], [None, 2.0]],
+        "b": [0.5, 3, True, None, "text"],
+        "c": [{"d": None}],
+    }
+    assert json.loads(json.dumps(ready, allow_nan=False)) == ready
+    assert type(ready["b"][1]) is int and type(ready["b"][2]) is bool

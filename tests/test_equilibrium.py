@@ -182,7 +182,9 @@ def test_the_optimum_s_cache_key_tells_plants_and_equilibria_apart(folder):
         scenario, equilibrium=EquilibriumConfig(x=[-X_EQ[0], 0.0], u=[-1.0])
     )
     pendulum = PlantConfig(drake_system="pydrake.examples:PendulumPlant", C=[[1.0, 0.0]])
-    drake_plant = dataclasses.replace(scenario, system="", plant=pendulum)
+    # The pendulum (m = 1 kg, l = 0.5 m) held at the same angle needs u* = m g l sin(x1*).
+    held = EquilibriumConfig(x=list(scenario.equilibrium.x), u=[9.81 * 0.5 * np.sin(X_EQ[0])])
+    drake_plant = dataclasses.replace(scenario, system="", plant=pendulum, equilibrium=held)
     keys = {problem_key(s, x0) for s in (scenario, other_point, drake_plant)}
     assert len(keys) == 3
     unshifted = dataclasses.replace(scenario, equilibrium=None)

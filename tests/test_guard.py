@@ -234,3 +234,96 @@ def test_a_stop_report_reads_back_what_to_dict_wrote():
         StopReport.from_dict(stop.to_dict(), 3)
     with pytest.raises(TypeError, match=r"expected a number, got str"):
         StopReport.from_dict({**stop.to_dict(), "time": "1.5"})
+
+
+class _NaNPastAThreshold(_FiniteTimeBlowUp):
+    """A plant slot block with ``x' = x`` until x passes 1.5, and NaN past it.
+
+    Drake's error control shrinks the step at x = 1.5 (t = ln 1.5) below what
+    time can resolve, so without the guard's stall check the run never ends.
+    """
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        x = context.get_continuous_state_vector().CopyToVector()
+        derivatives.get_mutable_vector().SetFromVector(np.where(x > 1.5, np.nan, x))
+
+
+def test_a_nan_derivative_that_stalls_the_integrator_ends_the_run_as_diverged(
+    paper_scenario, paper_design
+):
+    from ofrl_drake.guard import STALL_STEPS
+
+    scenario = _with_simulation(
+        paper_scenario, abort_box=BoxConfig([-1e3, -1e3], [1e3, 1e3]), duration=2.0
+    )
+    result = simulate(scenario, design=paper_design, plant=_NaNPastAThreshold(), progress=False)
+    assert result.status == STATUS_DIVERGED
+    assert result.stop.reason.startswith(
+        f"the integrator stalled at t = 0.405465 s: {STALL_STEPS} steps in a row each "
+        "advanced time by less than 1.0e-14 s; a time derivative is probably NaN"
+    )
+    np.testing.assert_allclose(result.stop.time, np.log(1.5), rtol=1e-6)
+    assert result.t[-1] == result.stop.time
+    assert np.isfinite(result.x).all()
+
+
+def test_steps_that_advance_time_never_count_as_a_stall(paper_scenario, paper_design):
+    from pydrake.systems.analysis import Simulator
+
+    from ofrl_drake import build_closed_loop
+    from ofrl_drake.guard import STALL_STEPS
+
+    loop = build_closed_loop(paper_scenario, design=paper_design)
+    guard = RunGuard(loop.diagram, loop.plant, loop.observer, abort_box(paper_scenario), None)
+    context = Simulator(loop.diagram).get_mutable_context()
+    # Steps just above Drake's smallest working step go on; shorter ones, in a row, stop it.
+    for k in range(3 * STALL_STEPS):
+        context.SetTime(1.0 + k * 1.1e-14)
+        assert guard.check(context) == (STATUS_OK, "")
+    for _ in range(STALL_STEPS - 1):
+        assert guard.check(context) == (STATUS_OK, "")
+    status, reason = guard.check(context)
+    assert status == STATUS_DIVERGED and reason.startswith("the integrator stalled at t = 1 s")
+    context.SetTime(2.0)  # a step that advances time starts the count again
+    assert guard.check(context) == (STATUS_OK, "")
+
+
+class _NaNRateInAHalfPlane(_FiniteTimeBlowUp):
+    """A plant slot block with ``x1' = x2, x2' = 1``, and x2' NaN once x1 > 1.5.
+
+    Drake's error control accepts the step into NaN here (only x2 is NaN).
+    """
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        x = context.get_continuous_state_vector().CopyToVector()
+        rate = np.nan if x[0] > 1.5 else 1.0
+        derivatives.get_mutable_vector().SetFromVector(np.array([x[1], rate]))
+
+
+def test_a_run_that_turns_nan_writes_strict_json_and_loads_back(
+    paper_scenario, paper_design, tmp_path
+):
+    from ofrl_drake import SimulationResult
+
+    scenario = _with_simulation(
+        paper_scenario, abort_box=BoxConfig([-1e3, -1e3], [1e3, 1e3]), duration=3.0
+    )
+    result = simulate(scenario, design=paper_design, plant=_NaNRateInAHalfPlane(), progress=False)
+    assert result.status == STATUS_DIVERGED
+    assert result.stop.reason.startswith("continuous state 1 is nan at t = 0.41")
+    assert np.isnan(result.summary()["final_state_norm"])
+    result.save(tmp_path / "run")
+    text = (tmp_path / "run" / "summary.json").read_text()
+
+    def refuse(token):
+        raise AssertionError(f"summary.json holds {token}, which strict JSON parsers refuse")
+
+    # Before: "final_state": [1.50014, NaN], and NaN norms.
+    summary = json.loads(text, parse_constant=refuse)
+    assert summary["final_state"][1] is None and summary["final_state_norm"] is None
+    assert summary["stop"]["x"][1] is None
+    back = SimulationResult.load(tmp_path / "run")
+    assert back.status == STATUS_DIVERGED and np.isnan(back.stop.x[1])
+    np.testing.assert_array_equal(back.x, result.x)  # NaN where the run had NaN
+    back.save(tmp_path / "again")
+    assert (tmp_path / "again" / "summary.json").read_text() == text

@@ -264,7 +264,7 @@ def test_a_rejected_update_keeps_the_policy_in_force():
 @given(st.floats(0.05, 20.0))
 def test_a_plant_and_its_rescaled_twin_learn_the_same_policy(unit):
     """The damped pendulum with its rate in units of ``unit`` rad/s: same policy, rescaled."""
-    twin = f"damped_pendulum_in_units_of_{unit!r}"  # plants are cached by name
+    twin = f"damped_pendulum_in_units_of_{unit!r}"
     register(twin, lambda: _damped_pendulum(unit))
     try:
         runs = []
@@ -524,19 +524,66 @@ def _domain_plant() -> ControlAffineSystem:
     return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name="domain_pendulum")
 
 
-def test_a_policy_evaluation_leaving_the_domain_of_f_is_diverged_not_an_internal_error():
-    """Before: the evaluator caught only RuntimeError, so Drake's ValueError ended the CLI."""
-    register("domain_pendulum", _domain_plant)
+def _evaluate_zero_policy(name, factory, x0, blocks="auto"):
+    """The policy W = 0 of a user plant registered as ``name``, from ``x0``, for 2 s."""
+    register(name, factory)
     try:
-        scenario = _user_scenario("domain_pendulum", 2, duration=2.0)
-        scenario = dataclasses.replace(scenario, x0=[0.2, 0.0], xhat0=[0.2, 0.0])
+        scenario = _user_scenario(name, 2, duration=2.0)
+        scenario = dataclasses.replace(
+            scenario,
+            x0=[0.2, 0.0],
+            xhat0=[0.2, 0.0],
+            simulation=dataclasses.replace(scenario.simulation, blocks=blocks),
+        )
         with pytest.warns(InitialPolicyWarning):  # W0 = 0; the evaluator is given its own W
             loop = build_closed_loop(scenario)
-        run = PolicyEvaluator(loop)(np.zeros(loop.parts.basis.size), x0=np.array([1.4, 3.0]))
+        return PolicyEvaluator(loop)(np.zeros(loop.parts.basis.size), x0=np.array(x0))
     finally:
-        EXAMPLES.pop("domain_pendulum")
+        EXAMPLES.pop(name)
+
+
+def test_a_policy_evaluation_leaving_the_domain_of_f_is_diverged_not_an_internal_error():
+    """Before: the evaluator caught only RuntimeError, so Drake's ValueError ended the CLI."""
+    run = _evaluate_zero_policy("domain_pendulum", _domain_plant, [1.4, 3.0])
     assert math.isnan(run.cost)
     assert re.match(r"^diverged: the model's f or g was evaluated outside its domain", run.status)
+
+
+def _nan_plant(everywhere: bool) -> ControlAffineSystem:
+    """A double integrator whose f is NaN past x1 = 1: both entries, or x2's alone.
+
+    Drake traces the model inside x1 < 1 (for the bounds); numbers past it are NaN.
+    """
+
+    def f(x):
+        x = np.asarray(x)
+        if x.dtype == object:
+            return np.array([x[1], 0.0 * x[0]])
+        past = x[0] > 1.0
+        return np.array([np.where(past & everywhere, np.nan, x[1]), np.where(past, np.nan, 0.0)])
+
+    def g(x):
+        return np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]])
+
+    return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name="nan_plant")
+
+
+@pytest.mark.parametrize(
+    ("everywhere", "status"),
+    [
+        # Before: Drake's error control shrank the step to 1e-17 s at x1 = 1 and
+        # the evaluation never ended.
+        (True, r"^diverged: the integrator stalled at t = 0\.0333333 s: 100 steps in a row"),
+        # Before: "left the abort box", of a state inside the box but NaN.
+        (False, r"^diverged: the state turned NaN or infinite at t = 0\.03"),
+    ],
+)
+def test_a_policy_evaluation_on_a_nan_model_ends_diverged_naming_why(everywhere, status):
+    run = _evaluate_zero_policy(
+        f"nan_plant_{everywhere}", lambda: _nan_plant(everywhere), [0.9, 3.0], blocks="python"
+    )
+    assert math.isnan(run.cost)
+    assert re.match(status, run.status), run.status
 
 
 def test_policy_iteration_from_an_inadmissible_policy_warns_naming_w0():

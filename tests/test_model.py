@@ -206,3 +206,28 @@ def test_a_loop_over_points_at_every_evaluation_is_refused_where_it_would_run():
     ):
         looping.require_vectorized("MovingBellmanExtrapolator")
     ControlAffineSystem(_f, _g, [[1.0, 0.0]]).require_vectorized("MovingBellmanExtrapolator")
+
+
+def test_the_fingerprint_follows_the_dynamics_not_the_object():
+    from ofrl_drake.examples import two_state
+
+    base = two_state()
+    fp = base.fingerprint()
+    assert len(fp) == 24 and fp == two_state().fingerprint()  # another object, same code
+    assert base.fingerprint() is fp  # computed once
+    slower = ControlAffineSystem(lambda x: 0.999 * base.f(x), base.g, C=base.C)
+    other_g = ControlAffineSystem(base.f, lambda x: -base.g(x), C=base.C)
+    other_C = ControlAffineSystem(base.f, base.g, C=2.0 * np.asarray(base.C))
+    prints = {s.fingerprint() for s in (slower, other_g, other_C)}
+    assert len(prints) == 3 and fp not in prints
+
+    # A model undefined at a probe state (NaN there, or raising) still has one.
+    def f(x):
+        if x[0] < 0:
+            raise ValueError("x1 < 0 is outside the model")
+        return np.array([x[1], np.sqrt(np.abs(x[0]) - 0.08)])
+
+    g = lambda x: np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]])  # noqa: E731
+    with pytest.warns(UserWarning, match="do not accept a batch"):
+        partial = ControlAffineSystem(f, g, C=[[1.0, 0.0]])
+    assert len(partial.fingerprint()) == 24

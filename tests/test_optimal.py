@@ -225,6 +225,24 @@ def test_cache_round_trip_and_keys(tmp_path, paper_scenario, paper_optimum):
         paper_scenario, critic=dataclasses.replace(paper_scenario.critic, kc=0.02)
     )
     assert problem_key(renamed, x0) == key
+    # The plant's code is part of the key: a name registered again with other
+    # dynamics is another problem; the same dynamics under another name, not.
+    from ofrl_drake.examples import EXAMPLES, register, two_state
+    from ofrl_drake.model import ControlAffineSystem
+
+    def heavier():
+        base = two_state()
+        return ControlAffineSystem(base.f, lambda x: 0.5 * base.g(x), C=base.C)
+
+    edited = dataclasses.replace(paper_scenario, system="edited_two_state")
+    try:
+        register("edited_two_state", two_state)
+        same_code = problem_key(edited, x0)
+        register("edited_two_state", heavier)
+        assert problem_key(edited, x0) not in (key, same_code)
+    finally:
+        EXAMPLES.pop("edited_two_state")
+    assert same_code != key  # the name is part of the key too
     # A failure is not cached; a damaged file reads as missing.
     failed = OptimalControlResult((0.5, 0.5), math.nan, False, "not converged", 30.0, "snopt", 1.0)
     cache.put(paper_scenario, failed)

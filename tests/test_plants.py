@@ -233,3 +233,31 @@ def test_a_truth_of_other_sizes_with_an_equilibrium_names_both_sizes(tmp_path, t
         r"Name a truth of the model's sizes",
     ):
         load_scenario(path)
+
+
+def test_a_name_registered_again_resolves_to_the_new_plant():
+    """Before: the first plant built under a name was cached by the name and kept."""
+    import dataclasses
+
+    from ofrl_drake.examples import EXAMPLES, register, two_state
+    from ofrl_drake.model import ControlAffineSystem
+
+    def slower() -> ControlAffineSystem:
+        base = two_state()
+        return ControlAffineSystem(
+            lambda x: 0.5 * base.f(x), base.g, C=base.C, name="two_state_slower"
+        )
+
+    scenario = dataclasses.replace(load_scenario(PAPER_SCENARIO), system="reregistered")
+    register("reregistered", two_state)
+    try:
+        first = resolve_system(scenario)
+        assert resolve_system(scenario) is first  # built once per registration
+        register("reregistered", slower)
+        second = resolve_system(scenario)
+        x = np.array([0.3, -0.7])
+        np.testing.assert_allclose(second.f(x), 0.5 * first.f(x), rtol=1e-15)
+        register("reregistered", two_state)  # the first factory again: its plant again
+        assert resolve_system(scenario) is first
+    finally:
+        EXAMPLES.pop("reregistered")

@@ -396,6 +396,35 @@ def test_montecarlo_resume_names_the_folder_s_value_and_the_command_s(paper_scen
         montecarlo(longer, 1, seed=3, out=out, resume=True, progress=False, optimal_cost=1.0)
 
 
+def test_montecarlo_resume_refuses_a_plant_whose_code_changed(paper_scenario, tmp_path):
+    """Before: the scenario's text was the same, so the sweep resumed with another plant."""
+    from ofrl_drake.examples import EXAMPLES, register, two_state
+    from ofrl_drake.model import ControlAffineSystem
+    from ofrl_drake.monte_carlo import MonteCarloError, montecarlo
+
+    def edited():  # the input gain halved: what an edit of the plant's module gives
+        base = two_state()
+        return ControlAffineSystem(base.f, lambda x: 0.5 * base.g(x), C=base.C)
+
+    scenario = dataclasses.replace(
+        paper_scenario,
+        system="user_two_state_mc",
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=0.2),
+    )
+    out = tmp_path / "mc"
+    try:
+        register("user_two_state_mc", two_state)
+        montecarlo(scenario, 1, seed=3, out=out, progress=False, optimal_cost=1.0)
+        register("user_two_state_mc", edited)
+        with pytest.raises(
+            MonteCarloError,
+            match=r"^--resume: the model dynamics differ from the folder's sweep: f, g or C",
+        ):
+            montecarlo(scenario, 1, seed=3, out=out, resume=True, progress=False, optimal_cost=1.0)
+    finally:
+        EXAMPLES.pop("user_two_state_mc")
+
+
 def test_montecarlo_names_a_path_given_as_the_scenario(tmp_path):
     from ofrl_drake import ScenarioError
     from ofrl_drake.monte_carlo import montecarlo
