@@ -44,6 +44,7 @@ from ofrl_drake.errors import ModelError, ScenarioError, status_line
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
+    "dynamics_fingerprints",
     "is_import_path",
     "load_callable",
     "locate_model_file",
@@ -109,14 +110,33 @@ def locate_system_entry(entry: str, folder: str | Path | None, *, key: str = "sy
     return entry if found is None else f"{found}:{attr}"
 
 
+def _file_version(path: str | Path) -> tuple[str, int, int] | tuple[str, None]:
+    """``(absolute path, mtime in ns, size)`` of a file; ``(path, None)`` if it cannot be read.
+
+    A relative path is taken from the working folder. Like Python's own
+    ``.pyc`` check, an edited file is told by its modification time and size.
+    """
+    resolved = Path(path).resolve()
+    try:
+        stat = resolved.stat()
+    except OSError:
+        return (str(resolved), None)
+    return (str(resolved), stat.st_mtime_ns, stat.st_size)
+
+
+#: The version (:func:`_file_version`) of each user module file as last run.
+_LOADED: dict[str, tuple[str, int, int] | tuple[str, None]] = {}
+
+
 def _load_file(path: Path, entry: str, key: str) -> ModuleType:
-    """Import the file ``path`` under a private name, once per process."""
+    """Import the file ``path`` under a private name, again whenever the file changed."""
     if not path.is_file():
         raise ScenarioError(f"{key}: {entry!r}: no such module file {path}.")
     digest = hashlib.sha256(str(path).encode()).hexdigest()[:12]
     stem = re.sub(r"\W", "_", path.stem)
     name = f"_ofrl_drake_user_{digest}_{stem}"
-    if name in sys.modules:
+    version = _file_version(path)
+    if name in sys.modules and _LOADED.get(name) == version:
         return sys.modules[name]
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
@@ -138,6 +158,7 @@ def _load_file(path: Path, entry: str, key: str) -> ModuleType:
     finally:
         if root in sys.path:
             sys.path.remove(root)
+    _LOADED[name] = version
     return module
 
 
@@ -319,12 +340,33 @@ def _registered_factory(name: Any) -> Any:
     return EXAMPLES.get(name)
 
 
+def _source_files(scenario: Any) -> list[str]:
+    """The local files ``scenario``'s system is built from: module files, a model file.
+
+    Modules imported from ``sys.path`` (``"package.module:make"``) are not
+    among them: Python imports those once per process.
+    """
+    plant = getattr(scenario, "plant", None)
+    files = []
+    for entry in (scenario.system, getattr(plant, "drake_system", "")):
+        if isinstance(entry, str) and is_import_path(entry):
+            module = entry.rpartition(":")[0]
+            if module.endswith(".py"):
+                files.append(module)
+    model = getattr(plant, "multibody", "")
+    if isinstance(model, str) and model and "://" not in model:
+        files.append(model)
+    return files
+
+
 def _cache_key(scenario: Any) -> tuple[str, Any]:
     """The key of ``scenario``'s system in :data:`_BUILT`, and its registered factory.
 
     A name registered again (``register(name, new_factory)``) is a new key: the
     factory's identity is part of it, and the cache holds the factory, so the
-    identity is not reused while the entry lives.
+    identity is not reused while the entry lives. So is an edited module or
+    model file (its :func:`_file_version`), and a relative model file read from
+    another working folder.
     """
     plant = getattr(scenario, "plant", None)
     eq = getattr(scenario, "equilibrium", None)
@@ -333,6 +375,7 @@ def _cache_key(scenario: Any) -> tuple[str, Any]:
         (
             scenario.system,
             id(factory),
+            [_file_version(f) for f in _source_files(scenario)],
             None if plant is None else dataclasses.astuple(plant),
             None if eq is None else dataclasses.astuple(eq),
         )

@@ -261,3 +261,56 @@ def test_a_name_registered_again_resolves_to_the_new_plant():
         assert resolve_system(scenario) is first
     finally:
         EXAMPLES.pop("reregistered")
+
+
+_SLIDER = """<?xml version="1.0"?>
+<sdf version="1.7"><model name="slider">
+  <link name="block"><inertial><mass>{mass}</mass></inertial></link>
+  <joint name="slide" type="prismatic"><parent>world</parent><child>block</child>
+    <axis><xyz>1 0 0</xyz></axis></joint>
+</model></sdf>
+"""
+
+
+def _edit(path, text):
+    """Rewrite ``path`` with a modification time a second later (coarse file systems)."""
+    before = path.stat().st_mtime_ns
+    path.write_text(text)
+    os.utime(path, ns=(before + 10**9, before + 10**9))
+
+
+def test_an_edited_plant_module_or_model_file_is_built_again(plant_folder, tmp_path, monkeypatch):
+    """Before: both were cached by the scenario's text, so the edit went unseen in the process
+    (and into a sweep's fingerprint): a notebook, or a long-lived Dask worker, ran the old plant.
+    """
+    import dataclasses
+
+    from ofrl_drake.plants import dynamics_fingerprints
+    from ofrl_drake.scenario import PlantConfig
+
+    scenario = load_scenario(_scenario(plant_folder, "users_plant:make_plant"))
+    module = plant_folder / "users_plant.py"
+    first = resolve_system(scenario)
+    assert resolve_system(scenario) is first  # unchanged file: built once
+    x = np.array([0.3, -0.7])
+    _edit(module, USER_PLANT.replace("return np.array([-x[0] + x[1],", "return np.array([x[1],"))
+    edited = resolve_system(scenario)
+    np.testing.assert_allclose(edited.f(x)[0], x[1], rtol=1e-15)
+    assert edited.fingerprint() != first.fingerprint()
+
+    # A multibody model file: its edit, and a relative path read from another folder.
+    model = tmp_path / "slider.sdf"
+    model.write_text(_SLIDER.format(mass=1.0))
+    slider = dataclasses.replace(
+        scenario, system="", plant=PlantConfig(multibody="slider.sdf", C=[[1.0, 0.0]])
+    )
+    monkeypatch.chdir(tmp_path)
+    light = dynamics_fingerprints(slider)["model"]
+    _edit(model, _SLIDER.format(mass=4.0))
+    heavy = dynamics_fingerprints(slider)["model"]
+    assert heavy != light
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "slider.sdf").write_text(_SLIDER.format(mass=1.0))
+    monkeypatch.chdir(other)
+    assert dynamics_fingerprints(slider)["model"] == light
