@@ -36,7 +36,10 @@ the rows already there (dropping a torn last line) and runs only the missing
 sweep, so that a ``resume`` of another one is refused by name. Converged ``J*``
 values are cached in ``out/optimal/``, one JSON file per scenario-problem hash
 and initial state, and each run's trajectories are kept in ``out/runs/`` for
-the figures (:mod:`ofrl_drake.ablation_report`).
+the figures (:mod:`ofrl_drake.ablation_report`), written with the run's row: a
+run done again that fails before it has logs removes the file of its earlier
+attempt, and a sweep in a folder without a table removes the files it finds
+there with its first row (:class:`~ofrl_drake.sweep_store.SweepStore`).
 
 A run that raises is recorded with its error on one line (``status``); the
 sweep goes on. If the run is fine but ``J*`` did not converge, ``status`` is
@@ -230,10 +233,18 @@ def _check_run_names(variants: Sequence[Variant]) -> None:
 
 
 def _save_run(store: SweepStore, outcome: RunOutcome) -> None:
+    """Make ``runs/`` hold this run's file, just before its row is written.
+
+    A run without logs (it failed before it had any) removes the file an
+    earlier attempt of its row left (a ``retry_failed``, a row the table lost):
+    the figures would draw that attempt as this row's.
+    """
+    name = _run_name(outcome.variant, outcome.initial_state)
     if not outcome.logs:
+        store.remove_run(name)
         return
     store.save_run(
-        _run_name(outcome.variant, outcome.initial_state),
+        name,
         {
             "variant": outcome.variant,
             "initial_state": outcome.initial_state,
@@ -421,6 +432,8 @@ class _Sweep:
         for v in self.variants.values():
             if v.full_choices(self.scenario)["controller"] != "learned":
                 continue
+            if (v.name, label) not in self.done:
+                continue  # a file of no row in the table: not this sweep's run
             logs = load_run(self.store.runs, v.name, label)
             if logs is not None and str(logs.get("status", "ok")) == "ok":
                 return Trajectory(t=logs["t"], x=logs["x"], u=logs["u"], cost=logs["cost"])
@@ -445,8 +458,6 @@ class _Sweep:
                 value = [RunOutcome(name, label, nan, reason, 0.0, False) for label in labels]
             ready = []
             for outcome in value:
-                if self.store is not None:
-                    _save_run(self.store, outcome)
                 if outcome.initial_state in self.optimum:
                     ready.append(outcome)
                 else:
@@ -456,6 +467,7 @@ class _Sweep:
             row = _row(outcome, self.optimum[outcome.initial_state])
             self.done[(row["variant"], row["initial_state"])] = row
             if self.store is not None:
+                _save_run(self.store, outcome)  # the row's run, written with it
                 self.store.write(row)
             rows.append(row)
         return rows
@@ -574,7 +586,8 @@ def ablate(
         variants, scenario or horizon differ from the sweep in ``out`` (named
         in the message).
     OutputError
-        If ``out`` cannot be written.
+        If ``out`` cannot be written, or a file of ``out/runs/`` that belongs
+        to no row of the table cannot be removed.
 
     Examples
     --------

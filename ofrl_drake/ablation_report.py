@@ -86,6 +86,11 @@ def summary_table(rows: Sequence[Mapping[str, Any]], variants: Sequence[str]) ->
     return "\n".join(lines)
 
 
+def _key(row: Mapping[str, Any]) -> tuple[str, str]:
+    """A row's (variant, initial state)."""
+    return row["variant"], row["initial_state"]
+
+
 def _optimal_table(rows: Sequence[Mapping[str, Any]]) -> str:
     lines = ["| initial state x0 | J* |", "|---|---|"]
     seen: dict[str, float] = {}
@@ -270,7 +275,8 @@ def write_report(
     scenario_name : str
     x0_label : str
         ``initial_state`` label of the scenario's own ``x0`` (for the
-        trajectory figure).
+        trajectory figure, which draws the saved runs of the rows of ``rows``
+        from it).
     duration : float
         The horizon of J and J*.
     solver : str
@@ -332,8 +338,8 @@ def write_report(
     ratio = figures / "optimality_ratio.png"
     save_png(plot_optimality_ratio(rows, variants), ratio, DPI)
     traj = figures / "trajectories.png"
-    trajectories = plot_trajectories(
-        out / "runs", variants, x0_label, optimum, equilibrium, accuracy
-    )
+    # Only the runs of rows in the table: a file in runs/ without its row is no run of this sweep.
+    drawn = [v for v in variants if any(_key(r) == (v, x0_label) for r in rows)]
+    trajectories = plot_trajectories(out / "runs", drawn, x0_label, optimum, equilibrium, accuracy)
     save_png(trajectories, traj, DPI)
     return [md, ratio, traj]

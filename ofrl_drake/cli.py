@@ -1226,9 +1226,10 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         write_montecarlo_report(out, rows, scenario.name)
         print(montecarlo_table(rows), end="")
         good = sum(r["status"] == "ok" and r["regulated"] == "true" for r in rows)
+        envelope = ", figures/envelope.png" if (out / "figures" / "envelope.png").is_file() else ""
         print(
             f"wrote {out}: {len(rows)} runs ({good} ok and regulated), montecarlo.csv, "
-            "montecarlo.md, figures/envelope.png"
+            f"montecarlo.md{envelope}"
         )
         return EXIT_OK
 

@@ -18,7 +18,8 @@ once and re-runs it by writing each seed into the context. With ``out``, rows ar
 appended to ``montecarlo.csv`` and fsynced as tasks finish, ``montecarlo.json``
 records what defines the sweep so that ``resume`` refuses another one by name,
 and ``runs/`` keeps each run's trajectories for the envelope figure
-(:func:`write_montecarlo_report`); the folder is a
+(:func:`write_montecarlo_report`), written with the run's row (none for a run
+that failed before it had logs); the folder is a
 :class:`~ofrl_drake.sweep_store.SweepStore`, as an ablation's is.
 """
 
@@ -40,7 +41,7 @@ import numpy as np
 from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.checks import MAX_DRAKE_SEED, drake_seed, integer_at_least, is_real_number
-from ofrl_drake.errors import OfrlError, status_line
+from ofrl_drake.errors import OfrlError, OutputError, status_line
 from ofrl_drake.plants import dynamics_fingerprints
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
@@ -327,7 +328,8 @@ def montecarlo(
         during the sweep, for a task that failed outside its own guard (a
         worker lost).
     OutputError
-        If ``out`` cannot be written.
+        If ``out`` cannot be written, or a file of ``out/runs/`` that belongs
+        to no row of the table cannot be removed.
     """
     check_scenario(scenario, "montecarlo")
     integer_at_least("runs (--runs)", runs, 1, error=MonteCarloError)
@@ -381,8 +383,12 @@ def montecarlo(
                 else math.nan
             )
             if store is not None:
+                # The row's run, written with it; a run without logs leaves no earlier one.
+                name = f"seed_{row['seed']}.npz"
                 if value["logs"]:
-                    store.save_run(f"seed_{row['seed']}.npz", value["logs"])
+                    store.save_run(name, value["logs"])
+                else:
+                    store.remove_run(name)
                 store.write(row)
             finished[row["seed"]] = row
             return row
@@ -502,12 +508,19 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     coordinates, with the model's units when it knows them), the legend below
     the panels. When the logged runs are all identical (:func:`identical_runs`),
     it draws their one curve instead of a band of width 0, and ``montecarlo.md``
-    and an :class:`IdenticalRunsWarning` say so in one line.
+    and an :class:`IdenticalRunsWarning` say so in one line. It draws the runs
+    of ``rows`` saved in ``runs/``; when no run of ``rows`` was logged there is
+    no envelope, and an ``envelope.png`` of an earlier sweep is removed.
 
     Warns
     -----
     IdenticalRunsWarning
         If two or more runs were logged and they are all identical.
+
+    Raises
+    ------
+    OutputError
+        If no run was logged and an earlier ``figures/envelope.png`` cannot be removed.
     """
     import matplotlib.pyplot as plt
 
@@ -538,7 +551,16 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     text += ["Runs that did not succeed:" if failed else "Every run succeeded.", ""]
     text += [f"- seed {r['seed']} ({r['perturbation']}): {r['status']}" for r in failed]
     atomic_write_text(out / "montecarlo.md", "\n".join(text) + "\n")
-    if not logs:
+    envelope = out / "figures" / "envelope.png"
+    if not logs:  # an earlier sweep's envelope would pass for this one's
+        try:
+            envelope.unlink(missing_ok=True)
+        except OSError as err:
+            raise OutputError(
+                f"--out: cannot remove {envelope} ({(err.strerror or 'error').lower()}): no "
+                "run of this sweep was logged, and it draws runs that are not in "
+                f"{FILES.table}; remove it yourself."
+            ) from None
         return
     n = logs[0][1].shape[1]
     units = _state_units(saved)
@@ -560,4 +582,4 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncols=len(handles), frameon=False)
     (out / "figures").mkdir(exist_ok=True)
-    save_png(fig, out / "figures" / "envelope.png", 150)
+    save_png(fig, envelope, 150)

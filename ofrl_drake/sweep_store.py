@@ -13,6 +13,11 @@ differs between them (file names, columns, the command, the exception).
   read back exactly (:func:`read_table`). A ``resume`` drops a torn last line
   and, with ``retry_failed``, the rows whose status is not ``ok``.
 * ``runs/`` holds each run's trajectories, one ``.npz`` file per run, written whole.
+  A run's file belongs to its row in the table: it is written (or, for a run
+  that ended before it had logs, removed) with its row
+  (:meth:`SweepStore.save_run`, :meth:`SweepStore.remove_run`), and the files
+  a sweep finds in ``runs/`` of a folder without a table (rows of no table)
+  are removed when it writes its first row.
 * A sweep that stops before its first row (an error, an interrupt) leaves
   nothing to resume, so nothing of it stays: :meth:`SweepStore.recording`
   removes what of the folder :meth:`SweepStore.open` found absent (the folder
@@ -36,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from ofrl_drake.atomic import atomic_file, atomic_write_text, check_output_folder, ensure_parent
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.errors import OfrlError, OutputError
 
 __all__ = [
     "RowWriter",
@@ -258,6 +263,27 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
+def _remove_stale_run(path: Path) -> None:
+    """Remove ``path``, a file of ``runs/`` that belongs to no row, if it is there.
+
+    Raises
+    ------
+    OutputError
+        If it is there and cannot be removed (the figures would draw it as a row's).
+    """
+    try:
+        _remove(path)
+    except FileNotFoundError:
+        pass
+    except OSError as err:
+        problem = (err.strerror or type(err).__name__).lower()
+        raise OutputError(
+            f"--out: cannot remove {path} ({problem}): it holds a run that is not the one in "
+            "the table, and the figures would draw it; remove it yourself, or choose another "
+            "--out."
+        ) from None
+
+
 @dataclass(frozen=True)
 class SweepFiles:
     """What one kind of sweep keeps in its folder, and how its errors are named.
@@ -330,6 +356,7 @@ class SweepStore:
         self._absent: list[Path] = []  # what open() found absent, outermost first
         self._found: dict[Path, set[str]] = {}  # files of each sub-folder open() found
         self._table_before: str | None = None  # the table retry_failed rewrote, as found
+        self._stale: set[str] = set()  # runs/ files of no row, removed at the first row
 
     @property
     def table(self) -> Path:
@@ -365,6 +392,10 @@ class SweepStore:
             Drop the rows whose status is not ``ok`` from the table (rewritten
             whole) so that their runs are done again.
 
+        Without a table in the folder, the files in ``runs/`` belong to no
+        row: they are removed when the first row is written (:meth:`write`;
+        a sweep that stops before it leaves them, as :meth:`discard` does).
+
         Raises
         ------
         OfrlError
@@ -373,6 +404,7 @@ class SweepStore:
             short, or a ``resume`` of another sweep (named by ``mismatch``).
         """
         self._table_before = None
+        self._stale = set()
         self._absent = self._absent_paths()
         self._found = {
             path: {entry.name for entry in path.iterdir()}
@@ -394,6 +426,9 @@ class SweepStore:
             raise error(f"{table} exists; pass --resume to complete it, or choose another --out.")
         self._check_or_write_plan(plan, resume, mismatch)
         if not table.exists():
+            runs = self.runs
+            if runs.is_dir() and not runs.is_symlink():
+                self._stale = {entry.name for entry in runs.iterdir()}
             return []
         rows = files.read(table, repair=True)
         if retry_failed:
@@ -436,9 +471,22 @@ class SweepStore:
         self._writer = RowWriter(self.table, self.files.columns, self.files.text)
 
     def write(self, row: Mapping[str, Any]) -> None:
-        """Append ``row`` to the table and make it durable (after :meth:`start`)."""
+        """Append ``row`` to the table and make it durable (after :meth:`start`).
+
+        The first row removes the files :meth:`open` found in ``runs/`` of a
+        folder without a table (but those written since, by :meth:`save_run`).
+
+        Raises
+        ------
+        OfrlError
+            (:class:`TableError`) If the row cannot be written;
+            (:class:`~ofrl_drake.errors.OutputError`) if such a file cannot be removed.
+        """
         if self._writer is None:
             raise RuntimeError("SweepStore.write: call start() first.")
+        for name in sorted(self._stale):
+            _remove_stale_run(self.runs / name)
+        self._stale = set()
         self._writer.write(row)
         self.written += 1
 
@@ -539,9 +587,28 @@ class SweepStore:
             self.close()
 
     def save_run(self, name: str, arrays: Mapping[str, Any]) -> None:
-        """Write ``runs/<name>`` (an ``.npz`` file of ``arrays``) whole or not at all."""
+        """Write ``runs/<name>`` (an ``.npz`` file of ``arrays``) whole or not at all.
+
+        Call it just before :meth:`write` of the run's row: the file is that row's.
+        """
         with atomic_file(self.runs / name, "wb") as fh:
             np.savez(fh, **arrays)
+        self._stale.discard(name)
+
+    def remove_run(self, name: str) -> None:
+        """Remove ``runs/<name>`` if it is there: the row about to be written has no logs.
+
+        A run done again (``retry_failed``, or a row the table lost) that ends
+        before it has logs must not leave the file of an earlier attempt, which
+        the figures would draw as the row's.
+
+        Raises
+        ------
+        OutputError
+            If the file is there and cannot be removed.
+        """
+        _remove_stale_run(self.runs / name)
+        self._stale.discard(name)
 
     def close(self) -> None:
         """Close the table."""

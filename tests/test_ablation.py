@@ -863,3 +863,60 @@ def test_trajectories_do_not_clip_exact_zeros_to_an_invented_floor(tmp_path):
     smallest = float(np.exp(-T[-101] / 3.0))  # 5.0e-5
     assert smallest / 10 <= log.get_ylim()[0] <= smallest
     assert "exact zeros not drawn (zeroes)" in log.get_title()
+
+
+def test_a_retry_that_fails_before_its_logs_leaves_no_run_of_the_first_attempt(
+    paper_scenario, tmp_path, monkeypatch
+):
+    # Before: the first attempt diverged and saved its trajectory; the retry failed before
+    # it had logs, the row said so, but runs/ kept the first attempt's trajectory and
+    # figures/trajectories.png drew it.
+    from ofrl_drake import ablation, ablation_report
+    from ofrl_drake.ablation import load_run
+    from ofrl_drake.ablation_tasks import METRICS, RunOutcome
+
+    real = ablation.run_variant_states
+
+    def diverged(scenario, variant, states, duration=None):
+        outcomes = real(scenario, variant, states, duration)
+        return [dataclasses.replace(o, status="diverged: non-finite state") for o in outcomes]
+
+    def out_of_time(scenario, variant, states, duration=None):
+        nan = dict.fromkeys(METRICS, math.nan)
+        status = "WallTimeExceeded: the observer design ran out of max_wall_time"
+        return [
+            RunOutcome(variant.name, initial_state_label(x), nan, status, 0.0, False)
+            for x in states
+        ]
+
+    out = tmp_path / "ab"
+    monkeypatch.setattr(ablation, "run_variant_states", diverged)
+    (row,) = ablate(paper_scenario, [Variant("baseline")], out=out, duration=0.5, progress=False)
+    label = row["initial_state"]
+    assert str(load_run(out / "runs", "baseline", label)["status"]).startswith("diverged")
+    monkeypatch.setattr(ablation, "run_variant_states", out_of_time)
+    (row,) = ablate(
+        paper_scenario,
+        [Variant("baseline")],
+        out=out,
+        duration=0.5,
+        progress=False,
+        resume=True,
+        retry_failed=True,
+    )
+    assert row["status"].startswith("WallTimeExceeded")
+    assert load_run(out / "runs", "baseline", label) is None
+    # The figure draws only the runs of rows in the table, not a file left in runs/.
+    np.savez(out / "runs" / ablation._run_name("gone", label), t=[0.0, 1.0], x=[[1.0, 1.0]] * 2)
+    drawn = []
+
+    def plot(runs_dir, variants, *args):
+        drawn.append(list(variants))
+        return real_plot(runs_dir, variants, *args)
+
+    real_plot = ablation_report.plot_trajectories
+    monkeypatch.setattr(ablation_report, "plot_trajectories", plot)
+    ablation_report.write_report(
+        out, [row], ["baseline", "gone"], scenario_name="s", x0_label=label, duration=0.5
+    )
+    assert drawn == [["baseline"]]

@@ -461,3 +461,64 @@ def test_a_stopped_sweep_never_removes_what_it_did_not_create(tmp_path):
                 fh.write("other,3.0,ok\n")
             raise KeyboardInterrupt
     assert [r["name"] for r in FILES.read(shared / "t.csv")] == ["other"]
+
+
+def test_a_run_s_file_belongs_to_its_row_of_the_table(tmp_path):
+    # Before: a folder holding the plan but no table (the table deleted to start over)
+    # kept its runs/, and the figures drew those runs as the new sweep's.
+    out = _filled(tmp_path)
+    (out / "runs").mkdir()
+    np.savez(out / "runs" / "a.npz", t=np.arange(3.0))
+    np.savez(out / "runs" / "b.npz", t=np.arange(3.0))
+    (out / "t.csv").unlink()
+    before = _tree(out)
+    # A sweep that stops before its first row leaves the folder as it was found.
+    with pytest.raises(KeyboardInterrupt):
+        with SweepStore(FILES, out).recording({"seed": 1}, resume=False, mismatch=_seed_differs):
+            raise KeyboardInterrupt
+    assert _tree(out) == before
+    # With its first row, the files of no row go; the one written with the row stays.
+    store = SweepStore(FILES, out)
+    with store.recording({"seed": 1}, resume=False, mismatch=_seed_differs):
+        store.save_run("a.npz", {"t": np.arange(5.0)})
+        store.write({"name": "a", "value": 1.0, "status": "ok"})
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["a.npz"]
+    np.testing.assert_array_equal(load_arrays(out / "runs" / "a.npz")["t"], np.arange(5.0))
+    # A row done again without logs removes its earlier attempt's file (none there: fine).
+    store = SweepStore(FILES, out)
+    with store.recording({"seed": 1}, resume=True, mismatch=_seed_differs):
+        store.remove_run("a.npz")
+        store.remove_run("never.npz")
+        store.write({"name": "b", "value": 2.0, "status": "WallTimeExceeded: design"})
+    assert list((out / "runs").iterdir()) == []
+
+
+def test_montecarlo_whose_runs_all_fail_draws_no_envelope_of_older_runs(
+    paper_scenario, tmp_path, monkeypatch
+):
+    # Before: montecarlo.csv deleted from a finished sweep, every run failing, a rerun
+    # without --resume reported "0 ok" and wrote figures/envelope.png from the old runs.
+    from ofrl_drake import monte_carlo
+    from ofrl_drake.monte_carlo import montecarlo, write_montecarlo_report
+
+    short = dataclasses.replace(
+        paper_scenario, simulation=dataclasses.replace(paper_scenario.simulation, duration=0.2)
+    )
+    out = tmp_path / "mc"
+    rows = montecarlo(short, 2, seed=3, out=out, progress=False, optimal_cost=1.0)
+    with pytest.warns(monte_carlo.IdenticalRunsWarning):  # no noise in the paper's scenario
+        write_montecarlo_report(out, rows, "short")
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["seed_3.npz", "seed_4.npz"]
+    assert (out / "figures" / "envelope.png").is_file()
+    (out / "montecarlo.csv").unlink()
+
+    def failing(scenario, seed, ks, mass_spread):
+        error = monte_carlo.MonteCarloError("the build failed")
+        return [monte_carlo._failed(seed + k, {}, error, 0.0) for k in ks]
+
+    monkeypatch.setattr(monte_carlo, "run_seeds", failing)
+    rows = montecarlo(short, 2, seed=3, out=out, progress=False, optimal_cost=1.0)
+    assert [r["status"] for r in rows] == ["MonteCarloError: the build failed"] * 2
+    assert list((out / "runs").iterdir()) == []
+    write_montecarlo_report(out, rows, "short")
+    assert not (out / "figures" / "envelope.png").exists()
