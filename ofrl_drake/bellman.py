@@ -154,7 +154,10 @@ def point_features(
     ModelError
         If ``system`` is not a :class:`ControlAffineSystem`, ``basis`` not a
         :class:`PolynomialBasis` of its ``n`` states, ``points`` not a finite
-        array of shape ``(n, N)`` or ``Q`` not a finite ``(n, n)`` matrix.
+        array of shape ``(n, N)`` or ``Q`` not a finite ``(n, n)`` matrix; if
+        the model's ``f`` or ``g`` is not finite at a point (outside its domain,
+        or overflowing there); or if a feature overflows at a point
+        (``grad sigma f``, ``grad sigma g`` or ``Q(x)`` beyond the largest float).
     """
     n = require_system(system, "point_features: system").n
     if not isinstance(basis, PolynomialBasis):
@@ -187,7 +190,73 @@ def point_features(
             f"point_features: Q must be a finite (n, n) = ({n}, {n}) matrix (the state cost "
             f"x^T Q x); got {Q_arr.tolist()} of shape {Q_arr.shape}."
         )
-    return features_at(system, basis, points, Q_arr)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        f, g = _model_at(system, points)
+    _require_finite_at_points(
+        system, points, f, "the model's f", "f(x)", "the region where f and g are finite"
+    )
+    _require_finite_at_points(
+        system, points, g, "the model's g", "g(x)", "the region where f and g are finite"
+    )
+    with np.errstate(over="ignore", invalid="ignore"):
+        features = _assemble(basis, points, f, g, Q_arr)
+    for what, values in (
+        ("grad sigma(x) f(x)", features.drift),
+        ("grad sigma(x) g(x)", features.input),
+        ("the state cost x^T Q x", features.state_cost),
+    ):
+        _require_finite_at_points(
+            system,
+            points,
+            values,
+            f"the feature {what}",
+            "the feature",
+            "a box where the basis and cost stay below the largest float (about 1.8e308)",
+        )
+    return features
+
+
+def _require_finite_at_points(
+    system: ControlAffineSystem,
+    points: np.ndarray,
+    values: np.ndarray,
+    what: str,
+    label: str,
+    region: str,
+) -> None:
+    """Raise ModelError naming the first point at which ``values`` (..., N) is not finite."""
+    bad = ~np.isfinite(values.reshape(-1, points.shape[1])).all(axis=0)
+    if not bad.any():
+        return
+    column = int(np.flatnonzero(bad)[0])
+    shown = values[..., column].tolist()
+    raise ModelError(
+        f"point_features: {what} is not finite at extrapolation point {column} "
+        f"x = {points[:, column].tolist()} ({label} = {shown}; {int(bad.sum())} of "
+        f"{points.shape[1]} points) for the model {system.name!r}: the Bellman sums there "
+        f"would be inf or NaN; shrink the extrapolation points (the scenario's points.lower, "
+        f"points.upper) to {region}."
+    )
+
+
+def _model_at(system: ControlAffineSystem, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``f`` (n, N) and ``g`` (n, m, N) at the columns of ``points``."""
+    return system.f_batch(points), system.g_batch(points)
+
+
+def _assemble(
+    basis: PolynomialBasis, points: np.ndarray, f: np.ndarray, g: np.ndarray, Q: np.ndarray
+) -> PointFeatures:
+    """The features at ``points`` from ``f`` (n, N) and ``g`` (n, m, N) there."""
+    grad = basis.gradient(points)  # (L, n, N)
+    drift = (grad * f[None, :, :]).sum(axis=1)  # (L, N)
+    inp = (grad[:, :, None, :] * g[None, :, :, :]).sum(axis=1)  # (L, m, N)
+    return PointFeatures(
+        points=points,
+        drift=np.ascontiguousarray(drift),
+        input=np.ascontiguousarray(inp.transpose(1, 0, 2)),
+        state_cost=state_cost(points, Q),
+    )
 
 
 def features_at(
@@ -199,19 +268,11 @@ def features_at(
     :func:`point_features` leaves them after its checks: what a block that
     moves its points every evaluation calls
     (:class:`~ofrl_drake.systems.baselines.MovingBellmanExtrapolator`).
-    Non-finite points give non-finite features.
+    Non-finite points, or an ``f`` or ``g`` not finite at a point, give
+    non-finite features: this function does not check them.
     """
-    grad = basis.gradient(points)  # (L, n, N)
-    f = system.f_batch(points)  # (n, N)
-    g = system.g_batch(points)  # (n, m, N)
-    drift = (grad * f[None, :, :]).sum(axis=1)  # (L, N)
-    inp = (grad[:, :, None, :] * g[None, :, :, :]).sum(axis=1)  # (L, m, N)
-    return PointFeatures(
-        points=points,
-        drift=np.ascontiguousarray(drift),
-        input=np.ascontiguousarray(inp.transpose(1, 0, 2)),
-        state_cost=state_cost(points, Q),
-    )
+    f, g = _model_at(system, points)
+    return _assemble(basis, points, f, g, Q)
 
 
 class PointDataRows(NamedTuple):
@@ -364,6 +425,37 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @njit(**JIT)
+def _overflowed_quotients(
+    per_point: np.ndarray,
+    omega0: int,
+    scaled0: int,
+    L: int,
+    i: int,
+    nu: float,
+    metric: np.ndarray,
+) -> None:
+    """``q_a = omega_a / rho`` at point ``i`` whose ``rho`` overflowed, without overflow.
+
+    With ``s = max_a |omega_a|`` and ``w = omega / s``:
+    ``rho / s^2 = 1 / s^2 + nu sum_a metric_a w_a^2`` is a modest number, and
+    ``q_a = (w_a / (rho / s^2)) / s``. A non-finite ``omega`` is left as it is
+    (``q`` NaN), for the run guard to report.
+    """
+    s = 0.0
+    for a in range(L):
+        s = max(s, abs(per_point[omega0 + a, i]))
+    if not s < math.inf:
+        return
+    reduced = 0.0
+    for a in range(L):
+        w = per_point[omega0 + a, i] / s
+        reduced += metric[a] * (w * w)
+    reduced = 1.0 / s / s + nu * reduced
+    for a in range(L):
+        per_point[scaled0 + a, i] = per_point[omega0 + a, i] / s / reduced / s
+
+
+@njit(**JIT)
 def bellman_kernel(
     W: np.ndarray,
     W_policy: np.ndarray,
@@ -413,6 +505,13 @@ def bellman_kernel(
         no stage cost, no log-cosh, ``delta`` and ``critic_sum`` untouched.
         ``gain_sum`` is the same to the bit, at about half the cost; the
         learning condition needs nothing else.
+
+    Notes
+    -----
+    Where ``omega_i^T M omega_i`` overflows, ``rho_i`` is ``inf`` (its value
+    rounded), and ``omega_i / rho_i`` is computed in a scaled form, so the
+    point still counts in both sums; every other point's numbers are those of
+    the plain formula.
     """
     m = num_inputs
     L = W.shape[0]
@@ -483,6 +582,11 @@ def bellman_kernel(
         q = per_point[scaled0 + a]
         for i in range(N):
             q[i] = omega[i] / rho[i]
+    # Where omega^T M omega overflows, rho = inf and omega / rho would be 0: the
+    # point would silently drop out. Those points (rare) again, in a scaled form.
+    for i in range(N):
+        if rho[i] == math.inf:
+            _overflowed_quotients(per_point, omega0, scaled0, L, i, nu, metric)
     scale = 1.0 / N
     for a in range(L):
         q_a = per_point[scaled0 + a]

@@ -19,6 +19,7 @@ __all__ = [
     "ScenarioTypeError",
     "SwapError",
     "WallTimeExceeded",
+    "is_domain_error",
     "lmi_time_left",
     "status_line",
 ]
@@ -103,6 +104,15 @@ def lmi_time_left(budget: float | None, start: float, budget_name: str, fix: str
             step="Jacobian bounds",
         )
     return budget - used
+
+
+def is_domain_error(err: BaseException) -> bool:
+    """True for Drake's symbolic math refusing an argument, e.g. ``log(nan)`` or ``sqrt(-1)``.
+
+    Drake raises it as a ``ValueError`` from a diagram's evaluation, and a
+    solver such as SNOPT passes its text on inside a ``RuntimeError``.
+    """
+    return "out of domain" in str(err)
 
 
 def status_line(err: BaseException) -> str:

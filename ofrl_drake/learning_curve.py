@@ -39,7 +39,7 @@ from ofrl_drake.checks import (
     string_from_json,
 )
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
-from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded
+from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded, is_domain_error
 from ofrl_drake.guard import StallDetector
 from ofrl_drake.learning import (
     linear_policy_gain,
@@ -52,7 +52,6 @@ from ofrl_drake.simulation import (
     SUMMARY_FILE,
     SimulationResult,
     damaged_run_file,
-    is_domain_error,
     read_run_series,
     simulator_config,
     summary_entry,
@@ -224,7 +223,9 @@ class PolicyEvaluator:
             return PolicyRun(
                 float("nan"),
                 float("nan"),
-                f"diverged: the model's f or g was evaluated outside its domain ({cause})",
+                f"diverged: the model's f or g was evaluated outside its domain ({cause}), "
+                "or another function of the diagram was (Drake does not say which; the "
+                "running cost, for one)",
             )
         if late:
             raise WallTimeExceeded(

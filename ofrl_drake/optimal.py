@@ -39,7 +39,9 @@ trajectory moves and coarse where it has settled. On the paper's example
 gives ``3.751102``, and the horizons 5 s and 10 s agree to ``1e-6`` relative.
 
 A run that does not converge is reported with its solver status and a NaN
-cost, never a made-up number. The solver is warm-started from a closed-loop
+cost, never a made-up number; so is a solve whose iterates leave the domain
+of ``f`` or ``g`` (``sqrt`` of a negative number...), with that domain error
+in its status. The solver is warm-started from a closed-loop
 trajectory when one is given (the learned controller's, in
 :func:`ofrl_drake.ablation.ablate`); if that fails, it is retried from default
 guesses (``x`` decaying to zero with time constants 1, 0.5 and 2 s, ``u = 0``),
@@ -54,6 +56,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import reprlib
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -76,8 +79,8 @@ from ofrl_drake.checks import (
     positive_number,
     positive_vector,
 )
-from ofrl_drake.errors import OfrlError
-from ofrl_drake.model import ControlAffineSystem
+from ofrl_drake.errors import ModelError, OfrlError, is_domain_error
+from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import Scenario, validate_scenario
 
@@ -268,16 +271,23 @@ def cost_augmented_plant(
                                          + (lbar / 2) ln(1 - u_k^2 / lbar^2))
 
     defined for ``|u_k| < lbar`` (``atanh(s) = (1/2) ln((1 + s) / (1 - s))``).
+
+    Raises
+    ------
+    ModelError
+        If Drake cannot trace ``f`` or ``g`` on symbolic states (they branch on
+        the state, call scipy...): ``J*`` needs them symbolic.
     """
-    n, m = system.n, system.m
+    dynamics = _traced(system)
+    m = system.m
     Q = np.asarray(Q, dtype=float)
     r = np.asarray(r, dtype=float)
-    x = MakeVectorVariable(n, "x")
+    x = dynamics.x
     J = MakeVectorVariable(1, "J")
     u = MakeVectorVariable(m, "u")
     # numpy's object loops flag "invalid value" on Drake symbolic values; harmless.
     with np.errstate(invalid="ignore"):
-        xdot = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u  # type: ignore[arg-type]  # pydrake array stub
+        xdot = dynamics.f + dynamics.g @ u
         running = x @ Q @ x
     for k in range(m):
         s = u[k] / input_bound
@@ -286,6 +296,35 @@ def cost_augmented_plant(
     return SymbolicVectorSystem(
         state=np.concatenate([x, J]), input=u, dynamics=np.concatenate([xdot, [running]])
     )
+
+
+def _traced(system: ControlAffineSystem) -> SymbolicDynamics:
+    """``f`` and ``g`` traced by Drake; refused if they cannot be: the collocation needs them."""
+    try:
+        return system.symbolic()
+    except ModelError as err:
+        cause = err.__cause__ or err
+        text = " ".join(str(cause).split())[:200]
+        raise ModelError(
+            f"optimal control: J* (run --optimal, montecarlo, ablate) needs f and g that Drake "
+            f"can trace on symbolic states, and those of the model {system.name!r} cannot be "
+            f"({type(cause).__name__}: {text}). Write f and g with numpy functions (np.cos, "
+            "np.exp, **) and no branches on the state, or run without --optimal."
+        ) from err
+
+
+def _domain_failure(err: RuntimeError | ValueError) -> str | None:
+    """Why a solve stopped, if ``err`` is ``f`` or ``g`` evaluated outside its domain; else None.
+
+    IPOPT passes on the ``ValueError`` of Drake's symbolic math (``sqrt(-0.01)``,
+    ``log(-1)``); SNOPT wraps its message in a ``RuntimeError``.
+    """
+    if not is_domain_error(err):
+        return None
+    text = " ".join(str(err).split())
+    quoted = re.search(r"'(.*)'", text)  # SNOPT quotes the math error inside its own
+    cause = quoted.group(1).strip() if quoted else text
+    return f"f or g evaluated outside its domain ({cause[:200]})"
 
 
 def _solver(name: str | None) -> Any:
@@ -422,7 +461,14 @@ def solve_optimal_control(
     ModelError
         If ``Q`` is not a finite symmetric positive semidefinite ``n x n``
         matrix, ``r`` not ``m`` finite entries > 0, or ``input_bound`` or
-        ``duration`` not a finite number > 0.
+        ``duration`` not a finite number > 0; or if Drake cannot trace the
+        system's ``f`` or ``g`` on symbolic states (:func:`cost_augmented_plant`).
+
+    Notes
+    -----
+    An attempt whose iterates leave the domain of ``f`` or ``g`` (``sqrt`` or
+    ``log`` of a negative number) is a failed attempt, not an error: if no
+    attempt converges, the result's status names the domain error.
     """
     mesh = checked_mesh(mesh)
     name, nlp = _solver(solver)
@@ -451,6 +497,7 @@ def solve_optimal_control(
         (f"default guess ({tc:g} s)", _default_guess(x0, duration, tc)) for tc in (1.0, 0.5, 2.0)
     ]
     statuses = []
+    domain_failed = False
     start = time.perf_counter()
     for label, guess in attempts:
         dircol = DirectCollocation(
@@ -472,7 +519,15 @@ def solve_optimal_control(
         options = SolverOptions()
         if name == "ipopt":
             options.SetOption(nlp.solver_id(), "print_level", 0)
-        result = nlp.Solve(prog, None, options)
+        try:
+            result = nlp.Solve(prog, None, options)
+        except (RuntimeError, ValueError) as err:
+            why = _domain_failure(err)
+            if why is None:
+                raise
+            statuses.append(f"{label}: {name} stopped, {why}")
+            domain_failed = True
+            continue
         code = result.get_solution_result()
         states = dircol.GetStateSamples(result)
         cost = float(states[n, -1])
@@ -497,11 +552,18 @@ def solve_optimal_control(
         info = getattr(result.get_solver_details(), "info", None)
         detail = f" (info {info})" if info is not None else ""
         statuses.append(f"{label}: {name} {code.name}{detail}")
+    status = "not converged (" + "; ".join(statuses) + ")"
+    if domain_failed:
+        status += (
+            f"; the solver's iterates left the region where f and g of the model "
+            f"{system.name!r} are defined: define them on every state (e.g. clip the "
+            "argument of sqrt or log) or start x0 farther from the edge of their domain"
+        )
     return OptimalControlResult(
         x0=tuple(float(a) for a in x0),
         cost=float("nan"),
         converged=False,
-        status="not converged (" + "; ".join(statuses) + ")",
+        status=status,
         duration=float(duration),
         solver=name,
         solve_time=time.perf_counter() - start,
@@ -529,6 +591,9 @@ def optimal_control(
     OfrlError
         For bad ``x0``, ``warm_start``, ``mesh`` or ``solver``
         (:func:`solve_optimal_control`).
+    ModelError
+        If Drake cannot trace the system's ``f`` or ``g`` on symbolic states
+        (they branch on the state, for instance): ``J*`` needs them symbolic.
     """
     validate_scenario(scenario)
     system = resolve_system(scenario)

@@ -32,7 +32,13 @@ from ofrl_drake.checks import (
     vector_to_json,
 )
 from ofrl_drake.diagram import LOGGED, ClosedLoop, build_closed_loop
-from ofrl_drake.errors import ModelError, RunFolderError, ScenarioError, SwapError
+from ofrl_drake.errors import (
+    ModelError,
+    RunFolderError,
+    ScenarioError,
+    SwapError,
+    is_domain_error,
+)
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.observer import unpack_gains
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
@@ -64,7 +70,6 @@ __all__ = [
     "TRAJECTORY_KEYS",
     "SimulationResult",
     "damaged_run_file",
-    "is_domain_error",
     "read_run_arrays",
     "read_run_series",
     "simulate",
@@ -799,11 +804,14 @@ def simulate(
             if not is_domain_error(err):
                 raise
             cause = " ".join(str(err).split())[:200]
+            # Drake does not say which function of the diagram raised: the
+            # model's f or g, or another one (the cost's log, a block's output).
             guard.fail(
                 f"the model's f or g was evaluated outside its domain ({cause}) for the model "
-                f"{loop.parts.system.name!r}: the state (or the estimate, or an extrapolation "
-                "point) left the region where f and "
-                "g are defined; restrict x0, the points box or simulation.abort_box to that region"
+                f"{loop.parts.system.name!r}, or another function of the diagram was (Drake "
+                "does not say which; the cost, for one): the state (or the estimate, or an "
+                "extrapolation point) left the region where f and g (and the cost) are "
+                "defined; restrict x0, the points box or simulation.abort_box to that region"
             )
     wall = time.perf_counter() - start
     stop = guard.report(simulator.get_context())
@@ -965,11 +973,6 @@ def _initialize_context(
 
 def _units(units: Any) -> tuple[str, ...] | None:
     return None if units is None else tuple(str(u) for u in units)
-
-
-def is_domain_error(err: ValueError) -> bool:
-    """True for Drake's symbolic math refusing an argument, e.g. ``log(nan)`` or ``sqrt(-1)``."""
-    return "out of domain" in str(err)
 
 
 def _is_integrator_failure(err: RuntimeError) -> bool:

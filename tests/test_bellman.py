@@ -548,3 +548,158 @@ def test_bellman_block_accessors_keep_their_port_handles(monkeypatch):
     ]
     sums = block.extrapolation(context)
     np.testing.assert_array_equal(sums.critic_sum, ports[2].Eval(context))
+
+
+def _g_one(x):
+    return np.array([[0 * x[0]], [1 + 0 * x[0]]])
+
+
+def _plant(f, g=_g_one, name="plant"):
+    from ofrl_drake import ControlAffineSystem
+
+    return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name=name)
+
+
+def _exp_overflow(x):
+    # Finite for x_1 < ~0.89, inf beyond: exp(800 x_1) overflows.
+    return np.array([x[1], -x[0] - x[1] + 1e-300 * np.exp(800.0 * x[0])])
+
+
+def test_point_features_refuse_an_f_that_is_inf_at_a_point():
+    # Before: accepted; the run later stopped with "continuous state 5 is nan" (policy
+    # iteration) or blamed a domain error of f (paper law).
+    system = _plant(_exp_overflow, name="exp_overflow")
+    points = grid_points([-1, -1], [1, 1], [10, 10])
+    with pytest.raises(
+        ModelError,
+        match=r"point_features: the model's f is not finite at extrapolation point 90 "
+        r"x = \[1\.0, -1\.0\] \(f\(x\) = \[-1\.0, inf\]; 10 of 100 points\) for the model "
+        r"'exp_overflow'.*shrink the extrapolation points \(the scenario's points\.lower, "
+        r"points\.upper\) to the region where f and g are finite",
+    ):
+        point_features(system, PolynomialBasis(2), points, np.eye(2))
+    # The fixed-points extrapolator's features come from point_features: inside the
+    # region, the same points are accepted.
+    point_features(system, PolynomialBasis(2), grid_points([-1, -1], [0.8, 1], [10, 10]), np.eye(2))
+
+
+def test_point_features_refuse_a_g_that_is_nan_at_a_point():
+    def g(x):
+        return np.array([[0 * x[0]], [np.sqrt(1.0 - x[0])]])  # NaN for x_1 > 1
+
+    system = _plant(lambda x: np.array([x[1], -x[0]]), g, name="sqrt_g")
+    with pytest.raises(
+        ModelError,
+        match=r"the model's g is not finite at extrapolation point 1 x = \[2\.0, 0\.0\] "
+        r"\(g\(x\) = \[\[0\.0\], \[nan\]\]; 1 of 2 points\) for the model 'sqrt_g'",
+    ):
+        point_features(system, PolynomialBasis(2), np.array([[0.5, 2.0], [0.0, 0.0]]), np.eye(2))
+
+
+def test_point_features_refuse_features_that_overflow_at_a_point():
+    # f finite at x = 1e200, but grad sigma f ~ 1e400 is not a float.
+    system = _plant(lambda x: np.array([x[1], -x[0]]), name="linear")
+    with pytest.raises(
+        ModelError,
+        match=r"the feature grad sigma\(x\) f\(x\) is not finite at extrapolation point 0 "
+        r"x = \[1e\+200, 0\.0\].*below the largest float",
+    ):
+        point_features(system, PolynomialBasis(2), np.array([[1e200], [0.0]]), np.eye(2))
+
+
+def _exact_sums(omega, delta, nu, metric):
+    """critic_sum and gain_sum of one point, from omega and delta, in exact rational arithmetic."""
+    from fractions import Fraction
+
+    om = [Fraction(float(v)) for v in omega]
+    rho = 1 + Fraction(nu) * sum(
+        Fraction(float(m)) * v * v for m, v in zip(metric, om, strict=True)
+    )
+    q = [v / rho for v in om]
+    critic = np.array([float(v * Fraction(float(delta))) for v in q])
+    gain = np.array([[float(a * b) for b in q] for a in q])
+    return critic, gain
+
+
+def test_an_overflowing_rho_keeps_the_point_in_the_sums():
+    # Before: omega^2 overflowed, rho = inf, omega / rho = 0: critic_sum = gain_sum = 0.
+    system = _plant(lambda x: np.array([x[0] ** 3 + x[1], 0 * x[0]]), name="cubic1")
+    basis = PolynomialBasis(2, [3])
+    F = point_features(system, basis, np.array([[1e40], [0.0]]), 5 * np.eye(2))
+    out = extrapolate(F, np.full(basis.size, 0.5), np.array([1.0]), LBAR, NU)
+    assert out.rho[0] == np.inf  # its true value, rounded
+    critic, gain = _exact_sums(out.omega[:, 0], out.delta[0], NU, np.ones(basis.size))
+    assert abs(out.critic_sum[0]) > 0.5
+    # Exact to rounding, entry by entry, but for q_2 ~ 5e-321 (subnormal: fewer digits).
+    np.testing.assert_allclose(out.critic_sum, critic, rtol=1e-14, atol=1e-14 * abs(critic[0]))
+    np.testing.assert_allclose(out.gain_sum, gain, rtol=1e-14, atol=1e-300)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    exponent=st.integers(-5, 300),
+    mantissas=st.lists(st.floats(0.1, 1.0), min_size=3, max_size=3),
+    signs=st.lists(st.sampled_from([-1.0, 1.0]), min_size=3, max_size=3),
+    W=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
+    nu=st.floats(1e-3, 1e3),
+    metric=st.lists(st.floats(1e-2, 1e2), min_size=3, max_size=3),
+)
+def test_sums_are_exact_to_rounding_at_any_omega_and_bitwise_unchanged_when_rho_is_finite(
+    exponent, mantissas, signs, W, nu, metric
+):
+    from ofrl_drake.bellman import PointFeatures
+
+    omega = 10.0**exponent * np.array(mantissas) * np.array(signs)
+    # One point, g = 0: omega is the drift, u = 0, delta = W^T omega + 1.
+    F = PointFeatures(
+        points=np.zeros((2, 1)),
+        drift=omega[:, None].copy(),
+        input=np.zeros((1, 3, 1)),
+        state_cost=np.ones(1),
+    )
+    W = np.array(W)
+    m = np.array(metric)
+    out = extrapolate(F, W, np.array([1.0]), LBAR, nu, metric=m)
+    delta = out.delta[0]
+    critic, gain = _exact_sums(omega, delta, nu, m)
+    np.testing.assert_allclose(out.critic_sum, critic, rtol=1e-14, atol=1e-300)
+    np.testing.assert_allclose(out.gain_sum, gain, rtol=1e-14, atol=1e-290)
+    rho = 0.0
+    with np.errstate(over="ignore"):
+        for a in range(3):
+            rho += m[a] * (omega[a] * omega[a])
+        rho = 1.0 + nu * rho
+    if np.isfinite(rho):  # the plain formula's bits
+        q = omega / rho
+        assert np.array_equal(out.critic_sum, q * delta)
+        assert np.array_equal(out.gain_sum, np.outer(q, q))
+
+
+def test_a_domain_error_anywhere_in_the_diagram_is_not_blamed_on_f_alone(
+    paper_scenario, monkeypatch
+):
+    # Before: "the model's f or g was evaluated outside its domain", whichever function
+    # of the diagram (the cost, a block) Drake's symbolic math refused.
+    import dataclasses
+
+    from pydrake.systems.analysis import Simulator
+
+    import ofrl_drake.simulation as simulation
+
+    class _Refusing(Simulator):
+        def AdvanceTo(self, t):
+            raise ValueError("log(nan) : numerical argument out of domain")
+
+    monkeypatch.setattr(simulation, "Simulator", _Refusing)
+    scenario = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=0.1),
+        variant=dataclasses.replace(paper_scenario.variant, observer="true_state"),
+    )
+    result = simulation.simulate(scenario, progress=False)
+    reason = result.stop.reason
+    assert reason.startswith(
+        "the model's f or g was evaluated outside its domain (log(nan) : numerical argument "
+        "out of domain) for the model 'two_state', or another function of the diagram was"
+    ), reason
+    assert "left the region where f and g (and the cost) are defined" in reason

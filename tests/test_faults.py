@@ -460,20 +460,40 @@ def make_plant():
 
 
 def test_a_users_f_that_leaves_its_domain_stops_the_run_and_says_so(tmp_path):
-    # log(nan) inside a traced f is raised by Drake's symbolic math mid-run: the run stops
-    # as diverged (exit 3) naming the model and the cause, not as an internal error.
+    # log of a negative number inside a traced f is raised by Drake's symbolic math mid-run:
+    # the run stops as diverged (exit 3) naming the model and the cause, not as an internal
+    # error. The extrapolation points stay inside the domain (points where f is not finite
+    # are refused when the loop is built); the state, moving left at 2 /s, leaves it.
     path = _user_plant_scenario(tmp_path, "log_plant", LOG_PLANT)
+    data = yaml_load(filename=str(path))
+    data.update(x0=[0.0, -2.0], xhat0=[0.0, -2.0])
+    data["points"].update(lower=[-0.15, -1.0], upper=[1.0, 1.0])
+    path.write_text(yaml_dump(data))
     proc = run_cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
     assert proc.returncode == 3, proc.stderr
     assert "internal error" not in proc.stderr
     assert re.search(
-        r"stopped: diverged: the model's f or g was evaluated outside its domain \(log\(nan\).*"
-        r"for the model 'log_plant'",
+        r"stopped: diverged: the model's f or g was evaluated outside its domain \(log\(-?[0-9.e-]+"
+        r"\) : numerical argument out of domain.*for the model 'log_plant'",
         proc.stderr,
     ), proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["status"] == "diverged"
     assert "outside its domain" in summary["stop"]["reason"]
+
+
+def test_a_users_f_that_is_not_finite_at_the_extrapolation_points_is_refused_at_build(tmp_path):
+    # Before: the critic's sums went NaN at the 40 points with x_1 <= -0.2 and the run ended
+    # with a domain error that said nothing of the points.
+    path = _user_plant_scenario(tmp_path, "log_plant", LOG_PLANT)
+    proc = run_cli("run", path, "--out", tmp_path / "o", "--checkpoints", 0)
+    assert_one_line(
+        proc,
+        2,
+        r"the model's f is not finite at extrapolation point 0 x = \[-1\.0, -1\.0\] .*"
+        r"40 of 100 points\) for the model 'log_plant'.*shrink the extrapolation points",
+    )
+    assert not (tmp_path / "o").exists()
 
 
 def test_simulate_takes_a_path_and_names_a_wrong_type():

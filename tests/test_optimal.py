@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -249,3 +250,90 @@ def test_cache_round_trip_and_keys(tmp_path, paper_scenario, paper_optimum):
     assert cache.get(paper_scenario, np.array([0.5, 0.5])) is None
     cache.path(paper_scenario, x0).write_text("{ not json")
     assert cache.get(paper_scenario, x0) is None
+
+
+def _user_plant(name, f):
+    """A two-state user plant ``x1' = x2, x2' = f(x) + u``, C = [1 0]."""
+    return lambda: ControlAffineSystem(
+        lambda x: np.array([x[1], f(x)]),
+        lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        C=[[1.0, 0.0]],
+        name=name,
+    )
+
+
+def _warm_start_at_x1(x1):
+    """A 2 s warm start that stays at ``x = (x1, 0)``."""
+    t = np.linspace(0.0, 2.0, 20)
+    return Trajectory(t=t, x=np.c_[x1 + 0 * t, 0 * t], u=np.zeros((20, 1)), cost=np.zeros(20))
+
+
+def _user_scenario(paper_scenario, name, x0):
+    return dataclasses.replace(
+        paper_scenario,
+        system=name,
+        x0=x0,
+        xhat0=x0,
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=2.0),
+    )
+
+
+def _optimum_near_the_edge_of_a_domain(paper_scenario, x0, **options):
+    """J* of f = -x1 - x2 + 0.1 sqrt(1 - x1), warm-started at x1 = 1.5 (outside its domain)."""
+    from ofrl_drake.examples import EXAMPLES, register
+
+    register(
+        "user_nan_region",
+        _user_plant("user_nan_region", lambda x: -x[0] - x[1] + 0.1 * np.sqrt(1.0 - x[0])),
+    )
+    try:
+        scenario = _user_scenario(paper_scenario, "user_nan_region", x0)
+        warm = _warm_start_at_x1(1.5)
+        return optimal_control(scenario, warm_start=warm, mesh=Mesh(0.1, 1.0, 0.1), **options)
+    finally:
+        EXAMPLES.pop("user_nan_region")
+
+
+@pytest.mark.parametrize("solver", ["snopt", "ipopt"])
+def test_iterates_outside_the_domain_of_f_are_a_failed_solve(paper_scenario, solver):
+    """From x0 = (0.9, 1) every attempt leaves x1 < 1.
+
+    SNOPT wraps Drake's domain error in a RuntimeError, IPOPT passes on the
+    ValueError; both are reported as a not-converged J*, with the warm start
+    (outside the domain from its first point) as one of the failed attempts.
+    """
+    r = _optimum_near_the_edge_of_a_domain(paper_scenario, [0.9, 1.0], solver=solver)
+    assert not r.converged and math.isnan(r.cost) and r.trajectory is None
+    assert "\n" not in r.status
+    assert re.match(
+        rf"not converged \(warm start: {solver} stopped, f or g evaluated outside its domain "
+        r"\(sqrt\(-[0-9.e-]+\) : numerical argument out of domain",
+        r.status,
+    )
+    assert r.status.count("outside its domain") == 4
+    assert "'user_nan_region' are defined" in r.status
+
+
+def test_a_warm_start_outside_the_domain_falls_back_to_the_default_guesses(paper_scenario):
+    r = _optimum_near_the_edge_of_a_domain(paper_scenario, [0.2, 0.0])
+    assert r.converged and r.status == "ok" and not r.warm_started
+
+
+@pytest.mark.filterwarnings("ignore:user_branchy. f and g do not accept a batch")
+def test_a_plant_drake_cannot_trace_is_refused_before_the_solve(paper_scenario):
+    """An ``if`` on the state is fine for ``run`` with the true state, not for J*."""
+    from ofrl_drake.examples import EXAMPLES, register
+
+    register(
+        "user_branchy", _user_plant("user_branchy", lambda x: -x[0] - (x[1] if x[1] > 0 else 0))
+    )
+    try:
+        scenario = _user_scenario(paper_scenario, "user_branchy", [0.5, 0.0])
+        with pytest.raises(
+            ModelError,
+            match=r"J\* .*needs f and g that Drake can trace.*model 'user_branchy'.*__bool__"
+            r".*no branches on the state, or run without --optimal",
+        ):
+            optimal_control(scenario, mesh=Mesh(0.1, 1.0, 0.1))
+    finally:
+        EXAMPLES.pop("user_branchy")
