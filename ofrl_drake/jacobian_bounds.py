@@ -1013,7 +1013,10 @@ def jacobian_bounds(
             f"the certified bound of {names[e]} over {box!r} is [{c_lo[e]:g}, {c_hi[e]:g}]: "
             f"not finite ({budget}); {infinite.size} entries are. Allow more boxes or "
             "wall time (max_boxes, max_wall_time, --max-wall), shrink the box, or use "
-            "jacobian_method 'sampled' (not guaranteed)."
+            "jacobian_method 'sampled' (not guaranteed). If f or g has a pole in the box "
+            "(a division by an expression of the state that is zero there, tan at pi/2), "
+            "the Jacobian is unbounded there: no budget bounds it and 'sampled' bounds "
+            "are wrong; shrink the box to exclude the pole."
         )
     (Mf1, Mg1), (Mf2, Mg2) = split(c_lo), split(c_hi)
     (sMf1, sMg1), (sMf2, sMg2) = split(s_lo), split(s_hi)

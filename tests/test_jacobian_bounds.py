@@ -382,7 +382,8 @@ def test_an_entry_still_infinite_when_the_budget_runs_out_is_named():
     with pytest.raises(
         UncertifiedBoundsError,
         match=r"certified bound of d f\[0\] / d x\[0\] over Box\(lower=\[-1\.0, -1\.0\], "
-        r"upper=\[2\.0, 1\.0\]\) is \[-inf, inf\]: not finite",
+        r"upper=\[2\.0, 1\.0\]\) is \[-inf, inf\]: not finite.* If f or g has a pole in "
+        r"the box .*'sampled' bounds are wrong; shrink the box to exclude the pole\.",
     ):
         jacobian_bounds(system, box, "certified", max_boxes=1)
     assert issubclass(UncertifiedBoundsError, BoundsError)
@@ -406,3 +407,20 @@ def test_independent_copies_are_refined_apart_bit_for_bit(two_state_bounds, coup
         k = 0 if block.start == 0 else 1
         np.testing.assert_array_equal(both.Mg1[block, block, k], alone.Mg1[:, :, 0])
         np.testing.assert_array_equal(both.Mg2[block, block, k], alone.Mg2[:, :, 0])
+
+
+def test_a_pole_in_the_box_is_refused_with_the_advice_to_exclude_it():
+    # 0.01 / (x1 - 0.0123): d f1 / d x1 is unbounded at x1 = 0.0123, inside the box, so no
+    # number of boxes bounds it. Before: the advice was only more boxes, or 'sampled'
+    # (whose observer verification falsified at r = 1e26).
+    system = ControlAffineSystem(
+        f=lambda x: np.array([0.01 / (x[0] - 0.0123), -x[1]]),
+        g=lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        C=[[1.0, 0.0]],
+    )
+    with pytest.raises(
+        UncertifiedBoundsError,
+        match=r"d f\[0\] / d x\[0\] .* is \[-inf, -0\.0097\d+\]: not finite "
+        r".*shrink the box to exclude the pole\.",
+    ):
+        jacobian_bounds(system, ([-1.0, -1.0], [1.0, 1.0]), "certified", max_boxes=200)
