@@ -12,10 +12,9 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from numba import njit
 from pydrake.symbolic import Expression
 
-from ofrl_drake._jit import JIT
+from ofrl_drake._jit import kernel
 from ofrl_drake.errors import ModelError
 
 __all__ = ["MAX_SIZE", "PolynomialBasis", "gradient_kernel", "monomials", "value_gradient_kernel"]
@@ -55,7 +54,7 @@ def _gradient_table(exponents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     return lowered, index, factor
 
 
-@njit(**JIT)
+@kernel
 def monomials(x: np.ndarray, exponents: np.ndarray, out: np.ndarray) -> None:
     """``out[k] = prod_j x_j ** exponents[k, j]`` at one point ``x`` (integer powers)."""
     for k in range(exponents.shape[0]):
@@ -69,7 +68,7 @@ def monomials(x: np.ndarray, exponents: np.ndarray, out: np.ndarray) -> None:
         out[k] = p
 
 
-@njit(**JIT)
+@kernel
 def gradient_kernel(
     X: np.ndarray, lowered: np.ndarray, index: np.ndarray, factor: np.ndarray
 ) -> np.ndarray:
@@ -89,7 +88,7 @@ def gradient_kernel(
     return out
 
 
-@njit(**JIT)
+@kernel
 def value_gradient_kernel(
     x: np.ndarray,
     W: np.ndarray,

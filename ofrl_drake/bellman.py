@@ -42,9 +42,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
-from ofrl_drake._jit import JIT
+from ofrl_drake._jit import kernel
 from ofrl_drake.basis import PolynomialBasis
 from ofrl_drake.checks import positive_number, positive_vector
 from ofrl_drake.cost import log_cosh_abs, saturation_cost, state_cost, tanh_abs
@@ -400,10 +399,10 @@ def kernel_layout(num_inputs: int, num_weights: int) -> KernelLayout:
 
 #: :func:`kernel_layout` compiled, for the kernels only: numba cannot return
 #: the slices it holds to Python.
-_kernel_layout = njit(**JIT)(kernel_layout)
+_kernel_layout = kernel(kernel_layout)
 
 
-@njit(**JIT)
+@kernel
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
     """``a @ b``, accumulated in four interleaved partial sums.
 
@@ -424,7 +423,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return (s0 + s1) + (s2 + s3)
 
 
-@njit(**JIT)
+@kernel
 def _overflowed_quotients(
     per_point: np.ndarray,
     omega0: int,
@@ -455,7 +454,7 @@ def _overflowed_quotients(
         per_point[scaled0 + a, i] = per_point[omega0 + a, i] / s / reduced / s
 
 
-@njit(**JIT)
+@kernel
 def bellman_kernel(
     W: np.ndarray,
     W_policy: np.ndarray,
@@ -804,7 +803,7 @@ def extrapolate(
     return Extrapolator(features, r, input_bound, nu, metric)(W, W_policy)
 
 
-@njit(**JIT)
+@kernel
 def _min_eigenvalue(S: np.ndarray) -> float:
     """The smallest eigenvalue of symmetric ``S``; NaN if ``S`` has a non-finite entry."""
     for v in S.ravel():
@@ -813,7 +812,7 @@ def _min_eigenvalue(S: np.ndarray) -> float:
     return np.linalg.eigvalsh(S)[0]
 
 
-@njit(**JIT)
+@kernel
 def _learning_conditions(
     Ws: np.ndarray,
     data: np.ndarray,
@@ -897,7 +896,7 @@ def unpack_symmetric(packed: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(**JIT)
+@kernel
 def _packed_index(a: int, b: int, size: int) -> int:
     """Where entry ``(a, b)`` of a symmetric ``size x size`` matrix sits in its packed form."""
     if a > b:
@@ -905,7 +904,7 @@ def _packed_index(a: int, b: int, size: int) -> int:
     return a * size - (a * (a - 1)) // 2 + b - a
 
 
-@njit(**JIT)
+@kernel
 def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.ndarray) -> None:
     """(W_c): ``out = -k_c Gamma critic_sum``, with Gamma packed (L (L + 1) / 2,).
 
@@ -920,7 +919,7 @@ def critic_rate(gamma: np.ndarray, critic_sum: np.ndarray, kc: float, out: np.nd
         out[a] = -kc * acc
 
 
-@njit(**JIT)
+@kernel
 def gamma_rate(
     gamma: np.ndarray, gain_sum: np.ndarray, kc: float, beta: float, out: np.ndarray
 ) -> None:

@@ -24,12 +24,11 @@ import math
 from typing import Any
 
 import numpy as np
-from numba import njit, vectorize
 from pydrake.symbolic import Expression, log
 from pydrake.symbolic import max as symbolic_max
 from pydrake.symbolic import min as symbolic_min
 
-from ofrl_drake._jit import JIT
+from ofrl_drake._jit import kernel, ufunc
 from ofrl_drake.checks import nonnegative_matrix, positive_number, positive_vector
 from ofrl_drake.errors import ModelError
 
@@ -87,7 +86,7 @@ def state_cost(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return np.sum(x * (Q @ x), axis=0)
 
 
-@njit(**JIT)
+@kernel
 def tanh_abs(a: float) -> tuple[float, float]:
     """``(tanh a, e^{-2a} - 1)`` for ``a >= 0``, from one ``expm1``.
 
@@ -100,7 +99,7 @@ def tanh_abs(a: float) -> tuple[float, float]:
     return -e / (2.0 + e), e
 
 
-@njit(**JIT)
+@kernel
 def log_cosh_abs(a: float, tanh_a: float, e: float) -> float:
     """``ln cosh a`` for ``a >= 0``, given ``(tanh a, e) = tanh_abs(a)``: one ``log1p``.
 
@@ -115,7 +114,7 @@ def log_cosh_abs(a: float, tanh_a: float, e: float) -> float:
     return -0.5 * log1p_term if small else (a - _LN2) + log1p_term
 
 
-@njit(**JIT)
+@kernel
 def tanh_log_cosh(d: float) -> tuple[float, float]:
     """``(tanh d, ln cosh d)``, both exact and finite for every real ``d``.
 
@@ -130,19 +129,19 @@ def tanh_log_cosh(d: float) -> tuple[float, float]:
     return (t if d >= 0.0 else -t), log_cosh_abs(a, t, e)
 
 
-@vectorize(["float64(float64)"], cache=True)
+@ufunc(["float64(float64)"])
 def log_cosh(d: float) -> float:  # pragma: no cover - compiled
     """``ln cosh D``, exact and finite for every real ``D`` (a numpy ufunc)."""
     return tanh_log_cosh(d)[1]
 
 
-@njit(**JIT)
+@kernel
 def saturation_cost(d: float, tanh_d: float, log_cosh_d: float) -> float:
     """``2 (d tanh d - ln cosh d)``: ``U / (r_k lbar^2)`` for one input at ``D_k = d``."""
     return 2.0 * (d * tanh_d - log_cosh_d)
 
 
-@vectorize(["float64(float64)"], cache=True)
+@ufunc(["float64(float64)"])
 def _saturation_cost_of_D(d: float) -> float:  # pragma: no cover - compiled
     t, lc = tanh_log_cosh(d)
     return saturation_cost(d, t, lc)
@@ -167,7 +166,7 @@ def input_cost_from_D(D: np.ndarray, r: np.ndarray, input_bound: float) -> np.nd
     return (weight @ per_input.reshape(D.shape[0], -1)).reshape(D.shape[1:])
 
 
-@njit(**JIT)
+@kernel
 def _input_cost_of_ratio(v: float) -> float:
     """``2 v atanh v + ln(1 - v^2)`` for ``|v| <= 1``, clipped just inside the bound."""
     v = min(max(v, -1.0 + 1e-16), 1.0 - 1e-16)
@@ -175,12 +174,12 @@ def _input_cost_of_ratio(v: float) -> float:
     return 2.0 * v * math.atanh(v) + log_1mv2
 
 
-@vectorize(["float64(float64)"], cache=True)
+@ufunc(["float64(float64)"])
 def _input_cost_ufunc(v: float) -> float:  # pragma: no cover - compiled
     return _input_cost_of_ratio(v)
 
 
-@njit(**JIT)
+@kernel
 def stage_cost_rate(
     x: np.ndarray, u: np.ndarray, Q: np.ndarray, r: np.ndarray, input_bound: float
 ) -> tuple[float, float]:

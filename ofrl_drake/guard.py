@@ -32,10 +32,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import njit
 from pydrake.systems.framework import Context, Diagram, EventStatus, System
 
-from ofrl_drake._jit import JIT
+from ofrl_drake._jit import kernel
 from ofrl_drake.checks import (
     number_from_json,
     object_from_json,
@@ -179,7 +178,7 @@ class StallDetector:
         )
 
 
-@njit(**JIT)
+@kernel
 def _all_inside(
     state: np.ndarray, x: np.ndarray, xhat: np.ndarray, lower: np.ndarray, upper: np.ndarray
 ) -> bool:

@@ -20,10 +20,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numba import njit
 from pydrake.symbolic import if_then_else
 
-from ofrl_drake._jit import JIT
+from ofrl_drake._jit import kernel
 from ofrl_drake.checks import array_of_shape
 from ofrl_drake.errors import ModelError
 from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics, require_system
@@ -275,7 +274,7 @@ def unpack_gains(
     )
 
 
-@njit(**JIT)
+@kernel
 def injection_kernel(
     C: np.ndarray, stacked: np.ndarray, xhat: np.ndarray, y: np.ndarray, v: np.ndarray
 ) -> None:
@@ -302,7 +301,7 @@ def injection_kernel(
         v[n + j] += xhat[j]
 
 
-@njit(**JIT)
+@kernel
 def correction_kernel(
     f_value: np.ndarray, g_value: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray
 ) -> None:

@@ -139,14 +139,17 @@ def _load_file(path: Path, entry: str, key: str) -> ModuleType:
     if name in sys.modules and _LOADED.get(name) == version:
         return sys.modules[name]
     spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
+    assert spec is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     # Sibling modules of the file import as they would from a script in its folder.
     root = str(path.parent)
     sys.path.insert(0, root)
     try:
-        spec.loader.exec_module(module)
+        # Compiled from the source, not through the loader, whose bytecode cache
+        # takes a file rewritten within the same second at the same size for the old one.
+        code = compile(path.read_bytes(), str(path), "exec", dont_inherit=True)
+        exec(code, module.__dict__)
     except KeyboardInterrupt:
         del sys.modules[name]
         raise

@@ -16,10 +16,9 @@ import math
 from typing import Any
 
 import numpy as np
-from numba import njit
 from pydrake.symbolic import Jacobian, tanh
 
-from ofrl_drake._jit import JIT
+from ofrl_drake._jit import kernel
 from ofrl_drake.basis import PolynomialBasis, value_gradient_kernel
 from ofrl_drake.checks import positive_number, positive_vector
 from ofrl_drake.errors import ModelError
@@ -60,7 +59,7 @@ def policy_scale(r: np.ndarray, input_bound: float) -> np.ndarray:
     return 1.0 / (2.0 * input_bound * np.asarray(r, dtype=float))
 
 
-@njit(**JIT)
+@kernel
 def saturate(
     grad_V: np.ndarray, g: np.ndarray, scale: np.ndarray, input_bound: float, u: np.ndarray
 ) -> None:
@@ -73,7 +72,7 @@ def saturate(
         u[k] = -input_bound * math.tanh(scale[k] * D)
 
 
-@njit(**JIT)
+@kernel
 def policy_kernel(
     x: np.ndarray,
     g: np.ndarray,

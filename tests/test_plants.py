@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import sys
 import textwrap
 
 import numpy as np
@@ -290,12 +291,18 @@ def test_an_edited_plant_module_or_model_file_is_built_again(plant_folder, tmp_p
 
     scenario = load_scenario(_scenario(plant_folder, "users_plant:make_plant"))
     module = plant_folder / "users_plant.py"
+    monkeypatch.setattr(sys, "dont_write_bytecode", False)  # as Python runs by default
+    second = module.stat().st_mtime_ns // 10**9 * 10**9
+    os.utime(module, ns=(second + 100, second + 100))
     first = resolve_system(scenario)
     assert resolve_system(scenario) is first  # unchanged file: built once
     x = np.array([0.3, -0.7])
-    _edit(module, USER_PLANT.replace("return np.array([-x[0] + x[1],", "return np.array([x[1],"))
+    # Rewritten within the same second at the same size (a script that writes the plant
+    # file for a parameter study): Python's bytecode cache takes it for the old file.
+    module.write_text(USER_PLANT.replace("[-x[0] + x[1],", "[-x[0] - x[1],"))
+    os.utime(module, ns=(second + 200, second + 200))
     edited = resolve_system(scenario)
-    np.testing.assert_allclose(edited.f(x)[0], x[1], rtol=1e-15)
+    np.testing.assert_allclose(edited.f(x)[0], -x[0] - x[1], rtol=1e-15)
     assert edited.fingerprint() != first.fingerprint()
 
     # A multibody model file: its edit, and a relative path read from another folder.
