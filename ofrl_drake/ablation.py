@@ -97,7 +97,6 @@ from ofrl_drake.sweep_store import (
     SweepFiles,
     SweepStore,
     describe_difference,
-    dynamics_difference,
     load_arrays,
 )
 
@@ -321,9 +320,6 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
         where = describe_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:
             return f"the scenario differs in {where}"
-    edited = dynamics_difference(old, new)
-    if edited is not None:
-        return edited
     if old.get("scenario_key") != new["scenario_key"]:
         return f"the folder holds a sweep of another scenario ({old.get('scenario')!r})"
     return None

@@ -50,7 +50,6 @@ from ofrl_drake.sweep_store import (
     SweepFiles,
     SweepStore,
     describe_difference,
-    dynamics_difference,
     load_arrays,
 )
 
@@ -238,13 +237,8 @@ def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[
 
 def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
     """Why a ``--resume`` with plan ``new`` cannot continue the sweep of plan ``old``."""
-    where = describe_difference(
-        {k: v for k, v in old.items() if k != DYNAMICS_KEY},
-        {k: v for k, v in new.items() if k != DYNAMICS_KEY},
-    )
-    if where is not None:
-        return f"the folder's sweep differs in {where}"
-    return dynamics_difference(old, new)
+    where = describe_difference(old, new)
+    return None if where is None else f"the folder's sweep differs in {where}"
 
 
 def _check_seeds(seed: int, runs: int) -> None:

@@ -218,16 +218,24 @@ def describe_difference(old: Any, new: Any) -> str | None:
 
 
 #: The key of a plan that holds :func:`~ofrl_drake.plants.dynamics_fingerprints`.
+#: :class:`SweepStore` compares it itself, after the sweep's own ``mismatch``,
+#: which never sees it.
 DYNAMICS_KEY = "dynamics"
 
 
-def dynamics_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
+def _without_dynamics(plan: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in plan.items() if k != DYNAMICS_KEY}
+
+
+def _dynamics_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
     """Why the plant's code of plan ``new`` is not that of the folder's plan ``old``, or None.
 
     Both plans hold :data:`DYNAMICS_KEY` (an older folder's plan, without it, is
     not compared): the model and truth fingerprints.
     """
-    if DYNAMICS_KEY not in old or old[DYNAMICS_KEY] == new[DYNAMICS_KEY]:
+    if DYNAMICS_KEY not in old or DYNAMICS_KEY not in new:
+        return None
+    if old[DYNAMICS_KEY] == new[DYNAMICS_KEY]:
         return None
     which = [k for k, v in new[DYNAMICS_KEY].items() if old[DYNAMICS_KEY].get(k) != v]
     return (
@@ -387,7 +395,9 @@ class SweepStore:
             Complete the table in the folder instead of refusing it.
         mismatch : callable
             ``mismatch(old_plan, new_plan)``: why the folder's sweep cannot
-            be continued by this one (one clause), or None if it can.
+            be continued by this one (one clause), or None if it can. It sees
+            the plans without :data:`DYNAMICS_KEY`: when they otherwise agree,
+            the store compares the plant's fingerprints itself.
         retry_failed : bool
             Drop the rows whose status is not ``ok`` from the table (rewritten
             whole) so that their runs are done again.
@@ -457,7 +467,9 @@ class SweepStore:
                     f"{self.files.table} belongs to. Restore it, or move the folder away and "
                     "start again."
                 ) from None
-            why = mismatch(old, json.loads(json.dumps(plan)))
+            new = json.loads(json.dumps(plan))
+            why = mismatch(_without_dynamics(old), _without_dynamics(new))
+            why = why if why is not None else _dynamics_difference(old, new)
             if why is not None:
                 raise self.files.error(
                     f"--resume: {why}; resume with the sweep's own arguments, or choose another "
