@@ -37,6 +37,8 @@ from typing import Any, TypeVar, cast
 import numba.core.config
 from numba import njit, vectorize
 
+from ofrl_drake.atomic import file_version
+
 __all__ = ["KERNEL_MODULES", "cache_folder", "kernel", "ufunc"]
 
 #: The modules of the package that define numba kernels (a test keeps this list whole).
@@ -50,15 +52,9 @@ _CONFIG: Any = numba.core.config
 
 
 def sources_stamp(package: Path, modules: Sequence[str]) -> str:
-    """16 hex digits of a hash of the modification time and size of each ``package/<module>.py``."""
-    parts = []
-    for name in modules:
-        try:
-            stat = (package / f"{name}.py").stat()
-            parts.append(f"{name}:{stat.st_mtime_ns}:{stat.st_size}")
-        except OSError:
-            parts.append(f"{name}:missing")
-    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
+    """16 hex digits of a hash of the :func:`~ofrl_drake.atomic.file_version` of each module."""
+    versions = [file_version(package / f"{name}.py") for name in modules]
+    return hashlib.sha256(repr(versions).encode()).hexdigest()[:16]
 
 
 def _cache_base(package: Path) -> Path:

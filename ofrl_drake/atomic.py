@@ -26,9 +26,30 @@ __all__ = [
     "check_output_target",
     "check_writable",
     "ensure_parent",
+    "file_version",
     "output_lock",
     "umask_mode",
 ]
+
+
+#: What :func:`file_version` gives: the absolute path, then mtime (ns) and size, or None.
+FileVersion = tuple[str, int, int] | tuple[str, None]
+
+
+def file_version(path: str | Path) -> FileVersion:
+    """``(absolute path, mtime in ns, size)`` of a file; ``(path, None)`` if it cannot be read.
+
+    A relative path is taken from the working folder. Like Python's own
+    ``.pyc`` check, an edited file is told by its modification time and size
+    (here to the nanosecond): what the caches of files read (a user's plant
+    module, a model file, the numba kernels' sources) are keyed by.
+    """
+    resolved = Path(path).resolve()
+    try:
+        stat = resolved.stat()
+    except OSError:
+        return (str(resolved), None)
+    return (str(resolved), stat.st_mtime_ns, stat.st_size)
 
 
 def umask_mode(base: int = 0o666) -> int:

@@ -40,6 +40,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from ofrl_drake.atomic import FileVersion, file_version
 from ofrl_drake.errors import ModelError, ScenarioError, status_line
 from ofrl_drake.model import ControlAffineSystem
 
@@ -110,22 +111,8 @@ def locate_system_entry(entry: str, folder: str | Path | None, *, key: str = "sy
     return entry if found is None else f"{found}:{attr}"
 
 
-def _file_version(path: str | Path) -> tuple[str, int, int] | tuple[str, None]:
-    """``(absolute path, mtime in ns, size)`` of a file; ``(path, None)`` if it cannot be read.
-
-    A relative path is taken from the working folder. Like Python's own
-    ``.pyc`` check, an edited file is told by its modification time and size.
-    """
-    resolved = Path(path).resolve()
-    try:
-        stat = resolved.stat()
-    except OSError:
-        return (str(resolved), None)
-    return (str(resolved), stat.st_mtime_ns, stat.st_size)
-
-
-#: The version (:func:`_file_version`) of each user module file as last run.
-_LOADED: dict[str, tuple[str, int, int] | tuple[str, None]] = {}
+#: The version (:func:`~ofrl_drake.atomic.file_version`) of each user module file as last run.
+_LOADED: dict[str, FileVersion] = {}
 
 
 def _load_file(path: Path, entry: str, key: str) -> ModuleType:
@@ -135,7 +122,7 @@ def _load_file(path: Path, entry: str, key: str) -> ModuleType:
     digest = hashlib.sha256(str(path).encode()).hexdigest()[:12]
     stem = re.sub(r"\W", "_", path.stem)
     name = f"_ofrl_drake_user_{digest}_{stem}"
-    version = _file_version(path)
+    version = file_version(path)
     if name in sys.modules and _LOADED.get(name) == version:
         return sys.modules[name]
     spec = importlib.util.spec_from_file_location(name, path)
@@ -368,8 +355,8 @@ def _cache_key(scenario: Any) -> tuple[str, Any]:
     A name registered again (``register(name, new_factory)``) is a new key: the
     factory's identity is part of it, and the cache holds the factory, so the
     identity is not reused while the entry lives. So is an edited module or
-    model file (its :func:`_file_version`), and a relative model file read from
-    another working folder.
+    model file (its :func:`~ofrl_drake.atomic.file_version`), and a relative
+    model file read from another working folder.
     """
     plant = getattr(scenario, "plant", None)
     eq = getattr(scenario, "equilibrium", None)
@@ -378,7 +365,7 @@ def _cache_key(scenario: Any) -> tuple[str, Any]:
         (
             scenario.system,
             id(factory),
-            [_file_version(f) for f in _source_files(scenario)],
+            [file_version(f) for f in _source_files(scenario)],
             None if plant is None else dataclasses.astuple(plant),
             None if eq is None else dataclasses.astuple(eq),
         )
