@@ -80,7 +80,7 @@ from ofrl_drake.ablation_tasks import (
     solve_optimal_task,
 )
 from ofrl_drake.checks import positive_number
-from ofrl_drake.errors import OfrlError, status_line
+from ofrl_drake.errors import OfrlError, one_line, status_line
 from ofrl_drake.optimal import (
     Mesh,
     OptimalControlResult,
@@ -167,7 +167,7 @@ def _row(outcome: RunOutcome, optimum: OptimalControlResult) -> dict[str, Any]:
         "final_policy_ratio": optimality_ratio(m["final_policy_cost"], optimum.cost),
         "regulated": "true" if outcome.regulated else "false",
         "wall_time": outcome.wall_time,
-        "status": " ".join(str(status).split()),
+        "status": one_line(status),
     }
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from ofrl_drake.ablation_grid import AblationError, Variant, initial_state_label
 from ofrl_drake.ablation_metrics import run_metrics
-from ofrl_drake.errors import WallTimeExceeded, status_line
+from ofrl_drake.errors import WallTimeExceeded, one_line, status_line
 from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
 from ofrl_drake.scenario import Scenario, variant_choices
 
@@ -199,7 +199,7 @@ def _run(
             metrics.update(_policy_costs(evaluator, result, s, deadline))
         except WallTimeExceeded as err:  # the run is whole; its policies were not evaluated
             metrics.update(initial_policy_cost=math.nan, final_policy_cost=math.nan)
-            status = f"timeout: {' '.join(str(err).split())} (max_wall_time = {budget:g} s)"
+            status = f"timeout: {one_line(err)} (max_wall_time = {budget:g} s)"
         if result.stop is not None and result.status != "ok":
             # Stopped by the guard: the metrics of a truncated run are not comparable.
             status = f"{result.status}: {result.stop.reason}"

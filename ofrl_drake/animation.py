@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.errors import ModelError
+from ofrl_drake.errors import ModelError, one_line
 
 __all__ = [
     "FRAMES_PER_SECOND",
@@ -105,7 +105,7 @@ def animation_html(model: str | Path, t: np.ndarray, q: np.ndarray) -> str | Non
     try:
         meshcat = Meshcat()
     except Exception as err:
-        raise MeshcatUnavailable(" ".join(str(err).split())) from None
+        raise MeshcatUnavailable(one_line(err)) from None
     finally:
         logger.setLevel(previous)
     visualizer = MeshcatVisualizer.AddToBuilder(builder, scene_graph, meshcat)

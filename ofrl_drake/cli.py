@@ -51,7 +51,7 @@ from ofrl_drake.atomic import (
     output_lock,
     umask_mode,
 )
-from ofrl_drake.errors import OfrlError, OutputError
+from ofrl_drake.errors import OfrlError, OutputError, one_line
 
 if TYPE_CHECKING:  # annotations only: the commands import what they run when they run
     from ofrl_drake.design import ObserverDesign
@@ -362,7 +362,7 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
         )
     except WallTimeExceeded as err:  # the run's outputs are kept; the curve is not
         report = learning_report(loop, result, checkpoints=0, optimal_cost=optimal_cost)
-        return dataclasses.replace(report, curve_stop=" ".join(str(err).split()))
+        return dataclasses.replace(report, curve_stop=one_line(err))
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -658,7 +658,7 @@ def _scenario_figure_inputs(path: Path, name: str) -> FigureInputs:
     except RunFolderError as err:
         raise RunFolderError(f"{str(err).rstrip('.')}; {fix}.") from None
     except yaml.YAMLError as err:
-        why = " ".join(str(err).split())[:200]
+        why = one_line(err, 200)
         raise RunFolderError(f"{path}: not valid YAML ({why}); {fix}.") from None
     if not isinstance(data, dict):
         raise RunFolderError(
@@ -968,9 +968,9 @@ def _connect(scheduler: str, wait: float, error: type[OfrlError]) -> Any:
     if isinstance(cause, _NoAnswer):
         why = f"no dask scheduler answered after {wait:g} s"
     elif isinstance(cause, (OSError, TimeoutError)):
-        why = " ".join(str(cause).split())
+        why = one_line(cause)
     else:
-        text = " ".join(str(cause).split())[:200]
+        text = one_line(cause, 200)
         why = f"what answered there is not a dask scheduler: {type(cause).__name__}: {text}"
     raise error(
         f"--scheduler: cannot connect to {scheduler} within --scheduler-timeout {wait:g} s "
@@ -1688,7 +1688,7 @@ class _WarningLines:
             self.glyphs.update(dict.fromkeys(message.characters))
             self.fonts[message.fonts] = None
             return
-        text = f"warning: {' '.join(str(message).split())}"
+        text = f"warning: {one_line(message)}"
         if text not in self.shown:
             self.shown.add(text)
             print(text, file=sys.stderr if file is None else file)
@@ -1810,7 +1810,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OfrlError as err:
         frame = _user_frame_behind(err)
         where = "" if frame is None else f" (at {frame.filename}:{frame.lineno}, in {frame.name})"
-        _print_error(f"error: {' '.join(str(err).split())}{where}")
+        _print_error(f"error: {one_line(err)}{where}")
         return EXIT_BAD_INPUT
     except Terminated:
         _print_error("error: terminated (SIGTERM); no output written")
@@ -1819,7 +1819,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _print_error("error: interrupted; no output written")
         return EXIT_INTERRUPTED
     except Exception as err:
-        msg = " ".join(str(err).split())[:500]
+        msg = one_line(err, 500)
         frame = _user_code_frame(err)
         if frame is not None:
             _print_error(

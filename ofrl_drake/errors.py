@@ -21,6 +21,7 @@ __all__ = [
     "WallTimeExceeded",
     "is_domain_error",
     "lmi_time_left",
+    "one_line",
     "status_line",
 ]
 
@@ -115,6 +116,15 @@ def is_domain_error(err: BaseException) -> bool:
     return "out of domain" in str(err)
 
 
+def one_line(value: object, limit: int | None = None) -> str:
+    """``str(value)`` (an error, a message) on one line: every run of whitespace one space.
+
+    ``limit`` keeps the first so many characters (None: all).
+    """
+    text = " ".join(str(value).split())
+    return text if limit is None else text[:limit]
+
+
 def status_line(err: BaseException) -> str:
     """An error as the one-line status of a run in a sweep.
 
@@ -123,7 +133,7 @@ def status_line(err: BaseException) -> str:
     for an empty message, as plants' import errors always read).
     """
     head = "timeout" if isinstance(err, WallTimeExceeded) else type(err).__name__
-    text = " ".join(str(err).split())
+    text = one_line(err)
     return f"{head}: {text}" if text else head
 
 

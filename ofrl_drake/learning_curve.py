@@ -39,7 +39,13 @@ from ofrl_drake.checks import (
     string_from_json,
 )
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
-from ofrl_drake.errors import ModelError, ScenarioError, WallTimeExceeded, is_domain_error
+from ofrl_drake.errors import (
+    ModelError,
+    ScenarioError,
+    WallTimeExceeded,
+    is_domain_error,
+    one_line,
+)
 from ofrl_drake.guard import StallDetector
 from ofrl_drake.learning import (
     linear_policy_gain,
@@ -215,11 +221,11 @@ class PolicyEvaluator:
         try:
             simulator.AdvanceTo(horizon)
         except RuntimeError as err:  # an integrator that gives up: the policy diverged
-            return PolicyRun(float("nan"), float("nan"), f"diverged: {' '.join(str(err).split())}")
+            return PolicyRun(float("nan"), float("nan"), f"diverged: {one_line(err)}")
         except ValueError as err:  # f or g outside its domain (sqrt(-1)): the state left it
             if not is_domain_error(err):
                 raise
-            cause = " ".join(str(err).split())[:200]
+            cause = one_line(err, 200)
             return PolicyRun(
                 float("nan"),
                 float("nan"),

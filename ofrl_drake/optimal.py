@@ -79,7 +79,7 @@ from ofrl_drake.checks import (
     positive_number,
     positive_vector,
 )
-from ofrl_drake.errors import ModelError, OfrlError, is_domain_error
+from ofrl_drake.errors import ModelError, OfrlError, is_domain_error, one_line
 from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import Scenario, validate_scenario
@@ -304,7 +304,7 @@ def _traced(system: ControlAffineSystem) -> SymbolicDynamics:
         return system.symbolic()
     except ModelError as err:
         cause = err.__cause__ or err
-        text = " ".join(str(cause).split())[:200]
+        text = one_line(cause, 200)
         raise ModelError(
             f"optimal control: J* (run --optimal, montecarlo, ablate) needs f and g that Drake "
             f"can trace on symbolic states, and those of the model {system.name!r} cannot be "
@@ -321,7 +321,7 @@ def _domain_failure(err: RuntimeError | ValueError) -> str | None:
     """
     if not is_domain_error(err):
         return None
-    text = " ".join(str(err).split())
+    text = one_line(err)
     quoted = re.search(r"'(.*)'", text)  # SNOPT quotes the math error inside its own
     cause = quoted.group(1).strip() if quoted else text
     return f"f or g evaluated outside its domain ({cause[:200]})"

@@ -32,7 +32,7 @@ from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.systems.analysis import GetIntegrationSchemes
 
 from ofrl_drake.checks import drake_seed, integer_at_least
-from ofrl_drake.errors import OfrlError, ScenarioError, ScenarioTypeError
+from ofrl_drake.errors import OfrlError, ScenarioError, ScenarioTypeError, one_line
 
 __all__ = [
     "ABORT_BOX_FACTOR",
@@ -1149,8 +1149,8 @@ class _DepthLoader(yaml.SafeLoader):
 
 def _not_yaml(path: Path, err: Exception) -> ScenarioError:
     """The error for a file PyYAML refuses, on one line (its marks name lines of ``path``)."""
-    text = " ".join(str(err).replace('in "<unicode string>", ', "").split())
-    return ScenarioError(f"{path}: not valid YAML: {text[:300]}")
+    text = one_line(str(err).replace('in "<unicode string>", ', ""), 300)
+    return ScenarioError(f"{path}: not valid YAML: {text}")
 
 
 def _raw_yaml(path: Path, text: str) -> Any:

@@ -38,6 +38,7 @@ from ofrl_drake.errors import (
     ScenarioError,
     SwapError,
     is_domain_error,
+    one_line,
 )
 from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
 from ofrl_drake.observer import unpack_gains
@@ -799,11 +800,11 @@ def simulate(
         except RuntimeError as err:
             if not _is_integrator_failure(err):
                 raise
-            guard.fail(f"the integrator gave up: {' '.join(str(err).split())}")
+            guard.fail(f"the integrator gave up: {one_line(err)}")
         except ValueError as err:
             if not is_domain_error(err):
                 raise
-            cause = " ".join(str(err).split())[:200]
+            cause = one_line(err, 200)
             # Drake does not say which function of the diagram raised: the
             # model's f or g, or another one (the cost's log, a block's output).
             guard.fail(
@@ -1060,7 +1061,7 @@ def read_run_arrays(path: str | Path) -> dict[str, np.ndarray]:
         with data:
             arrays = {key: data[key] for key in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
-        why = " ".join(str(err).split())[:200]
+        why = one_line(err, 200)
         raise RunFolderError(
             f"{path}: not a readable .npz archive ({why}); {_REWRITE_FIX}."
         ) from None
@@ -1190,7 +1191,7 @@ def _read_summary(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as err:
-        why = " ".join(str(err).split())[:200]
+        why = one_line(err, 200)
         raise RunFolderError(f"{path}: not readable JSON ({why}); {_REWRITE_FIX}.") from None
     if not isinstance(data, dict):
         raise RunFolderError(

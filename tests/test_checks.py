@@ -163,3 +163,12 @@ def test_json_ready_makes_nested_numpy_values_strict_json():
     }
     assert json.loads(json.dumps(ready, allow_nan=False)) == ready
     assert type(ready["b"][1]) is int and type(ready["b"][2]) is bool
+
+
+def test_one_line_joins_whitespace_and_cuts_at_the_limit():
+    from ofrl_drake.errors import one_line
+
+    err = ValueError("sqrt(-1) :\n  numerical   argument\tout of domain")
+    assert one_line(err) == "sqrt(-1) : numerical argument out of domain"
+    assert one_line(err, 8) == "sqrt(-1)"
+    assert one_line("") == ""
