@@ -37,6 +37,7 @@ from ofrl_drake.checks import (
     optional_number_from_json,
     positive_number,
     string_from_json,
+    vector_to_json,
 )
 from ofrl_drake.diagram import ClosedLoop, symbolic_blocks
 from ofrl_drake.errors import (
@@ -569,7 +570,7 @@ class LearningHealth:
             smallest = self.value_eigenvalues[:, 0]
             indefinite = np.flatnonzero(smallest <= 0.0)
             out["min_value_eigenvalue"] = number_to_json(np.nanmin(smallest))
-            out["final_value_eigenvalues"] = [number_to_json(v) for v in self.value_eigenvalues[-1]]
+            out["final_value_eigenvalues"] = vector_to_json(self.value_eigenvalues[-1])
             out["value_indefinite_from"] = float(self.t[indefinite[0]]) if indefinite.size else None
         if self.spectral_abscissa is not None:
             unstable = np.flatnonzero(self.spectral_abscissa >= 0.0)
