@@ -13,8 +13,8 @@ running the old files writes to the old folder, which no new process reads.
 
 The folders are under ``NUMBA_CACHE_DIR/ofrl_drake`` when that variable is set,
 else ``ofrl_drake/__pycache__/numba`` when the package folder can be written,
-else ``~/.cache/ofrl_drake/numba``; folders of other versions untouched for a
-day are removed.
+else ``~/.cache/ofrl_drake/numba``; when the files change, folders of other
+versions untouched for a day are removed.
 
 ``error_model="numpy"``: numba's default ("python") model tests every float
 division for a zero divisor, to raise ``ZeroDivisionError``, and that branch
@@ -69,16 +69,19 @@ def _cache_base(package: Path) -> Path:
 def cache_folder(package: Path, modules: Sequence[str]) -> Path:
     """The cache folder of the kernels of ``modules`` as their files are now.
 
-    Folders of other versions not modified for :data:`STALE_AFTER` seconds
-    are removed (best effort: one in use is recreated by numba), and so are
-    numba's own caches of ``modules`` in ``package/__pycache__`` (written
-    before there were folders).
+    When the folder is new (the files changed), folders of other versions
+    not modified for :data:`STALE_AFTER` seconds are removed (best effort:
+    one in use is recreated by numba), and so are numba's own caches of
+    ``modules`` in ``package/__pycache__`` (written before there were
+    folders); an import that finds its folder does no more than that lookup.
     """
     base = _cache_base(package)
     folder = base / sources_stamp(package, modules)
+    if folder.exists():
+        return folder
     with contextlib.suppress(OSError):
         for other in base.iterdir():
-            if other != folder and time.time() - other.stat().st_mtime > STALE_AFTER:
+            if time.time() - other.stat().st_mtime > STALE_AFTER:
                 shutil.rmtree(other, ignore_errors=True)
     with contextlib.suppress(OSError):  # numba's own caches, of versions before the folders
         for name in modules:

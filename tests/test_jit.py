@@ -54,8 +54,13 @@ def test_the_folder_follows_the_kernel_modules_files_and_old_ones_go(tmp_path, m
     assert second != first and first.exists()  # a process may still use the old one
     os.utime(first, (0, 0))  # untouched for longer than STALE_AFTER
     assert STALE_AFTER <= 7 * 86400
-    cache_folder(tmp_path, ("a", "b"))
+    cache_folder(tmp_path, ("a", "b"))  # second is new: the cleanup runs
     assert not first.exists()
+    second.mkdir(parents=True)
+    stale = second.parent / "0123456789abcdef"
+    stale.mkdir()
+    os.utime(stale, (0, 0))
+    assert cache_folder(tmp_path, ("a", "b")) == second and stale.exists()  # found: no more
     # NUMBA_CACHE_DIR is respected: the folders go under it.
     monkeypatch.setattr(_jit._CONFIG, "CACHE_DIR", str(tmp_path / "cluster_cache"))
     folder = cache_folder(tmp_path, ("a", "b"))
