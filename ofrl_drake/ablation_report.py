@@ -339,7 +339,8 @@ def write_report(
     save_png(plot_optimality_ratio(rows, variants), ratio, DPI)
     traj = figures / "trajectories.png"
     # Only the runs of rows in the table: a file in runs/ without its row is no run of this sweep.
-    drawn = [v for v in variants if any(_key(r) == (v, x0_label) for r in rows)]
+    in_table = {_key(r) for r in rows}
+    drawn = [v for v in variants if (v, x0_label) in in_table]
     trajectories = plot_trajectories(out / "runs", drawn, x0_label, optimum, equilibrium, accuracy)
     save_png(trajectories, traj, DPI)
     return [md, ratio, traj]
