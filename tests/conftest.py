@@ -13,6 +13,23 @@ PAPER_SCENARIO = ROOT / "diagrams" / "two_state_paper.yaml"
 MIMO_SCENARIO = ROOT / "diagrams" / "coupled_two_state.yaml"
 
 
+def edited_two_state(f_scale=1.0, g_scale=1.0):
+    """A factory of the paper's plant with f and g scaled: what an edit of its module gives.
+
+    For ``ofrl_drake.examples.register``, to stand for a user's plant whose code changed.
+    """
+    from ofrl_drake.examples import two_state
+    from ofrl_drake.model import ControlAffineSystem
+
+    def make():
+        base = two_state()
+        return ControlAffineSystem(
+            lambda x: f_scale * base.f(x), lambda x: g_scale * base.g(x), C=base.C
+        )
+
+    return make
+
+
 @pytest.fixture(scope="session")
 def paper_scenario():
     from ofrl_drake import load_scenario

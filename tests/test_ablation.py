@@ -35,7 +35,7 @@ from ofrl_drake.diagram import build_closed_loop
 from ofrl_drake.slots import VARIANT_FACTORIES
 from ofrl_drake.variants import design_for
 
-from .conftest import PAPER_SCENARIO, ROOT
+from .conftest import PAPER_SCENARIO, ROOT, edited_two_state
 
 #: J and J* are compared over 10 s instead of 30 s: every variant is within
 #: 1e-6 of its final cost by then (|x(10)| < 1e-4), and both use the same horizon.
@@ -575,17 +575,12 @@ def test_resume_refuses_another_scenario(paper_scenario, tmp_path):
 def test_resume_refuses_a_plant_whose_code_changed(paper_scenario, tmp_path):
     """Before: the scenario's text was the same, so the sweep resumed with another plant."""
     from ofrl_drake.examples import EXAMPLES, register, two_state
-    from ofrl_drake.model import ControlAffineSystem
-
-    def edited():  # the same plant with a slower drift: what an edit of its module gives
-        base = two_state()
-        return ControlAffineSystem(lambda x: 0.9 * base.f(x), base.g, C=base.C)
 
     scenario = dataclasses.replace(paper_scenario, system="user_two_state")
     try:
         register("user_two_state", two_state)
         ablate(scenario, [Variant("baseline")], out=tmp_path, duration=0.5)
-        register("user_two_state", edited)
+        register("user_two_state", edited_two_state(f_scale=0.9))
         with pytest.raises(
             AblationError,
             match=r"--resume: the model dynamics differ from the folder's sweep: f, g or C "

@@ -24,6 +24,8 @@ from ofrl_drake.optimal import (
     solve_optimal_control,
 )
 
+from .conftest import edited_two_state
+
 Q = 5.0 * np.eye(2)
 R = np.array([1.0])
 LBAR = 3.0
@@ -227,19 +229,14 @@ def test_cache_round_trip_and_keys(tmp_path, paper_scenario, paper_optimum):
     )
     assert problem_key(renamed, x0) == key
     # The plant's code is part of the key: a name registered again with other
-    # dynamics is another problem; the same dynamics under another name, not.
+    # dynamics is another problem (the name is part of the key too).
     from ofrl_drake.examples import EXAMPLES, register, two_state
-    from ofrl_drake.model import ControlAffineSystem
-
-    def heavier():
-        base = two_state()
-        return ControlAffineSystem(base.f, lambda x: 0.5 * base.g(x), C=base.C)
 
     edited = dataclasses.replace(paper_scenario, system="edited_two_state")
     try:
         register("edited_two_state", two_state)
         same_code = problem_key(edited, x0)
-        register("edited_two_state", heavier)
+        register("edited_two_state", edited_two_state(g_scale=0.5))
         assert problem_key(edited, x0) not in (key, same_code)
     finally:
         EXAMPLES.pop("edited_two_state")

@@ -17,7 +17,7 @@ from ofrl_drake.errors import ScenarioError
 from ofrl_drake.plants import locate_system_entry, resolve_system
 from tests.cli_helpers import run_cli
 
-from .conftest import PAPER_SCENARIO, ROOT
+from .conftest import PAPER_SCENARIO, ROOT, edited_two_state
 
 #: The paper's plant, written out by a user in their own module.
 USER_PLANT = textwrap.dedent(
@@ -241,20 +241,13 @@ def test_a_name_registered_again_resolves_to_the_new_plant():
     import dataclasses
 
     from ofrl_drake.examples import EXAMPLES, register, two_state
-    from ofrl_drake.model import ControlAffineSystem
-
-    def slower() -> ControlAffineSystem:
-        base = two_state()
-        return ControlAffineSystem(
-            lambda x: 0.5 * base.f(x), base.g, C=base.C, name="two_state_slower"
-        )
 
     scenario = dataclasses.replace(load_scenario(PAPER_SCENARIO), system="reregistered")
     register("reregistered", two_state)
     try:
         first = resolve_system(scenario)
         assert resolve_system(scenario) is first  # built once per registration
-        register("reregistered", slower)
+        register("reregistered", edited_two_state(f_scale=0.5))
         second = resolve_system(scenario)
         x = np.array([0.3, -0.7])
         np.testing.assert_allclose(second.f(x), 0.5 * first.f(x), rtol=1e-15)

@@ -20,6 +20,8 @@ from ofrl_drake.sweep_store import (
     load_arrays,
 )
 
+from .conftest import edited_two_state
+
 
 class _SweepError(OfrlError):
     pass
@@ -399,12 +401,7 @@ def test_montecarlo_resume_names_the_folder_s_value_and_the_command_s(paper_scen
 def test_montecarlo_resume_refuses_a_plant_whose_code_changed(paper_scenario, tmp_path):
     """Before: the scenario's text was the same, so the sweep resumed with another plant."""
     from ofrl_drake.examples import EXAMPLES, register, two_state
-    from ofrl_drake.model import ControlAffineSystem
     from ofrl_drake.monte_carlo import MonteCarloError, montecarlo
-
-    def edited():  # the input gain halved: what an edit of the plant's module gives
-        base = two_state()
-        return ControlAffineSystem(base.f, lambda x: 0.5 * base.g(x), C=base.C)
 
     scenario = dataclasses.replace(
         paper_scenario,
@@ -415,7 +412,7 @@ def test_montecarlo_resume_refuses_a_plant_whose_code_changed(paper_scenario, tm
     try:
         register("user_two_state_mc", two_state)
         montecarlo(scenario, 1, seed=3, out=out, progress=False, optimal_cost=1.0)
-        register("user_two_state_mc", edited)
+        register("user_two_state_mc", edited_two_state(g_scale=0.5))
         with pytest.raises(
             MonteCarloError,
             match=r"^--resume: the model dynamics differ from the folder's sweep: f, g or C",
