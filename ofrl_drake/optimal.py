@@ -33,10 +33,14 @@ Two choices make the numbers accurate and the problem well posed:
 The time grid is fixed (not optimized, so the solver cannot exploit the
 discretization error): steps start at ``Mesh.initial_step`` and grow
 geometrically by ``Mesh.growth`` up to ``Mesh.max_step``, fine where the
-trajectory moves and coarse where it has settled. On the paper's example
-(``x0 = (-1, 1)``, ``T = 30`` s) the default mesh has 108 intervals and gives
-``J* = 3.751106``; a mesh 2.5 times finer (0.02 s growing by 2 % to 0.2 s)
-gives ``3.751102``, and the horizons 5 s and 10 s agree to ``1e-6`` relative.
+trajectory moves and coarse where it has settled. A grid is only as good as
+the plant is slow, so every ``J*`` is checked against its grid: it is solved
+again on a grid twice as fine (warm-started from the last), until two grids
+in a row agree to ``Mesh.rtol``, and the finer one's ``J*`` is the result. On
+the paper's example (``x0 = (-1, 1)``, ``T = 30`` s) the default grid has 108
+intervals and gives ``3.751106``, the check 216 intervals and ``3.751103``
+(moved by 9e-7); on an oscillator at 20 rad/s the first grid alone
+overstates ``J*`` by 2 %, and the check settles two grids later.
 
 A run that does not converge is reported with its solver status and a NaN
 cost, never a made-up number; so is a solve whose iterates leave the domain
@@ -104,7 +108,12 @@ SOLVERS = ("snopt", "ipopt")
 
 @dataclass(frozen=True)
 class Mesh:
-    """A fixed, geometrically graded time grid for the collocation.
+    """A fixed, geometrically graded time grid for the collocation, and its check.
+
+    ``J*`` is solved on this grid, then again on grids twice as fine (each
+    warm-started from the last) until two in a row agree to ``rtol``; the
+    finer one's ``J*`` is the result. At most ``refinements`` finer grids are
+    solved: if ``J*`` has not settled by then, the result is not converged.
 
     Attributes
     ----------
@@ -114,26 +123,39 @@ class Mesh:
         Ratio of consecutive intervals (>= 1).
     max_step : float
         Longest interval [s].
+    rtol : float
+        Accept ``J*`` when it moves by at most ``rtol`` (relative) from the
+        grid half as fine.
+    refinements : int
+        The most grids twice as fine to solve (0: no check, ``J*`` of this
+        grid alone).
     """
 
     initial_step: float = 0.05
     growth: float = 1.03
     max_step: float = 0.5
+    rtol: float = 1e-3
+    refinements: int = 3
 
     def __post_init__(self) -> None:
         ok = (
-            all(is_real_number(v) for v in (self.initial_step, self.growth, self.max_step))
-            and math.isfinite(self.initial_step)
+            all(
+                is_real_number(v) and math.isfinite(v)
+                for v in (self.initial_step, self.growth, self.max_step, self.rtol)
+            )
             and self.initial_step > 0
-            and math.isfinite(self.growth)
             and self.growth >= 1
-            and math.isfinite(self.max_step)
             and self.max_step >= self.initial_step
+            and self.rtol > 0
+            and isinstance(self.refinements, int)
+            and not isinstance(self.refinements, bool)
+            and 0 <= self.refinements <= 6
         )
         if not ok:
             raise OfrlError(
-                "mesh: need initial_step > 0, growth >= 1 and max_step >= initial_step, "
-                f"all numbers; got {self}."
+                "mesh: need initial_step > 0, growth >= 1, max_step >= initial_step and "
+                "rtol > 0, all numbers, and refinements an integer from 0 to 6; "
+                f"got {self}."
             )
 
     def steps(self, duration: float) -> np.ndarray:
@@ -151,6 +173,15 @@ class Mesh:
             h = min(self.max_step, h * self.growth)
         out = np.asarray(steps, dtype=float)
         return out * (duration / out.sum())
+
+    def refined(self) -> Mesh:
+        """The grid twice as fine: steps halved, growth per step its square root."""
+        return dataclasses.replace(
+            self,
+            initial_step=self.initial_step / 2,
+            growth=math.sqrt(self.growth),
+            max_step=self.max_step / 2,
+        )
 
 
 def checked_mesh(mesh: Any) -> Mesh:
@@ -221,9 +252,17 @@ class OptimalControlResult:
     solve_time : float
         Wall-clock seconds of all attempts.
     warm_started : bool
-        True if the accepted solution started from the given warm start.
+        True if the solve on the first grid started from the given warm start
+        (the finer grids start from the grid before them).
+    intervals : int
+        The number of intervals of the grid whose ``J*`` was accepted (0 if
+        not converged).
+    mesh_change : float
+        ``|J* - J*_half| / J*``: how far ``J*`` moved from the grid half as
+        fine, the check's estimate of the grid's error (NaN when
+        ``Mesh.refinements`` is 0 or not converged).
     trajectory : Trajectory or None
-        The optimal trajectory at the mesh's knots (None if not converged).
+        The optimal trajectory at the accepted grid's knots (None if not converged).
     """
 
     x0: tuple[float, ...]
@@ -234,6 +273,8 @@ class OptimalControlResult:
     solver: str
     solve_time: float
     warm_started: bool = False
+    intervals: int = 0
+    mesh_change: float = math.nan
     trajectory: Trajectory | None = field(default=None, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -241,12 +282,14 @@ class OptimalControlResult:
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "trajectory"}
         out["x0"] = list(self.x0)
         out["cost"] = number_to_json(self.cost)
+        out["mesh_change"] = number_to_json(self.mesh_change)
         return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> OptimalControlResult:
         """Inverse of :meth:`to_dict`."""
         cost = data["cost"]
+        change = data.get("mesh_change")
         return cls(
             x0=tuple(float(v) for v in data["x0"]),
             cost=float("nan") if cost is None else float(cost),
@@ -256,6 +299,8 @@ class OptimalControlResult:
             solver=str(data["solver"]),
             solve_time=float(data["solve_time"]),
             warm_started=bool(data.get("warm_started", False)),
+            intervals=int(data.get("intervals", 0)),
+            mesh_change=math.nan if change is None else float(change),
         )
 
 
@@ -486,88 +531,176 @@ def solve_optimal_control(
     input_bound = positive_number("optimal control: input_bound", input_bound)
     duration = positive_number("optimal control: duration", duration)
     _check_warm_start(warm_start, n, m)
-    steps = mesh.steps(duration)
+    mesh.steps(duration)  # refuses a horizon the grid cannot cover, before any solve
     plant = cost_augmented_plant(system, Q, r, input_bound)
 
     if not (is_real_number(input_margin) and 0 < input_margin < 1):
         raise OfrlError(f"optimal control: input_margin must be in (0, 1); got {input_margin!r}.")
-    u_max = input_bound * (1.0 - input_margin)
-    attempts = [("warm start", warm_start)] if warm_start is not None else []
-    attempts += [
+    problem = _Problem(plant, x0, n, m, input_bound * (1.0 - input_margin), duration, name, nlp)
+    defaults = [
         (f"default guess ({tc:g} s)", _default_guess(x0, duration, tc)) for tc in (1.0, 0.5, 2.0)
     ]
-    statuses = []
-    domain_failed = False
     start = time.perf_counter()
-    for label, guess in attempts:
-        dircol = DirectCollocation(
-            plant,
-            plant.CreateDefaultContext(),
-            num_time_samples=steps.size + 1,
-            minimum_time_step=float(steps.min()) * (1 - 1e-9),
-            maximum_time_step=float(steps.max()) * (1 + 1e-9),
-        )
-        prog = dircol.prog()
-        for i, h in enumerate(steps):
-            prog.AddBoundingBoxConstraint(h, h, dircol.time_step(i))
-        start_state = np.concatenate([x0, [0.0]])
-        prog.AddBoundingBoxConstraint(start_state, start_state, dircol.initial_state())  # type: ignore[arg-type]  # pydrake array stub
-        for k in range(steps.size + 1):
-            prog.AddBoundingBoxConstraint(-u_max, u_max, dircol.input(k))
-        dircol.AddFinalCost(dircol.final_state()[n])
-        dircol.SetInitialTrajectory(*_initial_trajectories(guess, x0, m, u_max, duration))
-        options = SolverOptions()
-        if name == "ipopt":
-            options.SetOption(nlp.solver_id(), "print_level", 0)
-        try:
-            result = nlp.Solve(prog, None, options)
-        except (RuntimeError, ValueError) as err:
-            why = _domain_failure(err)
-            if why is None:
-                raise
-            statuses.append(f"{label}: {name} stopped, {why}")
-            domain_failed = True
-            continue
-        code = result.get_solution_result()
-        states = dircol.GetStateSamples(result)
-        cost = float(states[n, -1])
-        if result.is_success() and math.isfinite(cost) and cost >= 0:
-            trajectory = Trajectory(
-                t=np.asarray(dircol.GetSampleTimes(result), dtype=float),
-                x=states[:n].T.copy(),
-                u=np.asarray(dircol.GetInputSamples(result), dtype=float).T.copy(),
-                cost=states[n].copy(),
-            )
-            return OptimalControlResult(
-                x0=tuple(float(a) for a in x0),
-                cost=cost,
-                converged=True,
-                status="ok",
-                duration=float(duration),
-                solver=name,
-                solve_time=time.perf_counter() - start,
-                warm_started=label == "warm start",
-                trajectory=trajectory,
-            )
-        info = getattr(result.get_solver_details(), "info", None)
-        detail = f" (info {info})" if info is not None else ""
-        statuses.append(f"{label}: {name} {code.name}{detail}")
-    status = "not converged (" + "; ".join(statuses) + ")"
-    if domain_failed:
-        status += (
-            f"; the solver's iterates left the region where f and g of the model "
-            f"{system.name!r} are defined: define them on every state (e.g. clip the "
-            "argument of sqrt or log) or start x0 farther from the edge of their domain"
-        )
-    return OptimalControlResult(
-        x0=tuple(float(a) for a in x0),
-        cost=float("nan"),
-        converged=False,
-        status=status,
-        duration=float(duration),
-        solver=name,
-        solve_time=time.perf_counter() - start,
+    first = problem.solve(
+        mesh, ([("warm start", warm_start)] if warm_start is not None else []) + defaults
     )
+
+    def result(cost: float, status: str, found: _Solved | None, change: float) -> Any:
+        return OptimalControlResult(
+            x0=tuple(float(a) for a in x0),
+            cost=cost,
+            converged=found is not None,
+            status=status,
+            duration=float(duration),
+            solver=name,
+            solve_time=time.perf_counter() - start,
+            warm_started=first.label == "warm start",
+            intervals=0 if found is None else found.intervals,
+            mesh_change=change,
+            trajectory=None if found is None else found.trajectory,
+        )
+
+    if first.trajectory is None:
+        status = "not converged (" + "; ".join(first.statuses) + ")"
+        if first.domain_failed:
+            status += (
+                f"; the solver's iterates left the region where f and g of the model "
+                f"{system.name!r} are defined: define them on every state (e.g. clip the "
+                "argument of sqrt or log) or start x0 farther from the edge of their domain"
+            )
+        return result(math.nan, status, None, math.nan)
+    accepted, grid, change, best = first, mesh, math.nan, first.trajectory
+    settled = [(first.cost, first.intervals)]
+    for _ in range(mesh.refinements):
+        grid = grid.refined()
+        guess = (f"from the grid of {accepted.intervals} intervals", best)
+        finer = problem.solve(grid, [guess, *defaults])
+        if finer.trajectory is None:
+            status = (
+                f"not converged (J* = {accepted.cost:.7g} on {accepted.intervals} intervals, "
+                "but the check on a grid twice as fine did not converge: "
+                f"{'; '.join(finer.statuses)}; pass a finer Mesh, or Mesh(refinements=0) "
+                "to accept an unchecked J*)"
+            )
+            return result(math.nan, status, None, math.nan)
+        change = _relative_change(finer.cost, accepted.cost)
+        accepted, best = finer, finer.trajectory
+        settled.append((finer.cost, finer.intervals))
+        if change <= mesh.rtol:
+            return result(accepted.cost, "ok", accepted, change)
+    if mesh.refinements == 0:
+        return result(accepted.cost, "ok", accepted, math.nan)
+    values = ", ".join(f"{cost:.7g} on {k}" for cost, k in settled)
+    status = (
+        f"not converged (J* did not settle to rtol {mesh.rtol:g} in {mesh.refinements} "
+        f"refinement{'s' if mesh.refinements > 1 else ''}, each grid twice as fine as the "
+        f"last: {values} intervals; pass a finer Mesh, more refinements or a larger rtol)"
+    )
+    return result(math.nan, status, None, change)
+
+
+def _relative_change(new: float, old: float) -> float:
+    """``|new - old| / new``: 0 when they are equal, inf when only ``new`` is 0."""
+    if new == old:
+        return 0.0
+    return abs(new - old) / new if new > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """The outcome of the attempts on one grid: the trajectory, or why there is none."""
+
+    label: str
+    intervals: int
+    trajectory: Trajectory | None
+    statuses: list[str]
+    domain_failed: bool
+
+    @property
+    def cost(self) -> float:
+        """``J*`` on this grid; NaN if no attempt converged."""
+        return math.nan if self.trajectory is None else float(self.trajectory.cost[-1])
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """One optimal-control problem, solved by direct collocation on any grid."""
+
+    plant: SymbolicVectorSystem
+    x0: np.ndarray
+    n: int
+    m: int
+    u_max: float
+    duration: float
+    name: str
+    nlp: Any
+
+    def solve(self, mesh: Mesh, attempts: list[tuple[str, Trajectory]]) -> _Solved:
+        """The first attempt (a label and a starting guess) that converges on ``mesh``."""
+        steps = mesh.steps(self.duration)
+        n, m, plant = self.n, self.m, self.plant
+        statuses = []
+        domain_failed = False
+        for label, guess in attempts:
+            dircol = DirectCollocation(
+                plant,
+                plant.CreateDefaultContext(),
+                num_time_samples=steps.size + 1,
+                minimum_time_step=float(steps.min()) * (1 - 1e-9),
+                maximum_time_step=float(steps.max()) * (1 + 1e-9),
+            )
+            prog = dircol.prog()
+            for i, h in enumerate(steps):
+                prog.AddBoundingBoxConstraint(h, h, dircol.time_step(i))
+            start_state = np.concatenate([self.x0, [0.0]])
+            prog.AddBoundingBoxConstraint(start_state, start_state, dircol.initial_state())  # type: ignore[arg-type]  # pydrake array stub
+            for k in range(steps.size + 1):
+                prog.AddBoundingBoxConstraint(-self.u_max, self.u_max, dircol.input(k))
+            dircol.AddFinalCost(dircol.final_state()[n])
+            dircol.SetInitialTrajectory(
+                *_initial_trajectories(guess, self.x0, m, self.u_max, self.duration)
+            )
+            try:
+                result = self.nlp.Solve(prog, None, _options(self.name, self.nlp))
+            except (RuntimeError, ValueError) as err:
+                why = _domain_failure(err)
+                if why is None:
+                    raise
+                statuses.append(f"{label}: {self.name} stopped, {why}")
+                domain_failed = True
+                continue
+            code = result.get_solution_result()
+            states = dircol.GetStateSamples(result)
+            cost = float(states[n, -1])
+            if result.is_success() and math.isfinite(cost) and cost >= 0:
+                trajectory = Trajectory(
+                    t=np.asarray(dircol.GetSampleTimes(result), dtype=float),
+                    x=states[:n].T.copy(),
+                    u=np.asarray(dircol.GetInputSamples(result), dtype=float).T.copy(),
+                    cost=states[n].copy(),
+                )
+                return _Solved(label, steps.size, trajectory, statuses, domain_failed)
+            info = getattr(result.get_solver_details(), "info", None)
+            detail = f" (info {info})" if info is not None else ""
+            statuses.append(f"{label}: {self.name} {code.name}{detail}")
+        return _Solved("", steps.size, None, statuses, domain_failed)
+
+
+def _options(name: str, nlp: Any) -> SolverOptions:
+    """Quiet IPOPT; SNOPT without its gradient check.
+
+    SNOPT's default check (``Verify level`` 0) steps every variable by a
+    finite difference at the starting point, and an input started on its
+    bound is stepped past it, where ``U``'s logarithm is undefined: a
+    warm start from a saturated optimum then failed with a domain error.
+    Drake's gradients are exact, so the check is off.
+    """
+    options = SolverOptions()
+    if name == "ipopt":
+        options.SetOption(nlp.solver_id(), "print_level", 0)
+    else:
+        options.SetOption(nlp.solver_id(), "Verify level", -1)
+    return options
 
 
 def optimal_control(

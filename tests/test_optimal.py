@@ -179,7 +179,11 @@ def test_optimal_control_refuses_a_bad_mesh_warm_start_or_solver(paper_scenario,
         optimal_control(paper_scenario, warm_start=wrong)
     with pytest.raises(OfrlError, match=r"solver must be one of .*; got \['snopt'\]"):
         optimal_control(paper_scenario, solver=["snopt"])
-    with pytest.raises(OfrlError, match=r"need initial_step > 0, .*all numbers; got .*'0\.05'"):
+    with pytest.raises(
+        OfrlError,
+        match=r"need initial_step > 0, .*all numbers, and refinements an integer from 0 to 6; "
+        r"got .*'0\.05'",
+    ):
         Mesh("0.05")
     with pytest.raises(OfrlError, match=r"mesh must be a Mesh.*; got 'x'"):
         problem_key(paper_scenario, np.array([-1.0, 1.0]), mesh="x")
@@ -334,3 +338,124 @@ def test_a_plant_drake_cannot_trace_is_refused_before_the_solve(paper_scenario):
             optimal_control(scenario, mesh=Mesh(0.1, 1.0, 0.1))
     finally:
         EXAMPLES.pop("user_branchy")
+
+
+def _fast_oscillator():
+    """``x'' = -400 x - 0.1 x' + u``: 20 rad/s, too fast for the default grid alone."""
+    return ControlAffineSystem(
+        lambda x: np.array([x[1], -400.0 * x[0] - 0.1 * x[1]]),
+        lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        C=[[1.0, 0.0]],
+        name="fast_oscillator",
+    )
+
+
+def _fast_optimum(x0, duration, **options):
+    return solve_optimal_control(_fast_oscillator(), x0, np.eye(2), [1.0], 1.0, duration, **options)
+
+
+def test_mesh_refined_halves_every_step():
+    mesh = Mesh(rtol=1e-4, refinements=2)
+    finer = mesh.refined()
+    assert finer == Mesh(0.025, math.sqrt(1.03), 0.25, rtol=1e-4, refinements=2)
+    assert finer.steps(30.0).size == 2 * mesh.steps(30.0).size == 216
+    assert finer.steps(30.0).sum() == pytest.approx(30.0, rel=1e-14)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"rtol": 0.0},
+        {"rtol": math.nan},
+        {"refinements": -1},
+        {"refinements": 7},
+        {"refinements": 1.0},
+        {"refinements": True},
+    ],
+)
+def test_mesh_refuses_a_bad_check(bad):
+    with pytest.raises(OfrlError, match=r"rtol > 0, .* refinements an integer from 0 to 6; got"):
+        Mesh(**bad)
+
+
+def test_a_grid_too_coarse_for_the_plant_is_refined_until_j_star_settles():
+    """The default grid alone overstates J* by 2 % at 20 rad/s; the check corrects it.
+
+    The reference is the grid of 373 intervals, steps an eighth of the default's.
+    """
+    x0, T = [0.0, 1.0], 5.0
+    reference = _fast_optimum(x0, T, mesh=Mesh(refinements=0).refined().refined().refined())
+    unchecked = _fast_optimum(x0, T, mesh=Mesh(refinements=0))
+    checked = _fast_optimum(x0, T)
+    assert reference.converged and reference.intervals == 373
+    assert unchecked.converged and unchecked.intervals == 47 and math.isnan(unchecked.mesh_change)
+    assert unchecked.cost > 1.015 * reference.cost
+    assert checked.converged and checked.status == "ok"
+    assert checked.intervals == 187 and checked.trajectory.t.size == 188
+    assert checked.mesh_change <= 1e-3
+    error = abs(checked.cost - reference.cost) / reference.cost
+    assert error <= min(1e-4, checked.mesh_change)
+    assert checked.trajectory.cost[-1] == checked.cost
+
+
+def test_j_star_that_does_not_settle_is_not_converged():
+    r = _fast_optimum([0.0, 1.0], 5.0, mesh=Mesh(refinements=1))
+    assert not r.converged and math.isnan(r.cost) and r.trajectory is None and r.intervals == 0
+    assert r.mesh_change == pytest.approx(0.0196, abs=5e-4)
+    assert re.fullmatch(
+        r"not converged \(J\* did not settle to rtol 0\.001 in 1 refinement, each grid twice as "
+        r"fine as the last: 0\.93\d+ on 47, 0\.91\d+ on 94 intervals; pass a finer Mesh, more "
+        r"refinements or a larger rtol\)",
+        r.status,
+    )
+    assert r.to_dict()["cost"] is None and r.to_dict()["mesh_change"] == r.mesh_change
+
+
+def test_a_check_that_fails_to_converge_leaves_j_star_unconverged(monkeypatch):
+    """The grid's J* converged but the finer one did not: no unchecked J* is passed off."""
+    from ofrl_drake import optimal
+
+    solve = optimal._Problem.solve
+    calls = []
+
+    def second_fails(self, mesh, attempts):
+        calls.append(mesh)
+        found = solve(self, mesh, attempts[-1:] if len(calls) > 1 else attempts)
+        if len(calls) == 1:
+            return found
+        return dataclasses.replace(found, trajectory=None, statuses=["stand-in: snopt failed"])
+
+    monkeypatch.setattr(optimal._Problem, "solve", second_fails)
+    r = _fast_optimum([0.0, 1.0], 5.0)
+    assert len(calls) == 2 and calls[1] == Mesh().refined()
+    assert not r.converged and math.isnan(r.cost) and r.trajectory is None
+    assert re.fullmatch(
+        r"not converged \(J\* = 0\.93\d+ on 47 intervals, but the check on a grid twice as fine "
+        r"did not converge: stand-in: snopt failed; pass a finer Mesh, or Mesh\(refinements=0\) "
+        r"to accept an unchecked J\*\)",
+        r.status,
+    )
+
+
+def test_a_warm_start_from_a_saturated_optimum_is_used():
+    """An input started on its bound is not stepped past it (where U is undefined).
+
+    SNOPT's default gradient check did, and the warm start failed with a domain
+    error; here every solve from x0 = (1, 0) saturates the input.
+    """
+    mesh = Mesh(refinements=0)
+    optimum = _fast_optimum([1.0, 0.0], 10.0, mesh=mesh)
+    assert optimum.converged
+    assert np.sum(np.abs(optimum.trajectory.u) >= 1 - 2e-6) > 10
+    again = _fast_optimum([1.0, 0.0], 10.0, mesh=mesh, warm_start=optimum.trajectory)
+    assert again.converged and again.warm_started and again.status == "ok"
+    assert again.cost == pytest.approx(optimum.cost, rel=1e-6)
+
+
+def test_result_dict_round_trips_the_check():
+    r = _fast_optimum([0.0, 1.0], 5.0)
+    back = OptimalControlResult.from_dict(json.loads(json.dumps(r.to_dict())))
+    assert back == r and back.intervals == 187 and back.mesh_change == r.mesh_change
+    old = {k: v for k, v in r.to_dict().items() if k not in ("intervals", "mesh_change")}
+    older = OptimalControlResult.from_dict(old)  # a file written before the check
+    assert older.intervals == 0 and math.isnan(older.mesh_change)
