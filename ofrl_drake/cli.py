@@ -338,10 +338,22 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
     from ofrl_drake.learning_curve import learning_report
 
     optimal_cost = None
+    budget = loop.parts.scenario.simulation.max_wall_time
     if args.optimal:
         from ofrl_drake.optimal import optimal_control
 
-        solved = optimal_control(loop.parts.scenario)
+        try:
+            solved = optimal_control(
+                loop.parts.scenario, deadline=None if budget is None else started + budget
+            )
+        except WallTimeExceeded as err:  # the run is whole; its curve would have no budget left
+            report = learning_report(loop, result, checkpoints=0)
+            stop = (
+                f"J* (--optimal) did not finish within max_wall_time (--max-wall) = {budget:g} "
+                f"s, so no checkpoint of the learning curve was evaluated: {one_line(err)}; "
+                "allow more wall time (a larger --max-wall) or run without --optimal"
+            )
+            return dataclasses.replace(report, curve_stop=stop)
         if solved.converged:
             optimal_cost = solved.cost
         else:
@@ -350,7 +362,6 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
                 "optimality ratios.",
                 file=sys.stderr,
             )
-    budget = loop.parts.scenario.simulation.max_wall_time
     try:
         return learning_report(
             loop,

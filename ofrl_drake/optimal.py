@@ -83,7 +83,13 @@ from ofrl_drake.checks import (
     positive_number,
     positive_vector,
 )
-from ofrl_drake.errors import ModelError, OfrlError, is_domain_error, one_line
+from ofrl_drake.errors import (
+    ModelError,
+    OfrlError,
+    WallTimeExceeded,
+    is_domain_error,
+    one_line,
+)
 from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics
 from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import Scenario, validate_scenario
@@ -465,6 +471,7 @@ def solve_optimal_control(
     mesh: Mesh | None = None,
     solver: str | None = None,
     input_margin: float = 1e-6,
+    deadline: float | None = None,
 ) -> OptimalControlResult:
     """Minimize ``int_0^T Q(x) + U(u) dt`` over inputs with ``|u_k| <= lambda_bar``.
 
@@ -491,6 +498,10 @@ def solve_optimal_control(
     input_margin : float
         Inputs are bounded by ``|u_k| <= lambda_bar (1 - input_margin)``, where
         the gradient of ``U`` is finite (see the module docstring).
+    deadline : float, optional
+        A ``time.monotonic()`` reading after which no solve starts (a solve
+        under way is not interrupted: neither SNOPT nor IPOPT can be stopped
+        from Python). None: no limit.
 
     Returns
     -------
@@ -508,6 +519,8 @@ def solve_optimal_control(
         matrix, ``r`` not ``m`` finite entries > 0, or ``input_bound`` or
         ``duration`` not a finite number > 0; or if Drake cannot trace the
         system's ``f`` or ``g`` on symbolic states (:func:`cost_augmented_plant`).
+    WallTimeExceeded
+        If ``deadline`` passed before ``J*`` was found and checked (step ``"J*"``).
 
     Notes
     -----
@@ -536,7 +549,23 @@ def solve_optimal_control(
 
     if not (is_real_number(input_margin) and 0 < input_margin < 1):
         raise OfrlError(f"optimal control: input_margin must be in (0, 1); got {input_margin!r}.")
-    problem = _Problem(plant, x0, n, m, input_bound * (1.0 - input_margin), duration, name, nlp)
+    if deadline is not None and not (is_real_number(deadline) and math.isfinite(deadline)):
+        raise OfrlError(
+            "optimal control: deadline must be a time.monotonic() reading or None; got "
+            f"{reprlib.repr(deadline)}."
+        )
+    problem = _Problem(
+        plant,
+        x0,
+        n,
+        m,
+        input_bound * (1.0 - input_margin),
+        duration,
+        name,
+        nlp,
+        deadline,
+        time.monotonic(),
+    )
     defaults = [
         (f"default guess ({tc:g} s)", _default_guess(x0, duration, tc)) for tc in (1.0, 0.5, 2.0)
     ]
@@ -634,14 +663,24 @@ class _Problem:
     duration: float
     name: str
     nlp: Any
+    deadline: float | None
+    started: float
 
     def solve(self, mesh: Mesh, attempts: list[tuple[str, Trajectory]]) -> _Solved:
         """The first attempt (a label and a starting guess) that converges on ``mesh``."""
         steps = mesh.steps(self.duration)
         n, m, plant = self.n, self.m, self.plant
-        statuses = []
+        statuses: list[str] = []
         domain_failed = False
         for label, guess in attempts:
+            now = time.monotonic()
+            if self.deadline is not None and now >= self.deadline:
+                raise WallTimeExceeded(
+                    f"J* ran out of wall time {now - self.started:.3g} s into its solves, "
+                    f"before its attempt {label!r} on a grid of {steps.size} intervals"
+                    + "".join(f", after {status}" for status in statuses[-1:]),
+                    step="J*",
+                )
             dircol = DirectCollocation(
                 plant,
                 plant.CreateDefaultContext(),
@@ -710,6 +749,7 @@ def optimal_control(
     warm_start: Trajectory | None = None,
     mesh: Mesh | None = None,
     solver: str | None = None,
+    deadline: float | None = None,
 ) -> OptimalControlResult:
     """``J*`` of ``scenario`` from ``x0`` (default: the scenario's own) over its horizon.
 
@@ -727,6 +767,9 @@ def optimal_control(
     ModelError
         If Drake cannot trace the system's ``f`` or ``g`` on symbolic states
         (they branch on the state, for instance): ``J*`` needs them symbolic.
+    WallTimeExceeded
+        If ``deadline`` (a ``time.monotonic()`` reading) passed before ``J*``
+        was found and checked.
     """
     validate_scenario(scenario)
     system = resolve_system(scenario)
@@ -740,6 +783,7 @@ def optimal_control(
         warm_start=warm_start,
         mesh=mesh,
         solver=solver,
+        deadline=deadline,
     )
 
 

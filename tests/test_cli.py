@@ -652,6 +652,40 @@ def test_max_wall_bounds_the_learning_curve_exit_3_with_the_whole_run_written(
     )
 
 
+def test_max_wall_bounds_j_star_of_run_optimal(tmp_path, capsys, monkeypatch):
+    # J* (--optimal) ran as long as its solves took, whatever --max-wall said. Now no solve
+    # starts after the budget: here the budget is gone (by J*'s clock) before its first.
+    from ofrl_drake import optimal
+    from ofrl_drake.cli import main
+
+    late = types.SimpleNamespace(
+        monotonic=lambda: time.monotonic() + 9e4, perf_counter=time.perf_counter
+    )
+    monkeypatch.setattr(optimal, "time", late)
+    out = tmp_path / "out"
+    args = ["run", str(_short_scenario(tmp_path)), "--out", str(out), "--quiet", "--optimal"]
+    assert main([*args, "--max-wall", "600"]) == 3
+    captured = capsys.readouterr()
+    assert f"wrote {out}: |x(T)| = " in captured.out, captured.out
+    assert re.match(
+        r"^stopped: timeout: J\* \(--optimal\) did not finish within max_wall_time "
+        r"\(--max-wall\) = 600 s, so no checkpoint of the learning curve was evaluated: J\* ran "
+        r"out of wall time [\d.e-]+ s into its solves, before its attempt 'default guess \(1 s\)' "
+        r"on a grid of 27 intervals; allow more wall time \(a "
+        r"larger --max-wall\) or run without --optimal; wrote .* with the whole run, without the "
+        r"learning curve",
+        captured.err.strip().splitlines()[-1],
+    ), captured.err
+    summary, figures = _curve_summary(out)
+    assert summary["status"] == "ok" and "learning_curve" not in summary
+    assert summary["learning_curve_stop"].startswith("J* (--optimal) did not finish")
+    assert "learning_curve.png" not in figures
+    # Without a budget J* has no deadline and the curve is scored against it.
+    assert main(args) == 0
+    curve = json.loads((out / "summary.json").read_text())["learning_curve"]
+    assert curve and all(math.isfinite(point["optimality_ratio"]) for point in curve)
+
+
 def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):
     # The simulation used the whole --max-wall: the learning curve used to run after it
     # anyway, unbounded; now the folder says it was not evaluated, and exit 3 as before.

@@ -459,3 +459,40 @@ def test_result_dict_round_trips_the_check():
     old = {k: v for k, v in r.to_dict().items() if k not in ("intervals", "mesh_change")}
     older = OptimalControlResult.from_dict(old)  # a file written before the check
     assert older.intervals == 0 and math.isnan(older.mesh_change)
+
+
+def _clock(monkeypatch, step):
+    """``optimal``'s ``time.monotonic`` advancing by ``step`` seconds a call, from now."""
+    import time
+    import types
+
+    from ofrl_drake import optimal
+
+    now = time.monotonic()
+    ticks = iter(range(1, 10**6))
+    fake = types.SimpleNamespace(
+        monotonic=lambda: now + step * next(ticks), perf_counter=time.perf_counter
+    )
+    monkeypatch.setattr(optimal, "time", fake)
+    return now
+
+
+def test_no_solve_starts_after_the_deadline(monkeypatch):
+    """J* stops between its solves once its deadline passed (here: after the first grid)."""
+    from ofrl_drake import WallTimeExceeded
+
+    now = _clock(monkeypatch, 10.0)  # J* starts at +10 s, the first solve at +20 s
+    with pytest.raises(
+        WallTimeExceeded,
+        match=r"^J\* ran out of wall time 20 s into its solves, before its attempt 'from the grid "
+        r"of 47 intervals' on a grid of 94 intervals$",
+    ) as err:
+        _fast_optimum([0.0, 1.0], 5.0, deadline=now + 25.0)
+    assert err.value.step == "J*"
+    with pytest.raises(WallTimeExceeded, match=r"before its attempt 'default guess \(1 s\)' on"):
+        _fast_optimum([0.0, 1.0], 5.0, deadline=now)
+
+
+def test_a_bad_deadline_is_refused(two_state):
+    with pytest.raises(OfrlError, match=r"deadline must be a time\.monotonic\(\) reading or None"):
+        solve_optimal_control(two_state, [-1.0, 1.0], Q, R, LBAR, 5.0, deadline="soon")
