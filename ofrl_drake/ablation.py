@@ -210,9 +210,10 @@ def _check_run_names(variants: Sequence[Variant]) -> None:
     """Refuse variants whose runs' files in ``runs/`` would clash or not fit a file name.
 
     Two names that differ only in characters :func:`_run_slug` replaces
-    (``a/b`` and ``a_b``) would share one file per initial state: the
-    figures would plot one variant's run under both names, and ``J*`` be
-    warm-started from the wrong one.
+    (``a/b`` and ``a_b``), or only in case (``LQR`` and ``lqr``, one file on
+    the case-insensitive file systems of macOS and Windows), would share one
+    file per initial state: the figures would plot one variant's run under
+    both names, and ``J*`` be warm-started from the wrong one.
     """
     seen: dict[str, str] = {}
     for variant in variants:
@@ -222,13 +223,18 @@ def _check_run_names(variants: Sequence[Variant]) -> None:
                 f"variants: the name {variant.name[:40]!r}... has {len(slug)} characters as a "
                 f"file name in runs/; shorten it to at most {MAX_RUN_SLUG}."
             )
-        if slug in seen:
-            raise AblationError(
-                f"variants: {seen[slug]!r} and {variant.name!r} would share the files "
-                f"runs/{slug}__<initial state>.npz (characters other than letters, digits "
-                "and _ . = - become _ in a file name); rename one of them."
+        other = seen.get(slug.casefold())
+        if other is not None:
+            why = (
+                "characters other than letters, digits and _ . = - become _ in a file name"
+                if _run_slug(other) == slug
+                else "the file systems of macOS and Windows do not tell upper from lower case"
             )
-        seen[slug] = variant.name
+            raise AblationError(
+                f"variants: {other!r} and {variant.name!r} would share the files "
+                f"runs/{slug}__<initial state>.npz ({why}); rename one of them."
+            )
+        seen[slug.casefold()] = variant.name
 
 
 def _save_run(store: SweepStore, outcome: RunOutcome) -> None:

@@ -329,12 +329,18 @@ def test_ablate_refuses_a_bad_variant_before_any_run(paper_scenario, tmp_path, v
             r"^variants: 'a b' and 'a, b' would share the files runs/a_b__<initial state>\.npz",
         ),
         (
+            {"LQR": {"controller": "lqr"}, "lqr": {}},
+            r"^variants: 'LQR' and 'lqr' would share the files runs/lqr__<initial state>\.npz "
+            r"\(the file systems of macOS and Windows do not tell upper from lower case\); "
+            r"rename one of them\.$",
+        ),
+        (
             {"v" * 228: {}},
             r"^variants: the name 'v{40}'\.\.\. has 228 characters as a file name in runs/; "
             r"shorten it to at most 227\.$",
         ),
     ],
-    ids=["slash", "spaces_and_commas", "too_long"],
+    ids=["slash", "spaces_and_commas", "case", "too_long"],
 )
 def test_ablate_refuses_names_whose_run_files_clash_before_any_run(
     paper_scenario, tmp_path, variants, match
