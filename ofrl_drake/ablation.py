@@ -278,8 +278,15 @@ def _plan(
     labels: Sequence[str],
     variants: Sequence[Variant],
     seed: int | None,
+    dynamics: dict[str, str | None],
+    mesh: Mesh | None,
+    solver: str | None,
 ) -> dict[str, Any]:
-    """The contents of ``ablation.json``: what defines the sweep."""
+    """The contents of ``ablation.json``: what defines the sweep.
+
+    With how ``J*`` is solved (:func:`~ofrl_drake.optimal.problem_key` has the
+    same): rows of one initial state share one ``J*`` only if it is.
+    """
     return {
         "scenario": scenario.name,
         "scenario_key": scenario_key(scenario),
@@ -288,7 +295,8 @@ def _plan(
         "initial_states": list(labels),
         "variants": {v.name: dict(v.choices) for v in variants},
         "scenario_values": dataclasses.asdict(scenario),
-        DYNAMICS_KEY: dynamics_fingerprints(scenario),
+        DYNAMICS_KEY: dynamics,
+        "optimal": {"mesh": dataclasses.asdict(checked_mesh(mesh)), "solver": solver_name(solver)},
     }
 
 
@@ -322,6 +330,16 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
             f"the folder's sweep has a horizon of {old.get('duration')} s, "
             f"this one {new['duration']} s"
         )
+    if "optimal" not in old:
+        return (
+            "the folder's sweep was written by an earlier ofrl_drake, whose J* was not "
+            "checked against a finer grid: its rows' J* and this sweep's would differ"
+        )
+    if old["optimal"] != new["optimal"]:
+        return (
+            f"the folder's sweep solved J* with {old['optimal']}, this one with "
+            f"{new['optimal']}: rows of one initial state would have different J*"
+        )
     if "scenario_values" in old:
         where = describe_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:
@@ -343,6 +361,7 @@ class _Sweep:
     mesh: Mesh | None
     solver: str | None
     store: SweepStore | None
+    dynamics: dict[str, str | None]  # the client's fingerprints: in the plan, checked by tasks
     seed: int | None = None
     workers: int = 1
     done: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict)
@@ -371,7 +390,14 @@ class _Sweep:
             yield
             return
         plan = _plan(
-            self.scenario, self.duration, list(self.states), list(self.variants.values()), self.seed
+            self.scenario,
+            self.duration,
+            list(self.states),
+            list(self.variants.values()),
+            self.seed,
+            self.dynamics,
+            self.mesh,
+            self.solver,
         )
         with self.store.recording(
             plan, resume=resume, mismatch=_resume_mismatch, retry_failed=retry_failed
@@ -413,7 +439,7 @@ class _Sweep:
             (n, part) for n in order for part in split_consecutive(labels[n], parts)
         ):
             states = tuple(tuple(self.states[label]) for label in mine)
-            args = (self.scenario, self.variants[name], states, self.duration)
+            args = (self.scenario, self.variants[name], states, self.duration, self.dynamics)
             handle = engine.submit(run_variant_states, *args)
             tasks[handle] = ("runs", (name, tuple(mine)))
             for label in mine:
@@ -424,7 +450,15 @@ class _Sweep:
                 solving.add(label)
                 warm = engine.ref(handle) if label in warm_from else self._saved_warm_start(label)
                 x0 = tuple(self.states[label])
-                solve = (self.scenario, x0, warm, self.duration, self.mesh, self.solver)
+                solve = (
+                    self.scenario,
+                    x0,
+                    warm,
+                    self.duration,
+                    self.mesh,
+                    self.solver,
+                    self.dynamics,
+                )
                 tasks[engine.submit(solve_optimal_task, *solve)] = ("optimal", label)
         return tasks
 
@@ -615,6 +649,7 @@ def ablate(
         store=None if out is None else SweepStore(FILES, Path(out)),
         seed=seed,
         workers=worker_threads(client),
+        dynamics=dynamics_fingerprints(scenario),
     )
     with sweep.recording(resume, retry_failed):
         todo = [k for k in keys if k not in sweep.done]

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +32,7 @@ from ofrl_drake.ablation_grid import AblationError, Variant, initial_state_label
 from ofrl_drake.ablation_metrics import run_metrics
 from ofrl_drake.errors import WallTimeExceeded, one_line, status_line
 from ofrl_drake.optimal import Mesh, OptimalControlResult, Trajectory, optimal_control
+from ofrl_drake.plants import check_dynamics
 from ofrl_drake.scenario import Scenario, variant_choices
 
 __all__ = [
@@ -131,13 +132,17 @@ def run_variant_states(
     variant: Variant,
     states: Sequence[Sequence[float]],
     duration: float | None = None,
+    dynamics: Mapping[str, str | None] | None = None,
 ) -> list[RunOutcome]:
     """Build one variant once and simulate it from each of ``states``; never raises.
 
     Runs inside a worker: the Drake diagram, and the policy-evaluation
     diagram of the policy costs, are built here from the scenario data, then
     each run writes its initial state into a fresh context. An error in the
-    build is the status of every run; an error in a run, of that run.
+    build is the status of every run; an error in a run, of that run. With
+    ``dynamics`` (the client's :func:`~ofrl_drake.plants.dynamics_fingerprints`),
+    a worker whose plant's code differs runs nothing: that is every run's
+    status (:func:`~ofrl_drake.plants.check_dynamics`).
 
     Returns
     -------
@@ -153,6 +158,7 @@ def run_variant_states(
     learned = choices["controller"] == "learned"
     start = time.perf_counter()
     try:
+        check_dynamics(scenario, dynamics)
         loop = build_closed_loop(_scenario_for(scenario, variant, states[0], duration))
         acts_on_critic = choices["controller"] in ("learned", "frozen_critic")
         evaluator = PolicyEvaluator(loop) if acts_on_critic else None
@@ -251,11 +257,13 @@ def solve_optimal_task(
     duration: float | None = None,
     mesh: Mesh | None = None,
     solver: str | None = None,
+    dynamics: Mapping[str, str | None] | None = None,
 ) -> OptimalControlResult:
     """``J*`` from ``x0``, warm-started from a run; a failed solve is returned, not raised.
 
     ``warm`` is that run, or the runs of a :func:`run_variant_states` task
-    (the one from ``x0`` is used), or a trajectory, or None.
+    (the one from ``x0`` is used), or a trajectory, or None. ``dynamics`` is
+    checked as by :func:`run_variant_states`.
 
     Raises
     ------
@@ -279,6 +287,7 @@ def solve_optimal_task(
             "for a cold start."
         )
     try:
+        check_dynamics(scenario, dynamics)
         return optimal_control(scenario, x0, warm_start=warm_start, mesh=mesh, solver=solver)
     except Exception as err:
         return failed_optimum(x0, scenario.simulation.duration, status_line(err))

@@ -342,17 +342,27 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
     if args.optimal:
         from ofrl_drake.optimal import optimal_control
 
+        before = time.monotonic() - started  # what the run used before J* began
         try:
             solved = optimal_control(
                 loop.parts.scenario, deadline=None if budget is None else started + budget
             )
         except WallTimeExceeded as err:  # the run is whole; its curve would have no budget left
-            report = learning_report(loop, result, checkpoints=0)
+            where = (
+                f"the run had used {before:.3g} s of it before J* began (the simulation and "
+                "the checks after it)"
+                if budget is not None and before >= budget
+                else one_line(err)
+            )
+            curve = ", so no checkpoint of the learning curve was evaluated" * (
+                args.checkpoints > 0
+            )
             stop = (
                 f"J* (--optimal) did not finish within max_wall_time (--max-wall) = {budget:g} "
-                f"s, so no checkpoint of the learning curve was evaluated: {one_line(err)}; "
-                "allow more wall time (a larger --max-wall) or run without --optimal"
+                f"s: {where}{curve}; allow more wall time (a larger --max-wall) or run without "
+                "--optimal"
             )
+            report = learning_report(loop, result, checkpoints=0)
             return dataclasses.replace(report, curve_stop=stop)
         if solved.converged:
             optimal_cost = solved.cost

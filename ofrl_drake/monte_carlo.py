@@ -42,7 +42,7 @@ from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.checks import MAX_DRAKE_SEED, drake_seed, integer_at_least, is_real_number
 from ofrl_drake.errors import OfrlError, OutputError, status_line
-from ofrl_drake.plants import dynamics_fingerprints
+from ofrl_drake.plants import check_dynamics, dynamics_fingerprints
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import (
@@ -138,7 +138,11 @@ RUNS_PER_TASK = 8
 
 
 def run_seeds(
-    scenario: Scenario, seed: int, ks: Sequence[int], mass_spread: float
+    scenario: Scenario,
+    seed: int,
+    ks: Sequence[int],
+    mass_spread: float,
+    dynamics: Mapping[str, str | None] | None = None,
 ) -> list[dict[str, Any]]:
     """Simulate runs ``ks`` (:func:`run_for`), designing the observer once; never raises.
 
@@ -147,17 +151,27 @@ def run_seeds(
     LMI, diagram) and re-run for every ``k``
     (``simulate(run, loop=loop)``). With one, each run's truth differs, so
     each run builds its own diagram, with the observer design of the first
-    (the design is the model's, not the truth's).
+    (the design is the model's, not the truth's). With ``dynamics`` (the
+    client's :func:`~ofrl_drake.plants.dynamics_fingerprints`), a worker whose
+    plant's code differs runs nothing (:func:`~ofrl_drake.plants.check_dynamics`).
 
     Returns
     -------
     list of dict
         ``{"row": ..., "logs": ...}`` per run, in the order of ``ks``; an error
-        becomes the status of its run (of every run, if the build fails).
+        becomes the status of its run (of every run, if the build fails or the
+        plant differs from the client's).
     """
     from ofrl_drake.diagram import build_closed_loop
 
     out: list[dict[str, Any]] = []
+    try:
+        check_dynamics(scenario, dynamics)
+    except Exception as err:
+        for k in ks:
+            _, perturbation = run_for(scenario, seed, k, mass_spread)
+            out.append(_failed(seed + k, perturbation, err, time.perf_counter()))
+        return out
     loop: Any = None
     for k in ks:
         run, perturbation = run_for(scenario, seed, k, mass_spread)
@@ -224,14 +238,16 @@ def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) 
     return FILES.read(path, repair=repair)
 
 
-def _plan(scenario: Scenario, runs: int, seed: int, mass_spread: float) -> dict[str, Any]:
+def _plan(
+    scenario: Scenario, runs: int, seed: int, mass_spread: float, dynamics: dict[str, str | None]
+) -> dict[str, Any]:
     return {
         "scenario": scenario.name,
         "runs": int(runs),
         "seed": int(seed),
         "mass_spread": float(mass_spread),
         "scenario_values": dataclasses.asdict(scenario),
-        DYNAMICS_KEY: dynamics_fingerprints(scenario),
+        DYNAMICS_KEY: dynamics,
     }
 
 
@@ -342,13 +358,16 @@ def montecarlo(
         )
     if mass_spread > 0:
         _bodies(scenario)  # refuse a truth without bodies before any run
+    dynamics = dynamics_fingerprints(scenario)  # in the plan, and checked by every task
     store = None if out is None else SweepStore(FILES, Path(out))
     # A sweep that stops before its first row removes what it wrote (SweepStore.recording).
     recording: contextlib.AbstractContextManager[list[dict[str, Any]]] = (
         contextlib.nullcontext([])
         if store is None
         else store.recording(
-            _plan(scenario, runs, seed, mass_spread), resume=resume, mismatch=_resume_mismatch
+            _plan(scenario, runs, seed, mass_spread, dynamics),
+            resume=resume,
+            mismatch=_resume_mismatch,
         )
     )
     with recording as done:
@@ -364,7 +383,9 @@ def montecarlo(
 
         def submit(engine: Any) -> dict[Any, tuple[int, ...]]:
             return {
-                engine.submit(run_seeds, scenario, seed, tuple(ks), mass_spread): tuple(ks)
+                engine.submit(run_seeds, scenario, seed, tuple(ks), mass_spread, dynamics): tuple(
+                    ks
+                )
                 for ks in split_consecutive(todo, parts)
             }
 

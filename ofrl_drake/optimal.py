@@ -95,7 +95,9 @@ from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import Scenario, validate_scenario
 
 __all__ = [
+    "SMALL_COST",
     "SOLVERS",
+    "SOLVER_TOLERANCE",
     "Mesh",
     "OptimalControlResult",
     "OptimalCostCache",
@@ -110,6 +112,14 @@ __all__ = [
 
 #: Nonlinear-programming solvers tried, by name.
 SOLVERS = ("snopt", "ipopt")
+
+#: The solvers' default absolute tolerance on each constraint (SNOPT's major
+#: feasibility tolerance; IPOPT's is tighter). A ``J*`` below
+#: :data:`SMALL_COST` can be limited by it rather than by the grid: from the
+#: paper's example at ``x0 = (1e-4, 0)`` (``J* = 2.3e-8``) grids solve to
+#: values 50 % apart.
+SOLVER_TOLERANCE = 1e-6
+SMALL_COST = 1e-4
 
 
 @dataclass(frozen=True)
@@ -265,8 +275,9 @@ class OptimalControlResult:
         not converged).
     mesh_change : float
         ``|J* - J*_half| / J*``: how far ``J*`` moved from the grid half as
-        fine, the check's estimate of the grid's error (NaN when
-        ``Mesh.refinements`` is 0 or not converged).
+        fine, the check's estimate of the grid's error; for a ``J*`` that did
+        not settle, the last grid's change. NaN when ``Mesh.refinements`` is 0,
+        when no grid converged, or when a finer grid did not.
     trajectory : Trajectory or None
         The optimal trajectory at the accepted grid's knots (None if not converged).
     """
@@ -620,10 +631,18 @@ def solve_optimal_control(
     if mesh.refinements == 0:
         return result(accepted.cost, "ok", accepted, math.nan)
     values = ", ".join(f"{cost:.7g} on {k}" for cost, k in settled)
+    small = (
+        f"; a J* below {SMALL_COST:g} may be limited by the solver's absolute tolerance "
+        f"({SOLVER_TOLERANCE:g} on each collocation constraint) instead, which no grid "
+        "improves: start farther from the equilibrium"
+        if max(cost for cost, _ in settled) < SMALL_COST
+        else ""
+    )
     status = (
         f"not converged (J* did not settle to rtol {mesh.rtol:g} in {mesh.refinements} "
         f"refinement{'s' if mesh.refinements > 1 else ''}, each grid twice as fine as the "
-        f"last: {values} intervals; pass a finer Mesh, more refinements or a larger rtol)"
+        f"last: {values} intervals; pass a finer Mesh, more refinements or a larger rtol"
+        f"{small})"
     )
     return result(math.nan, status, None, change)
 
@@ -721,6 +740,8 @@ class _Problem:
                 return _Solved(label, steps.size, trajectory, statuses, domain_failed)
             info = getattr(result.get_solver_details(), "info", None)
             detail = f" (info {info})" if info is not None else ""
+            if result.is_success():  # the solver's optimum, but no cost
+                detail += f", but its J* = {cost:.3g} is not a number >= 0"
             statuses.append(f"{label}: {self.name} {code.name}{detail}")
         return _Solved("", steps.size, None, statuses, domain_failed)
 

@@ -34,8 +34,11 @@ import dataclasses
 import hashlib
 import importlib
 import importlib.util
+import os
 import re
+import socket
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -45,6 +48,7 @@ from ofrl_drake.errors import ModelError, ScenarioError, status_line
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
+    "check_dynamics",
     "dynamics_fingerprints",
     "is_import_path",
     "load_callable",
@@ -510,3 +514,30 @@ def dynamics_fingerprints(scenario: Any) -> dict[str, str | None]:
         "model": resolve_system(scenario).fingerprint(),
         "truth": None if truth is None else truth.fingerprint(),
     }
+
+
+def check_dynamics(scenario: Any, expected: Mapping[str, str | None] | None) -> None:
+    """Refuse to run ``scenario`` here if its plant's code is not the one ``expected``.
+
+    A sweep's tasks run where Dask puts them; a worker on another machine
+    builds the plant from its own copy of the plant's module and model files.
+    ``expected`` is :func:`dynamics_fingerprints` on the client (None: no
+    check); a worker whose copy differs would run another plant under the
+    same name, and its rows would be mixed with the others.
+
+    Raises
+    ------
+    ScenarioError
+        If the model's or the truth's fingerprint here differs from ``expected``.
+    """
+    if expected is None:
+        return
+    here = dynamics_fingerprints(scenario)
+    for role in ("model", "truth"):
+        if here.get(role) != expected.get(role):
+            raise ScenarioError(
+                f"the {role} dynamics on {socket.gethostname()} (pid {os.getpid()}) differ from "
+                f"those the sweep was started with (fingerprint {here.get(role)} against "
+                f"{expected.get(role)}): give every worker the same copy of the plant's module "
+                "and model files as the client, and restart workers after an edit."
+            )

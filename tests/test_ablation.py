@@ -1,6 +1,7 @@
 """Ablation sweeps: against the optimum, on Dask, with failures, resumed after a kill."""
 
 import dataclasses
+import json
 import math
 import os
 import re
@@ -578,6 +579,35 @@ def test_resume_refuses_another_scenario(paper_scenario, tmp_path):
         ablate(paper_scenario, [Variant("baseline")], out=tmp_path, resume=True, duration=2.0)
 
 
+def test_resume_refuses_another_way_of_solving_j_star(paper_scenario, tmp_path):
+    """Before: the plan had no mesh or solver, and a resume mixed two J* of one state."""
+    from ofrl_drake.optimal import Mesh
+
+    coarse = Mesh(refinements=0)
+    variants = [Variant("baseline")]
+    ablate(paper_scenario, variants, out=tmp_path, duration=0.5, mesh=coarse, progress=False)
+    plan = json.loads((tmp_path / "ablation.json").read_text())
+    assert plan["optimal"] == {"mesh": dataclasses.asdict(coarse), "solver": "snopt"}
+    with pytest.raises(
+        AblationError,
+        match=r"^--resume: the folder's sweep solved J\* with \{'mesh': \{.*'refinements': 0\}, "
+        r"'solver': 'snopt'\}, this one with \{'mesh': \{.*'refinements': 3\}, 'solver': "
+        r"'snopt'\}: rows of one initial state would have different J\*; resume with",
+    ):
+        ablate(paper_scenario, variants, out=tmp_path, resume=True, duration=0.5)
+    rows = ablate(paper_scenario, variants, out=tmp_path, resume=True, duration=0.5, mesh=coarse)
+    assert [row["status"] for row in rows] == ["ok"]
+    # A folder of an earlier ofrl_drake, whose J* was not checked on a finer grid.
+    del plan["optimal"]
+    (tmp_path / "ablation.json").write_text(json.dumps(plan))
+    with pytest.raises(
+        AblationError,
+        match=r"^--resume: the folder's sweep was written by an earlier ofrl_drake, whose J\* was "
+        r"not checked against a finer grid",
+    ):
+        ablate(paper_scenario, variants, out=tmp_path, resume=True, duration=0.5, mesh=coarse)
+
+
 def test_resume_refuses_a_plant_whose_code_changed(paper_scenario, tmp_path):
     """Before: the scenario's text was the same, so the sweep resumed with another plant."""
     from ofrl_drake.examples import EXAMPLES, register, two_state
@@ -878,11 +908,11 @@ def test_a_retry_that_fails_before_its_logs_leaves_no_run_of_the_first_attempt(
 
     real = ablation.run_variant_states
 
-    def diverged(scenario, variant, states, duration=None):
-        outcomes = real(scenario, variant, states, duration)
+    def diverged(scenario, variant, states, duration=None, dynamics=None):
+        outcomes = real(scenario, variant, states, duration, dynamics)
         return [dataclasses.replace(o, status="diverged: non-finite state") for o in outcomes]
 
-    def out_of_time(scenario, variant, states, duration=None):
+    def out_of_time(scenario, variant, states, duration=None, dynamics=None):
         nan = dict.fromkeys(METRICS, math.nan)
         status = "WallTimeExceeded: the observer design ran out of max_wall_time"
         return [

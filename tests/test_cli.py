@@ -655,7 +655,7 @@ def test_max_wall_bounds_the_learning_curve_exit_3_with_the_whole_run_written(
 def test_max_wall_bounds_j_star_of_run_optimal(tmp_path, capsys, monkeypatch):
     # J* (--optimal) ran as long as its solves took, whatever --max-wall said. Now no solve
     # starts after the budget: here the budget is gone (by J*'s clock) before its first.
-    from ofrl_drake import optimal
+    from ofrl_drake import cli, optimal
     from ofrl_drake.cli import main
 
     late = types.SimpleNamespace(
@@ -669,18 +669,33 @@ def test_max_wall_bounds_j_star_of_run_optimal(tmp_path, capsys, monkeypatch):
     assert f"wrote {out}: |x(T)| = " in captured.out, captured.out
     assert re.match(
         r"^stopped: timeout: J\* \(--optimal\) did not finish within max_wall_time "
-        r"\(--max-wall\) = 600 s, so no checkpoint of the learning curve was evaluated: J\* ran "
-        r"out of wall time [\d.e-]+ s into its solves, before its attempt 'default guess \(1 s\)' "
-        r"on a grid of 27 intervals; allow more wall time \(a "
-        r"larger --max-wall\) or run without --optimal; wrote .* with the whole run, without the "
-        r"learning curve",
+        r"\(--max-wall\) = 600 s: J\* ran out of wall time [\d.e-]+ s into its solves, before "
+        r"its attempt 'default guess \(1 s\)' on a grid of 27 intervals, so no checkpoint of the "
+        r"learning curve was evaluated; allow more wall time \(a larger --max-wall\) or run "
+        r"without --optimal; wrote .* with the whole run, without the learning curve",
         captured.err.strip().splitlines()[-1],
     ), captured.err
     summary, figures = _curve_summary(out)
     assert summary["status"] == "ok" and "learning_curve" not in summary
     assert summary["learning_curve_stop"].startswith("J* (--optimal) did not finish")
     assert "learning_curve.png" not in figures
+    # The budget spent before J* began (by the command's clock, after the simulation's
+    # start): J* is not blamed for it, and without a curve none is said to be missing.
+    readings = iter([0.0])
+    clock = types.SimpleNamespace(
+        monotonic=lambda: next(readings, 9e4) + time.monotonic(), perf_counter=time.perf_counter
+    )
+    monkeypatch.setattr(cli, "time", clock)
+    assert main([*args, "--max-wall", "600", "--checkpoints", "0"]) == 3
+    assert re.match(
+        r"^stopped: timeout: J\* \(--optimal\) did not finish within max_wall_time "
+        r"\(--max-wall\) = 600 s: the run had used 9e\+04 s of it before J\* began \(the "
+        r"simulation and the checks after it\); allow more wall time \(a larger --max-wall\) or "
+        r"run without --optimal; wrote",
+        capsys.readouterr().err.strip().splitlines()[-1],
+    )
     # Without a budget J* has no deadline and the curve is scored against it.
+    monkeypatch.undo()
     assert main(args) == 0
     curve = json.loads((out / "summary.json").read_text())["learning_curve"]
     assert curve and all(math.isfinite(point["optimality_ratio"]) for point in curve)

@@ -496,3 +496,35 @@ def test_no_solve_starts_after_the_deadline(monkeypatch):
 def test_a_bad_deadline_is_refused(two_state):
     with pytest.raises(OfrlError, match=r"deadline must be a time\.monotonic\(\) reading or None"):
         solve_optimal_control(two_state, [-1.0, 1.0], Q, R, LBAR, 5.0, deadline="soon")
+
+
+def test_a_solver_optimum_without_a_cost_is_named_as_such(monkeypatch, two_state):
+    """The status said "kSolutionFound" for a J* of -1.9e-13, refused as a cost."""
+    from ofrl_drake import optimal
+
+    class NegativeCost(optimal.DirectCollocation):
+        def GetStateSamples(self, result):
+            states = np.array(super().GetStateSamples(result))
+            states[-1, -1] = -1.9e-13
+            return states
+
+    monkeypatch.setattr(optimal, "DirectCollocation", NegativeCost)
+    r = solve_optimal_control(two_state, [-1.0, 1.0], Q, R, LBAR, 5.0, mesh=Mesh(refinements=0))
+    assert not r.converged and math.isnan(r.cost)
+    assert r.status.startswith(
+        "not converged (default guess (1 s): snopt kSolutionFound (info 1), but its J* = "
+        "-1.9e-13 is not a number >= 0; default guess (0.5 s): "
+    )
+
+
+def test_a_tiny_j_star_that_does_not_settle_names_the_solver_tolerance(paper_scenario):
+    """From x0 = (1e-4, 0) (J* = 2.3e-8) the grids' J* differ by half: not the grid's fault."""
+    r = optimal_control(paper_scenario, [1e-4, 0.0], mesh=Mesh(refinements=1))
+    assert not r.converged
+    assert r.status.endswith(
+        "; a J* below 0.0001 may be limited by the solver's absolute tolerance (1e-06 on each "
+        "collocation constraint) instead, which no grid improves: start farther from the "
+        "equilibrium)"
+    )
+    fast = _fast_optimum([0.0, 1.0], 5.0, mesh=Mesh(refinements=1))  # J* = 0.91: no such hint
+    assert not fast.converged and "absolute tolerance" not in fast.status

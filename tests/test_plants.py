@@ -314,3 +314,82 @@ def test_an_edited_plant_module_or_model_file_is_built_again(plant_folder, tmp_p
     (other / "slider.sdf").write_text(_SLIDER.format(mass=1.0))
     monkeypatch.chdir(other)
     assert dynamics_fingerprints(slider)["model"] == light
+
+
+#: What a task of a sweep says when its worker's plant is not the client's.
+_OTHER_PLANT = (
+    r"ScenarioError: the model dynamics on \S+ \(pid \d+\) differ from those the sweep was "
+    r"started with \(fingerprint \w+ against {client}\): give every worker the same copy of the "
+    r"plant's module and model files as the client, and restart workers after an edit\."
+)
+
+
+def test_a_worker_whose_plant_differs_from_the_clients_runs_nothing(paper_scenario):
+    """A worker on another machine builds the plant from its own copy of the plant's code.
+
+    Before, a copy that differed ran its own plant under the same name, and its
+    rows were mixed with the others; now every task of the sweep checks the
+    client's fingerprints first.
+    """
+    import dataclasses
+
+    from ofrl_drake.ablation_grid import Variant
+    from ofrl_drake.ablation_tasks import run_variant_states, solve_optimal_task
+    from ofrl_drake.examples import EXAMPLES, register, two_state
+    from ofrl_drake.monte_carlo import run_seeds
+    from ofrl_drake.plants import check_dynamics, dynamics_fingerprints
+
+    simulation = dataclasses.replace(paper_scenario.simulation, duration=0.5)
+    scenario = dataclasses.replace(paper_scenario, system="worker_copy", simulation=simulation)
+    register("worker_copy", two_state)
+    try:
+        client = dynamics_fingerprints(scenario)
+        check_dynamics(scenario, client)
+        check_dynamics(scenario, None)
+        states = [[-1.0, 1.0], [0.5, 0.5]]
+        assert all(
+            r.status == "ok"
+            for r in run_variant_states(scenario, Variant("b"), states, dynamics=client)
+        )
+        register("worker_copy", edited_two_state(g_scale=0.5))  # the worker's own copy
+        message = _OTHER_PLANT.format(client=client["model"])
+        with pytest.raises(ScenarioError, match=message[len("ScenarioError: ") :]):
+            check_dynamics(scenario, client)
+        runs = run_variant_states(scenario, Variant("b"), states, dynamics=client)
+        assert len(runs) == 2 and all(re.fullmatch(message, r.status) for r in runs)
+        optimum = solve_optimal_task(scenario, states[0], None, dynamics=client)
+        assert not optimum.converged and re.fullmatch(message, optimum.status)
+        rows = run_seeds(scenario, 3, [0, 1], 0.0, client)
+        assert [r["row"]["seed"] for r in rows] == ["3", "4"]
+        assert all(re.fullmatch(message, r["row"]["status"]) for r in rows)
+        # Its own fingerprint, or none, runs the worker's plant as before.
+        mine = dynamics_fingerprints(scenario)
+        assert (
+            run_variant_states(scenario, Variant("b"), states[:1], dynamics=mine)[0].status == "ok"
+        )
+    finally:
+        EXAMPLES.pop("worker_copy")
+
+
+def test_ablate_and_montecarlo_hand_every_task_the_clients_fingerprints(
+    paper_scenario, monkeypatch
+):
+    """The sweeps pass the fingerprints they computed (and wrote into their plan) to tasks."""
+    import dataclasses
+
+    from ofrl_drake import ablation, monte_carlo
+    from ofrl_drake.ablation import ablate
+    from ofrl_drake.monte_carlo import montecarlo
+
+    client = {"model": "clientsplant", "truth": None}
+    monkeypatch.setattr(ablation, "dynamics_fingerprints", lambda scenario: client)
+    monkeypatch.setattr(monte_carlo, "dynamics_fingerprints", lambda scenario: client)
+    message = _OTHER_PLANT.format(client="clientsplant")
+    short = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=0.5),
+    )
+    rows = ablate(short, {"baseline": {}, "lqr": {"controller": "lqr"}}, progress=False)
+    assert len(rows) == 2 and all(re.fullmatch(message, r["status"]) for r in rows)
+    rows = montecarlo(short, 2, progress=False, optimal_cost=1.0)
+    assert len(rows) == 2 and all(re.fullmatch(message, r["status"]) for r in rows)

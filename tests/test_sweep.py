@@ -509,7 +509,7 @@ def test_montecarlo_whose_runs_all_fail_draws_no_envelope_of_older_runs(
     assert (out / "figures" / "envelope.png").is_file()
     (out / "montecarlo.csv").unlink()
 
-    def failing(scenario, seed, ks, mass_spread):
+    def failing(scenario, seed, ks, mass_spread, dynamics=None):
         error = monte_carlo.MonteCarloError("the build failed")
         return [monte_carlo._failed(seed + k, {}, error, 0.0) for k in ks]
 
