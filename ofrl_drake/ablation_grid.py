@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.checks import finite_array, integer_at_least
+from ofrl_drake.checks import count_at_most, finite_array, integer_at_least
 from ofrl_drake.errors import OfrlError
+from ofrl_drake.limits import INITIAL_STATES_FIX, MAX_INITIAL_STATES
 from ofrl_drake.scenario import Scenario, check_yaml, variant_choices
 
 __all__ = [
@@ -226,10 +227,18 @@ def sample_initial_states(scenario: Scenario, count: int, seed: int) -> np.ndarr
     Raises
     ------
     AblationError
-        If ``count`` or ``seed`` is not an integer >= 0, or the initial estimation
+        If ``count`` or ``seed`` is not an integer >= 0, ``count`` is above
+        :data:`~ofrl_drake.limits.MAX_INITIAL_STATES`, or the initial estimation
         error is wider than the box.
     """
-    integer_at_least("count (--initial-states)", count, 0, error=AblationError)
+    count_at_most(
+        "count (--initial-states)",
+        count,
+        0,
+        MAX_INITIAL_STATES,
+        INITIAL_STATES_FIX,
+        error=AblationError,
+    )
     integer_at_least("seed (--seed)", seed, 0, error=AblationError)
     x0 = np.asarray(scenario.x0, dtype=float)
     offset = np.asarray(scenario.xhat0, dtype=float) - x0

@@ -111,6 +111,21 @@ def integer_at_least(
     return int(value)
 
 
+def count_at_most(
+    name: str, value: Any, least: int, most: int, fix: str, *, error: type[OfrlError] = ModelError
+) -> int:
+    """``value`` as an int in ``[least, most]`` (:func:`integer_at_least`, and a limit).
+
+    For counts of work (runs, states, checkpoints) whose each unit costs a
+    simulation: a count past ``most`` would take gigabytes or days before
+    anything is written. The message names the value, the limit and ``fix``.
+    """
+    count = integer_at_least(name, value, least, error=error)
+    if count > most:
+        raise error(f"{name}: {count} is more than the limit of {most}; {fix}.")
+    return count
+
+
 #: The largest seed Drake's ``RandomGenerator`` keeps whole: it reads 32 bits, so
 #: ``2**32`` would repeat seed 0's draws.
 MAX_DRAKE_SEED = 2**32 - 1

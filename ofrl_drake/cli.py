@@ -52,6 +52,14 @@ from ofrl_drake.atomic import (
     umask_mode,
 )
 from ofrl_drake.errors import OfrlError, OutputError, one_line
+from ofrl_drake.limits import (
+    CHECKPOINTS_FIX,
+    INITIAL_STATES_FIX,
+    MAX_CHECKPOINTS,
+    MAX_INITIAL_STATES,
+    MAX_RUNS,
+    RUNS_FIX,
+)
 
 if TYPE_CHECKING:  # annotations only: the commands import what they run when they run
     from ofrl_drake.design import ObserverDesign
@@ -102,22 +110,6 @@ VALIDITY_DOCS = "(why: docs/theory.md, 'Where the certificate holds')"
 #: The entry of ``summary.json`` where ``run`` writes what its figures need of the
 #: scenario (:class:`FigureInputs`), so that ``plot`` needs neither the scenario nor its plant.
 FIGURE_INPUTS_KEY = "figure_inputs"
-
-#: Most ``run --checkpoints``: each checkpoint is one more closed-loop simulation over the
-#: whole horizon (milliseconds to seconds each), so 10^4 already take minutes to hours,
-#: against a default of 10. Refused while parsing: a billion would allocate 8 GB for the
-#: checkpoint times alone, before ``--max-wall`` (which bounds the curve's time) could act.
-MAX_CHECKPOINTS = 10_000
-
-#: Most ``ablate --initial-states``: each state adds a run of every variant and a
-#: direct-collocation ``J*`` solve (seconds), so 10^4 states are about a day of CPU,
-#: far above the handful a sweep uses.
-MAX_INITIAL_STATES = 10_000
-
-#: Most ``montecarlo --runs``: each run is a closed-loop simulation (about a second on the
-#: cart-pole) and a file in ``runs/``, and the envelope figure holds every run's trajectory
-#: in memory (10^4 cart-pole runs: about 0.4 GB), far above the tens a study uses.
-MAX_RUNS = 10_000
 
 
 def check_output_directory(target: Path) -> Path:
@@ -1355,9 +1347,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--checkpoints",
-        type=_count_at_most(
-            MAX_CHECKPOINTS, "a learning curve needs far fewer checkpoints (default 10)"
-        ),
+        type=_count_at_most(MAX_CHECKPOINTS, CHECKPOINTS_FIX),
         default=10,
         metavar="K",
         help="evaluate the policy in force at K + 1 times 0, T/K, ..., T, true state fed "
@@ -1404,10 +1394,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ab.add_argument(
         "--initial-states",
-        type=_count_at_most(
-            MAX_INITIAL_STATES,
-            "split the sweep into several --out folders with other --seed values",
-        ),
+        type=_count_at_most(MAX_INITIAL_STATES, INITIAL_STATES_FIX),
         default=0,
         metavar="K",
         help="states sampled in the observer box, besides the scenario's x0 (default 0; "
@@ -1449,10 +1436,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("scenario", help="scenario YAML file")
     mc.add_argument(
         "--runs",
-        type=_count_at_most(
-            MAX_RUNS,
-            "split the sweep into several --out folders (--seed S runs seeds S, S + 1, ...)",
-        ),
+        type=_count_at_most(MAX_RUNS, RUNS_FIX),
         required=True,
         metavar="N",
         help=f"number of runs (at most {MAX_RUNS})",

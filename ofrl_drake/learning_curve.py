@@ -31,7 +31,7 @@ from pydrake.systems.framework import DiagramBuilder, EventStatus
 from pydrake.systems.primitives import ConstantVectorSource
 
 from ofrl_drake.checks import (
-    integer_at_least,
+    count_at_most,
     number_from_json,
     number_to_json,
     optional_number_from_json,
@@ -54,6 +54,7 @@ from ofrl_drake.learning import (
     value_matrix,
     value_weights,
 )
+from ofrl_drake.limits import CHECKPOINTS_FIX, MAX_CHECKPOINTS
 from ofrl_drake.scenario import Scenario, abort_box
 from ofrl_drake.simulation import (
     SUMMARY_FILE,
@@ -399,11 +400,13 @@ def learning_curve(
         evaluated (step ``"learning curve"``; the message names the
         checkpoint it stopped at, the budget and how to allow more).
     """
-    integer_at_least(
+    count_at_most(
         "learning_curve: checkpoints (the intervals between checkpoints; "
         "learning_report(checkpoints=0) switches the curve off)",
         checkpoints,
         1,
+        MAX_CHECKPOINTS,
+        CHECKPOINTS_FIX,
         error=ScenarioError,
     )
     budget = _budget("learning_curve", max_wall_time, started)
@@ -803,10 +806,12 @@ def learning_report(
         ``"learning curve"``, the message naming where it stopped, the budget
         and the fix: a larger ``--max-wall`` or fewer ``--checkpoints``).
     """
-    integer_at_least(
+    count_at_most(
         "learning_report: checkpoints (0 switches the learning curve off)",
         checkpoints,
         0,
+        MAX_CHECKPOINTS,
+        CHECKPOINTS_FIX,
         error=ScenarioError,
     )
     budget = _budget("learning_report", max_wall_time, started)

@@ -40,8 +40,15 @@ import numpy as np
 
 from ofrl_drake.ablation_metrics import rms_estimation_error
 from ofrl_drake.atomic import atomic_write_text
-from ofrl_drake.checks import MAX_DRAKE_SEED, drake_seed, integer_at_least, is_real_number
+from ofrl_drake.checks import (
+    MAX_DRAKE_SEED,
+    count_at_most,
+    drake_seed,
+    integer_at_least,
+    is_real_number,
+)
 from ofrl_drake.errors import OfrlError, OutputError, status_line
+from ofrl_drake.limits import MAX_RUNS, RUNS_FIX
 from ofrl_drake.plants import check_dynamics, dynamics_fingerprints
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
@@ -329,7 +336,8 @@ def montecarlo(
     Raises
     ------
     MonteCarloError
-        Before any run: for bad arguments (``runs``, ``seed``, a last
+        Before any run: for bad arguments (``runs`` not an integer from 1 to
+        :data:`~ofrl_drake.limits.MAX_RUNS`, ``seed``, a last
         measurement seed ``seed + runs - 1`` above ``2**32 - 1``, which Drake
         cannot keep, a ``mass_spread`` that is not a number in ``[0, 1)``, an
         ``optimal_cost`` that is not a number >= 0 or NaN), an existing table
@@ -342,7 +350,14 @@ def montecarlo(
         to no row of the table cannot be removed.
     """
     check_scenario(scenario, "montecarlo")
-    integer_at_least("runs (--runs)", runs, 1, error=MonteCarloError)
+    count_at_most(
+        "runs (--runs)",
+        runs,
+        1,
+        MAX_RUNS,
+        RUNS_FIX,
+        error=MonteCarloError,
+    )
     integer_at_least("seed (--seed)", seed, 0, error=MonteCarloError)
     _check_seeds(seed, runs)
     if not (is_real_number(mass_spread) and math.isfinite(mass_spread) and 0 <= mass_spread < 1):

@@ -466,6 +466,42 @@ HUGE_COUNTS = [
 ]
 
 
+def test_the_python_functions_refuse_the_same_huge_counts(paper_scenario):
+    # The limits were the command line's alone: montecarlo(scenario, 10**9) from Python
+    # ran out of memory, sample_initial_states(scenario, 10**9, 0) took 16 GB.
+    from ofrl_drake.ablation_grid import AblationError, sample_initial_states
+    from ofrl_drake.errors import ScenarioError
+    from ofrl_drake.learning_curve import learning_curve, learning_report
+    from ofrl_drake.limits import MAX_CHECKPOINTS, MAX_INITIAL_STATES, MAX_RUNS
+    from ofrl_drake.monte_carlo import MonteCarloError, montecarlo
+
+    huge = 10**9
+    with pytest.raises(
+        AblationError,
+        match=rf"^count \(--initial-states\): 1000000000 is more than the limit of "
+        rf"{MAX_INITIAL_STATES}; split the sweep into several --out folders with other --seed "
+        r"values\.$",
+    ):
+        sample_initial_states(paper_scenario, huge, 0)
+    assert sample_initial_states(paper_scenario, MAX_INITIAL_STATES, 0).shape == (10_001, 2)
+    with pytest.raises(
+        MonteCarloError,
+        match=rf"^runs \(--runs\): 1000000000 is more than the limit of {MAX_RUNS}; split the "
+        r"sweep into several --out folders",
+    ):
+        montecarlo(paper_scenario, huge)
+    for function, name in (
+        (learning_curve, "learning_curve"),
+        (learning_report, "learning_report"),
+    ):
+        with pytest.raises(
+            ScenarioError,
+            match=rf"^{name}: checkpoints .*: 1000000000 is more than the limit of "
+            rf"{MAX_CHECKPOINTS}; a learning curve needs far fewer checkpoints \(default 10\)\.$",
+        ):
+            function(None, None, checkpoints=huge)
+
+
 @pytest.mark.parametrize(
     ("command", "option", "limit", "extra"), HUGE_COUNTS, ids=[c for c, *_ in HUGE_COUNTS]
 )
@@ -474,9 +510,10 @@ def test_a_huge_count_is_refused_while_parsing_naming_the_limit(
 ):
     # A billion checkpoints, initial states or runs took gigabytes (or a MemoryError, with a
     # folder holding only montecarlo.json) before anything was written.
-    from ofrl_drake import cli
+    from ofrl_drake import cli, limits
 
-    most = getattr(cli, limit)
+    most = getattr(limits, limit)
+    assert getattr(cli, limit) == most  # the command line refuses what the library does
     assert 1000 <= most < 1_000_000_000
     out = tmp_path / "o"
     args = [command, str(PAPER_SCENARIO), *extra, "--out", str(out)]

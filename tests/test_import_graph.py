@@ -21,6 +21,7 @@ LAYERS = {
         "errors",
         "_jit",
         "checks",
+        "limits",
         "contracts",
         "drake_typing",
         "atomic",
