@@ -416,9 +416,12 @@ def _run(args: argparse.Namespace) -> int:
     loop = build_closed_loop(scenario)
     started = time.monotonic()  # --max-wall: the simulation and the learning curve share it
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
-    verification = _verify(loop.design, loop.parts.system)
+    budget = loop.parts.scenario.simulation.max_wall_time
+    verification, unverified = _verify(loop.design, loop.parts.system, budget, started)
     if verification is not None and result.design is not None:
         result.design = {**result.design, "verification": verification.to_dict()}
+    if unverified is not None:
+        result.reports["verification_stop"] = unverified
     learning = _learning_report(args, loop, result, started)
     result.reports.update(learning.to_dict())
     figure_inputs = FigureInputs.of(scenario)
@@ -471,6 +474,8 @@ def _run(args: argparse.Namespace) -> int:
     if verification is not None and loop.design is not None:  # verified only with a design
         line = verification.verdict(loop.design.is_decay_certified)
         print(f"observer: {line}" + (f" {CERTIFICATE_DOCS}" if verification.falsified else ""))
+    elif unverified is not None and learning.curve_stop is not None:  # the curve's line is last
+        print(f"note: {unverified}.", file=sys.stderr)
     s = result.summary()
     if not s["regulated"]:
         print(_not_regulated(s["regulation"]), file=sys.stderr)
@@ -484,6 +489,13 @@ def _run(args: argparse.Namespace) -> int:
         print(
             f"stopped: timeout: {learning.curve_stop.rstrip('.')}; wrote {out} with the whole "
             f"run{no_curve}",
+            file=sys.stderr,
+        )
+        return EXIT_STOPPED
+    if unverified is not None:  # the run is whole and reported above; its verification is not
+        print(
+            f"stopped: timeout: {unverified}; wrote {out} with the whole run, without the "
+            "observer's verification (summary.json -> verification_stop)",
             file=sys.stderr,
         )
         return EXIT_STOPPED
@@ -871,14 +883,30 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
 
 
 def _verify(
-    design: ObserverDesign | None, system: ControlAffineSystem
-) -> VerificationReport | None:
-    """The fast falsification attempt shown next to every design (None without one)."""
+    design: ObserverDesign | None,
+    system: ControlAffineSystem,
+    budget: float | None = None,
+    started: float = 0.0,
+) -> tuple[VerificationReport | None, str | None]:
+    """The fast falsification attempt shown next to every design, or why there is none.
+
+    ``(None, None)`` without a design. With ``budget`` (``--max-wall``, counted
+    from ``started``, a ``time.monotonic()`` reading) the search stops when it
+    is spent: ``(None, why)``.
+    """
     if design is None:
-        return None
+        return None, None
+    from ofrl_drake.errors import WallTimeExceeded
     from ofrl_drake.verification import verify_observer
 
-    return verify_observer(design, system)
+    deadline = None if budget is None else started + budget
+    try:
+        return verify_observer(design, system, deadline=deadline), None
+    except WallTimeExceeded as err:
+        return None, (
+            f"the observer's verification did not finish within max_wall_time (--max-wall) = "
+            f"{budget:g} s: {one_line(err)}; allow more wall time (a larger --max-wall)"
+        )
 
 
 def _cmd_verify_observer(args: argparse.Namespace) -> int:

@@ -46,7 +46,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.optimize import minimize
 
-from ofrl_drake.errors import OfrlError
+from ofrl_drake.checks import is_real_number
+from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.jacobian_bounds import MAX_POINTS, Box, symbolic_jacobians
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_batch
@@ -532,6 +533,7 @@ def verify_observer(
     refine: bool = True,
     starts: int = 8,
     tol: float = DEFAULT_TOLERANCE,
+    deadline: float | None = None,
 ) -> VerificationReport:
     """Search for the worst decay rate of ``e^T P e`` under the true error dynamics.
 
@@ -553,6 +555,9 @@ def verify_observer(
         Refinement starts per search.
     tol : float
         Relative tolerance of :attr:`VerificationReport.falsified`.
+    deadline : float, optional
+        A ``time.monotonic()`` reading: the search stops at its next chunk of
+        samples or refinement start after it. None: no limit.
 
     Returns
     -------
@@ -561,8 +566,11 @@ def verify_observer(
     Raises
     ------
     VerificationError
-        For a bad ``samples``, ``seed``, ``starts`` or ``tol``, or a design
-        without a positive definite ``P``.
+        For a bad ``samples``, ``seed``, ``starts``, ``tol`` or ``deadline``,
+        or a design without a positive definite ``P``.
+    WallTimeExceeded
+        If ``deadline`` passed before the search was done (step
+        ``"verification"``): a search cut short is no report.
 
     Examples
     --------
@@ -585,7 +593,20 @@ def verify_observer(
         )
     if not (isinstance(tol, int | float) and math.isfinite(tol) and tol >= 0):
         raise VerificationError(f"tol must be a finite number >= 0; got {tol!r}.")
+    if deadline is not None and not (is_real_number(deadline) and math.isfinite(deadline)):
+        raise VerificationError(
+            f"deadline must be a time.monotonic() reading or None; got {deadline!r}."
+        )
     start = time.perf_counter()
+
+    def on_time(stage: str) -> None:
+        if deadline is not None and time.monotonic() >= deadline:
+            raise WallTimeExceeded(
+                f"the observer's verification ran out of wall time "
+                f"{time.perf_counter() - start:.3g} s into its search, before {stage}",
+                step="verification",
+            )
+
     P, gains, box, alpha, input_bound = _design_numbers(design, system)
     jac, jac_kind = _jacobian_function(system)
     n, m = system.n, system.m
@@ -602,7 +623,9 @@ def verify_observer(
     limit_violations = 0
     limit_starts: list[tuple[float, np.ndarray, np.ndarray]] = []
     V = 1
-    for sl in _chunks(samples, 3**m if 3**m <= MAX_INPUT_VERTICES else 1):
+    chunks = _chunks(samples, 3**m if 3**m <= MAX_INPUT_VERTICES else 1)
+    for k, sl in enumerate(chunks):
+        on_time(f"chunk {k + 1} of {len(chunks)} of the small-error search")
         (Xs,), Us, V = _tile(rng, [X[:, sl]], input_bound, m)
         rates, dirs = _limit_from_jacobians(_error_jacobians(system, gains, jac, Xs, Us), P)
         per = rates.reshape(-1, V)
@@ -623,7 +646,8 @@ def verify_observer(
     finite = _Best()
     finite_violations = 0
     finite_starts: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
-    for sl in _chunks(samples, 3**m if 3**m <= MAX_INPUT_VERTICES else 1):
+    for k, sl in enumerate(chunks):
+        on_time(f"chunk {k + 1} of {len(chunks)} of the finite-error search")
         (Xs, Xh), Us, V = _tile(rng, [X1[:, sl], X2[:, sl]], input_bound, m)
         rates = _rates(system, gains, P, Xs, Xh, Us)
         rates = np.where(np.isfinite(rates), rates, -math.inf)
@@ -643,7 +667,8 @@ def verify_observer(
     # -- local refinement from the worst samples of each search
     if refine and starts > 0:
         limit_starts.sort(key=lambda s: -s[0])
-        for _, x0, u0 in limit_starts[:starts]:
+        for k, (_, x0, u0) in enumerate(limit_starts[:starts]):
+            on_time(f"refinement {k + 1} of the small-error limit")
 
             def limit_objective(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
                 U = np.repeat(u0[:, None], Z.shape[1], axis=1)
@@ -658,7 +683,8 @@ def verify_observer(
                 limit = _Best(value, z, z.copy(), u, d[0])
         finite_starts.sort(key=lambda s: -s[0])
         floor = _MIN_FINITE_ERROR * float(np.max(width))
-        for _, x0, xh0, u0 in finite_starts[:starts]:
+        for k, (_, x0, xh0, u0) in enumerate(finite_starts[:starts]):
+            on_time(f"refinement {k + 1} of the finite errors")
 
             def finite_objective(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
                 U = np.repeat(u0[:, None], Z.shape[1], axis=1)

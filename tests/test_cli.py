@@ -738,6 +738,38 @@ def test_max_wall_bounds_j_star_of_run_optimal(tmp_path, capsys, monkeypatch):
     assert curve and all(math.isfinite(point["optimality_ratio"]) for point in curve)
 
 
+def test_max_wall_bounds_the_observers_verification(tmp_path, capsys, monkeypatch):
+    # The verification of the design (26 s on the quadrotor) ran whatever --max-wall said.
+    # Now its search stops with the budget; the run is kept whole, and exit 3 says why.
+    from ofrl_drake import verification
+    from ofrl_drake.cli import main
+
+    late = types.SimpleNamespace(
+        monotonic=lambda: time.monotonic() + 9e4, perf_counter=time.perf_counter
+    )
+    monkeypatch.setattr(verification, "time", late)
+    out = tmp_path / "out"
+    args = ["run", str(_short_scenario(tmp_path)), "--out", str(out), "--quiet"]
+    assert main([*args, "--checkpoints", "0", "--max-wall", "600"]) == 3
+    captured = capsys.readouterr()
+    assert f"wrote {out}: |x(T)| = " in captured.out and "observer:" not in captured.out
+    assert re.fullmatch(
+        r"stopped: timeout: the observer's verification did not finish within max_wall_time "
+        r"\(--max-wall\) = 600 s: the observer's verification ran out of wall time [\d.e-]+ s "
+        r"into its search, before chunk 1 of 1 of the small-error search; allow more wall time "
+        rf"\(a larger --max-wall\); wrote {re.escape(str(out))} with the whole run, without the "
+        r"observer's verification \(summary.json -> verification_stop\)",
+        captured.err.strip().splitlines()[-1],
+    ), captured.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "ok" and "verification" not in summary["observer_design"]
+    assert summary["verification_stop"].startswith("the observer's verification did not")
+    assert "verification" not in json.loads((out / "observer_design.json").read_text())
+    # Without a budget the search has no deadline.
+    assert main([*args, "--checkpoints", "0"]) == 0
+    assert "observer: " in capsys.readouterr().out
+
+
 def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):
     # The simulation used the whole --max-wall: the learning curve used to run after it
     # anyway, unbounded; now the folder says it was not evaluated, and exit 3 as before.

@@ -264,3 +264,34 @@ def test_every_shipped_design_is_falsified_exactly_when_it_is_not_sound(path):
         assert "decay-certified and not falsified" in report.verdict(True)
     else:
         assert report.falsified, f"{path.name}: {report.summary_line()}"
+
+
+def test_the_search_stops_at_its_deadline(two_state, sound_design, monkeypatch):
+    """The verification ran as long as its search took, whatever --max-wall said."""
+    import time
+    import types
+
+    from ofrl_drake import WallTimeExceeded, verification
+
+    report = verify_observer(sound_design, two_state, samples=500, starts=2)
+    later = verify_observer(
+        sound_design, two_state, samples=500, starts=2, deadline=time.monotonic() + 3600
+    )
+    assert later.worst_rate == report.worst_rate and later.x.tolist() == report.x.tolist()
+    with pytest.raises(
+        WallTimeExceeded,
+        match=r"^the observer's verification ran out of wall time [\d.e-]+ s into its search, "
+        r"before chunk 1 of 1 of the small-error search$",
+    ) as err:
+        verify_observer(sound_design, two_state, samples=500, deadline=time.monotonic())
+    assert err.value.step == "verification"
+    # A deadline that passes during the search: here after the two sampled searches.
+    readings = iter(range(2))
+    clock = types.SimpleNamespace(
+        monotonic=lambda: next(readings, 10), perf_counter=time.perf_counter
+    )
+    monkeypatch.setattr(verification, "time", clock)
+    with pytest.raises(WallTimeExceeded, match=r"before refinement 1 of the small-error limit$"):
+        verify_observer(sound_design, two_state, samples=500, starts=2, deadline=5.0)
+    with pytest.raises(VerificationError, match=r"deadline must be a time\.monotonic\(\) reading"):
+        verify_observer(sound_design, two_state, deadline="soon")
