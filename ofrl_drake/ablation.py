@@ -88,12 +88,14 @@ from ofrl_drake.optimal import (
     Trajectory,
     checked_mesh,
     solver_name,
+    solving,
 )
 from ofrl_drake.plants import dynamics_fingerprints
 from ofrl_drake.scenario import Scenario, check_scenario, validate_scenario
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import (
     DYNAMICS_KEY,
+    OPTIMAL_KEY,
     SweepFiles,
     SweepStore,
     describe_difference,
@@ -296,7 +298,7 @@ def _plan(
         "variants": {v.name: dict(v.choices) for v in variants},
         "scenario_values": dataclasses.asdict(scenario),
         DYNAMICS_KEY: dynamics,
-        "optimal": {"mesh": dataclasses.asdict(checked_mesh(mesh)), "solver": solver_name(solver)},
+        OPTIMAL_KEY: solving(mesh, solver),
     }
 
 
@@ -330,16 +332,7 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
             f"the folder's sweep has a horizon of {old.get('duration')} s, "
             f"this one {new['duration']} s"
         )
-    if "optimal" not in old:
-        return (
-            "the folder's sweep was written by an earlier ofrl_drake, whose J* was not "
-            "checked against a finer grid: its rows' J* and this sweep's would differ"
-        )
-    if old["optimal"] != new["optimal"]:
-        return (
-            f"the folder's sweep solved J* with {old['optimal']}, this one with "
-            f"{new['optimal']}: rows of one initial state would have different J*"
-        )
+
     if "scenario_values" in old:
         where = describe_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:

@@ -46,6 +46,7 @@ from ofrl_drake.checks import (
     drake_seed,
     integer_at_least,
     is_real_number,
+    number_to_json,
 )
 from ofrl_drake.errors import OfrlError, OutputError, status_line
 from ofrl_drake.limits import MAX_RUNS, RUNS_FIX
@@ -54,6 +55,7 @@ from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_
 from ofrl_drake.sweep import execute, split_consecutive, worker_threads
 from ofrl_drake.sweep_store import (
     DYNAMICS_KEY,
+    OPTIMAL_KEY,
     SweepFiles,
     SweepStore,
     describe_difference,
@@ -175,15 +177,13 @@ def run_seeds(
     try:
         check_dynamics(scenario, dynamics)
     except Exception as err:
-        for k in ks:
-            _, perturbation = run_for(scenario, seed, k, mass_spread)
-            out.append(_failed(seed + k, perturbation, err, time.perf_counter()))
-        return out
+        return [_failed(seed + k, {}, err, time.perf_counter()) for k in ks]
     loop: Any = None
     for k in ks:
-        run, perturbation = run_for(scenario, seed, k, mass_spread)
         start = time.perf_counter()
+        perturbation: dict[str, float] = {}  # unknown if drawing the truth fails
         try:
+            run, perturbation = run_for(scenario, seed, k, mass_spread)
             if loop is None or mass_spread > 0:
                 design = None if loop is None else loop.design
                 loop = build_closed_loop(run, design=design)
@@ -246,8 +246,17 @@ def read_montecarlo_rows(path: str | os.PathLike[str], *, repair: bool = False) 
 
 
 def _plan(
-    scenario: Scenario, runs: int, seed: int, mass_spread: float, dynamics: dict[str, str | None]
+    scenario: Scenario,
+    runs: int,
+    seed: int,
+    mass_spread: float,
+    dynamics: dict[str, str | None],
+    optimal_cost: float | None,
 ) -> dict[str, Any]:
+    """The contents of ``montecarlo.json``: what defines the sweep, and how J* is had."""
+    from ofrl_drake.optimal import solving
+
+    given = None if optimal_cost is None else {"optimal_cost": number_to_json(optimal_cost)}
     return {
         "scenario": scenario.name,
         "runs": int(runs),
@@ -255,6 +264,7 @@ def _plan(
         "mass_spread": float(mass_spread),
         "scenario_values": dataclasses.asdict(scenario),
         DYNAMICS_KEY: dynamics,
+        OPTIMAL_KEY: solving(None, None) if given is None else given,
     }
 
 
@@ -380,7 +390,7 @@ def montecarlo(
         contextlib.nullcontext([])
         if store is None
         else store.recording(
-            _plan(scenario, runs, seed, mass_spread, dynamics),
+            _plan(scenario, runs, seed, mass_spread, dynamics, optimal_cost),
             resume=resume,
             mismatch=_resume_mismatch,
         )

@@ -97,7 +97,6 @@ from ofrl_drake.scenario import Scenario, validate_scenario
 __all__ = [
     "SMALL_COST",
     "SOLVERS",
-    "SOLVER_TOLERANCE",
     "Mesh",
     "OptimalControlResult",
     "OptimalCostCache",
@@ -108,17 +107,15 @@ __all__ = [
     "problem_key",
     "solve_optimal_control",
     "solver_name",
+    "solving",
 ]
 
 #: Nonlinear-programming solvers tried, by name.
 SOLVERS = ("snopt", "ipopt")
 
-#: The solvers' default absolute tolerance on each constraint (SNOPT's major
-#: feasibility tolerance; IPOPT's is tighter). A ``J*`` below
-#: :data:`SMALL_COST` can be limited by it rather than by the grid: from the
-#: paper's example at ``x0 = (1e-4, 0)`` (``J* = 2.3e-8``) grids solve to
-#: values 50 % apart.
-SOLVER_TOLERANCE = 1e-6
+#: A ``J*`` below this can be limited by the solver's tolerances rather than by
+#: the grid: from the paper's example at ``x0 = (1e-4, 0)`` (``J* = 2.3e-8``)
+#: SNOPT's grids solve to values 50 % apart, where IPOPT's settle.
 SMALL_COST = 1e-4
 
 
@@ -403,6 +400,17 @@ def _solver(name: str | None) -> Any:
     return name, solver
 
 
+def solving(mesh: Mesh | None, solver: str | None) -> dict[str, Any]:
+    """How ``J*`` is solved, as a sweep's plan records it: the mesh and the solver's name.
+
+    Raises
+    ------
+    OfrlError
+        If ``mesh`` is not a :class:`Mesh` or ``solver`` not an available solver.
+    """
+    return {"mesh": asdict(checked_mesh(mesh)), "solver": solver_name(solver)}
+
+
 def solver_name(solver: str | None) -> str:
     """The solver ``solver`` names (None: SNOPT if available, else IPOPT).
 
@@ -631,10 +639,10 @@ def solve_optimal_control(
     if mesh.refinements == 0:
         return result(accepted.cost, "ok", accepted, math.nan)
     values = ", ".join(f"{cost:.7g} on {k}" for cost, k in settled)
+    other = next(s for s in SOLVERS if s != name)
     small = (
-        f"; a J* below {SMALL_COST:g} may be limited by the solver's absolute tolerance "
-        f"({SOLVER_TOLERANCE:g} on each collocation constraint) instead, which no grid "
-        "improves: start farther from the equilibrium"
+        f"; a J* below {SMALL_COST:g} may be limited by {name}'s tolerances instead, which "
+        f"no grid improves: try solver={other!r}, or start farther from the equilibrium"
         if max(cost for cost, _ in settled) < SMALL_COST
         else ""
     )

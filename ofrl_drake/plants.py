@@ -539,5 +539,6 @@ def check_dynamics(scenario: Any, expected: Mapping[str, str | None] | None) -> 
                 f"the {role} dynamics on {socket.gethostname()} (pid {os.getpid()}) differ from "
                 f"those the sweep was started with (fingerprint {here.get(role)} against "
                 f"{expected.get(role)}): give every worker the same copy of the plant's module "
-                "and model files as the client, and restart workers after an edit."
+                "and model files as the client, and restart workers after an edit; then "
+                "--resume --retry-failed runs these rows again."
             )

@@ -223,8 +223,42 @@ def describe_difference(old: Any, new: Any) -> str | None:
 DYNAMICS_KEY = "dynamics"
 
 
+#: The key of a plan that holds how the sweep's ``J*`` is had: solved (the
+#: ``Mesh`` with its check, and the solver) or given. :class:`SweepStore`
+#: compares it itself, like :data:`DYNAMICS_KEY`: rows scored against two
+#: different ``J*`` must not share a table.
+OPTIMAL_KEY = "optimal"
+
+#: What a refused ``--resume`` suggests, unless the difference has its own fix.
+RESUME_FIX = "resume with the sweep's own arguments, or choose another --out"
+
+
 def _without_dynamics(plan: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in plan.items() if k != DYNAMICS_KEY}
+    return {k: v for k, v in plan.items() if k not in (DYNAMICS_KEY, OPTIMAL_KEY)}
+
+
+def _optimal_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
+    """Why the rows of plan ``new`` would be scored against another ``J*`` than ``old``'s."""
+    if OPTIMAL_KEY not in new or old.get(OPTIMAL_KEY) == new[OPTIMAL_KEY]:
+        return None
+    if OPTIMAL_KEY not in old:
+        return (
+            "the folder's sweep was written by an ofrl_drake that did not record how J* is "
+            "had (before J* was checked on a finer grid), so its rows' J* may differ from "
+            "this sweep's; start the sweep again in another --out"
+        )
+    return (
+        f"the folder's sweep had J* {_how(old[OPTIMAL_KEY])}, this one {_how(new[OPTIMAL_KEY])}: "
+        f"rows would be scored against different J*; {RESUME_FIX}"
+    )
+
+
+def _how(optimal: Mapping[str, Any]) -> str:
+    """How a plan's :data:`OPTIMAL_KEY` had ``J*``, in words."""
+    if "optimal_cost" in optimal:
+        return f"given as {optimal['optimal_cost']!r}"
+    mesh = ", ".join(f"{k}={v!r}" for k, v in optimal["mesh"].items())
+    return f"solved by {optimal['solver']} on Mesh({mesh})"
 
 
 def _dynamics_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
@@ -471,10 +505,10 @@ class SweepStore:
             why = mismatch(_without_dynamics(old), _without_dynamics(new))
             why = why if why is not None else _dynamics_difference(old, new)
             if why is not None:
-                raise self.files.error(
-                    f"--resume: {why}; resume with the sweep's own arguments, or choose another "
-                    "--out."
-                )
+                raise self.files.error(f"--resume: {why}; {RESUME_FIX}.")
+            why = _optimal_difference(old, new)  # a message with its own fix
+            if why is not None:
+                raise self.files.error(f"--resume: {why}.")
             return
         atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
 

@@ -590,9 +590,10 @@ def test_resume_refuses_another_way_of_solving_j_star(paper_scenario, tmp_path):
     assert plan["optimal"] == {"mesh": dataclasses.asdict(coarse), "solver": "snopt"}
     with pytest.raises(
         AblationError,
-        match=r"^--resume: the folder's sweep solved J\* with \{'mesh': \{.*'refinements': 0\}, "
-        r"'solver': 'snopt'\}, this one with \{'mesh': \{.*'refinements': 3\}, 'solver': "
-        r"'snopt'\}: rows of one initial state would have different J\*; resume with",
+        match=r"^--resume: the folder's sweep had J\* solved by snopt on Mesh\(initial_step=0\.05, "
+        r"growth=1\.03, max_step=0\.5, rtol=0\.001, refinements=0\), this one solved by snopt on "
+        r"Mesh\(.*refinements=3\): rows would be scored against different J\*; resume with the "
+        r"sweep's own arguments, or choose another --out\.$",
     ):
         ablate(paper_scenario, variants, out=tmp_path, resume=True, duration=0.5)
     rows = ablate(paper_scenario, variants, out=tmp_path, resume=True, duration=0.5, mesh=coarse)
@@ -602,8 +603,9 @@ def test_resume_refuses_another_way_of_solving_j_star(paper_scenario, tmp_path):
     (tmp_path / "ablation.json").write_text(json.dumps(plan))
     with pytest.raises(
         AblationError,
-        match=r"^--resume: the folder's sweep was written by an earlier ofrl_drake, whose J\* was "
-        r"not checked against a finer grid",
+        match=r"^--resume: the folder's sweep was written by an ofrl_drake that did not record "
+        r"how J\* is had \(before J\* was checked on a finer grid\), so its rows' J\* may differ "
+        r"from this sweep's; start the sweep again in another --out\.$",
     ):
         ablate(paper_scenario, variants, out=tmp_path, resume=True, duration=0.5, mesh=coarse)
 

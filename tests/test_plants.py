@@ -320,7 +320,8 @@ def test_an_edited_plant_module_or_model_file_is_built_again(plant_folder, tmp_p
 _OTHER_PLANT = (
     r"ScenarioError: the model dynamics on \S+ \(pid \d+\) differ from those the sweep was "
     r"started with \(fingerprint \w+ against {client}\): give every worker the same copy of the "
-    r"plant's module and model files as the client, and restart workers after an edit\."
+    r"plant's module and model files as the client, and restart workers after an edit; then "
+    r"--resume --retry-failed runs these rows again\."
 )
 
 

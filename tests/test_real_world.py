@@ -293,6 +293,34 @@ def test_montecarlo_statuses_resume_and_refusals(real, tmp_path):
         montecarlo(short, 0)
 
 
+def test_montecarlo_resume_refuses_another_j_star(paper_scenario, tmp_path):
+    """Before: a resume with another optimal_cost (or J* solved another way) mixed two J*."""
+    short = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=0.5),
+    )
+    montecarlo(short, 2, out=tmp_path, optimal_cost=1.0, progress=False)
+    plan = json.loads((tmp_path / "montecarlo.json").read_text())
+    assert plan["optimal"] == {"optimal_cost": 1.0}
+    with pytest.raises(
+        MonteCarloError,
+        match=r"^--resume: the folder's sweep had J\* given as 1\.0, this one given as 2\.0: rows "
+        r"would be scored against different J\*; resume with the sweep's own arguments, or "
+        r"choose another --out\.$",
+    ):
+        montecarlo(short, 2, out=tmp_path, resume=True, optimal_cost=2.0, progress=False)
+    with pytest.raises(
+        MonteCarloError, match=r"had J\* given as 1\.0, this one solved by snopt on Mesh\("
+    ):
+        montecarlo(short, 2, out=tmp_path, resume=True, progress=False)
+    rows = montecarlo(short, 2, out=tmp_path, resume=True, optimal_cost=1.0, progress=False)
+    assert [row["optimal_cost"] for row in rows] == [1.0, 1.0]
+    del plan["optimal"]  # a folder of an ofrl_drake that did not record it
+    (tmp_path / "montecarlo.json").write_text(json.dumps(plan))
+    with pytest.raises(MonteCarloError, match=r"did not record how J\* is had"):
+        montecarlo(short, 2, out=tmp_path, resume=True, optimal_cost=1.0, progress=False)
+
+
 def test_montecarlo_resume_refuses_a_cut_short_or_missing_plan_before_any_run(real, tmp_path):
     """The folder is the ablation's store: its refusals come before J* and any run."""
     from ofrl_drake.monte_carlo import CSV_COLUMNS
@@ -615,3 +643,20 @@ def test_identical_runs_are_one_curve_and_said_so_once(tmp_path, monkeypatch):
         assert not any(isinstance(c, PolyCollection) for c in ax.collections)  # no band
         (line,) = ax.get_lines()
         assert line.get_label() == "all 2 runs (identical)"
+
+
+def test_run_seeds_records_a_truth_it_cannot_build_instead_of_raising(real):
+    """Before: with a mass spread, a truth that failed to build escaped the task ("never
+    raises"), and the whole sweep stopped instead of recording the runs' status."""
+    from ofrl_drake.monte_carlo import run_seeds
+
+    bad = dataclasses.replace(
+        real, truth=dataclasses.replace(real.truth, body_mass_scale={"no_such_body": 1.1})
+    )
+    rows = run_seeds(bad, 7, [0, 1], 0.1)
+    assert [r["row"]["seed"] for r in rows] == ["7", "8"]
+    assert all(
+        r["row"]["status"].startswith("ScenarioError: truth.body_mass_scale.no_such_body: no body")
+        and r["row"]["perturbation"] == "{}"
+        for r in rows
+    ), rows
