@@ -593,66 +593,85 @@ def solve_optimal_control(
         mesh, ([("warm start", warm_start)] if warm_start is not None else []) + defaults
     )
 
-    def result(cost: float, status: str, found: _Solved | None, change: float) -> Any:
-        return OptimalControlResult(
-            x0=tuple(float(a) for a in x0),
-            cost=cost,
-            converged=found is not None,
-            status=status,
-            duration=float(duration),
-            solver=name,
-            solve_time=time.perf_counter() - start,
-            warm_started=first.label == "warm start",
-            intervals=0 if found is None else found.intervals,
-            mesh_change=change,
-            trajectory=None if found is None else found.trajectory,
-        )
+    found: _Solved | None
+    if isinstance(first, _Failed):
+        found, status, change = None, _unsolved(first, system.name), math.nan
+    else:
+        found, status, change = _settle(problem, mesh, first, defaults)
+    return OptimalControlResult(
+        x0=tuple(float(a) for a in x0),
+        cost=math.nan if found is None else found.cost,
+        converged=found is not None,
+        status=status,
+        duration=float(duration),
+        solver=name,
+        solve_time=time.perf_counter() - start,
+        warm_started=isinstance(first, _Solved) and first.label == "warm start",
+        intervals=0 if found is None else found.intervals,
+        mesh_change=change,
+        trajectory=None if found is None else found.trajectory,
+    )
 
-    if first.trajectory is None:
-        status = "not converged (" + "; ".join(first.statuses) + ")"
-        if first.domain_failed:
-            status += (
-                f"; the solver's iterates left the region where f and g of the model "
-                f"{system.name!r} are defined: define them on every state (e.g. clip the "
-                "argument of sqrt or log) or start x0 farther from the edge of their domain"
-            )
-        return result(math.nan, status, None, math.nan)
-    accepted, grid, change, best = first, mesh, math.nan, first.trajectory
+
+def _unsolved(first: _Failed, model: str) -> str:
+    """The status of a ``J*`` whose first grid did not converge from any starting guess."""
+    status = "not converged (" + "; ".join(first.statuses) + ")"
+    if first.domain_failed:
+        status += (
+            f"; the solver's iterates left the region where f and g of the model "
+            f"{model!r} are defined: define them on every state (e.g. clip the "
+            "argument of sqrt or log) or start x0 farther from the edge of their domain"
+        )
+    return status
+
+
+def _settle(
+    problem: _Problem, mesh: Mesh, first: _Solved, defaults: list[tuple[str, Trajectory]]
+) -> tuple[_Solved | None, str, float]:
+    """Check ``first`` on grids twice as fine until two agree to ``mesh.rtol``.
+
+    Returns the accepted grid's solve (None if ``J*`` did not settle or a
+    finer grid did not converge), the status and the last relative change.
+    """
+    accepted, grid, change = first, mesh, math.nan
     settled = [(first.cost, first.intervals)]
     for _ in range(mesh.refinements):
         grid = grid.refined()
-        guess = (f"from the grid of {accepted.intervals} intervals", best)
+        guess = (f"from the grid of {accepted.intervals} intervals", accepted.trajectory)
         finer = problem.solve(grid, [guess, *defaults])
-        if finer.trajectory is None:
-            status = (
+        if isinstance(finer, _Failed):
+            return (
+                None,
                 f"not converged (J* = {accepted.cost:.7g} on {accepted.intervals} intervals, "
                 "but the check on a grid twice as fine did not converge: "
                 f"{'; '.join(finer.statuses)}; pass a finer Mesh, or Mesh(refinements=0) "
-                "to accept an unchecked J*)"
+                "to accept an unchecked J*)",
+                math.nan,
             )
-            return result(math.nan, status, None, math.nan)
         change = _relative_change(finer.cost, accepted.cost)
-        accepted, best = finer, finer.trajectory
+        accepted = finer
         settled.append((finer.cost, finer.intervals))
         if change <= mesh.rtol:
-            return result(accepted.cost, "ok", accepted, change)
+            return accepted, "ok", change
     if mesh.refinements == 0:
-        return result(accepted.cost, "ok", accepted, math.nan)
+        return accepted, "ok", math.nan
     values = ", ".join(f"{cost:.7g} on {k}" for cost, k in settled)
-    other = next(s for s in SOLVERS if s != name)
+    other = next(s for s in SOLVERS if s != problem.name)
     small = (
-        f"; a J* below {SMALL_COST:g} may be limited by {name}'s tolerances instead, which "
-        f"no grid improves: try solver={other!r}, or start farther from the equilibrium"
+        f"; a J* below {SMALL_COST:g} may be limited by {problem.name}'s tolerances "
+        f"instead, which no grid improves: try solver={other!r}, or start farther from the "
+        "equilibrium"
         if max(cost for cost, _ in settled) < SMALL_COST
         else ""
     )
-    status = (
+    return (
+        None,
         f"not converged (J* did not settle to rtol {mesh.rtol:g} in {mesh.refinements} "
         f"refinement{'s' if mesh.refinements > 1 else ''}, each grid twice as fine as the "
         f"last: {values} intervals; pass a finer Mesh, more refinements or a larger rtol"
-        f"{small})"
+        f"{small})",
+        change,
     )
-    return result(math.nan, status, None, change)
 
 
 def _relative_change(new: float, old: float) -> float:
@@ -664,18 +683,24 @@ def _relative_change(new: float, old: float) -> float:
 
 @dataclass(frozen=True)
 class _Solved:
-    """The outcome of the attempts on one grid: the trajectory, or why there is none."""
+    """The optimum on one grid: the attempt that converged, and its trajectory."""
 
     label: str
     intervals: int
-    trajectory: Trajectory | None
-    statuses: list[str]
-    domain_failed: bool
+    trajectory: Trajectory
 
     @property
     def cost(self) -> float:
-        """``J*`` on this grid; NaN if no attempt converged."""
-        return math.nan if self.trajectory is None else float(self.trajectory.cost[-1])
+        """``J*`` on this grid."""
+        return float(self.trajectory.cost[-1])
+
+
+@dataclass(frozen=True)
+class _Failed:
+    """Why no attempt on one grid converged: each attempt's status."""
+
+    statuses: list[str]
+    domain_failed: bool
 
 
 @dataclass(frozen=True)
@@ -693,7 +718,7 @@ class _Problem:
     deadline: float | None
     started: float
 
-    def solve(self, mesh: Mesh, attempts: list[tuple[str, Trajectory]]) -> _Solved:
+    def solve(self, mesh: Mesh, attempts: list[tuple[str, Trajectory]]) -> _Solved | _Failed:
         """The first attempt (a label and a starting guess) that converges on ``mesh``."""
         steps = mesh.steps(self.duration)
         n, m, plant = self.n, self.m, self.plant
@@ -745,13 +770,13 @@ class _Problem:
                     u=np.asarray(dircol.GetInputSamples(result), dtype=float).T.copy(),
                     cost=states[n].copy(),
                 )
-                return _Solved(label, steps.size, trajectory, statuses, domain_failed)
+                return _Solved(label, steps.size, trajectory)
             info = getattr(result.get_solver_details(), "info", None)
             detail = f" (info {info})" if info is not None else ""
             if result.is_success():  # the solver's optimum, but no cost
                 detail += f", but its J* = {cost:.3g} is not a number >= 0"
             statuses.append(f"{label}: {self.name} {code.name}{detail}")
-        return _Solved("", steps.size, None, statuses, domain_failed)
+        return _Failed(statuses, domain_failed)
 
 
 def _options(name: str, nlp: Any) -> SolverOptions:
