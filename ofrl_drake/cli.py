@@ -337,7 +337,9 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
         before = time.monotonic() - started  # what the run used before J* began
         try:
             solved = optimal_control(
-                loop.parts.scenario, deadline=None if budget is None else started + budget
+                loop.parts.scenario,
+                solver=args.solver,
+                deadline=None if budget is None else started + budget,
             )
         except WallTimeExceeded as err:  # the run is whole; its curve would have no budget left
             where = (
@@ -408,6 +410,14 @@ def _run(args: argparse.Namespace) -> int:
             f"--checkpoints: must be an integer >= 0 (0 switches the learning curve off); "
             f"got {args.checkpoints}."
         )
+    if args.solver is not None:
+        if not args.optimal:
+            raise OfrlError(
+                f"--solver {args.solver}: chooses the solver of J*; pass --optimal too."
+            )
+        from ofrl_drake.optimal import solver_name
+
+        solver_name(args.solver)  # an unknown or unavailable solver, before the run
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     check_output_directory(Path(args.out))  # fail before the work, not after
     warning = _outside_box_warning(scenario)
@@ -1215,11 +1225,12 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         "resume": args.resume,
         "seed": args.seed,
         "retry_failed": args.retry_failed,
+        "solver": args.solver,
     }
 
     def report(rows: list[dict]) -> int:
         x0_label = initial_state_label(scenario.x0)
-        optimum = OptimalCostCache(out / "optimal").get(scenario, scenario.x0)
+        optimum = OptimalCostCache(out / "optimal", solver=args.solver).get(scenario, scenario.x0)
         write_report(
             out,
             rows,
@@ -1261,7 +1272,12 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         raise MonteCarloError(f"--workers: must be >= 0; got {args.workers}.")
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     out = Path(args.out)
-    options = {"mass_spread": args.mass_spread, "out": out, "resume": args.resume}
+    options = {
+        "mass_spread": args.mass_spread,
+        "out": out,
+        "resume": args.resume,
+        "solver": args.solver,
+    }
 
     def report(rows: list[dict]) -> int:
         write_montecarlo_report(out, rows, scenario.name)
@@ -1320,6 +1336,15 @@ def _count_at_most(most: int, fix: str) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def _solver_option(parser: argparse.ArgumentParser, when: str) -> None:
+    parser.add_argument(
+        "--solver",
+        metavar="NAME",
+        help=f"the nonlinear-programming solver of J* ({when}): snopt or ipopt (default: "
+        "snopt when available; ipopt settles a J* too small for snopt's tolerances)",
+    )
 
 
 def _scheduler_timeout_option(parser: argparse.ArgumentParser) -> None:
@@ -1386,6 +1411,7 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also solve for J* (direct collocation) and report the learning curve as J/J*",
     )
+    _solver_option(run, "with --optimal")
     run.set_defaults(func=_cmd_run)
 
     design = sub.add_parser("design-observer", help="certified observer gains as JSON")
@@ -1429,6 +1455,7 @@ def _parser() -> argparse.ArgumentParser:
         f"at most {MAX_INITIAL_STATES})",
     )
     ab.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the samples")
+    _solver_option(ab, "of every initial state")
     ab.add_argument(
         "--workers",
         type=int,
@@ -1479,6 +1506,7 @@ def _parser() -> argparse.ArgumentParser:
         metavar="F",
         help="scale each body mass of a multibody truth by U[1 - F, 1 + F] per run (default 0)",
     )
+    _solver_option(mc, "of the nominal problem")
     mc.add_argument("--out", required=True, help="output folder (rows streamed as runs finish)")
     mc.add_argument("--resume", action="store_true", help="complete the sweep in --out")
     mc.add_argument("--workers", type=int, metavar="W", help="local Dask workers (0: serial)")

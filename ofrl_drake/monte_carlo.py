@@ -251,12 +251,9 @@ def _plan(
     seed: int,
     mass_spread: float,
     dynamics: dict[str, str | None],
-    optimal_cost: float | None,
+    optimal: dict[str, Any],
 ) -> dict[str, Any]:
     """The contents of ``montecarlo.json``: what defines the sweep, and how J* is had."""
-    from ofrl_drake.optimal import solving
-
-    given = None if optimal_cost is None else {"optimal_cost": number_to_json(optimal_cost)}
     return {
         "scenario": scenario.name,
         "runs": int(runs),
@@ -264,8 +261,28 @@ def _plan(
         "mass_spread": float(mass_spread),
         "scenario_values": dataclasses.asdict(scenario),
         DYNAMICS_KEY: dynamics,
-        OPTIMAL_KEY: solving(None, None) if given is None else given,
+        OPTIMAL_KEY: optimal,
     }
+
+
+def _optimal_plan(optimal_cost: float | None, solver: str | None) -> dict[str, Any]:
+    """How the sweep's J* is had: given, or solved (:func:`~ofrl_drake.optimal.solving`).
+
+    Raises
+    ------
+    OfrlError
+        If ``solver`` is not an available solver.
+    """
+    from ofrl_drake.optimal import solving
+
+    if optimal_cost is None:
+        return solving(None, solver)
+    if solver is not None:
+        raise MonteCarloError(
+            f"solver: J* is given as optimal_cost = {optimal_cost!r}, so no solver {solver!r} "
+            "runs; pass one or the other."
+        )
+    return {"optimal_cost": number_to_json(optimal_cost)}
 
 
 def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | None:
@@ -308,6 +325,7 @@ def montecarlo(
     resume: bool = False,
     progress: bool | None = None,
     optimal_cost: float | None = None,
+    solver: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run ``scenario`` under ``runs`` noise seeds (and sampled truths) and score each run.
 
@@ -337,6 +355,8 @@ def montecarlo(
     optimal_cost : float, optional
         ``J*`` of the nominal problem (a number >= 0, or NaN if unknown);
         solved here when omitted.
+    solver : {"snopt", "ipopt"}, optional
+        The solver of that ``J*`` (default: SNOPT if available).
 
     Returns
     -------
@@ -350,7 +370,8 @@ def montecarlo(
         :data:`~ofrl_drake.limits.MAX_RUNS`, ``seed``, a last
         measurement seed ``seed + runs - 1`` above ``2**32 - 1``, which Drake
         cannot keep, a ``mass_spread`` that is not a number in ``[0, 1)``, an
-        ``optimal_cost`` that is not a number >= 0 or NaN), an existing table
+        ``optimal_cost`` that is not a number >= 0 or NaN, an unknown or
+        unavailable ``solver``), an existing table
         without ``resume``, or a ``resume`` of a different sweep (the first
         differing key named, with the folder's value and this call's);
         during the sweep, for a task that failed outside its own guard (a
@@ -381,6 +402,7 @@ def montecarlo(
             "optimal_cost: must be J* of the nominal problem, a number >= 0 (NaN if unknown), "
             f"or None to solve it here; got {optimal_cost!r}."
         )
+    how = _optimal_plan(optimal_cost, solver)  # refuses an unknown solver before any run
     if mass_spread > 0:
         _bodies(scenario)  # refuse a truth without bodies before any run
     dynamics = dynamics_fingerprints(scenario)  # in the plan, and checked by every task
@@ -390,7 +412,7 @@ def montecarlo(
         contextlib.nullcontext([])
         if store is None
         else store.recording(
-            _plan(scenario, runs, seed, mass_spread, dynamics, optimal_cost),
+            _plan(scenario, runs, seed, mass_spread, dynamics, how),
             resume=resume,
             mismatch=_resume_mismatch,
         )
@@ -399,7 +421,7 @@ def montecarlo(
         if optimal_cost is None:
             from ofrl_drake.optimal import optimal_control
 
-            solved = optimal_control(scenario)
+            solved = optimal_control(scenario, solver=solver)
             optimal_cost = solved.cost if solved.converged else math.nan
         finished = {r["seed"]: r for r in done}
         todo = [k for k in range(runs) if str(seed + k) not in finished]

@@ -659,8 +659,8 @@ def _settle(
     other = next(s for s in SOLVERS if s != problem.name)
     small = (
         f"; a J* below {SMALL_COST:g} may be limited by {problem.name}'s tolerances "
-        f"instead, which no grid improves: try solver={other!r}, or start farther from the "
-        "equilibrium"
+        f"instead, which no grid improves: try solver={other!r} (--solver {other}), or start "
+        "farther from the equilibrium"
         if max(cost for cost, _ in settled) < SMALL_COST
         else ""
     )

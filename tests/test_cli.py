@@ -770,6 +770,40 @@ def test_max_wall_bounds_the_observers_verification(tmp_path, capsys, monkeypatc
     assert "observer: " in capsys.readouterr().out
 
 
+def test_solver_chooses_j_stars_solver_and_a_bad_one_is_refused_before_the_work(tmp_path):
+    # J*'s solver could be chosen only in Python; the status of a tiny J* that SNOPT cannot
+    # settle suggests IPOPT. --solver chooses it; a typo is refused before any run.
+    path = _short_scenario(tmp_path, duration=1.0)
+    out = tmp_path / "out"
+    proc = run_cli("run", path, "--out", out, "--solver", "ipopt")
+    assert proc.returncode == 2 and not out.exists()
+    assert proc.stderr == "error: --solver ipopt: chooses the solver of J*; pass --optimal too.\n"
+    proc = run_cli("run", path, "--out", out, "--optimal", "--solver", "knitro")
+    assert proc.returncode == 2 and not out.exists()
+    assert proc.stderr == (
+        "error: optimal control: solver must be one of ('snopt', 'ipopt'); got 'knitro'.\n"
+    )
+    ab = tmp_path / "ab"
+    proc = run_cli("ablate", path, "--workers", "0", "--out", ab, "--solver", "x")
+    assert proc.returncode == 2 and not ab.exists(), proc.stderr
+    assert "solver must be one of ('snopt', 'ipopt'); got 'x'" in proc.stderr
+    mc = tmp_path / "mc"
+    proc = run_cli(
+        "montecarlo", path, "--runs", "1", "--workers", "0", "--out", mc, "--solver", "x"
+    )
+    assert proc.returncode == 2 and not mc.exists(), proc.stderr
+    assert "solver must be one of ('snopt', 'ipopt'); got 'x'" in proc.stderr
+    proc = run_cli(
+        "montecarlo", path, "--runs", "1", "--workers", "0", "--out", mc, "--solver", "ipopt"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((mc / "montecarlo.json").read_text())["optimal"]["solver"] == "ipopt"
+    from ofrl_drake.monte_carlo import read_montecarlo_rows
+
+    (row,) = read_montecarlo_rows(mc / "montecarlo.csv")
+    assert row["optimal_cost"] == pytest.approx(3.6492, rel=1e-3)  # IPOPT's J*, 1 s horizon
+
+
 def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):
     # The simulation used the whole --max-wall: the learning curve used to run after it
     # anyway, unbounded; now the folder says it was not evaluated, and exit 3 as before.

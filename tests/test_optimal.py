@@ -522,7 +522,7 @@ def test_a_tiny_j_star_that_does_not_settle_names_the_solver_tolerance(paper_sce
     assert not r.converged
     assert r.status.endswith(
         "; a J* below 0.0001 may be limited by snopt's tolerances instead, which no grid "
-        "improves: try solver='ipopt', or start farther from the equilibrium)"
+        "improves: try solver='ipopt' (--solver ipopt), or start farther from the equilibrium)"
     )
     ipopt = optimal_control(paper_scenario, [1e-4, 0.0], mesh=Mesh(refinements=1), solver="ipopt")
     assert ipopt.converged and ipopt.cost == pytest.approx(2.33e-8, rel=0.01)

@@ -660,3 +660,12 @@ def test_run_seeds_records_a_truth_it_cannot_build_instead_of_raising(real):
         and r["row"]["perturbation"] == "{}"
         for r in rows
     ), rows
+
+
+def test_montecarlo_refuses_a_solver_for_a_given_j_star(paper_scenario):
+    with pytest.raises(
+        MonteCarloError,
+        match=r"^solver: J\* is given as optimal_cost = 1\.0, so no solver 'ipopt' runs; pass one "
+        r"or the other\.$",
+    ):
+        montecarlo(paper_scenario, 2, optimal_cost=1.0, solver="ipopt")
