@@ -29,7 +29,7 @@ from pydrake.systems.primitives import Linearize, LinearSystem, SymbolicVectorSy
 from scipy.linalg import solve_continuous_lyapunov
 from scipy.signal import place_poles
 
-from ofrl_drake.errors import ModelError, ScenarioError
+from ofrl_drake.errors import ModelError, ScenarioError, one_line
 from ofrl_drake.model import ControlAffineSystem
 
 __all__ = [
@@ -46,16 +46,33 @@ __all__ = [
 def symbolic_plant(system: ControlAffineSystem) -> SymbolicVectorSystem:
     """``x' = f(x) + g(x) u``, ``y = C x`` as a Drake ``SymbolicVectorSystem``.
 
-    ``f`` and ``g`` are evaluated once on symbolic variables, so the result
+    ``f`` and ``g`` are traced once on symbolic states
+    (:meth:`~ofrl_drake.model.ControlAffineSystem.symbolic`), so the result
     supports Drake's scalar conversion (``Linearize``, trajectory optimization).
+
+    Raises
+    ------
+    ModelError
+        If Drake cannot trace ``f`` or ``g`` (they branch on the state, call
+        scipy...): the baselines that linearize the plant need them symbolic.
     """
-    x = MakeVectorVariable(system.n, "x")
+    try:
+        traced = system.symbolic()
+    except ModelError as err:
+        cause = err.__cause__ or err
+        raise ModelError(
+            f"the baselines that linearize the plant (controller lqr, observer "
+            f"drake_luenberger or kalman) trace f and g on symbolic states, and those of the "
+            f"model {system.name!r} cannot be traced ({type(cause).__name__}: "
+            f"{one_line(cause, 200)}); write f and g with numpy functions (np.cos, np.exp, **) "
+            "and no branches on the state, or choose another variant."
+        ) from err
     u = MakeVectorVariable(system.m, "u")
     # numpy's object loops flag "invalid value" on Drake symbolic values; harmless.
     with np.errstate(invalid="ignore"):
-        dynamics = np.asarray(system.f(x)) + np.asarray(system.g(x)) @ u  # type: ignore[arg-type]  # pydrake array stub
-        output = system.output_matrix @ x
-    return SymbolicVectorSystem(state=x, input=u, dynamics=dynamics, output=output)
+        dynamics = traced.f + traced.g @ u
+        output = system.output_matrix @ traced.x
+    return SymbolicVectorSystem(state=traced.x, input=u, dynamics=dynamics, output=output)
 
 
 def linearize_at_origin(system: ControlAffineSystem, *, tol: float = 1e-9) -> LinearSystem:

@@ -362,8 +362,7 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
             optimal_cost = solved.cost
         else:
             print(
-                f"note: J* did not converge ({solved.status}); the learning curve has no "
-                "optimality ratios.",
+                f"note: J* {solved.status}; the learning curve has no optimality ratios.",
                 file=sys.stderr,
             )
     try:
@@ -424,6 +423,14 @@ def _run(args: argparse.Namespace) -> int:
     if warning:
         print(warning, file=sys.stderr)
     loop = build_closed_loop(scenario)
+    if args.optimal:  # before the run, not after it
+        from ofrl_drake.errors import ModelError
+        from ofrl_drake.optimal import require_traceable
+
+        try:
+            require_traceable(loop.parts.system)
+        except ModelError as err:
+            raise ModelError(f"--optimal: {err} Run without --optimal.") from err
     started = time.monotonic()  # --max-wall: the simulation and the learning curve share it
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
     budget = loop.parts.scenario.simulation.max_wall_time
@@ -455,7 +462,7 @@ def _run(args: argparse.Namespace) -> int:
     stop = result.stop
     no_curve = (
         ""
-        if learning.curve_stop is None
+        if learning.curve_stop is None or args.checkpoints == 0
         else ", without the learning curve (out of --max-wall; summary.json -> learning_curve_stop)"
     )
     if stop is not None and result.status != "ok":

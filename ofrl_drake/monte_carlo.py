@@ -48,7 +48,7 @@ from ofrl_drake.checks import (
     is_real_number,
     number_to_json,
 )
-from ofrl_drake.errors import OfrlError, OutputError, status_line
+from ofrl_drake.errors import ModelError, OfrlError, OutputError, one_line, status_line
 from ofrl_drake.limits import MAX_RUNS, RUNS_FIX
 from ofrl_drake.plants import check_dynamics, dynamics_fingerprints
 from ofrl_drake.scenario import MeasurementConfig, Scenario, TruthConfig, check_scenario
@@ -68,6 +68,7 @@ __all__ = [
     "RUNS_PER_TASK",
     "IdenticalRunsWarning",
     "MonteCarloError",
+    "OptimalCostWarning",
     "envelope_samples",
     "identical_runs",
     "montecarlo",
@@ -421,8 +422,20 @@ def montecarlo(
         if optimal_cost is None:
             from ofrl_drake.optimal import optimal_control
 
-            solved = optimal_control(scenario, solver=solver)
-            optimal_cost = solved.cost if solved.converged else math.nan
+            try:
+                solved = optimal_control(scenario, solver=solver)
+                why = None if solved.converged else solved.status
+            except ModelError as err:  # a plant Drake cannot trace: the runs need no J*
+                why = one_line(err)
+            optimal_cost = solved.cost if why is None else math.nan
+            if why is not None:
+                warnings.warn(
+                    OptimalCostWarning(
+                        f"montecarlo {scenario.name}: J* of the nominal problem is not "
+                        f"available, so the rows have no J/J*: {why}"
+                    ),
+                    stacklevel=2,
+                )
         finished = {r["seed"]: r for r in done}
         todo = [k for k in range(runs) if str(seed + k) not in finished]
 
@@ -511,6 +524,10 @@ def envelope_samples(
         for i in range(x.shape[1]):
             stack[k, inside, i] = np.interp(grid[inside], t, x[:, i])
     return grid, stack
+
+
+class OptimalCostWarning(UserWarning):
+    """J* of a Monte Carlo sweep's nominal problem is not available (why is in the message)."""
 
 
 class IdenticalRunsWarning(UserWarning):
@@ -611,7 +628,15 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
         text += [note[0].upper() + note[1:], ""]
         warnings.warn(IdenticalRunsWarning(f"montecarlo {name}: {note}"), stacklevel=2)
     text += ["Runs that did not succeed:" if failed else "Every run succeeded.", ""]
-    text += [f"- seed {r['seed']} ({r['perturbation']}): {r['status']}" for r in failed]
+    text += [
+        f"- seed {r['seed']} ({r['perturbation']}): "
+        + (
+            f"ok but not regulated (|x(T) - x*| = {r['final_state_norm']:.3g})"
+            if r["status"] == "ok"
+            else r["status"]
+        )
+        for r in failed
+    ]
     atomic_write_text(out / "montecarlo.md", "\n".join(text) + "\n")
     envelope = out / "figures" / "envelope.png"
     if not logs:  # an earlier sweep's envelope would pass for this one's

@@ -105,6 +105,7 @@ __all__ = [
     "cost_augmented_plant",
     "optimal_control",
     "problem_key",
+    "require_traceable",
     "solve_optimal_control",
     "solver_name",
     "solving",
@@ -357,6 +358,19 @@ def cost_augmented_plant(
     )
 
 
+def require_traceable(system: ControlAffineSystem) -> None:
+    """Refuse a system whose ``f`` and ``g`` Drake cannot trace: ``J*`` needs them.
+
+    For a command that solves ``J*`` after other work, to refuse before it.
+
+    Raises
+    ------
+    ModelError
+        If Drake cannot trace ``f`` or ``g`` on symbolic states.
+    """
+    _traced(system)
+
+
 def _traced(system: ControlAffineSystem) -> SymbolicDynamics:
     """``f`` and ``g`` traced by Drake; refused if they cannot be: the collocation needs them."""
     try:
@@ -368,7 +382,7 @@ def _traced(system: ControlAffineSystem) -> SymbolicDynamics:
             f"optimal control: J* (run --optimal, montecarlo, ablate) needs f and g that Drake "
             f"can trace on symbolic states, and those of the model {system.name!r} cannot be "
             f"({type(cause).__name__}: {text}). Write f and g with numpy functions (np.cos, "
-            "np.exp, **) and no branches on the state, or run without --optimal."
+            "np.exp, **) and no branches on the state; without them J* is not available."
         ) from err
 
 
@@ -668,8 +682,8 @@ def _settle(
         None,
         f"not converged (J* did not settle to rtol {mesh.rtol:g} in {mesh.refinements} "
         f"refinement{'s' if mesh.refinements > 1 else ''}, each grid twice as fine as the "
-        f"last: {values} intervals; pass a finer Mesh, more refinements or a larger rtol"
-        f"{small})",
+        f"last: {values} intervals; pass a finer Mesh, more refinements or a larger rtol "
+        f"(mesh= in Python; the command line uses the default){small})",
         change,
     )
 

@@ -394,3 +394,83 @@ def test_ablate_and_montecarlo_hand_every_task_the_clients_fingerprints(
     assert len(rows) == 2 and all(re.fullmatch(message, r["status"]) for r in rows)
     rows = montecarlo(short, 2, progress=False, optimal_cost=1.0)
     assert len(rows) == 2 and all(re.fullmatch(message, r["status"]) for r in rows)
+
+
+#: A user's plant with an ``if`` on the state: it simulates (with the true state fed
+#: back), but Drake cannot trace it for J* or for the baselines that linearize it.
+BRANCHY_PLANT = textwrap.dedent(
+    """
+    import numpy as np
+    from ofrl_drake import ControlAffineSystem
+
+    def f(x):
+        return np.array([x[1], -x[0] - (x[1] if x[1] > 0 else 0.0)])
+
+    def g(x):
+        return np.array([[0.0], [1.0]])
+
+    def make_plant():
+        return ControlAffineSystem(f, g, [[1.0, 0.0]], name="branchy")
+    """
+)
+
+
+@pytest.fixture
+def branchy(tmp_path):
+    """The scenario of :data:`BRANCHY_PLANT`, with the true state fed back, over 1 s."""
+    folder = tmp_path / "branchy"
+    folder.mkdir()
+    (folder / "branchy.py").write_text(BRANCHY_PLANT)
+    data = yaml_load(data=PAPER_SCENARIO.read_text())
+    data["system"] = "branchy:make_plant"
+    data["simulation"]["duration"] = 1.0
+    data["variant"] = {"observer": "true_state"}
+    path = folder / "scenario.yaml"
+    path.write_text(yaml_dump(data))
+    return path
+
+
+@pytest.mark.filterwarnings("ignore:branchy. f and g do not accept a batch")
+def test_j_star_and_the_linearizing_baselines_of_a_plant_drake_cannot_trace(branchy, tmp_path):
+    """Before: run --optimal simulated, then exited 2 and dropped the run; montecarlo stopped
+    with advice to "run without --optimal" it has no option for; controller lqr blamed the
+    user's code with a raw TypeError."""
+    import dataclasses
+    import warnings
+
+    from ofrl_drake.diagram import build_closed_loop
+    from ofrl_drake.errors import ModelError
+    from ofrl_drake.monte_carlo import OptimalCostWarning, montecarlo
+
+    out = tmp_path / "run"
+    proc = run_cli("run", branchy, "--out", out, "--optimal", "--quiet")
+    assert proc.returncode == 2 and not out.exists(), proc.stderr
+    assert re.fullmatch(
+        r"error: --optimal: optimal control: J\* .* needs f and g that Drake can trace on "
+        r"symbolic states, and those of the model 'branchy' cannot be .*; without them J\* is "
+        r"not available\. Run without --optimal\. \(at .*branchy\.py:6, in f\)",
+        proc.stderr.splitlines()[-1],
+    ), proc.stderr
+    assert run_cli("run", branchy, "--out", out, "--quiet").returncode == 0
+    scenario = load_scenario(branchy)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rows = montecarlo(scenario, 2, progress=False)
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert all(np.isnan(r["optimal_cost"]) and np.isnan(r["optimality_ratio"]) for r in rows)
+    (warning,) = [w.message for w in caught if isinstance(w.message, OptimalCostWarning)]
+    assert re.match(
+        r"montecarlo two_state_paper: J\* of the nominal problem is not available, so the rows "
+        r"have no J/J\*: optimal control: J\* .*model 'branchy' cannot be",
+        str(warning),
+    ), warning
+    lqr = dataclasses.replace(
+        scenario, variant=dataclasses.replace(scenario.variant, controller="lqr")
+    )
+    with pytest.raises(
+        ModelError,
+        match=r"^the baselines that linearize the plant \(controller lqr, observer "
+        r"drake_luenberger or kalman\) trace f and g on symbolic states, and those of the model "
+        r"'branchy' cannot be traced \(.*\); write f and g with numpy functions",
+    ):
+        build_closed_loop(lqr)

@@ -669,3 +669,24 @@ def test_montecarlo_refuses_a_solver_for_a_given_j_star(paper_scenario):
         r"or the other\.$",
     ):
         montecarlo(paper_scenario, 2, optimal_cost=1.0, solver="ipopt")
+
+
+def test_montecarlo_md_says_why_an_ok_run_did_not_succeed(tmp_path):
+    """Before: a run that ended ok but not regulated was listed with "ok" as its reason."""
+    from ofrl_drake.monte_carlo import write_montecarlo_report
+
+    row = {
+        "seed": "0",
+        "perturbation": "{}",
+        "status": "ok",
+        "regulated": "false",
+        "final_state_norm": 0.5812,
+        "rms_estimation_error": 0.1,
+        "cost": 2.0,
+        "optimal_cost": 1.0,
+        "optimality_ratio": 2.0,
+        "wall_time": 0.1,
+    }
+    write_montecarlo_report(tmp_path, [row], "short")
+    text = (tmp_path / "montecarlo.md").read_text()
+    assert "- seed 0 ({}): ok but not regulated (|x(T) - x*| = 0.581)\n" in text, text
