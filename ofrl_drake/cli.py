@@ -409,28 +409,24 @@ def _run(args: argparse.Namespace) -> int:
             f"--checkpoints: must be an integer >= 0 (0 switches the learning curve off); "
             f"got {args.checkpoints}."
         )
-    if args.solver is not None:
-        if not args.optimal:
-            raise OfrlError(
-                f"--solver {args.solver}: chooses the solver of J*; pass --optimal too."
-            )
-        from ofrl_drake.optimal import solver_name
-
-        solver_name(args.solver)  # an unknown or unavailable solver, before the run
+    if args.solver is not None and not args.optimal:
+        raise OfrlError(f"--solver {args.solver}: chooses the solver of J*; pass --optimal too.")
+    _check_solver(args.solver)
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     check_output_directory(Path(args.out))  # fail before the work, not after
     warning = _outside_box_warning(scenario)
     if warning:
         print(warning, file=sys.stderr)
-    loop = build_closed_loop(scenario)
-    if args.optimal:  # before the run, not after it
+    if args.optimal:  # before the design and the run, not after them
         from ofrl_drake.errors import ModelError
         from ofrl_drake.optimal import require_traceable
+        from ofrl_drake.plants import resolve_system
 
         try:
-            require_traceable(loop.parts.system)
+            require_traceable(resolve_system(scenario))
         except ModelError as err:
             raise ModelError(f"--optimal: {err} Run without --optimal.") from err
+    loop = build_closed_loop(scenario)
     started = time.monotonic()  # --max-wall: the simulation and the learning curve share it
     result = simulate(scenario, loop=loop, progress=None if not args.quiet else False)
     budget = loop.parts.scenario.simulation.max_wall_time
@@ -1216,11 +1212,12 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
         sample_initial_states,
     )
     from ofrl_drake.ablation_report import summary_table, write_report
-    from ofrl_drake.optimal import OptimalCostCache
+    from ofrl_drake.optimal import OptimalCostCache, solver_name
     from ofrl_drake.scenario import load_scenario
 
     if args.workers is not None and args.workers < 0:
         raise AblationError(f"--workers: must be >= 0; got {args.workers}.")
+    _check_solver(args.solver)
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     variants = load_variants(args.variants) if args.variants else default_variants(scenario)
     states = sample_initial_states(scenario, args.initial_states, args.seed)
@@ -1248,6 +1245,7 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
             optimum=optimum.trajectory if optimum is not None else None,
             equilibrium=scenario.equilibrium.x if scenario.equilibrium is not None else None,
             accuracy=scenario.simulation.accuracy,
+            solver=solver_name(args.solver).upper(),
         )
         ok = sum(r["status"] == "ok" for r in rows)
         print(summary_table(rows, [v.name for v in variants]))
@@ -1277,6 +1275,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 0:
         raise MonteCarloError(f"--workers: must be >= 0; got {args.workers}.")
+    _check_solver(args.solver)
     scenario = _with_max_wall(load_scenario(args.scenario), args.max_wall)
     out = Path(args.out)
     options = {
@@ -1343,6 +1342,18 @@ def _count_at_most(most: int, fix: str) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def _check_solver(solver: str | None) -> None:
+    """Refuse an unknown or unavailable ``--solver`` before any work, naming the option."""
+    if solver is None:
+        return
+    from ofrl_drake.optimal import solver_name
+
+    try:
+        solver_name(solver)
+    except OfrlError as err:
+        raise OfrlError(f"--solver: {one_line(err)}") from None
 
 
 def _solver_option(parser: argparse.ArgumentParser, when: str) -> None:

@@ -773,38 +773,60 @@ def test_max_wall_bounds_the_observers_verification(tmp_path, capsys, monkeypatc
     assert "observer: " in capsys.readouterr().out
 
 
-def test_solver_chooses_j_stars_solver_and_a_bad_one_is_refused_before_the_work(tmp_path):
+def test_solver_chooses_j_stars_solver_and_a_bad_one_is_refused_before_the_work(
+    tmp_path, capsys, monkeypatch
+):
     # J*'s solver could be chosen only in Python; the status of a tiny J* that SNOPT cannot
     # settle suggests IPOPT. --solver chooses it; a typo is refused before any run.
+    from ofrl_drake import optimal
+    from ofrl_drake.cli import main
+    from ofrl_drake.monte_carlo import read_montecarlo_rows
+
     path = _short_scenario(tmp_path, duration=1.0)
     out = tmp_path / "out"
     proc = run_cli("run", path, "--out", out, "--solver", "ipopt")
     assert proc.returncode == 2 and not out.exists()
     assert proc.stderr == "error: --solver ipopt: chooses the solver of J*; pass --optimal too.\n"
-    proc = run_cli("run", path, "--out", out, "--optimal", "--solver", "knitro")
-    assert proc.returncode == 2 and not out.exists()
-    assert proc.stderr == (
-        "error: optimal control: solver must be one of ('snopt', 'ipopt'); got 'knitro'.\n"
-    )
-    ab = tmp_path / "ab"
-    proc = run_cli("ablate", path, "--workers", "0", "--out", ab, "--solver", "x")
-    assert proc.returncode == 2 and not ab.exists(), proc.stderr
-    assert "solver must be one of ('snopt', 'ipopt'); got 'x'" in proc.stderr
-    mc = tmp_path / "mc"
-    proc = run_cli(
-        "montecarlo", path, "--runs", "1", "--workers", "0", "--out", mc, "--solver", "x"
-    )
-    assert proc.returncode == 2 and not mc.exists(), proc.stderr
-    assert "solver must be one of ('snopt', 'ipopt'); got 'x'" in proc.stderr
-    proc = run_cli(
-        "montecarlo", path, "--runs", "1", "--workers", "0", "--out", mc, "--solver", "ipopt"
-    )
-    assert proc.returncode == 0, proc.stderr
-    assert json.loads((mc / "montecarlo.json").read_text())["optimal"]["solver"] == "ipopt"
-    from ofrl_drake.monte_carlo import read_montecarlo_rows
+    unknown = "--solver: optimal control: solver must be one of ('snopt', 'ipopt'); got 'SNOPT'."
+    commands = {
+        "run": ["--optimal"],
+        "ablate": ["--workers", "0"],
+        "montecarlo": ["--runs", "1", "--workers", "0"],
+    }
+    for command, extra in commands.items():
+        folder = tmp_path / command
+        args = [command, str(path), *extra, "--out", str(folder)]
+        assert main([*args, "--solver", "SNOPT"]) == 2 and not folder.exists()
+        assert capsys.readouterr().err == f"error: {unknown}\n"
+    # The solver reaches every J*: the one solved (spied on) and the one the report reads.
+    real = optimal.optimal_control
+    solvers = []
 
+    def spy(*args, **kwargs):
+        solvers.append(kwargs.get("solver"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(optimal, "optimal_control", spy)
+    mc = tmp_path / "mc"
+    args = ["montecarlo", str(path), "--runs", "1", "--workers", "0", "--out", str(mc)]
+    assert main([*args, "--solver", "ipopt"]) == 0
+    assert solvers == ["ipopt"]
+    assert json.loads((mc / "montecarlo.json").read_text())["optimal"]["solver"] == "ipopt"
     (row,) = read_montecarlo_rows(mc / "montecarlo.csv")
-    assert row["optimal_cost"] == pytest.approx(3.6492, rel=1e-3)  # IPOPT's J*, 1 s horizon
+    assert row["optimal_cost"] == pytest.approx(3.6492, rel=1e-3)  # 1 s horizon
+    variants = tmp_path / "variants.yaml"
+    variants.write_text("baseline: {}\n")
+    ab = tmp_path / "ab"
+    args = ["ablate", str(path), "--variants", str(variants), "--workers", "0", "--out", str(ab)]
+    assert main([*args, "--solver", "ipopt"]) == 0, capsys.readouterr().err
+    (cached,) = (ab / "optimal").glob("*.json")
+    assert json.loads(cached.read_text())["solver"] == "ipopt"
+    assert "(direct collocation, IPOPT)" in (ab / "ablation.md").read_text()
+    out = tmp_path / "run_ipopt"
+    args = ["run", str(path), "--out", str(out), "--quiet", "--optimal", "--checkpoints", "1"]
+    solvers.clear()
+    assert main([*args, "--solver", "ipopt"]) == 0
+    assert solvers == ["ipopt"]
 
 
 def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):
