@@ -358,6 +358,7 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
             )
             report = learning_report(loop, result, checkpoints=0)
             return dataclasses.replace(report, curve_stop=stop)
+        result.reports["optimal"] = solved.to_dict()  # J*, its solver, grid and status
         if solved.converged:
             optimal_cost = solved.cost
         else:

@@ -827,6 +827,8 @@ def test_solver_chooses_j_stars_solver_and_a_bad_one_is_refused_before_the_work(
     solvers.clear()
     assert main([*args, "--solver", "ipopt"]) == 0
     assert solvers == ["ipopt"]
+    optimum = json.loads((out / "summary.json").read_text())["optimal"]
+    assert optimum["solver"] == "ipopt" and optimum["converged"] and optimum["intervals"] > 0
 
 
 def test_a_run_that_times_out_has_no_learning_curve_left_to_run(tmp_path):
