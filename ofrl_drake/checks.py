@@ -10,6 +10,7 @@ the source.
 from __future__ import annotations
 
 import math
+import reprlib
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,7 @@ from ofrl_drake.errors import ModelError, OfrlError
 __all__ = [
     "MAX_DRAKE_SEED",
     "array_of_shape",
+    "deadline_or_none",
     "drake_seed",
     "finite_array",
     "finite_vector",
@@ -109,6 +111,20 @@ def integer_at_least(
     ):
         raise error(f"{name} must be an integer >= {least}; got {value!r}.")
     return int(value)
+
+
+def deadline_or_none(name: str, value: Any, *, error: type[OfrlError] = ModelError) -> float | None:
+    """``value`` as a deadline: a finite ``time.monotonic()`` reading, or None (no limit).
+
+    Raises ``error`` (default :class:`ModelError`), naming ``name`` and the value.
+    """
+    if value is None:
+        return None
+    if not (is_real_number(value) and math.isfinite(value)):
+        raise error(
+            f"{name} must be a time.monotonic() reading or None; got {reprlib.repr(value)}."
+        )
+    return float(value)
 
 
 def count_at_most(

@@ -348,8 +348,10 @@ def _learning_report(args: argparse.Namespace, loop: Any, result: Any, started: 
                 if budget is not None and before >= budget
                 else one_line(err)
             )
-            curve = ", so no checkpoint of the learning curve was evaluated" * (
-                args.checkpoints > 0
+            curve = (
+                ", so no checkpoint of the learning curve was evaluated"
+                if args.checkpoints > 0
+                else ""
             )
             stop = (
                 f"J* (--optimal) did not finish within max_wall_time (--max-wall) = {budget:g} "

@@ -77,6 +77,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from ofrl_drake.atomic import atomic_file
 from ofrl_drake.checks import (
+    deadline_or_none,
     is_real_number,
     nonnegative_matrix,
     number_to_json,
@@ -582,11 +583,7 @@ def solve_optimal_control(
 
     if not (is_real_number(input_margin) and 0 < input_margin < 1):
         raise OfrlError(f"optimal control: input_margin must be in (0, 1); got {input_margin!r}.")
-    if deadline is not None and not (is_real_number(deadline) and math.isfinite(deadline)):
-        raise OfrlError(
-            "optimal control: deadline must be a time.monotonic() reading or None; got "
-            f"{reprlib.repr(deadline)}."
-        )
+    deadline = deadline_or_none("optimal control: deadline", deadline, error=OfrlError)
     problem = _Problem(
         plant,
         x0,

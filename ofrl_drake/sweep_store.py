@@ -233,7 +233,8 @@ OPTIMAL_KEY = "optimal"
 RESUME_FIX = "resume with the sweep's own arguments, or choose another --out"
 
 
-def _without_dynamics(plan: Mapping[str, Any]) -> dict[str, Any]:
+def _without_store_keys(plan: Mapping[str, Any]) -> dict[str, Any]:
+    """``plan`` without the keys :class:`SweepStore` compares itself (dynamics, J*)."""
     return {k: v for k, v in plan.items() if k not in (DYNAMICS_KEY, OPTIMAL_KEY)}
 
 
@@ -502,7 +503,7 @@ class SweepStore:
                     "start again."
                 ) from None
             new = json.loads(json.dumps(plan))
-            why = mismatch(_without_dynamics(old), _without_dynamics(new))
+            why = mismatch(_without_store_keys(old), _without_store_keys(new))
             why = why if why is not None else _dynamics_difference(old, new)
             if why is not None:
                 raise self.files.error(f"--resume: {why}; {RESUME_FIX}.")

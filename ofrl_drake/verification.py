@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.optimize import minimize
 
-from ofrl_drake.checks import is_real_number
+from ofrl_drake.checks import deadline_or_none
 from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.jacobian_bounds import MAX_POINTS, Box, symbolic_jacobians
 from ofrl_drake.model import ControlAffineSystem
@@ -593,10 +593,7 @@ def verify_observer(
         )
     if not (isinstance(tol, int | float) and math.isfinite(tol) and tol >= 0):
         raise VerificationError(f"tol must be a finite number >= 0; got {tol!r}.")
-    if deadline is not None and not (is_real_number(deadline) and math.isfinite(deadline)):
-        raise VerificationError(
-            f"deadline must be a time.monotonic() reading or None; got {deadline!r}."
-        )
+    deadline = deadline_or_none("deadline", deadline, error=VerificationError)
     start = time.perf_counter()
 
     def on_time(stage: str) -> None:
