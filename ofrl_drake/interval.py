@@ -144,6 +144,9 @@ _POINT_KINDS = {
     "Floor",
 }
 _INTERVAL_KINDS = _POINT_KINDS - {"Atan2"}
+#: Functions defined on part of the real line only (``Pow``: with an exponent
+#: that is not a constant integer, on ``x >= 0`` only).
+_PARTIAL_KINDS = {"Log", "Sqrt", "Asin", "Acos", "Pow"}
 
 
 class UnsupportedExpressionError(OfrlError):
@@ -779,7 +782,9 @@ class ExpressionEvaluator:
         -------
         Interval
             ``lo``, ``hi`` of shape ``S`` (one box) or ``S + (B,)``; the value of
-            each expression at every point of a box lies in its interval.
+            each expression at every point of a box where it is defined lies in
+            its interval (:meth:`possibly_undefined` tells where that may not
+            be every point).
 
         Raises
         ------
@@ -791,6 +796,19 @@ class ExpressionEvaluator:
             If the boxes have the wrong shape, ``lower > upper``, a NaN corner,
             or contain no real point (``lower = +inf`` or ``upper = -inf``).
         """
+        vals, B, single = self._node_intervals(lower, upper)
+        out_lo = np.stack([np.broadcast_to(vals[i].lo, (B,)) for i in self._outputs])
+        out_hi = np.stack([np.broadcast_to(vals[i].hi, (B,)) for i in self._outputs])
+        out_lo = out_lo.reshape((*self.shape, B))
+        out_hi = out_hi.reshape((*self.shape, B))
+        if single:
+            return Interval(out_lo[..., 0], out_hi[..., 0])
+        return Interval(out_lo, out_hi)
+
+    def _node_intervals(
+        self, lower: np.ndarray, upper: np.ndarray
+    ) -> tuple[list[Interval], int, bool]:
+        """Every node's enclosure over the boxes, their number, and whether one was given."""
         if not self.supports_intervals:
             node = next(n for n in self._nodes if n.kind not in _INTERVAL_KINDS)
             raise UnsupportedExpressionError(
@@ -818,18 +836,96 @@ class ExpressionEvaluator:
             raise ModelError(
                 "every box must contain a real point: lower = +inf or upper = -inf is empty."
             )
-        B = lo2.shape[1]
         vals: list[Interval] = []
         with np.errstate(all="ignore"):  # see "Floating-point flags" above the kernels
             for node in self._nodes:
                 vals.append(self._interval(node, vals, lo2, hi2))
-        out_lo = np.stack([np.broadcast_to(vals[i].lo, (B,)) for i in self._outputs])
-        out_hi = np.stack([np.broadcast_to(vals[i].hi, (B,)) for i in self._outputs])
-        out_lo = out_lo.reshape((*self.shape, B))
-        out_hi = out_hi.reshape((*self.shape, B))
-        if single:
-            return Interval(out_lo[..., 0], out_hi[..., 0])
-        return Interval(out_lo, out_hi)
+        return vals, lo2.shape[1], single
+
+    @property
+    def has_partial_functions(self) -> bool:
+        """Whether a function defined on part of the real line only is applied.
+
+        ``log``, ``sqrt``, ``asin``, ``acos``, and ``pow`` with an exponent that
+        is not a constant integer; without them an expression is defined
+        wherever its divisions and integer powers have no pole.
+        """
+        return any(self._is_partial(node) for node in self._nodes)
+
+    def _is_partial(self, node: _Node) -> bool:
+        if node.kind != "Pow":
+            return node.kind in _PARTIAL_KINDS
+        exponent = self._nodes[node.args[1]]
+        return not (
+            exponent.kind == "Constant"
+            and exponent.lo == exponent.hi
+            and np.isfinite(exponent.value)
+            and float(exponent.value).is_integer()
+        )
+
+    def possibly_undefined(
+        self, lower: np.ndarray, upper: np.ndarray
+    ) -> tuple[np.ndarray, list[str]]:
+        """Boxes where a function may be applied outside its domain.
+
+        :meth:`interval` encloses a function defined on part of the line (see
+        :attr:`has_partial_functions`) over the part of a box where it is
+        defined. This tells, per box, whether that part may be less than the
+        whole box: an argument's enclosure reaches outside the function's
+        domain (``log`` of a box reaching 0 or below, ``sqrt`` below 0,
+        ``asin``/``acos`` beyond [-1, 1], a non-integer power of a base below
+        0). Enclosures overestimate, so a flagged box may be defined all the
+        same; an unflagged one is proven defined everywhere (poles of
+        divisions and negative integer powers aside: those give unbounded
+        enclosures).
+
+        Parameters
+        ----------
+        lower, upper : ndarray
+            The boxes, as for :meth:`interval`.
+
+        Returns
+        -------
+        flagged : ndarray of bool, shape (B,)
+            Whether each box may hold a point where some expression is undefined.
+        reasons : list of str
+            For each flagged box in order, the first such function, its
+            argument's enclosure and the expression.
+
+        Raises
+        ------
+        IntervalDomainError
+            If a function is applied on a box wholly outside its domain.
+        UnsupportedExpressionError, ModelError
+            As :meth:`interval`.
+        """
+        vals, B, _ = self._node_intervals(lower, upper)
+        flagged = np.zeros(B, dtype=bool)
+        first = np.full(B, -1)
+        for index, node in enumerate(self._nodes):
+            if not self._is_partial(node):
+                continue
+            arg = vals[node.args[0]]
+            lo = np.broadcast_to(arg.lo, (B,))
+            hi = np.broadcast_to(arg.hi, (B,))
+            if node.kind == "Log":
+                bad = lo <= 0.0
+            elif node.kind in ("Asin", "Acos"):
+                bad = (lo < -1.0) | (hi > 1.0)
+            else:  # Sqrt; Pow with an exponent that may not be an integer
+                bad = lo < 0.0
+            first = np.where(bad & ~flagged, index, first)
+            flagged |= bad
+        reasons = []
+        for b in np.flatnonzero(flagged):
+            node = self._nodes[int(first[b])]
+            arg = vals[node.args[0]]
+            lo_b = float(np.broadcast_to(arg.lo, (B,))[b])
+            hi_b = float(np.broadcast_to(arg.hi, (B,))[b])
+            reasons.append(
+                f"{node.kind.lower()} of [{lo_b:.6g}, {hi_b:.6g}] in expression {node.text}"
+            )
+        return flagged, reasons
 
     @staticmethod
     def _interval(node: _Node, vals: list[Interval], lo: np.ndarray, hi: np.ndarray) -> Interval:

@@ -62,6 +62,7 @@ from pydrake.symbolic import Expression, Jacobian
 
 from ofrl_drake.branch_and_bound import Refinement, refine
 from ofrl_drake.checks import integer_at_least, is_real_number
+from ofrl_drake.domain import UndefinedOnBoxError, prove_defined
 from ofrl_drake.errors import ModelError, OfrlError, WallTimeExceeded
 from ofrl_drake.interval import (
     ExpressionEvaluator,
@@ -70,7 +71,7 @@ from ofrl_drake.interval import (
     UnsupportedExpressionError,
 )
 from ofrl_drake.interval_taylor import TaylorEvaluator
-from ofrl_drake.model import ControlAffineSystem, require_system
+from ofrl_drake.model import ControlAffineSystem, SymbolicDynamics, require_system
 from ofrl_drake.multibody_bounds import MultibodyJacobianEncloser, MultibodyStructure
 from ofrl_drake.symbolic_bounds import TaylorEncloser, independent_groups
 
@@ -439,6 +440,14 @@ def symbolic_jacobians(
     WallTimeExceeded
         If ``deadline`` passes before every row is differentiated.
     """
+    model, Jf, Jg = _traced_jacobians(system, deadline)
+    return model.x, Jf, Jg
+
+
+def _traced_jacobians(
+    system: ControlAffineSystem, deadline: float | None
+) -> tuple[SymbolicDynamics, np.ndarray, np.ndarray]:
+    """:func:`symbolic_jacobians`, with the traced ``f`` and ``g`` they come from."""
     n, m = system.n, system.m
     try:
         model = system.symbolic()
@@ -462,7 +471,7 @@ def symbolic_jacobians(
                 step="symbolic Jacobians",
             )
         out[...] = Jacobian(rows, x)
-    return x, Jf, Jg
+    return model, Jf, Jg
 
 
 # ------------------------------------------------------------------- sampling
@@ -721,6 +730,34 @@ def _joint_budget(results: list[Refinement]) -> str:
     )
 
 
+def _prove_defined(
+    model: SymbolicDynamics,
+    entries: np.ndarray,
+    box: Box,
+    names: list[str],
+    deadline: float | None,
+) -> None:
+    """Refuse a box where ``f``, ``g`` or a Jacobian entry may be undefined (:mod:`.domain`).
+
+    Plants without ``log``, ``sqrt``, ``asin``, ``acos`` or real powers (every
+    shipped one) pass at the cost of one scan of the expression graph.
+    """
+    n, m = model.g.shape
+    expressions = np.concatenate([model.f.ravel(), model.g.ravel(), entries])
+    evaluator = ExpressionEvaluator(expressions, model.x)
+    if not evaluator.has_partial_functions:
+        return
+    labels = [
+        *(f"f[{i}]" for i in range(n)),
+        *(f"g[{i}, {k}]" for i in range(n) for k in range(m)),
+        *(f"the Jacobian entry {name}" for name in names),
+    ]
+    try:
+        prove_defined(evaluator, box.lower, box.upper, names=labels, deadline=deadline)
+    except UndefinedOnBoxError as err:
+        raise BoundsError(f"certified bounds over {box!r}: {err}") from err
+
+
 def _certify_symbolic(
     entries: np.ndarray,
     x: np.ndarray,
@@ -864,7 +901,10 @@ def jacobian_bounds(
         branch and bound until each is within the tolerance of the best known
         inner estimate (the samples plus the centres of the boxes visited);
         multibody models are enclosed through their mass-matrix structure
-        (module docstring).
+        (module docstring). A plant with ``log``, ``sqrt``, ``asin``,
+        ``acos`` or a real power is first proven defined, with its Jacobian
+        entries, at every state of the box (:mod:`ofrl_drake.domain`): the
+        enclosures alone cover only where they are defined.
     grid : int, optional
         Points per axis of the grid (the corners are included). Each Jacobian
         entry is gridded over the ``d`` states it depends on only. Default: the
@@ -905,8 +945,9 @@ def jacobian_bounds(
         For a ``system`` that is not a :class:`ControlAffineSystem`, an unknown
         method or bad parameters (``n_random``, or the points of a grid, above
         :data:`MAX_POINTS`; a negative ``seed``; a string for a number), if
-        ``f``/``g`` cannot be differentiated symbolically, or a Jacobian entry
-        is not finite.
+        ``f``/``g`` cannot be differentiated symbolically, a Jacobian entry
+        is not finite, or (certified) ``f``, ``g`` or a Jacobian entry is, or
+        cannot be proven not to be, undefined at some state of the box.
     UncertifiedBoundsError
         If a certified bound is still infinite when ``max_boxes`` or
         ``max_wall_time`` runs out (the message names the entry and the box).
@@ -966,7 +1007,8 @@ def jacobian_bounds(
     if structure is not None and _too_large_to_differentiate(system):
         s_lo, s_hi = _structure_samples(structure, box, grid, int(n_random), seed, names, deadline)
     else:
-        x, Jf, Jg = symbolic_jacobians(system, deadline)
+        model, Jf, Jg = _traced_jacobians(system, deadline)
+        x = model.x
         entries = np.concatenate([Jf.ravel(), Jg.ravel()])
         s_lo, s_hi = _sampled_bounds(entries, x, box, grid, int(n_random), seed, names)
 
@@ -994,6 +1036,7 @@ def jacobian_bounds(
         budget = result.budget
     else:
         assert entries is not None  # no multibody structure: the symbolic Jacobians
+        _prove_defined(model, entries, box, names, deadline)
         c_lo, c_hi, converged, budget = _certify_symbolic(
             entries,
             x,

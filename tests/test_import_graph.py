@@ -45,6 +45,7 @@ LAYERS = {
         "branch_and_bound",
         "multibody_bounds",
         "symbolic_bounds",
+        "domain",
         "jacobian_bounds",
         "lmi",
         "structured_lmi",
