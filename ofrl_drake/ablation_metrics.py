@@ -7,6 +7,7 @@ Every function takes arrays with time first, as in
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -107,6 +108,35 @@ def regulation(
         "inside_observer_box": inside,
         "status": status,
     }
+
+
+def regulation_shortfall(
+    final_error: Sequence[float], tolerance: Sequence[float], inside_observer_box: bool
+) -> str:
+    """Why :func:`regulation` failed a run that ended ``ok``, as one phrase.
+
+    The component furthest beyond its tolerance (relative to it), and whether
+    ``x(T)`` or ``xhat(T)`` left the observer box; the arguments are
+    :func:`regulation`'s ``final_error``, ``tolerance`` and
+    ``inside_observer_box``. Empty when neither failed (the run's status did).
+
+    Examples
+    --------
+    >>> regulation_shortfall([0.05, 0.03], [0.1, 0.02], True)
+    '|x_2(T) - x*_2| = 0.03 > 0.02'
+    """
+    error = np.asarray(final_error, dtype=float)
+    bound = np.asarray(tolerance, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        excess = np.where(bound > 0, error / bound, np.where(error > 0, np.inf, 0.0))
+    excess = np.where(np.isnan(error), np.inf, excess)  # a non-finite state fails first
+    worst = int(np.argmax(excess))
+    why = []
+    if not error[worst] <= bound[worst]:
+        why.append(f"|x_{worst + 1}(T) - x*_{worst + 1}| = {error[worst]:.3g} > {bound[worst]:.3g}")
+    if not inside_observer_box:
+        why.append("x(T) or xhat(T) is outside the observer box")
+    return "; ".join(why)
 
 
 def regulated(

@@ -304,15 +304,13 @@ def _outside_box_warning(scenario: Any) -> str | None:
 
 def _not_regulated(details: dict[str, Any]) -> str:
     """One line saying why a run that ended ``ok`` did not reach its target."""
-    error, bound = details["final_error"], details["tolerance"]
-    worst = max(range(len(error)), key=lambda i: error[i] / bound[i] if bound[i] > 0 else 0.0)
-    why = []
-    if error[worst] > bound[worst]:
-        why.append(f"|x_{worst + 1}(T) - x*_{worst + 1}| = {error[worst]:.3g} > {bound[worst]:.3g}")
-    if not details["inside_observer_box"]:
-        why.append("x(T) or xhat(T) is outside the observer box")
+    from ofrl_drake.ablation_metrics import regulation_shortfall
+
+    why = regulation_shortfall(
+        details["final_error"], details["tolerance"], details["inside_observer_box"]
+    )
     return (
-        f"warning: the run did not regulate: {'; '.join(why) or details['status']} "
+        f"warning: the run did not regulate: {why or details['status']} "
         "(simulation.regulation_tolerance, a fraction of the observer box's half-width; "
         "summary.json -> regulation)."
     )

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.ablation_metrics import rms_estimation_error
+from ofrl_drake.ablation_metrics import regulation_shortfall, rms_estimation_error
 from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.checks import (
     MAX_DRAKE_SEED,
@@ -235,6 +235,11 @@ def _one_run(
     row["cost"] = float(result.cost[-1])
     row["wall_time"] = time.perf_counter() - start
     logs = {"t": result.t, "x": result.original("x")}
+    regulation = result.reports.get("regulation")
+    if regulation is not None:  # why an ok run did not regulate, for montecarlo.md
+        logs["final_error"] = np.asarray(regulation["final_error"], dtype=float)
+        logs["regulation_tolerance"] = np.asarray(regulation["tolerance"], dtype=float)
+        logs["inside_observer_box"] = np.asarray(regulation["inside_observer_box"])
     if result.state_units is not None:  # for the envelope's axes
         logs["state_units"] = np.asarray(result.state_units, dtype=str)
     return {"row": row, "logs": logs}
@@ -362,7 +367,9 @@ def montecarlo(
     Returns
     -------
     list of dict
-        One row per run (:data:`CSV_COLUMNS`), in seed order.
+        One row per run (:data:`CSV_COLUMNS`), in seed order, each also with
+        ``optimal_status``: why ``J*`` is not available (NaN), the same for
+        every row and not a column of the table; empty when it is.
 
     Raises
     ------
@@ -418,6 +425,9 @@ def montecarlo(
             mismatch=_resume_mismatch,
         )
     )
+    why: str | None = None
+    if optimal_cost is not None and math.isnan(optimal_cost):
+        why = "optimal_cost was given as NaN (unknown)"
     with recording as done:
         if optimal_cost is None:
             from ofrl_drake.optimal import optimal_control
@@ -474,7 +484,7 @@ def montecarlo(
             return [record(run) for run in value]
 
         execute(submit, finish, client=client, total=runs, done=runs - len(todo), progress=progress)
-    return [finished[str(seed + k)] for k in range(runs)]
+    return [{**finished[str(seed + k)], "optimal_status": why or ""} for k in range(runs)]
 
 
 def _stats(values: Sequence[float]) -> str:
@@ -580,6 +590,16 @@ def _unit(units: Sequence[str] | None, i: int) -> str:
     return f" [{units[i]}]" if units and units[i] else ""
 
 
+def _not_regulated(row: Mapping[str, Any], arrays: Mapping[str, Any] | None) -> str:
+    """Why a run that ended ``ok`` did not regulate, from the numbers saved with its logs."""
+    if arrays is None or "final_error" not in arrays:  # not logged, or an earlier sweep's run
+        return f"ok but not regulated (|x(T) - x*| = {row['final_state_norm']:.3g})"
+    why = regulation_shortfall(
+        arrays["final_error"], arrays["regulation_tolerance"], bool(arrays["inside_observer_box"])
+    )
+    return f"ok but not regulated: {why}"
+
+
 def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], name: str) -> None:
     """``montecarlo.md`` and ``figures/envelope.png`` (the state envelope across runs).
 
@@ -606,11 +626,12 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     from ofrl_drake.plotting import save_png  # matplotlib only when a report is written
 
     out = Path(out)
-    saved = [
-        arrays
+    by_seed = {
+        r["seed"]: arrays
         for r in rows
         if (arrays := load_arrays(out / "runs" / f"seed_{r['seed']}.npz")) is not None
-    ]
+    }
+    saved = list(by_seed.values())
     logs = [(arrays["t"], arrays["x"]) for arrays in saved]
     same = identical_runs(logs)
     failed = [r for r in rows if not (r["status"] == "ok" and r["regulated"] == "true")]
@@ -623,6 +644,14 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
         "",
         montecarlo_table(rows),
     ]
+    if rows and not any(math.isfinite(r["optimal_cost"]) for r in rows):
+        why = next((r["optimal_status"] for r in rows if r.get("optimal_status")), None)
+        text += [
+            "J/J* is n/a: J* of the nominal problem is not available"
+            + (f": {why}" if why else " (the command that ran the sweep said why).")
+            + ("" if not why or why.endswith(".") else "."),
+            "",
+        ]
     if same:
         note = _identical_note(rows, len(logs))
         text += [note[0].upper() + note[1:], ""]
@@ -630,11 +659,7 @@ def write_montecarlo_report(out: str | os.PathLike[str], rows: Sequence[dict], n
     text += ["Runs that did not succeed:" if failed else "Every run succeeded.", ""]
     text += [
         f"- seed {r['seed']} ({r['perturbation']}): "
-        + (
-            f"ok but not regulated (|x(T) - x*| = {r['final_state_norm']:.3g})"
-            if r["status"] == "ok"
-            else r["status"]
-        )
+        + (_not_regulated(r, by_seed.get(r["seed"])) if r["status"] == "ok" else r["status"])
         for r in failed
     ]
     atomic_write_text(out / "montecarlo.md", "\n".join(text) + "\n")

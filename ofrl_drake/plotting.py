@@ -110,6 +110,17 @@ _STYLE: dict[RcKeyType, Any] = {
 #: Legends with more entries than this go to the right of the axes, one per row.
 _MANY = 4
 
+#: Most columns of a legend beside the axes; past what they hold, the entries
+#: that matter least are left out and one entry counts them (:func:`_trimmed`).
+_SIDE_COLUMNS = 2
+
+#: Most rows of a legend above the axes (column width).
+_ABOVE_ROWS = 6
+
+#: A legend row's height in font sizes (math text included), and its borders'.
+_ROW_HEIGHT = 1.75
+_BORDER = 2.0
+
 #: A linear magnitude axis spans at least this fraction of the data's size.
 _MIN_RELATIVE_SPAN = 0.02
 
@@ -215,6 +226,13 @@ def _weight_label(k: int, labels: Sequence[str] | None) -> str:
     """``$W_{k+1}$``, with its basis function when ``labels`` names them."""
     name = _math_label(labels[k]) if labels is not None and k < len(labels) else None
     return rf"$W_{{{k + 1}}}$" + (f" ({name})" if name else "")
+
+
+def _weight_rank(result: SimulationResult, labels: Sequence[str] | None) -> dict[str, float]:
+    """Each weight's legend label to its largest ``|W_k(t)|``: a long legend keeps the largest."""
+    W = np.abs(np.asarray(result.W, dtype=float))
+    peak = np.nan_to_num(W, nan=0.0).max(axis=0) if W.shape[0] else np.zeros(W.shape[1])
+    return {_weight_label(k, labels): float(peak[k]) for k in range(W.shape[1])}
 
 
 def _shown(result: SimulationResult, key: str) -> np.ndarray:
@@ -427,6 +445,50 @@ def _entries(axes: Sequence[Axes]) -> tuple[list[Any], list[str]]:
     return handles, labels
 
 
+def _side_rows(height_in: float, fontsize: float, title: bool = False) -> int:
+    """Legend rows that fit beside axes ``height_in`` inches tall."""
+    rows = int((72.0 * height_in / fontsize - _BORDER) // _ROW_HEIGHT) - int(title)
+    return max(rows, 2)
+
+
+def _trimmed(
+    handles: list[Any], labels: list[str], room: int, rank: dict[str, float] | None
+) -> tuple[list[Any], list[str]]:
+    """At most ``room`` entries: those of highest ``rank`` (else the first), in their order.
+
+    When entries are left out, the last one kept says how many (``and 66
+    more``), drawn as a blank handle.
+    """
+    if len(handles) <= room:
+        return handles, labels
+    from matplotlib.lines import Line2D
+
+    keep = room - 1
+    order = list(range(len(labels)))
+    if rank is not None:
+        order.sort(key=lambda i: -rank.get(labels[i], -math.inf))
+    chosen = sorted(order[:keep])
+    more = Line2D([], [], linestyle="none", label="_more")
+    return (
+        [handles[i] for i in chosen] + [more],
+        [labels[i] for i in chosen] + [f"and {len(labels) - keep} more"],
+    )
+
+
+def _side_legend(
+    owner: Figure | Axes,
+    handles: list[Any],
+    labels: list[str],
+    rows: int,
+    rank: dict[str, float] | None,
+    **kwargs: Any,
+) -> Legend:
+    """A legend beside the axes in as few columns as hold it, at most :data:`_SIDE_COLUMNS`."""
+    handles, labels = _trimmed(handles, labels, rows * _SIDE_COLUMNS, rank)
+    ncols = math.ceil(len(handles) / rows)
+    return owner.legend(handles, labels, ncols=ncols, **kwargs)
+
+
 def _fitted(fig: Figure, make: Callable[[int], Legend], count: int) -> Legend:
     """The legend of fewest rows that fits the figure's width, its rows filled evenly.
 
@@ -445,17 +507,31 @@ def _fitted(fig: Figure, make: Callable[[int], Legend], count: int) -> Legend:
     return make(1)
 
 
-def _legend(fig: Figure, axes: Sequence[Axes], size: _Size, *, title: str | None = None) -> None:
+def _legend(
+    fig: Figure,
+    axes: Sequence[Axes],
+    size: _Size,
+    *,
+    title: str | None = None,
+    rank: dict[str, float] | None = None,
+) -> None:
     """One legend for the figure, outside the axes: above, or right if long (on a page).
 
-    At column width it is always above, in as many columns as fit.
+    At column width it is always above, in as many columns as fit. Beside
+    the axes it takes as many columns as its entries need (at most
+    :data:`_SIDE_COLUMNS`), above them at most :data:`_ABOVE_ROWS` rows; past
+    that, the entries of lowest ``rank`` (label to importance; default: the
+    last) are left out, and the legend says how many.
     """
     handles, labels = _entries(axes)
     if not handles:
         return
     if len(handles) > _MANY and not size.column:
-        fig.legend(handles, labels, loc="outside right upper", ncols=1, title=title)
+        font = plt.rcParams["legend.fontsize"]
+        rows = _side_rows(fig.get_size_inches()[1], float(font), title is not None)
+        _side_legend(fig, handles, labels, rows, rank, loc="outside right upper", title=title)
         return
+    handles, labels = _trimmed(handles, labels, _ABOVE_ROWS * 4, rank)
     _fitted(
         fig,
         lambda ncols: fig.legend(handles, labels, loc="outside upper center", ncols=ncols),
@@ -463,30 +539,38 @@ def _legend(fig: Figure, axes: Sequence[Axes], size: _Size, *, title: str | None
     )
 
 
-def _panel_legend(ax: Axes, size: _Size, *, title: str | None = None) -> None:
+def _panel_legend(
+    ax: Axes, size: _Size, *, title: str | None = None, rank: dict[str, float] | None = None
+) -> None:
     """This panel's legend outside it, with its ``title`` (what the panel shows).
 
     On a page: the title above the panel, the legend to its right, one entry a
-    row. At column width: the legend above the panel in as many columns as
-    fit, titled with ``title``.
+    row (two columns when the panel's height needs them). At column width:
+    the legend above the panel in as many columns as fit, titled with
+    ``title``. Entries past what that holds are left out as in :func:`_legend`.
     """
     handles, labels = _entries([ax])
+    fig = ax.get_figure()
+    assert isinstance(fig, Figure)
     if not size.column or not handles:
         if title:
             ax.set_title(title, fontsize=size.title)
         if handles:
-            ax.legend(
+            height = fig.get_size_inches()[1] * ax.get_position().height
+            _side_legend(
+                ax,
                 handles,
                 labels,
+                _side_rows(height, size.dense),
+                rank,
                 loc="upper left",
                 bbox_to_anchor=(1.01, 1.0),
-                ncols=1,
                 fontsize=size.dense,
                 handlelength=1.5,
+                columnspacing=1.0,
             )
         return
-    fig = ax.get_figure()
-    assert isinstance(fig, Figure)
+    handles, labels = _trimmed(handles, labels, _ABOVE_ROWS * 4, rank)
     _fitted(
         fig,
         lambda ncols: ax.legend(
@@ -829,7 +913,7 @@ def plot_weights(
         _autoscale_visible(ax, result.t, result.W, [])
     _titles(axes, titles, sz)
     _ylabel(axes, r"critic weights $W$", sz)
-    _legend(fig, axes, sz)
+    _legend(fig, axes, sz, rank=_weight_rank(result, labels))
     return fig
 
 
@@ -1282,9 +1366,10 @@ def plot_overview(
     titles.append(first)
 
     _mark_stop(stop, axes)
-    for ax, title in zip(axes, titles, strict=True):
+    ranks = [None, None, _weight_rank(result, weight_labels), None]
+    for ax, title, rank in zip(axes, titles, ranks, strict=True):
         ax.set_xlabel(r"time $t$ [s]")
-        _panel_legend(ax, sz, title=title)
+        _panel_legend(ax, sz, title=title, rank=rank)
     return fig
 
 

@@ -459,6 +459,7 @@ def test_j_star_and_the_linearizing_baselines_of_a_plant_drake_cannot_trace(bran
     assert [r["status"] for r in rows] == ["ok", "ok"]
     assert all(np.isnan(r["optimal_cost"]) and np.isnan(r["optimality_ratio"]) for r in rows)
     (warning,) = [w.message for w in caught if isinstance(w.message, OptimalCostWarning)]
+    assert all(str(warning).endswith(f"J/J*: {r['optimal_status']}") for r in rows), rows
     assert re.match(
         r"montecarlo two_state_paper: J\* of the nominal problem is not available, so the rows "
         r"have no J/J\*: optimal control: J\* .*model 'branchy' cannot be",

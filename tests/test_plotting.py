@@ -2,6 +2,8 @@
 
 import dataclasses
 import math
+import re
+import warnings
 from unittest import mock
 
 import matplotlib.pyplot as plt
@@ -526,3 +528,45 @@ def test_an_unknown_format_or_size_is_refused_before_anything_is_written(tmp_pat
     assert not (tmp_path / "figs").exists()
     with pytest.raises(OutputError, match=r"size: unknown value 'A4'"):
         plot_state(_result(), 0, size="A4")
+
+
+def _inside_figure(fig):
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for legend in _legends(fig):
+        box = legend.get_window_extent(renderer)
+        assert box.x0 >= -1 and box.y0 >= -1, [t.get_text() for t in legend.get_texts()]
+        assert box.x1 <= fig.bbox.width + 1 and box.y1 <= fig.bbox.height + 1, (
+            f"legend {[t.get_text() for t in legend.get_texts()][-3:]} runs off the figure"
+        )
+
+
+@pytest.mark.parametrize("size", ["page", "column"])
+def test_long_legends_keep_the_largest_weights_and_fit_the_figure(size):
+    # Before: the quadrotor's 78 weights and 24 state entries were one legend column
+    # each, cut off at the figure's edge, over the next panel, and matplotlib warned
+    # "constrained_layout not applied because axes sizes collapsed to zero".
+    r = _result(n=12, m=4, L=78)
+    scale = np.where(np.arange(78) % 7 == 3, 50.0, 1.0)  # every 7th weight from W4 is large
+    r = dataclasses.replace(r, W=r.W * scale, W_policy=r.W_policy * scale)
+    labels = [f"x{k}" for k in range(1, 79)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the layout warning included
+        figures = {
+            "weights": plot_weights(r, labels, size=size),
+            "overview": plot_overview(r, 3.0, ([-2.0] * 12, [2.0] * 12), labels, size=size),
+        }
+        for fig in figures.values():
+            _assert_legends_outside_axes(fig)
+            _inside_figure(fig)
+    big = [k for k in range(78) if k % 7 == 3]  # 12 of them: kept, whatever the room
+    for entries in (
+        [t.get_text() for t in figures["overview"].axes[2].get_legend().get_texts()],
+        _labels(figures["weights"]),
+    ):
+        kept = [w for w in entries if w.startswith("$W")]
+        assert re.fullmatch(r"and \d+ more", entries[-1]), entries
+        assert len(kept) + int(entries[-1].split()[1]) == 78
+        assert all(any(w.startswith(rf"$W_{{{k + 1}}}$ ") for w in kept) for k in big), kept
+    for fig in figures.values():
+        plt.close(fig)
