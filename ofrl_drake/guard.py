@@ -19,6 +19,17 @@ end ``AdvanceTo`` early when
 * the wall time since :meth:`RunGuard.start` exceeds ``max_wall_time``
   (status ``timeout``).
 
+A monitor cannot see a step that never ends. Drake's error control answers a
+NaN or infinite error estimate by shrinking the step tenfold with no floor
+(``IntegratorBase::CalcAdjustedStepSize``), so when the time derivative at
+the current state is not finite no step ever succeeds and ``AdvanceTo`` never
+returns. :class:`StallWatchdog` is a thread that watches the guard's steps and
+the integrator's derivative evaluations; when :func:`stall_limit` evaluations
+pass without a step, or ``max_wall_time`` without one, it raises
+:class:`IntegratorStalled` in the simulating thread. Python delivers it at the
+next line of a Python block's calc (every loop has some: the critic, Gamma,
+the Bellman sums), and it unwinds ``AdvanceTo`` like any exception of a block.
+
 The same monitor draws the optional :class:`~ofrl_drake.progress.ProgressBar`,
 so a run with the bar on and a run with it off take the same steps and give the
 same numbers, bit for bit. A condition is seen only after the step that produced it (the monitor
@@ -27,6 +38,8 @@ does not localize it), which is all a guard needs.
 
 from __future__ import annotations
 
+import ctypes
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -45,14 +58,18 @@ from ofrl_drake.checks import (
 from ofrl_drake.progress import ProgressBar
 
 __all__ = [
+    "STALL_EVALUATIONS",
     "STALL_STEPS",
     "STATUSES",
     "STATUS_DIVERGED",
     "STATUS_OK",
     "STATUS_TIMEOUT",
+    "IntegratorStalled",
     "RunGuard",
     "StallDetector",
+    "StallWatchdog",
     "StopReport",
+    "stall_limit",
 ]
 
 #: The run reached its horizon.
@@ -72,6 +89,12 @@ STALL_STEPS = 100
 #: (``IntegratorBase::get_working_minimum_step_size``), the shortest step that
 #: still advances time.
 STALL_TOLERANCE = 1e-14
+#: Derivative evaluations without a finished step that make a stall: at least
+#: this many, and 20 per continuous state (an implicit scheme forms its
+#: Jacobian by differences over every state, some times per step).
+STALL_EVALUATIONS = 10_000
+#: Seconds between two looks of :class:`StallWatchdog`.
+WATCH_PERIOD = 0.1
 
 
 @dataclass(frozen=True)
@@ -242,6 +265,13 @@ class RunGuard:
         self._root: Context | None = None  # the simulator's context, as last seen
         self._stall = StallDetector()
         self._subcontexts: tuple[Context, Context] | None = None
+        self.steps = 0  # monitor calls: what StallWatchdog watches
+        self._last: tuple[float, np.ndarray, np.ndarray] | None = None  # at the last step
+        self._within_step = False  # stopped inside a step: report the last step's end
+
+    def elapsed(self) -> float:
+        """Wall-clock seconds since :meth:`start`."""
+        return time.perf_counter() - self._start
 
     @property
     def stopped(self) -> bool:
@@ -272,8 +302,10 @@ class RunGuard:
         x, xhat = self.states(root_context)
         # one compiled call per step
         if _all_inside(state, x, xhat, self._lower, self._upper):  # type: ignore[arg-type]  # pydrake array stub
+            self._last = (root_context.get_time(), x, xhat)
             return self._check_progress(root_context)
         t = root_context.get_time()
+        self._last = (t, x, xhat)
         if not np.all(np.isfinite(state)):
             bad = int(np.flatnonzero(~np.isfinite(state))[0])
             return STATUS_DIVERGED, f"continuous state {bad} is {state[bad]} at t = {t:.6g} s"
@@ -307,6 +339,7 @@ class RunGuard:
 
     def __call__(self, root_context: Context) -> EventStatus:
         """The monitor: check the run, draw progress, stop the run if needed."""
+        self.steps += 1
         if self.progress is not None:
             self.progress.update(root_context.get_time())
         status, reason = self.check(root_context)
@@ -315,20 +348,148 @@ class RunGuard:
         self.status, self.reason = status, reason
         return EventStatus.ReachedTermination(self.diagram, f"{status}: {reason}")
 
-    def fail(self, reason: str) -> None:
-        """Record that the integrator gave up (status ``diverged``)."""
-        self.status, self.reason = STATUS_DIVERGED, reason
+    def fail(
+        self, reason: str, status: str = STATUS_DIVERGED, *, within_step: bool = False
+    ) -> None:
+        """Record that the integrator gave up (status ``diverged`` unless given).
+
+        ``within_step``: the run was stopped inside a step (:class:`StallWatchdog`),
+        whose context holds a stage of it, not a state of the run; the report
+        then gives the time and states of the last finished step.
+        """
+        self.status, self.reason = status, reason
+        self._within_step = within_step
 
     def report(self, root_context: Context) -> StopReport:
         """How the run ended, read from the simulator's final context."""
         if self.progress is not None:
             self.progress.close()
         x, xhat = self.states(root_context)
+        t = float(root_context.get_time())
+        if self._within_step and self._last is not None:
+            t, x, xhat = self._last
         return StopReport(
             status=self.status,
             reason=self.reason,
-            time=float(root_context.get_time()),
+            time=float(t),
             x=x.tolist(),
             xhat=xhat.tolist(),
             wall_time=time.perf_counter() - self._start,
         )
+
+
+def stall_limit(states: int) -> int:
+    """Derivative evaluations without a step that :class:`StallWatchdog` calls a stall."""
+    return max(STALL_EVALUATIONS, 20 * int(states))
+
+
+class IntegratorStalled(BaseException):
+    """Raised by :class:`StallWatchdog` in the thread that runs ``AdvanceTo``.
+
+    A ``BaseException``, as ``KeyboardInterrupt`` is, so that no ``except
+    Exception`` in a block's calc keeps it from unwinding ``AdvanceTo``.
+    """
+
+
+def _raise_in(thread_id: int, exc: type[BaseException]) -> None:
+    """Have the thread ``thread_id`` raise ``exc`` at its next line of Python."""
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread_id), ctypes.py_object(exc))
+
+
+class StallWatchdog:
+    """Stop an ``AdvanceTo`` whose integrator step never ends (module docstring).
+
+    Use it as a context manager around ``Simulator.AdvanceTo``, and catch
+    :class:`IntegratorStalled` around both: :attr:`fired` then holds the
+    status and reason, for :meth:`RunGuard.fail`.
+
+    Parameters
+    ----------
+    guard : RunGuard
+        The simulator's monitor; its ``steps`` count the finished steps.
+    integrator : IntegratorBase
+        The simulator's integrator; it counts the derivative evaluations.
+    limit : int
+        Evaluations without a step that make a stall (:func:`stall_limit`).
+    period : float
+        Seconds between two looks.
+
+    Attributes
+    ----------
+    fired : tuple of str or None
+        ``(status, reason)`` once the watchdog has stopped the run.
+
+    Examples
+    --------
+    >>> watchdog = StallWatchdog(guard, simulator.get_integrator(), limit)  # doctest: +SKIP
+    >>> try:                                                              # doctest: +SKIP
+    ...     with watchdog:
+    ...         simulator.AdvanceTo(duration)
+    ... except IntegratorStalled:
+    ...     guard.fail(watchdog.fired[1], watchdog.fired[0])
+    """
+
+    def __init__(
+        self, guard: RunGuard, integrator: Any, limit: int, period: float = WATCH_PERIOD
+    ) -> None:
+        self.guard = guard
+        self.integrator = integrator
+        self.limit = limit
+        self.period = period
+        self.fired: tuple[str, str] | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._armed = False
+        self._target = 0
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> StallWatchdog:
+        self._target = threading.get_ident()
+        self._armed = True
+        self._thread = threading.Thread(target=self._watch, name="ofrl-stall-watchdog", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        # Once fired, the exception is raised at the simulating thread's next line of
+        # Python, so within the block or on leaving it: catch it around the block.
+        with self._lock:
+            self._armed = False
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def _watch(self) -> None:
+        steps, evaluations = self.guard.steps, self.integrator.get_num_derivative_evaluations()
+        while not self._stop.wait(self.period):
+            now = self.integrator.get_num_derivative_evaluations()
+            if self.guard.steps != steps:
+                steps, evaluations = self.guard.steps, now
+                continue
+            t = self.integrator.get_context().get_time()
+            fired = None
+            if now - evaluations > self.limit:
+                fired = (
+                    STATUS_DIVERGED,
+                    f"the integrator made no step in {now - evaluations} derivative "
+                    f"evaluations at t = {t:.6g} s: a time derivative is NaN or infinite "
+                    "at this state (check the plant's f(x) and g(x) there), and Drake's error "
+                    "control would shrink the step forever",
+                )
+            elif (
+                self.guard.max_wall_time is not None
+                and self.guard.elapsed() > self.guard.max_wall_time
+            ):
+                fired = (
+                    STATUS_TIMEOUT,
+                    f"wall time {self.guard.elapsed():.3g} s exceeded max_wall_time = "
+                    f"{self.guard.max_wall_time:g} s at t = {t:.6g} s, within a step "
+                    f"({now - evaluations} derivative evaluations since the last one)",
+                )
+            if fired is not None:
+                with self._lock:
+                    if self._armed:
+                        self.fired = fired
+                        self._armed = False
+                        _raise_in(self._target, IntegratorStalled)
+                return

@@ -40,7 +40,14 @@ from ofrl_drake.errors import (
     is_domain_error,
     one_line,
 )
-from ofrl_drake.guard import STATUS_OK, RunGuard, StopReport
+from ofrl_drake.guard import (
+    STATUS_OK,
+    IntegratorStalled,
+    RunGuard,
+    StallWatchdog,
+    StopReport,
+    stall_limit,
+)
 from ofrl_drake.observer import unpack_gains
 from ofrl_drake.observer_certificate import ObserverCertificate, certificate_of
 from ofrl_drake.progress import ProgressBar
@@ -794,9 +801,20 @@ def simulate(
     start = time.perf_counter()
     guard.start()
     simulator.Initialize()
+    within_step = False  # stopped inside a step: its context holds a stage, not a state
     if not guard.stopped:
+        watchdog = StallWatchdog(
+            guard,
+            simulator.get_integrator(),
+            stall_limit(simulator.get_context().num_continuous_states()),
+        )
         try:
-            simulator.AdvanceTo(duration)
+            with watchdog:
+                simulator.AdvanceTo(duration)
+        except IntegratorStalled:
+            assert watchdog.fired is not None  # only the watchdog raises it
+            within_step = True
+            guard.fail(watchdog.fired[1], watchdog.fired[0], within_step=True)
         except RuntimeError as err:
             if not _is_integrator_failure(err):
                 raise
@@ -816,7 +834,7 @@ def simulate(
             )
     wall = time.perf_counter() - start
     stop = guard.report(simulator.get_context())
-    if not stop.ok:
+    if not stop.ok and not within_step:
         _flush_logs(loop, simulator.get_context())
 
     t, logs = loop.logs(simulator.get_context())

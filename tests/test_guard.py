@@ -5,6 +5,7 @@ import io
 import json
 import re
 import sys
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -327,3 +328,114 @@ def test_a_run_that_turns_nan_writes_strict_json_and_loads_back(
     np.testing.assert_array_equal(back.x, result.x)  # NaN where the run had NaN
     back.save(tmp_path / "again")
     assert (tmp_path / "again" / "summary.json").read_text() == text
+
+
+class _NaNFromTheStart(_FiniteTimeBlowUp):
+    """A plant slot block whose ``x2'`` is NaN at every state, the initial one included."""
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        x = context.get_continuous_state_vector().CopyToVector()
+        derivatives.get_mutable_vector().SetFromVector(np.array([x[1], np.nan]))
+
+
+class _SlowRates(_FiniteTimeBlowUp):
+    """A plant slot block that takes 0.2 s of wall time per derivative evaluation."""
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        import time
+
+        time.sleep(0.2)
+        derivatives.get_mutable_vector().SetFromVector(np.zeros(2))
+
+
+def _simulate_in_a_child(plant: str, **simulation) -> dict:
+    """``simulate`` of the paper's scenario with the plant slot block ``plant`` of this
+    module, in a child process with a timeout: a hang fails the test instead of the suite."""
+    import subprocess
+
+    code = f"""
+import json, dataclasses
+from ofrl_drake import load_scenario, simulate
+from ofrl_drake.scenario import BoxConfig
+from ofrl_drake.variants import design_for
+from tests.test_guard import {plant}, _with_simulation
+scenario = load_scenario({str(PAPER_SCENARIO)!r})
+design = design_for(scenario)
+scenario = _with_simulation(
+    scenario, abort_box=BoxConfig([-1e3, -1e3], [1e3, 1e3]), **{simulation!r}
+)
+result = simulate(scenario, design=design, plant={plant}(), progress=False)
+print(json.dumps({{"stop": result.stop.to_dict(), "t": result.t.tolist(),
+                  "finite": bool(all(map(lambda v: v == v, result.x.ravel())))}}))
+"""
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+def test_a_step_that_never_ends_is_stopped_as_diverged():
+    # Before: Drake's error control shrank the first step tenfold forever (a NaN error
+    # estimate has no floor), the monitor was never called, and AdvanceTo never returned.
+    # Python blocks: a C++ block fed the NaN stage states would raise instead.
+    run = _simulate_in_a_child(
+        "_NaNFromTheStart", duration=1.0, max_wall_time=60.0, blocks="python"
+    )
+    stop = run["stop"]
+    assert stop["status"] == STATUS_DIVERGED
+    assert re.match(
+        r"the integrator made no step in \d+ derivative evaluations at t = 0 s: a time "
+        r"derivative is NaN or infinite at this state",
+        stop["reason"],
+    ), stop["reason"]
+    # The last finished step's time and states, not a stage of the one that never ended.
+    assert (stop["time"], stop["x"]) == (0.0, [1.0, 1.0])
+    assert run["t"] == [0.0] and run["finite"]
+
+
+def test_max_wall_time_stops_a_run_within_a_step():
+    # Before: the wall-time budget was checked only after a step ended.
+    run = _simulate_in_a_child("_SlowRates", duration=1.0, max_wall_time=0.5)
+    stop = run["stop"]
+    assert stop["status"] == STATUS_TIMEOUT
+    assert re.match(
+        r"wall time \S+ s exceeded max_wall_time = 0\.5 s at t = \S+ s, within a step",
+        stop["reason"],
+    ), stop["reason"]
+    assert stop["wall_time"] < 5.0
+
+
+def test_the_watchdog_raises_in_the_thread_it_watches_once_evaluations_pass_the_limit():
+    import time
+
+    from ofrl_drake.guard import IntegratorStalled, StallWatchdog
+
+    class _Stuck:  # a guard whose monitor is never called, an integrator that keeps evaluating
+        steps = 0
+        max_wall_time = None
+        evaluations = 0
+
+        def get_num_derivative_evaluations(self):
+            self.evaluations += 1000
+            return self.evaluations
+
+        def get_context(self):
+            return mock.Mock(get_time=lambda: 2.5)
+
+    stuck = _Stuck()
+    watchdog = StallWatchdog(stuck, stuck, limit=10_000, period=0.01)
+    start = time.monotonic()
+    with pytest.raises(IntegratorStalled):
+        with watchdog:
+            while time.monotonic() - start < 30:  # lines of Python, as a block's calc runs
+                time.sleep(0.001)
+    assert time.monotonic() - start < 5
+    status, reason = watchdog.fired
+    assert status == STATUS_DIVERGED
+    assert re.match(
+        r"the integrator made no step in 1[01]\d{3} derivative evaluations at "
+        r"t = 2\.5 s",
+        reason,
+    ), reason
+    assert not watchdog._thread.is_alive()
