@@ -652,11 +652,14 @@ def drake_plant(parts: ClosedLoopParts) -> System:
     return DrakePlant(parts.system, initial_state=parts.scenario.x0)
 
 
-def _check_design(design: object, scenario: Scenario) -> None:
-    """Refuse a ``design=`` that is not an ``ObserverDesign`` certified for ``scenario``'s inputs.
+def _check_design(design: object, scenario: Scenario, system: ControlAffineSystem) -> None:
+    """Refuse a ``design=`` that is not an ``ObserverDesign`` certified for ``scenario``'s loop.
 
-    The controller saturates at the scenario's ``input_bound``, so a design
-    certified for a smaller one would be claimed where it does not hold.
+    Its sizes and output matrix must be the model's (a design for another
+    measurement would report a certificate that does not apply to the loop
+    that ran), and the controller saturates at the scenario's
+    ``input_bound``, so a design certified for a smaller one would be claimed
+    where it does not hold.
     """
     from ofrl_drake.design import DesignError, ObserverDesign
 
@@ -665,6 +668,16 @@ def _check_design(design: object, scenario: Scenario) -> None:
             f"design: expected an ObserverDesign; got {type(design).__name__}. Make one with "
             "ofrl_drake.variants.design_for(scenario) or ofrl_drake.design.design_observer, "
             "or omit design= to use the scenario's own."
+        )
+    n, m = design.bounds.Mg1.shape[0], design.bounds.Mg1.shape[2]
+    C = np.asarray(design.C, dtype=float)
+    if (n, m) != (system.n, system.m) or not np.array_equal(C, system.output_matrix):
+        raise DesignError(
+            f"design: made for a plant with n = {n} states, m = {m} inputs and C = "
+            f"{C.tolist()}, but the scenario's model {system.name!r} has n = {system.n}, "
+            f"m = {system.m} and C = {system.output_matrix.tolist()}, so its certificate would "
+            "not apply to the loop; design for this scenario (design_for(scenario)), or "
+            "omit design= to use the scenario's own."
         )
     if design.input_bound < scenario.input_bound:
         raise DesignError(
@@ -823,9 +836,9 @@ def build_closed_loop(
         )
     validate_scenario(scenario)
     period = _log_period(scenario, log_period)
-    if design is not None:
-        _check_design(design, scenario)
     system = resolve_system(scenario)
+    if design is not None:
+        _check_design(design, scenario, system)
     basis = PolynomialBasis(system.n, scenario.critic.basis_degrees)
     Q = np.asarray(scenario.cost.Q, dtype=float)
     r = np.asarray(scenario.cost.R, dtype=float)

@@ -404,3 +404,22 @@ def test_paper_design_satisfies_lmi2_but_not_the_decay_certificate(paper_design)
     assert paper_design.formulation == "paper"
     assert paper_design.is_certified
     assert not paper_design.is_decay_certified
+
+
+def test_build_refuses_a_design_made_for_another_measurement(paper_scenario):
+    # Before: accepted; the run diverged while summary.json reported the design's
+    # certificate (for C = [1 0]) as if it applied to the loop measuring x2.
+    from ofrl_drake.design import DesignError, design_observer
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.model import ControlAffineSystem
+
+    paper = make_system("two_state")
+    other = ControlAffineSystem(paper.f, paper.g, C=[[1.0, 0.0]], name="two_state_x1")
+    design = design_observer(other, ([-2.0, -2.0], [2.0, 2.0]), 3.0, 0.5)
+    with pytest.raises(
+        DesignError,
+        match=r"^design: made for a plant with n = 2 states, m = 1 inputs and C = "
+        r"\[\[1\.0, 0\.0\]\], but the scenario's model 'two_state' has n = 2, m = 1 and "
+        r"C = \[\[0\.0, 1\.0\]\], so its certificate would not apply",
+    ):
+        build_closed_loop(paper_scenario, design=design)
