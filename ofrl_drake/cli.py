@@ -486,7 +486,9 @@ def _run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if verification is not None and loop.design is not None:  # verified only with a design
-        line = verification.verdict(loop.design.is_decay_certified)
+        line = verification.verdict(
+            loop.design.is_decay_certified, loop.design.bounds_are_guaranteed
+        )
         print(f"observer: {line}" + (f" {CERTIFICATE_DOCS}" if verification.falsified else ""))
     elif unverified is not None and learning.curve_stop is not None:  # the curve's line is last
         print(f"note: {unverified}.", file=sys.stderr)
@@ -892,7 +894,9 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
         f"wrote {args.out}: alpha = {design.alpha}, ||L|| = {design.gain_norm:.4g}, "
         f"max certificate eigenvalue = {design.max_eigenvalue:.3g}"
     )
-    print(f"observer: {verification.verdict(design.is_decay_certified)}")
+    print(
+        f"observer: {verification.verdict(design.is_decay_certified, design.bounds_are_guaranteed)}"
+    )
     return EXIT_OK
 
 
@@ -935,7 +939,10 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
             "observer_design": design.to_dict(),
         }
         atomic_write_text(Path(args.out), json.dumps(data, indent=2) + "\n")
-    print(f"{scenario.name}: {report.verdict(design.is_decay_certified)}")
+    print(
+        f"{scenario.name}: "
+        f"{report.verdict(design.is_decay_certified, design.bounds_are_guaranteed)}"
+    )
     return EXIT_FALSIFIED if report.falsified else EXIT_OK
 
 

@@ -339,9 +339,14 @@ def _injection_points(
 def _excursion(
     t: np.ndarray, z: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Samples where ``z`` (T, n) is outside the box in force, and their summary."""
-    distance = np.max(np.maximum(lower - z, z - upper), axis=1, initial=-np.inf)
-    out = np.any((z < lower - tol) | (z > upper + tol), axis=1)
+    """Samples where ``z`` (T, n) is outside the box in force, and their summary.
+
+    A NaN component is outside, at an infinite distance (a run that turned NaN
+    left every box).
+    """
+    beyond = np.maximum(lower - z, z - upper)
+    distance = np.max(np.where(np.isnan(beyond), np.inf, beyond), axis=1, initial=-np.inf)
+    out = np.any(~((z >= lower - tol) & (z <= upper + tol)), axis=1)
     worst = int(np.argmax(distance)) if distance.size else 0
     left = bool(distance.size) and distance[worst] > 0
     summary = {
@@ -410,7 +415,7 @@ def validity_report(
     t = np.asarray(t, dtype=float)
     given = not (C is None and H is None and K is None)
     injection = _injection_points(x, xhat, C, H, K) if given else None
-    u_out = np.any(np.abs(np.asarray(u, dtype=float)) > input_bound + tol, axis=1)
+    u_out = np.any(~(np.abs(np.asarray(u, dtype=float)) <= input_bound + tol), axis=1)
     excursions: dict[str, dict[str, Any]] | None = None
     if box is None:
         check = "not_applicable"

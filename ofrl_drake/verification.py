@@ -10,7 +10,10 @@ and the observer of :mod:`ofrl_drake.observer`, by searching for the largest
 
 Three searches, all vectorized over points:
 
-* **finite errors**: ``x`` and ``xhat`` drawn uniformly in the box;
+* **finite errors**: ``x`` and ``xhat`` drawn uniformly in the box; with
+  ``H`` or ``K`` nonzero, only the pairs whose injection points ``xhat + H C
+  e`` and ``xhat + K C e`` lie in the box too (the mean-value argument
+  evaluates f and g there, so the claim covers no other pair);
 * **the small-error limit**: as ``e -> 0`` along a direction ``d``,
   ``r -> d^T (A^T P + P A) d / d^T P d`` with ``A = de'/de`` at ``e = 0``,
 
@@ -27,6 +30,10 @@ sector ``M_ug1(u)`` breaks only at ``u_k = 0``), so ``r`` at fixed ``x, xhat``
 and the convex ``lambda_max`` of the limit are largest at one of the ``3**m``
 inputs ``u_k in {-lambda_bar, 0, +lambda_bar}``, and every one is evaluated
 (for ``3**m > MAX_INPUT_VERTICES``, a random vertex per sample).
+
+A sample where the true error dynamics are not finite (f or g undefined, or
+overflowing, at a state of the box) has the rate ``+inf``: the claim cannot
+hold where the dynamics do not exist, and the report names the point.
 
 Sampling can only find counterexamples: a report that is not ``falsified``
 means that none was found with this budget, not that the claim holds. A
@@ -120,6 +127,10 @@ class VerificationReport:
         small-error limit.
     finite_violating_fraction : float
         Fraction of the sampled ``(x, xhat, u)`` violating it.
+    finite_outside_fraction : float
+        Fraction of the sampled ``(x, xhat, u)`` left out because an injection
+        point ``xhat + H C e`` or ``xhat + K C e`` is outside the box, where
+        the claim does not reach (0 when ``H = K = 0``).
     samples : int
         Points ``x`` for the limit, and as many pairs ``(x, xhat)``.
     input_vertices : int
@@ -161,6 +172,7 @@ class VerificationReport:
     box: Box
     input_bound: float
     jacobians: str
+    finite_outside_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         for key in ("x", "xhat", "u"):
@@ -192,6 +204,13 @@ class VerificationReport:
                 f"(seed {self.seed}{', refined' if self.refined else ''})"
             )
         where = f"x = {_fmt(self.x)}, u = {_fmt(self.u)}"
+        if not math.isfinite(self.worst_rate):
+            state = "" if self.direction is not None else f", xhat = {_fmt(self.xhat)}"
+            return (
+                f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); falsified: the "
+                f"error dynamics are not finite at {where}{state} (f or g is undefined or "
+                "overflows there, inside the box)"
+            )
         if self.direction is not None:
             where += f", e -> 0 along {_fmt(self.direction)}"
         else:
@@ -201,16 +220,20 @@ class VerificationReport:
             f"r = {self.worst_rate:+.4g} at {where}"
         )
 
-    def verdict(self, decay_certified: bool) -> str:
+    def verdict(self, decay_certified: bool, bounds_guaranteed: bool = True) -> str:
         """One line for a design with or without a sound decay certificate.
 
         ``"decay-certified and not falsified (...)"`` when both hold; otherwise
         :meth:`summary_line`, prefixed with ``"not decay-certified; "`` when
         the design has no sound certificate but no counterexample was found.
+        A certificate on Jacobian bounds that are not guaranteed (sampled, an
+        inner estimate: ``ObserverDesign.bounds_are_guaranteed``) proves
+        nothing, and the line says so.
         """
         if decay_certified and not self.falsified:
+            on = "" if bounds_guaranteed else " on sampled Jacobian bounds (not a proof)"
             return (
-                f"decay-certified and not falsified (alpha = {self.alpha:g}: worst r = "
+                f"decay-certified{on} and not falsified (alpha = {self.alpha:g}: worst r = "
                 f"{self.worst_rate:+.4g} <= {self.claimed_rate:g} over {self.samples} samples)"
             )
         prefix = "" if self.falsified or decay_certified else "not decay-certified; "
@@ -232,6 +255,7 @@ class VerificationReport:
             "worst_finite_rate": self.worst_finite_rate,
             "violating_fraction": self.violating_fraction,
             "finite_violating_fraction": self.finite_violating_fraction,
+            "finite_outside_fraction": self.finite_outside_fraction,
             "samples": self.samples,
             "input_vertices": self.input_vertices,
             "seed": self.seed,
@@ -360,6 +384,24 @@ def error_rates(
     return _rates(system, gains, P, *(np.asarray(a, float) for a in (X, Xhat, U)))
 
 
+def _injections_inside(
+    gains: ObserverGains, C: np.ndarray, X: np.ndarray, Xhat: np.ndarray, box: Box
+) -> np.ndarray:
+    """Per column, whether ``xhat + H C e`` and ``xhat + K C e`` lie in ``box``."""
+    inside = np.ones(X.shape[1], dtype=bool)
+    ytil = C @ (X - Xhat)
+    for gain in (gains.H, gains.K):
+        if np.any(gain):
+            point = Xhat + gain @ ytil
+            inside &= np.all((point >= box.lower[:, None]) & (point <= box.upper[:, None]), axis=0)
+    return inside
+
+
+def _undefined_is_worst(rates: np.ndarray) -> np.ndarray:
+    """NaN rates (dynamics undefined at the sample) as ``+inf``: the worst there is."""
+    return np.where(np.isnan(rates), np.inf, rates)
+
+
 def _rates(
     system: ControlAffineSystem,
     gains: ObserverGains,
@@ -413,7 +455,18 @@ def _error_jacobians(
 
 
 def _limit_from_jacobians(A: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Largest generalized eigenvalue of ``(A^T P + P A, P)`` and its unit eigenvector."""
+    """Largest generalized eigenvalue of ``(A^T P + P A, P)`` and its unit eigenvector.
+
+    ``+inf`` (and a NaN direction) where ``A`` is not finite: the dynamics are
+    undefined there.
+    """
+    finite = np.all(np.isfinite(A), axis=(-2, -1))
+    if not np.all(finite):
+        rates = np.full(A.shape[:-2], np.inf)
+        directions = np.full((*A.shape[:-2], A.shape[-1]), np.nan)
+        if np.any(finite):
+            rates[finite], directions[finite] = _limit_from_jacobians(A[finite], P)
+        return rates, directions
     Lc = np.linalg.cholesky(P)
     Li = np.linalg.inv(Lc)  # P = Lc Lc^T; e = Li^T w gives e^T P e = w^T w
     S = np.swapaxes(A, -1, -2) @ P + P @ A
@@ -642,12 +695,16 @@ def verify_observer(
     X1, X2 = uniform(samples), uniform(samples)
     finite = _Best()
     finite_violations = 0
+    outside = 0
     finite_starts: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
     for k, sl in enumerate(chunks):
         on_time(f"chunk {k + 1} of {len(chunks)} of the finite-error search")
         (Xs, Xh), Us, V = _tile(rng, [X1[:, sl], X2[:, sl]], input_bound, m)
-        rates = _rates(system, gains, P, Xs, Xh, Us)
-        rates = np.where(np.isfinite(rates), rates, -math.inf)
+        covered = _injections_inside(gains, system.output_matrix, Xs, Xh, box)
+        outside += int(np.count_nonzero(~covered))
+        rates = np.where(
+            covered, _undefined_is_worst(_rates(system, gains, P, Xs, Xh, Us)), -np.inf
+        )
         per = rates.reshape(-1, V)
         arg = per.argmax(axis=1)
         finite_violations += int(np.count_nonzero(rates > threshold))
@@ -660,6 +717,7 @@ def verify_observer(
         if rates[i] > finite.rate:
             finite = _Best(float(rates[i]), Xs[:, i].copy(), Xh[:, i].copy(), Us[:, i].copy())
     finite_violating = finite_violations / float(samples * V)
+    finite_outside = outside / float(samples * V)
 
     # -- local refinement from the worst samples of each search
     if refine and starts > 0:
@@ -687,7 +745,8 @@ def verify_observer(
                 U = np.repeat(u0[:, None], Z.shape[1], axis=1)
                 r = _rates(system, gains, P, Z[:n], Z[n:], U)
                 small = np.linalg.norm(Z[:n] - Z[n:], axis=0) < floor
-                return np.where(small | ~np.isfinite(r), -math.inf, r)
+                covered = _injections_inside(gains, system.output_matrix, Z[:n], Z[n:], box)
+                return np.where(small | ~covered | ~np.isfinite(r), -math.inf, r)
 
             z, value = _refine(
                 finite_objective, np.concatenate([x0, xh0]), np.tile(lo, 2), np.tile(hi, 2)
@@ -708,6 +767,7 @@ def verify_observer(
         worst_finite_rate=finite.rate,
         violating_fraction=violating,
         finite_violating_fraction=finite_violating,
+        finite_outside_fraction=finite_outside,
         samples=int(samples),
         input_vertices=V,
         seed=int(seed),

@@ -336,3 +336,21 @@ def test_a_validity_report_reads_back_what_to_dict_wrote():
         ValidityReport.from_dict({**report.to_dict(), "input_exceeded": "no"})
     with pytest.raises(TypeError, match=r"expected a number, got str"):
         ValidityReport.from_dict({**report.to_dict(), "fraction_outside": "0.1"})
+
+
+def test_nan_states_and_inputs_count_as_outside():
+    # Before: comparisons with NaN are False, so a run that turned NaN was "valid", inside
+    # the box and within the input bound; an estimate [inf, nan] was outside by 0.0.
+    t = np.array([0.0, 0.1, 0.2])
+    x = np.array([[0.0, 0.0], [1.0, 0.5], [np.nan, np.nan]])
+    xhat = np.array([[0.1, 0.0], [0.9, 0.4], [np.inf, np.nan]])
+    u = np.array([[0.0], [0.5], [np.nan]])
+    box = (np.array([-2.0, -2.0]), np.array([2.0, 2.0]))
+    report = validity_report(t, x, xhat, u, box, 1.0)
+    assert not report.valid
+    assert report.state_outside and report.estimate_outside and report.input_exceeded
+    for key in ("x", "xhat"):
+        excursion = report.box_excursions[key]
+        assert excursion["first_exit_time"] == 0.2 and excursion["worst_excursion"] == np.inf
+    finite = validity_report(t[:2], x[:2], xhat[:2], u[:2], box, 1.0)
+    assert finite.valid and not finite.state_outside and not finite.input_exceeded

@@ -1,6 +1,7 @@
 """Falsification of observer designs against the true nonlinear error dynamics."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from ofrl_drake.verification import (
     small_error_rates,
     verify_observer,
 )
-from tests.conftest import ROOT
+from tests.conftest import PAPER_SCENARIO, ROOT
 
 SOUND_SCENARIO = ROOT / "diagrams" / "two_state_sound.yaml"
 
@@ -295,3 +296,81 @@ def test_the_search_stops_at_its_deadline(two_state, sound_design, monkeypatch):
         verify_observer(sound_design, two_state, samples=500, starts=2, deadline=5.0)
     with pytest.raises(VerificationError, match=r"deadline must be a time\.monotonic\(\) reading"):
         verify_observer(sound_design, two_state, deadline="soon")
+
+
+_DUFFING = """
+import numpy as np
+from ofrl_drake import ControlAffineSystem
+
+def make_plant():
+    f = lambda x: np.array([x[1], -x[0] - x[1] - 0.3 * x[0] ** 3])
+    g = lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]])
+    return ControlAffineSystem(f, g, C=[[1.0, 0.0]], name="duffing")
+"""
+
+
+def test_pairs_whose_injection_points_leave_the_box_are_not_counterexamples(
+    paper_scenario, tmp_path
+):
+    # Before: falsified at r = +1.37 with x = (1, 0.95), xhat = (-1, -0.82), where the
+    # injection point xhat + H C e = (3, -0.82) is outside the box: no claim is made there.
+    import dataclasses
+
+    from ofrl_drake.variants import design_for
+
+    (tmp_path / "duffing.py").write_text(_DUFFING)
+    scenario = dataclasses.replace(
+        load_scenario(PAPER_SCENARIO),
+        system=str(tmp_path / "duffing.py") + ":make_plant",
+    )
+    observer = dataclasses.replace(
+        scenario.observer,
+        alpha=0.2,
+        formulation="polytopic",
+        jacobian_method="certified",
+        box=dataclasses.replace(scenario.observer.box, lower=[-1.0, -1.0], upper=[1.0, 1.0]),
+        L=[[0.0], [0.0]],
+        H=[[2.0], [0.0]],
+        K=[[0.0], [0.0]],
+    )
+    scenario = dataclasses.replace(
+        scenario, observer=observer, input_bound=1.0, x0=[0.5, 0.0], xhat0=[0.0, 0.0]
+    )
+    design = design_for(scenario)
+    assert design.is_decay_certified
+    report = verify_observer(design, resolve_system(scenario), samples=4000, seed=0)
+    assert not report.falsified, report.summary_line()
+    assert report.worst_rate <= report.threshold
+    # About half of the uniform pairs put xhat + 2 (x1 - xhat1) outside [-1, 1].
+    assert 0.3 < report.finite_outside_fraction < 0.9
+    assert report.to_dict()["finite_outside_fraction"] == report.finite_outside_fraction
+
+
+def test_a_sample_where_the_dynamics_are_undefined_falsifies_and_is_named():
+    # Before: a NaN sample made np.argmax pick it and 'nan > best' dropped the whole chunk:
+    # the small-error search reported -inf and "not falsified" beside 0.9 % violating samples.
+    from ofrl_drake import ControlAffineSystem
+    from ofrl_drake.design import design_observer
+
+    def g(x):
+        return np.array([[0 * x[0]], [1 + 0 * x[0]]])
+
+    model = ControlAffineSystem(lambda x: np.array([x[1], -x[0] - x[1]]), g, [[1.0, 0.0]])
+    design = design_observer(model, ([-2, -2], [2, 2]), 1.0, 0.3)
+
+    def undefined_below(x):  # a negligible term, NaN for x0 < -1.8
+        return np.array([x[1], -x[0] - x[1] + 1e-12 * np.sqrt(x[0] + 1.8)])
+
+    truth = ControlAffineSystem(undefined_below, g, [[1.0, 0.0]])
+    with np.errstate(invalid="ignore"):
+        report = verify_observer(design, truth, samples=2000, seed=0, refine=False)
+    assert report.falsified
+    assert report.worst_small_error_rate == np.inf and report.x[0] < -1.8
+    assert re.match(
+        r"claims alpha = 0\.3 \(r <= -0\.6\); falsified: the error dynamics are not finite "
+        r"at x = \(-1\.\d+, \S+\), u = \(\S+\) \(f or g is undefined or overflows there",
+        report.summary_line(),
+    ), report.summary_line()
+    with np.errstate(invalid="ignore"):
+        defined = verify_observer(design, model, samples=2000, seed=0, refine=False)
+    assert not defined.falsified and np.isfinite(defined.worst_rate)

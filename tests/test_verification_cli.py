@@ -60,3 +60,23 @@ def test_design_observer_shows_and_writes_its_verification(tmp_path):
     verification = json.loads(out.read_text())["verification"]
     assert verification["falsified"] is False
     assert verification["samples"] == 10_000 and verification["refined"] is True
+
+
+def test_a_design_on_sampled_bounds_is_not_called_a_proof(tmp_path):
+    # Before: "observer: decay-certified and not falsified", as for certified bounds,
+    # although sampled bounds are an inner estimate (bounds_are_guaranteed false).
+    sampled = tmp_path / "sampled.yaml"
+    text = SOUND_SCENARIO.read_text()
+    assert text.count("jacobian_method: certified") == 1
+    sampled.write_text(text.replace("jacobian_method: certified", "jacobian_method: sampled"))
+    proc = run_cli("design-observer", sampled, "--out", tmp_path / "design.json")
+    assert proc.returncode == 0, proc.stderr
+    assert (
+        "observer: decay-certified on sampled Jacobian bounds (not a proof) and not falsified"
+        in proc.stdout
+    ), proc.stdout
+    proc = run_cli("verify-observer", sampled, "--samples", 2000)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(
+        "two_state_sound: decay-certified on sampled Jacobian bounds (not a proof)"
+    ), proc.stdout
