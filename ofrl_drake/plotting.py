@@ -1366,7 +1366,8 @@ def plot_overview(
     titles.append(first)
 
     _mark_stop(stop, axes)
-    ranks = [None, None, _weight_rank(result, weight_labels), None]
+    # A long legend keeps the box's entry and the largest weights.
+    ranks = [{"observer box": math.inf}, None, _weight_rank(result, weight_labels), None]
     for ax, title, rank in zip(axes, titles, ranks, strict=True):
         ax.set_xlabel(r"time $t$ [s]")
         _panel_legend(ax, sz, title=title, rank=rank)

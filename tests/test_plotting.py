@@ -559,6 +559,8 @@ def test_long_legends_keep_the_largest_weights_and_fit_the_figure(size):
         for fig in figures.values():
             _assert_legends_outside_axes(fig)
             _inside_figure(fig)
+    states = [t.get_text() for t in figures["overview"].axes[0].get_legend().get_texts()]
+    assert "observer box" in states and re.fullmatch(r"and \d+ more", states[-1]), states
     big = [k for k in range(78) if k % 7 == 3]  # 12 of them: kept, whatever the room
     for entries in (
         [t.get_text() for t in figures["overview"].axes[2].get_legend().get_texts()],
