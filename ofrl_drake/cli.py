@@ -302,6 +302,13 @@ def _outside_box_warning(scenario: Any) -> str | None:
     )
 
 
+def _strict_json(data: Any) -> str:
+    """``data`` as strict JSON text (NaN and infinities as ``null``), with a final newline."""
+    from ofrl_drake.checks import json_ready
+
+    return json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n"
+
+
 def _not_regulated(details: dict[str, Any]) -> str:
     """One line saying why a run that ended ``ok`` did not reach its target."""
     from ofrl_drake.ablation_metrics import regulation_shortfall
@@ -451,7 +458,7 @@ def _run(args: argparse.Namespace) -> int:
             design = loop.design.to_dict()
             if verification is not None:
                 design["verification"] = verification.to_dict()
-            (tmp / "observer_design.json").write_text(json.dumps(design, indent=2) + "\n")
+            (tmp / "observer_design.json").write_text(_strict_json(design))
         graph = render_diagram(loop.diagram, tmp)
         animation_note = _write_animation(scenario, result, tmp)
     if animation_note:
@@ -889,7 +896,7 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
     verification = verify_observer(design, system)  # the fast check shown next to every design
     data = design.to_dict()
     data["verification"] = verification.to_dict()
-    atomic_write_text(Path(args.out), json.dumps(data, indent=2) + "\n")
+    atomic_write_text(Path(args.out), _strict_json(data))
     print(
         f"wrote {args.out}: alpha = {design.alpha}, ||L|| = {design.gain_norm:.4g}, "
         f"max certificate eigenvalue = {design.max_eigenvalue:.3g}"
@@ -938,7 +945,7 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
             "verification": report.to_dict(),
             "observer_design": design.to_dict(),
         }
-        atomic_write_text(Path(args.out), json.dumps(data, indent=2) + "\n")
+        atomic_write_text(Path(args.out), _strict_json(data))
     print(
         f"{scenario.name}: "
         f"{report.verdict(design.is_decay_certified, design.bounds_are_guaranteed)}"

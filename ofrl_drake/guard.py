@@ -274,6 +274,11 @@ class RunGuard:
         return time.perf_counter() - self._start
 
     @property
+    def last_time(self) -> float:
+        """Simulated time of the last step the monitor saw (0 before any)."""
+        return 0.0 if self._last is None else float(self._last[0])
+
+    @property
     def stopped(self) -> bool:
         """True once the guard has ended the run."""
         return self.status != STATUS_OK
@@ -466,7 +471,9 @@ class StallWatchdog:
             if self.guard.steps != steps:
                 steps, evaluations = self.guard.steps, now
                 continue
-            t = self.integrator.get_context().get_time()
+            # The context holds a stage of the step that does not end: its time is no
+            # state's; the last finished step's is.
+            t = self.guard.last_time
             fired = None
             if now - evaluations > self.limit:
                 fired = (

@@ -17,7 +17,8 @@ is the tree Drake stores and each stored constant stands for every real number
 within one ulp of it (see *Constants*). In particular:
 
 * Ends are rounded outward: one ulp for the correctly rounded ``+ - * /``, eight
-  for numpy's library functions (accurate to a few ulp). A lower end never is
+  for numpy's library functions (accurate to a few ulp); a sum that rounds to 0
+  (exact, with gradual underflow) and a change of sign are exact and kept. A lower end never is
   +inf and an upper end never -inf: an end that overflows becomes the largest
   finite double, or the infinity on the outward side (IEEE 1788). Division is
   done by its case table, never as ``a * (1 / b)``; integer powers call ``pow``
@@ -282,10 +283,16 @@ def _constant_interval(c: float) -> tuple[float, float]:
 
 # ------------------------------------------------------------ interval kernels
 def _i_add(a: Interval, b: Interval) -> Interval:
-    # Ends are never +inf (lower) or -inf (upper), so inf - inf cannot occur.
+    # Ends are never +inf (lower) or -inf (upper), so inf - inf cannot occur. A sum
+    # that rounds to 0 is exact (with gradual underflow, x + y is 0 only if x = -y):
+    # it stays 0, so that an argument whose least value is 0 (x**2 + y**2 at the
+    # origin) is not pushed below a function's domain by a rounding that never was.
     lo = a.lo + b.lo
     hi = a.hi + b.hi
-    return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
+    return Interval(
+        np.where(lo == 0.0, 0.0, _down(lo, _ULP_ARITH)),
+        np.where(hi == 0.0, 0.0, _up(hi, _ULP_ARITH)),
+    )
 
 
 def _i_scale(c_lo: float, c_hi: float, a: Interval) -> Interval:
@@ -297,6 +304,8 @@ def _i_scale(c_lo: float, c_hi: float, a: Interval) -> Interval:
         return _i_mul(Interval(np.asarray(c_lo), np.asarray(c_hi)), a)
     c = c_lo
     lo, hi = (c * a.lo, c * a.hi) if c > 0 else (c * a.hi, c * a.lo)
+    if abs(c) == 1.0:  # a sign change is exact
+        return Interval(lo, hi)
     return Interval(_down(lo, _ULP_ARITH), _up(hi, _ULP_ARITH))
 
 

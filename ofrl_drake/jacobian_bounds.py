@@ -744,14 +744,19 @@ def _prove_defined(
     """
     n, m = model.g.shape
     expressions = np.concatenate([model.f.ravel(), model.g.ravel(), entries])
-    evaluator = ExpressionEvaluator(expressions, model.x)
-    if not evaluator.has_partial_functions:
-        return
     labels = [
         *(f"f[{i}]" for i in range(n)),
         *(f"g[{i}, {k}]" for i in range(n) for k in range(m)),
         *(f"the Jacobian entry {name}" for name in names),
     ]
+    evaluator = ExpressionEvaluator(expressions, model.x)
+    if not evaluator.supports_intervals:
+        # f or g uses atan2 (enclosed at points only), defined everywhere; the
+        # Jacobian entries, which the bounds enclose, hold no atan2.
+        labels = labels[n + n * m :]
+        evaluator = ExpressionEvaluator(entries, model.x)
+    if not evaluator.has_partial_functions:
+        return
     try:
         prove_defined(evaluator, box.lower, box.upper, names=labels, deadline=deadline)
     except UndefinedOnBoxError as err:

@@ -456,8 +456,10 @@ def _trimmed(
 ) -> tuple[list[Any], list[str]]:
     """At most ``room`` entries: those of highest ``rank`` (else the first), in their order.
 
-    When entries are left out, the last one kept says how many (``and 66
-    more``), drawn as a blank handle.
+    ``rank`` maps the labels of the series that may be left out (the weights,
+    the states) to their importance; an entry it does not name (the observer
+    box, the stop line) is always kept. When entries are left out, the last
+    one kept says how many (``and 66 more``), drawn as a blank handle.
     """
     if len(handles) <= room:
         return handles, labels
@@ -466,7 +468,7 @@ def _trimmed(
     keep = room - 1
     order = list(range(len(labels)))
     if rank is not None:
-        order.sort(key=lambda i: -rank.get(labels[i], -math.inf))
+        order.sort(key=lambda i: -rank.get(labels[i], math.inf))
     chosen = sorted(order[:keep])
     more = Line2D([], [], linestyle="none", label="_more")
     return (
@@ -1366,8 +1368,14 @@ def plot_overview(
     titles.append(first)
 
     _mark_stop(stop, axes)
-    # A long legend keeps the box's entry and the largest weights.
-    ranks = [{"observer box": math.inf}, None, _weight_rank(result, weight_labels), None]
+    # A long legend keeps the first states, the largest weights, the box and the stop.
+    states = [str(line.get_label()) for line in axes[0].get_lines()[: 2 * n]]
+    ranks: list[dict[str, float] | None] = [
+        {label: -float(k) for k, label in enumerate(states)},
+        None,
+        _weight_rank(result, weight_labels),
+        None,
+    ]
     for ax, title, rank in zip(axes, titles, ranks, strict=True):
         ax.set_xlabel(r"time $t$ [s]")
         _panel_legend(ax, sz, title=title, rank=rank)

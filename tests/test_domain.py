@@ -90,8 +90,11 @@ def test_a_box_wholly_outside_a_domain_is_refused():
 
 
 def test_an_argument_at_the_domain_edge_on_the_box_edge_is_refused_with_advice():
+    # x + 0.5 is exactly 0 at x = -0.5: proven. 3 x - 0.3 at x = 0.1 is 0 only after
+    # inexact roundings, which outward rounding cannot tell from a value just below 0.
+    assert prove_defined(_ev((X[0] + 0.5) ** 1.5), *_box([-0.5, -1], [1, 1])).levels == 0
     with pytest.raises(UndefinedOnBoxError, match=r"after 8 levels.*Shrink the box away"):
-        prove_defined(_ev((X[0] + 0.5) ** 1.5), *_box([-0.5, -1], [1, 1]), max_levels=8)
+        prove_defined(_ev((3 * X[0] - 0.3) ** 1.5), *_box([0.1, -1], [1, 1]), max_levels=8)
 
 
 def test_too_many_flagged_boxes_stop_the_proof():
@@ -126,3 +129,35 @@ def test_certified_bounds_of_a_plant_defined_on_the_box_are_unchanged():
     # d/dx0 of -x0 + 0.1 (x0 + 2)**1.5 is -1 + 0.15 sqrt(x0 + 2), over [1, sqrt 3].
     np.testing.assert_allclose(b.Mf1[1, 0], -1 + 0.15, atol=1e-3)
     np.testing.assert_allclose(b.Mf2[1, 0], -1 + 0.15 * np.sqrt(3.0), atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        lambda x: -((x[0] ** 2 + x[1] ** 2) ** 1.5),  # least argument 0 inside the box
+        lambda x: (1 - np.cos(x[0])) ** 1.5,  # 1 - cos: least 0 at x0 = 0
+        lambda x: np.arctan2(x[1], x[0] + 3.0) - np.sqrt(x[0] ** 2 + x[1] ** 2 + 1.0),
+    ],
+    ids=["radial", "one_minus_cos", "atan2"],
+)
+def test_plants_defined_on_the_whole_box_keep_their_certified_bounds(extra):
+    # Before the fix of this test: the radial and 1 - cos plants were refused ("could not
+    # be proven defined"): 0 + 0 was rounded down to -5e-324, below sqrt's domain, on
+    # every box at the origin; a plant with atan2 in f raised UnsupportedExpressionError.
+    plant = _plant(extra)
+    box = ([-1, -1], [1, 1])
+    certified = jacobian_bounds(plant, box, "certified")
+    sampled = jacobian_bounds(plant, box, "sampled")
+    assert np.all(certified.Mf1 <= sampled.Mf1 + 1e-12)
+    assert np.all(certified.Mf2 >= sampled.Mf2 - 1e-12)
+    assert np.all(np.isfinite(certified.Mf1)) and np.all(np.isfinite(certified.Mf2))
+
+
+def test_a_sum_that_rounds_to_zero_is_exact_and_stays_zero():
+    ev = _ev(X[0] ** 2 + X[1] ** 2, 1 - np.cos(X[0]))
+    enc = ev.interval(np.array([-1.0, -1.0]), np.array([1.0, 1.0]))
+    assert enc.lo.tolist() == [0.0, 0.0]
+    flagged, _ = _ev(np.sqrt(X[0] ** 2 + X[1] ** 2)).possibly_undefined(
+        np.array([-1.0, -1.0]), np.array([1.0, 1.0])
+    )
+    assert flagged.tolist() == [False]

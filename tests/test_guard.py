@@ -5,7 +5,6 @@ import io
 import json
 import re
 import sys
-from unittest import mock
 
 import numpy as np
 import pytest
@@ -415,13 +414,11 @@ def test_the_watchdog_raises_in_the_thread_it_watches_once_evaluations_pass_the_
         steps = 0
         max_wall_time = None
         evaluations = 0
+        last_time = 2.5
 
         def get_num_derivative_evaluations(self):
             self.evaluations += 1000
             return self.evaluations
-
-        def get_context(self):
-            return mock.Mock(get_time=lambda: 2.5)
 
     stuck = _Stuck()
     watchdog = StallWatchdog(stuck, stuck, limit=10_000, period=0.01)

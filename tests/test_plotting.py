@@ -548,7 +548,8 @@ def test_long_legends_keep_the_largest_weights_and_fit_the_figure(size):
     # "constrained_layout not applied because axes sizes collapsed to zero".
     r = _result(n=12, m=4, L=78)
     scale = np.where(np.arange(78) % 7 == 3, 50.0, 1.0)  # every 7th weight from W4 is large
-    r = dataclasses.replace(r, W=r.W * scale, W_policy=r.W_policy * scale)
+    stop = StopReport("diverged", "x_1 left the abort box", 20.0, [0.0] * 12, [0.0] * 12, 1.0)
+    r = dataclasses.replace(r, W=r.W * scale, W_policy=r.W_policy * scale, stop=stop)
     labels = [f"x{k}" for k in range(1, 79)]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the layout warning included
@@ -570,5 +571,7 @@ def test_long_legends_keep_the_largest_weights_and_fit_the_figure(size):
         assert re.fullmatch(r"and \d+ more", entries[-1]), entries
         assert len(kept) + int(entries[-1].split()[1]) == 78
         assert all(any(w.startswith(rf"$W_{{{k + 1}}}$ ") for w in kept) for k in big), kept
+        assert "run stopped (diverged)" in entries  # what is not a weight is kept
+    assert "run stopped (diverged)" in states
     for fig in figures.values():
         plt.close(fig)

@@ -80,3 +80,37 @@ def test_a_design_on_sampled_bounds_is_not_called_a_proof(tmp_path):
     assert proc.stdout.startswith(
         "two_state_sound: decay-certified on sampled Jacobian bounds (not a proof)"
     ), proc.stdout
+
+
+def test_reports_with_an_infinite_rate_are_written_as_strict_json(tmp_path, monkeypatch):
+    # Before: verify-observer --out (and design-observer, run's observer_design.json)
+    # wrote the tokens Infinity and NaN, which strict JSON parsers refuse.
+    import dataclasses
+
+    import numpy as np
+
+    from ofrl_drake import verification
+    from ofrl_drake.cli import main
+
+    real = verification.verify_observer
+
+    def undefined_somewhere(design, system, **kwargs):  # as for f undefined in the box
+        report = real(design, system, **kwargs)
+        return dataclasses.replace(
+            report, worst_rate=np.inf, worst_small_error_rate=np.inf, direction=[np.nan] * 2
+        )
+
+    monkeypatch.setattr(verification, "verify_observer", undefined_somewhere)
+
+    def refuse(token):
+        raise AssertionError(f"the report holds {token}")
+
+    out = tmp_path / "report.json"
+    assert (
+        main(["verify-observer", str(SOUND_SCENARIO), "--samples", "200", "--out", str(out)]) == 4
+    )
+    data = json.loads(out.read_text(), parse_constant=refuse)
+    assert data["verification"]["worst_rate"] is None and data["verification"]["falsified"]
+    design = tmp_path / "design.json"
+    assert main(["design-observer", str(SOUND_SCENARIO), "--out", str(design)]) == 0
+    json.loads(design.read_text(), parse_constant=refuse)
