@@ -117,6 +117,10 @@ _SIDE_COLUMNS = 2
 #: Most rows of a legend above the axes (column width).
 _ABOVE_ROWS = 6
 
+#: The ``gid`` of the lines that mark something (the observer box, the input
+#: bound, where the run stopped): a trimmed legend keeps their entries.
+_ANNOTATION = "ofrl-annotation"
+
 #: A legend row's height in font sizes (math text included), and its borders'.
 _ROW_HEIGHT = 1.75
 _BORDER = 2.0
@@ -454,22 +458,28 @@ def _side_rows(height_in: float, fontsize: float, title: bool = False) -> int:
 def _trimmed(
     handles: list[Any], labels: list[str], room: int, rank: dict[str, float] | None
 ) -> tuple[list[Any], list[str]]:
-    """At most ``room`` entries: those of highest ``rank`` (else the first), in their order.
+    """At most ``room`` entries, in their order: the marks, then the series of highest ``rank``.
 
-    ``rank`` maps the labels of the series that may be left out (the weights,
-    the states) to their importance; an entry it does not name (the observer
-    box, the stop line) is always kept. When entries are left out, the last
-    one kept says how many (``and 66 more``), drawn as a blank handle.
+    The entries of lines marked :data:`_ANNOTATION` (the observer box, the
+    input bound, the stop line) are always kept. Of the series, those of
+    highest ``rank`` (label to importance, e.g. a weight's peak ``|W|``; a
+    label it does not name counts least) are kept, or the first ones without
+    a ``rank``. When entries are left out, the last one kept says how many
+    (``and 66 more``), drawn as a blank handle.
     """
     if len(handles) <= room:
         return handles, labels
     from matplotlib.lines import Line2D
 
-    keep = room - 1
-    order = list(range(len(labels)))
+    marks = [
+        i for i, h in enumerate(handles) if getattr(h, "get_gid", lambda: None)() == _ANNOTATION
+    ]
+    series = [i for i in range(len(labels)) if i not in marks]
     if rank is not None:
-        order.sort(key=lambda i: -rank.get(labels[i], math.inf))
-    chosen = sorted(order[:keep])
+        series.sort(key=lambda i: -rank.get(labels[i], -math.inf))
+    keep = max(room - 1 - len(marks), 0)
+    chosen = sorted(marks + series[:keep])
+    keep = len(chosen)
     more = Line2D([], [], linestyle="none", label="_more")
     return (
         [handles[i] for i in chosen] + [more],
@@ -662,6 +672,20 @@ def _mark_stop(
             lw=1.3,
             ls=":",
             label=name if labelled is None or k == labelled % len(axes) else "_stop",
+            gid=_ANNOTATION,
+        )
+
+
+def _box_lines(ax: Axes, levels: Sequence[float]) -> None:
+    """The observer box's bounds at ``levels``, one legend entry for them."""
+    for k, bound in enumerate(levels):
+        ax.axhline(
+            bound,
+            color="0.35",
+            lw=0.9,
+            ls="-.",
+            label="observer box" if k == 0 else "_box",
+            gid=_ANNOTATION,
         )
 
 
@@ -797,15 +821,7 @@ def plot_state(
         ax.plot(result.t, xhat, lw=1.4, ls="--", color="C1", label=rf"$\hat{{x}}_{{{i + 1}}}$")
         if x_eq is not None:
             ax.axhline(shift, color="k", lw=0.8, ls=":", label=rf"$x^*_{{{i + 1}}}$ (equilibrium)")
-        if box is not None:
-            for k, bound in enumerate(levels):
-                ax.axhline(
-                    bound,
-                    color="0.35",
-                    lw=0.9,
-                    ls="-.",
-                    label="observer box" if k == 0 else "_box",
-                )
+        _box_lines(ax, levels)
     titles = _windows(result, axes, sz, zoom, "" if x_eq is None else "plant coordinates")
     _mark_stop(_stop(result), axes)
     both = np.stack([x, xhat], axis=1)
@@ -952,6 +968,7 @@ def _input_lines(result: SimulationResult, ax: Axes, input_bound: float | None) 
             label=rf"${around}\pm\bar{{\lambda}}$, $\bar{{\lambda}} = {input_bound:g}$"
             if j == 0 and around
             else (rf"$\pm\bar{{\lambda}} = \pm{input_bound:g}$" if j == 0 else "_bound"),
+            gid=_ANNOTATION,
         )
 
 
@@ -1328,8 +1345,7 @@ def plot_overview(
             label=rf"$\hat{{x}}_{{{i + 1}}}$",
         )
     levels = [] if box is None else [min(box[0]), max(box[1])]
-    for k, bound in enumerate(levels):
-        ax.axhline(bound, color="0.35", lw=0.9, ls="-.", label="observer box" if k == 0 else "_box")
+    _box_lines(ax, levels)
     ax.set_ylabel(r"$x - x^*$, $\hat{x} - x^*$" if relative else r"$x$, $\hat{x}$")
     if zoom is not None:
         ax.set_xlim(0.0, zoom)
@@ -1368,14 +1384,8 @@ def plot_overview(
     titles.append(first)
 
     _mark_stop(stop, axes)
-    # A long legend keeps the first states, the largest weights, the box and the stop.
-    states = [str(line.get_label()) for line in axes[0].get_lines()[: 2 * n]]
-    ranks: list[dict[str, float] | None] = [
-        {label: -float(k) for k, label in enumerate(states)},
-        None,
-        _weight_rank(result, weight_labels),
-        None,
-    ]
+    # A long legend keeps the first states and the largest weights (and the marks).
+    ranks = [None, None, _weight_rank(result, weight_labels), None]
     for ax, title, rank in zip(axes, titles, ranks, strict=True):
         ax.set_xlabel(r"time $t$ [s]")
         _panel_legend(ax, sz, title=title, rank=rank)

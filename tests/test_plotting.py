@@ -575,3 +575,24 @@ def test_long_legends_keep_the_largest_weights_and_fit_the_figure(size):
     assert "run stopped (diverged)" in states
     for fig in figures.values():
         plt.close(fig)
+
+
+@pytest.mark.parametrize("size", ["page", "column"])
+def test_a_trimmed_legend_without_a_ranking_keeps_the_stop_line(size):
+    # Before: legends of series in order (|e_i|, e_i) kept their first entries and cut
+    # the stop line, drawn last, once a run had about 17 states or more.
+    n = 24
+    stop = StopReport("diverged", "x_1 left the abort box", 20.0, [0.0] * n, [0.0] * n, 1.0)
+    r = dataclasses.replace(_result(n=n, m=1, L=3), stop=stop)
+    figures = [
+        plot_overview(r, 3.0, ([-2.0] * n, [2.0] * n), size=size),
+        plotting.plot_estimation_error(r, size=size),
+        plotting.plot_estimation_error_log(r, size=size),
+    ]
+    trimmed = 0
+    for fig in figures:
+        texts = _labels(fig)
+        trimmed += any(re.fullmatch(r"and \d+ more", t) for t in texts)
+        assert "run stopped (diverged)" in texts, texts
+        plt.close(fig)
+    assert trimmed >= 2  # the overview and the error plot at least
