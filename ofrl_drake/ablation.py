@@ -332,7 +332,6 @@ def _resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> str | No
             f"the folder's sweep has a horizon of {old.get('duration')} s, "
             f"this one {new['duration']} s"
         )
-
     if "scenario_values" in old:
         where = describe_difference(old["scenario_values"], new["scenario_values"])
         if where is not None:

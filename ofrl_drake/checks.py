@@ -33,6 +33,7 @@ __all__ = [
     "number_to_json",
     "object_from_json",
     "optional_number_from_json",
+    "point_text",
     "positive_number",
     "positive_vector",
     "spd_matrix",
@@ -256,6 +257,11 @@ def number_to_json(value: Any) -> float | None:
         return None
     value = float(value)
     return value if math.isfinite(value) else None
+
+
+def point_text(values: Any, digits: int = 4) -> str:
+    """``values`` as ``(a, b, ...)`` for a message, each to ``digits`` significant digits."""
+    return "(" + ", ".join(f"{v:.{digits}g}" for v in np.asarray(values, float).ravel()) + ")"
 
 
 def vector_to_json(values: Any) -> list[float | None]:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ofrl_drake.checks import point_text
 from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.interval import ExpressionEvaluator, IntervalDomainError
 
@@ -54,12 +55,8 @@ class DefinedProof:
     boxes: int
 
 
-def _fmt(v: np.ndarray) -> str:
-    return "(" + ", ".join(f"{float(a):.6g}" for a in v) + ")"
-
-
 def _box_text(lo: np.ndarray, hi: np.ndarray) -> str:
-    return f"[{_fmt(lo)}, {_fmt(hi)}]"
+    return f"[{point_text(lo, 6)}, {point_text(hi, 6)}]"
 
 
 def _witness(
@@ -72,8 +69,8 @@ def _witness(
     if bad.any():
         e, b = (int(i[0]) for i in np.nonzero(bad))
         raise UndefinedOnBoxError(
-            f"{names[e]} is {values[e, b]} at x = {_fmt(centres[:, b])}, a state of the box: "
-            "f and g must be defined (and finite) at every state of it. Shrink the box to "
+            f"{names[e]} is {values[e, b]} at x = {point_text(centres[:, b], 6)}, a state of "
+            "the box: f and g must be defined (and finite) at every state of it. Shrink the box to "
             "exclude such states, or write f and g so that they are defined there."
         )
 
@@ -160,7 +157,7 @@ def prove_defined(
                 f"{_box_text(lower, upper)}: {stop}, {reasons[0]} on "
                 f"{_box_text(lo.min(axis=1), hi.max(axis=1))} and no state found where it "
                 "is not. Shrink the box away from where the function's argument meets the "
-                "edge of its domain (a state where it is exactly at the edge cannot be "
+                "edge of its domain (after inexact roundings, a value at the edge cannot be "
                 "told apart from one just beyond it), or write f and g so that they are "
                 "defined on the whole box."
             )
@@ -174,7 +171,7 @@ def prove_defined(
             c_lo[d, 2 * d + 1] = mid[d]
         c_flags, _ = evaluator.possibly_undefined(c_lo.reshape(n, -1), c_hi.reshape(n, -1))
         boxes += 2 * n * B
-        still = c_flags.reshape(2 * n, B).reshape(n, 2, B).sum(axis=1)  # (n, B)
+        still = c_flags.reshape(n, 2, B).sum(axis=1)  # halves still flagged, (n, B)
         splittable = (mid > lo) & (mid < hi)
         relative = (hi - lo) / scale
         # Fewest halves still flagged first, then the widest relative side.

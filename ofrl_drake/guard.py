@@ -274,6 +274,11 @@ class RunGuard:
         return time.perf_counter() - self._start
 
     @property
+    def within_step(self) -> bool:
+        """True if the run was stopped inside a step (:meth:`fail` said so)."""
+        return self._within_step
+
+    @property
     def last_time(self) -> float:
         """Simulated time of the last step the monitor saw (0 before any)."""
         return 0.0 if self._last is None else float(self._last[0])
@@ -305,12 +310,11 @@ class RunGuard:
         """``(status, reason)`` of the run at ``root_context``; ``("ok", "")`` if it may go on."""
         state = root_context.get_continuous_state_vector().CopyToVector()
         x, xhat = self.states(root_context)
-        # one compiled call per step
-        if _all_inside(state, x, xhat, self._lower, self._upper):  # type: ignore[arg-type]  # pydrake array stub
-            self._last = (root_context.get_time(), x, xhat)
-            return self._check_progress(root_context)
         t = root_context.get_time()
         self._last = (t, x, xhat)
+        # one compiled call per step
+        if _all_inside(state, x, xhat, self._lower, self._upper):  # type: ignore[arg-type]  # pydrake array stub
+            return self._check_progress(root_context)
         if not np.all(np.isfinite(state)):
             bad = int(np.flatnonzero(~np.isfinite(state))[0])
             return STATUS_DIVERGED, f"continuous state {bad} is {state[bad]} at t = {t:.6g} s"

@@ -613,6 +613,8 @@ class ExpressionEvaluator:
                 for arg in node.args:
                     used = used | self._uses[arg]
                 self._uses.append(used)
+        # The nodes applying a function defined on part of the line (possibly_undefined).
+        self._partial = [i for i, node in enumerate(self._nodes) if self._is_partial(node)]
 
     # ---------------------------------------------------------------- building
     def _add(self, e: Expression) -> int:
@@ -859,7 +861,7 @@ class ExpressionEvaluator:
         is not a constant integer; without them an expression is defined
         wherever its divisions and integer powers have no pole.
         """
-        return any(self._is_partial(node) for node in self._nodes)
+        return bool(self._partial)
 
     def _is_partial(self, node: _Node) -> bool:
         if node.kind != "Pow":
@@ -911,9 +913,8 @@ class ExpressionEvaluator:
         vals, B, _ = self._node_intervals(lower, upper)
         flagged = np.zeros(B, dtype=bool)
         first = np.full(B, -1)
-        for index, node in enumerate(self._nodes):
-            if not self._is_partial(node):
-                continue
+        for index in self._partial:
+            node = self._nodes[index]
             arg = vals[node.args[0]]
             lo = np.broadcast_to(arg.lo, (B,))
             hi = np.broadcast_to(arg.hi, (B,))

@@ -114,8 +114,8 @@ _MANY = 4
 #: that matter least are left out and one entry counts them (:func:`_trimmed`).
 _SIDE_COLUMNS = 2
 
-#: Most rows of a legend above the axes (column width).
-_ABOVE_ROWS = 6
+#: Most entries of a legend above the axes (column width): six rows of four.
+_ABOVE_ENTRIES = 24
 
 #: The ``gid`` of the lines that mark something (the observer box, the input
 #: bound, where the run stopped): a trimmed legend keeps their entries.
@@ -477,13 +477,11 @@ def _trimmed(
     series = [i for i in range(len(labels)) if i not in marks]
     if rank is not None:
         series.sort(key=lambda i: -rank.get(labels[i], -math.inf))
-    keep = max(room - 1 - len(marks), 0)
-    chosen = sorted(marks + series[:keep])
-    keep = len(chosen)
+    chosen = sorted(marks + series[: max(room - 1 - len(marks), 0)])
     more = Line2D([], [], linestyle="none", label="_more")
     return (
         [handles[i] for i in chosen] + [more],
-        [labels[i] for i in chosen] + [f"and {len(labels) - keep} more"],
+        [labels[i] for i in chosen] + [f"and {len(labels) - len(chosen)} more"],
     )
 
 
@@ -531,19 +529,18 @@ def _legend(
 
     At column width it is always above, in as many columns as fit. Beside
     the axes it takes as many columns as its entries need (at most
-    :data:`_SIDE_COLUMNS`), above them at most :data:`_ABOVE_ROWS` rows; past
-    that, the entries of lowest ``rank`` (label to importance; default: the
-    last) are left out, and the legend says how many.
+    :data:`_SIDE_COLUMNS`), above them at most :data:`_ABOVE_ENTRIES`; past
+    that, series are left out as :func:`_trimmed` says (the lowest ``rank``,
+    label to importance, or the last), and the legend says how many.
     """
     handles, labels = _entries(axes)
     if not handles:
         return
     if len(handles) > _MANY and not size.column:
-        font = plt.rcParams["legend.fontsize"]
-        rows = _side_rows(fig.get_size_inches()[1], float(font), title is not None)
+        rows = _side_rows(fig.get_size_inches()[1], size.legend, title is not None)
         _side_legend(fig, handles, labels, rows, rank, loc="outside right upper", title=title)
         return
-    handles, labels = _trimmed(handles, labels, _ABOVE_ROWS * 4, rank)
+    handles, labels = _trimmed(handles, labels, _ABOVE_ENTRIES, rank)
     _fitted(
         fig,
         lambda ncols: fig.legend(handles, labels, loc="outside upper center", ncols=ncols),
@@ -582,7 +579,7 @@ def _panel_legend(
                 columnspacing=1.0,
             )
         return
-    handles, labels = _trimmed(handles, labels, _ABOVE_ROWS * 4, rank)
+    handles, labels = _trimmed(handles, labels, _ABOVE_ENTRIES, rank)
     _fitted(
         fig,
         lambda ncols: ax.legend(

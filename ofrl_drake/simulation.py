@@ -801,7 +801,6 @@ def simulate(
     start = time.perf_counter()
     guard.start()
     simulator.Initialize()
-    within_step = False  # stopped inside a step: its context holds a stage, not a state
     if not guard.stopped:
         watchdog = StallWatchdog(
             guard,
@@ -813,7 +812,6 @@ def simulate(
                 simulator.AdvanceTo(duration)
         except IntegratorStalled:
             assert watchdog.fired is not None  # only the watchdog raises it
-            within_step = True
             guard.fail(watchdog.fired[1], watchdog.fired[0], within_step=True)
         except RuntimeError as err:
             if not _is_integrator_failure(err):
@@ -834,7 +832,7 @@ def simulate(
             )
     wall = time.perf_counter() - start
     stop = guard.report(simulator.get_context())
-    if not stop.ok and not within_step:
+    if not stop.ok and not guard.within_step:  # a stopped step's context holds a stage
         _flush_logs(loop, simulator.get_context())
 
     t, logs = loop.logs(simulator.get_context())

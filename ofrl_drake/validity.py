@@ -44,6 +44,7 @@ __all__ = [
     "POINTS",
     "BoxSchedule",
     "ValidityReport",
+    "injection_points",
     "validity_report",
 ]
 
@@ -283,7 +284,7 @@ class ValidityReport:
         )
 
 
-def _injection_points(
+def injection_points(
     x: ArrayLike,
     xhat: ArrayLike,
     C: ArrayLike | None,
@@ -292,7 +293,8 @@ def _injection_points(
 ) -> dict[str, np.ndarray]:
     """``xhat + H ytil`` and ``xhat + K ytil`` at every sample, ``ytil = C (x - xhat)``.
 
-    Only the points whose gain is nonzero at some sample, keyed as in
+    ``x`` and ``xhat`` are ``(T, n)``, one sample a row; the points too. Only
+    the points whose gain is nonzero at some sample, keyed as in
     :data:`POINTS`; an empty dict when both gains are zero. ``H`` and ``K``
     are ``(n, q)``, or ``(T, n, q)`` with the gains in force at each sample
     (a re-designed observer's log). Raises :class:`ModelError` as
@@ -414,7 +416,7 @@ def validity_report(
     """
     t = np.asarray(t, dtype=float)
     given = not (C is None and H is None and K is None)
-    injection = _injection_points(x, xhat, C, H, K) if given else None
+    injection = injection_points(x, xhat, C, H, K) if given else None
     u_out = np.any(~(np.abs(np.asarray(u, dtype=float)) <= input_bound + tol), axis=1)
     excursions: dict[str, dict[str, Any]] | None = None
     if box is None:

@@ -53,12 +53,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.optimize import minimize
 
-from ofrl_drake.checks import deadline_or_none
+from ofrl_drake.checks import deadline_or_none, point_text
 from ofrl_drake.errors import OfrlError, WallTimeExceeded
 from ofrl_drake.jacobian_bounds import MAX_POINTS, Box, symbolic_jacobians
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.observer import ObserverGains, observer_rhs_batch
 from ofrl_drake.sector import input_vertices
+from ofrl_drake.validity import injection_points
 
 if TYPE_CHECKING:  # annotations only
     from ofrl_drake.design import ObserverDesign
@@ -95,10 +96,6 @@ def _vec(a: Any) -> np.ndarray:
     arr = np.array(a, dtype=float).ravel()
     arr.setflags(write=False)
     return arr
-
-
-def _fmt(v: np.ndarray) -> str:
-    return "(" + ", ".join(f"{x:.4g}" for x in np.asarray(v, float).ravel()) + ")"
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,18 +200,18 @@ class VerificationReport:
                 f"worst r = {self.worst_rate:+.4g} over {self.samples} samples "
                 f"(seed {self.seed}{', refined' if self.refined else ''})"
             )
-        where = f"x = {_fmt(self.x)}, u = {_fmt(self.u)}"
+        where = f"x = {point_text(self.x)}, u = {point_text(self.u)}"
         if not math.isfinite(self.worst_rate):
-            state = "" if self.direction is not None else f", xhat = {_fmt(self.xhat)}"
+            state = "" if self.direction is not None else f", xhat = {point_text(self.xhat)}"
             return (
                 f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); falsified: the "
                 f"error dynamics are not finite at {where}{state} (f or g is undefined or "
                 "overflows there, inside the box)"
             )
         if self.direction is not None:
-            where += f", e -> 0 along {_fmt(self.direction)}"
+            where += f", e -> 0 along {point_text(self.direction)}"
         else:
-            where += f", xhat = {_fmt(self.xhat)}"
+            where += f", xhat = {point_text(self.xhat)}"
         return (
             f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); falsified: "
             f"r = {self.worst_rate:+.4g} at {where}"
@@ -389,11 +386,8 @@ def _injections_inside(
 ) -> np.ndarray:
     """Per column, whether ``xhat + H C e`` and ``xhat + K C e`` lie in ``box``."""
     inside = np.ones(X.shape[1], dtype=bool)
-    ytil = C @ (X - Xhat)
-    for gain in (gains.H, gains.K):
-        if np.any(gain):
-            point = Xhat + gain @ ytil
-            inside &= np.all((point >= box.lower[:, None]) & (point <= box.upper[:, None]), axis=0)
+    for point in injection_points(X.T, Xhat.T, C, gains.H, gains.K).values():
+        inside &= box.contains(point.T)
     return inside
 
 
