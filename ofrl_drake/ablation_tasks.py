@@ -206,9 +206,9 @@ def _run(
         except WallTimeExceeded as err:  # the run is whole; its policies were not evaluated
             metrics.update(initial_policy_cost=math.nan, final_policy_cost=math.nan)
             status = f"timeout: {one_line(err)} (max_wall_time = {budget:g} s)"
-        if result.stop is not None and result.status != "ok":
+        if result.stopped is not None:
             # Stopped by the guard: the metrics of a truncated run are not comparable.
-            status = f"{result.status}: {result.stop.reason}"
+            status = result.stopped
             metrics = dict.fromkeys(METRICS, math.nan)
         elif not (np.all(np.isfinite(result.x)) and np.all(np.isfinite(result.cost))):
             status = "diverged: non-finite state or cost"

@@ -469,9 +469,9 @@ def _run(args: argparse.Namespace) -> int:
         if learning.curve_stop is None or args.checkpoints == 0
         else ", without the learning curve (out of --max-wall; summary.json -> learning_curve_stop)"
     )
-    if stop is not None and result.status != "ok":
+    if stop is not None and result.stopped is not None:
         print(
-            f"stopped: {result.status}: {stop.reason}; wrote {out} with the logs up "
+            f"stopped: {result.stopped}; wrote {out} with the logs up "
             f"to t = {stop.time:.6g} s{no_curve}",
             file=sys.stderr,
         )

@@ -73,7 +73,8 @@ from ofrl_drake.slots import (
     chosen_design,
     slot_blocks,
 )
-from ofrl_drake.systems.world import MeasuredPlant, SampledController
+from ofrl_drake.systems.world import MeasuredPlant, SampledController, initialize_context
+from ofrl_drake.variants import symbolic_blocks
 
 if TYPE_CHECKING:  # annotations only
     from ofrl_drake.design import ObserverDesign
@@ -272,7 +273,11 @@ class ClosedLoop:
     def set_initial_values(self, root_context: Context, scenario: Scenario | None = None) -> None:
         """Write the initial values of a run of ``scenario`` into ``root_context``.
 
-        Each block of :data:`INITIAL_VALUES` gets its value through its own
+        First each block sets what its default context cannot hold
+        (:func:`ofrl_drake.systems.world.initialize_context`: a multibody
+        truth's velocities and scaled body masses; a mass the context already
+        holds other than the body's default is kept). Then each block of
+        :data:`INITIAL_VALUES` gets its value through its own
         setter (``loop.plant.set_state(context, x0)`` ...). A block swapped in
         (:attr:`swapped`) keeps its own initial value when the run's is the
         loop's own (the scenario it was built from); a stateless block
@@ -293,6 +298,8 @@ class ClosedLoop:
             If a block without the setter would have to start from another
             value than the loop's own.
         """
+        for block in self.blocks.values():
+            initialize_context(block, block.GetMyMutableContextFromRoot(root_context))
         values = self.initial_values(scenario)
         own = self.initial_values() if scenario is not None else values
         for slot, (name, key) in INITIAL_VALUES.items():
@@ -541,32 +548,6 @@ def resolved_scenario(scenario: Scenario, critic: CriticSettings | None) -> Scen
             gamma_bound=None if g.gamma_bound is None else float(g.gamma_bound),
         ),
     )
-
-
-def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem) -> bool:
-    """Whether the plant, observer, controller and running cost are C++ symbolic blocks.
-
-    As ``scenario.simulation.blocks`` says; ``"auto"`` means whenever
-    ``system.symbolic()`` succeeds.
-
-    Raises
-    ------
-    ScenarioError
-        If ``blocks`` is ``"symbolic"`` and ``f`` or ``g`` cannot be traced.
-    """
-    choice = scenario.simulation.blocks
-    if choice == "python":
-        return False
-    try:
-        system.symbolic()
-    except ModelError as err:
-        if choice == "symbolic":
-            raise ScenarioError(
-                f"simulation.blocks: symbolic needs f and g that Drake can trace: {err} "
-                "Or set simulation.blocks to python."
-            ) from err
-        return False
-    return True
 
 
 def _real_world(slot: str, scenario: Scenario) -> Callable[[System], System] | None:

@@ -10,7 +10,9 @@ Each run is scored like an ablation row: ``status``, ``regulated``
 (:func:`~ofrl_drake.ablation_metrics.regulation`, with the scenario's
 ``simulation.regulation_tolerance``), ``|x(T) - x*|``, the rms
 estimation error, ``J(T)`` and its ratio to ``J*`` of the nominal problem (the
-model, noise-free, from ``x0``; solved once). The runs are tasks of the sweep
+model, noise-free, from ``x0``; solved once); a run the guard cut short keeps
+NaN for the four numbers, whose values at the stop are not comparable (as in
+``ablate``). The runs are tasks of the sweep
 engine (:mod:`ofrl_drake.sweep`), serial or on Dask, up to
 :data:`RUNS_PER_TASK` consecutive seeds per task (:func:`run_seeds`): a task
 designs the observer once, and without a mass spread builds the closed loop
@@ -38,7 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.ablation_metrics import regulation_shortfall, rms_estimation_error
+from ofrl_drake.ablation_metrics import (
+    optimality_ratio,
+    regulation_shortfall,
+    rms_estimation_error,
+)
 from ofrl_drake.atomic import atomic_write_text
 from ofrl_drake.checks import (
     MAX_DRAKE_SEED,
@@ -225,14 +231,12 @@ def _one_run(
     except Exception as err:
         return _failed(seed, perturbation, err, start)
     row = _row(seed, perturbation)
-    stop = result.stop
-    row["status"] = (
-        "ok" if stop is None or result.status == "ok" else f"{result.status}: {stop.reason}"
-    )
+    row["status"] = result.stopped or "ok"
     row["regulated"] = "true" if result.regulated else "false"
-    row["final_state_norm"] = float(np.linalg.norm(result.x[-1]))
-    row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)
-    row["cost"] = float(result.cost[-1])
+    if result.stopped is None:  # a run cut short keeps NaN: J(t_stop) is not J(T)
+        row["final_state_norm"] = float(np.linalg.norm(result.x[-1]))
+        row["rms_estimation_error"] = rms_estimation_error(result.t, result.x, result.xhat)
+        row["cost"] = float(result.cost[-1])
     row["wall_time"] = time.perf_counter() - start
     logs = {"t": result.t, "x": result.original("x")}
     regulation = result.reports.get("regulation")
@@ -462,11 +466,7 @@ def montecarlo(
         def record(value: dict[str, Any]) -> dict:
             row = value["row"]
             row["optimal_cost"] = float(optimal_cost)
-            row["optimality_ratio"] = (
-                row["cost"] / optimal_cost
-                if math.isfinite(row["cost"]) and math.isfinite(optimal_cost) and optimal_cost > 0
-                else math.nan
-            )
+            row["optimality_ratio"] = optimality_ratio(row["cost"], optimal_cost)
             if store is not None:
                 # The row's run, written with it; a run without logs leaves no earlier one.
                 name = f"seed_{row['seed']}.npz"

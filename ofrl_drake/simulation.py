@@ -257,6 +257,18 @@ class SimulationResult:
         return self.stop.status if self.stop is not None else STATUS_OK
 
     @property
+    def stopped(self) -> str | None:
+        """``"status: reason"`` when the guard cut the run short, else None.
+
+        The logs of such a run end at :attr:`stop`'s time, not at the horizon,
+        so its ``J(T)``, ``x(T)`` and averages over the run are not comparable
+        with a whole run's.
+        """
+        if self.stop is None or self.status == STATUS_OK:
+            return None
+        return f"{self.status}: {self.stop.reason}"
+
+    @property
     def e(self) -> np.ndarray:
         """Estimation error ``x - xhat``, shape (T, n)."""
         return self.x - self.xhat
@@ -957,10 +969,10 @@ def _initialize_context(
     With measurement noise, ``SetRandomContext`` draws every ``RandomSource``'s
     seed from ``RandomGenerator(measurement.seed)``: the same seed gives the
     same noise, bit for bit. ``parameters`` (a context of the diagram) gives
-    its parameters. Then, in slot order, each block sets what its default
-    context cannot hold (:func:`ofrl_drake.systems.world.initialize_context`:
-    a multibody truth's velocities and masses), the run's initial values are
-    written (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`), and
+    its parameters. Then the run's initial values are written
+    (:meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values`, after each
+    block has set what its default context cannot hold: a multibody truth's
+    velocities and masses, where ``parameters`` did not set a mass), and
     the holds start at their input's value
     (:func:`ofrl_drake.systems.world.start_holds`).
 
@@ -971,7 +983,7 @@ def _initialize_context(
     """
     from pydrake.common import RandomGenerator
 
-    from ofrl_drake.systems.world import initialize_context, start_holds
+    from ofrl_drake.systems.world import start_holds
 
     seeds: dict[str, int] = {}
     meas = scenario.measurement
@@ -980,8 +992,6 @@ def _initialize_context(
         seeds["measurement"] = int(meas.seed)
     if parameters is not None:
         context.get_mutable_parameters().SetFrom(parameters.get_parameters())
-    for block in loop.blocks.values():
-        initialize_context(block, block.GetMyMutableContextFromRoot(context))
     loop.set_initial_values(context, scenario)
     for block in loop.blocks.values():
         start_holds(block, block.GetMyMutableContextFromRoot(context))

@@ -137,13 +137,40 @@ def plant_block(system: ControlAffineSystem, x0: ArrayLike, symbolic: bool) -> S
     return ControlAffinePlant(system, initial_state=x0)
 
 
+def symbolic_blocks(scenario: Scenario, system: ControlAffineSystem, role: str = "") -> bool:
+    """Whether ``system``'s blocks are C++ symbolic blocks (else Python).
+
+    As ``scenario.simulation.blocks`` says for the plant, observer, controller
+    and running cost; ``"auto"`` means whenever ``system.symbolic()``
+    succeeds. ``role`` names the system in the refusal (``"the truth's "``).
+
+    Raises
+    ------
+    ScenarioError
+        If ``blocks`` is ``"symbolic"`` and ``f`` or ``g`` cannot be traced.
+    """
+    choice = scenario.simulation.blocks
+    if choice == "python":
+        return False
+    try:
+        system.symbolic()
+    except ModelError as err:
+        if choice == "symbolic":
+            raise ScenarioError(
+                f"simulation.blocks: symbolic needs {role}f and g that Drake can trace: {err} "
+                "Or set simulation.blocks to python."
+            ) from err
+        return False
+    return True
+
+
 def plant(parts: ClosedLoopParts) -> System:
     """The plant simulated: the model, or the scenario's truth.
 
     A multibody truth runs as its own ``MultibodyPlant`` in C++
     (:class:`~ofrl_drake.systems.DrakePlant`, body masses scaled through the
-    Context); another truth as the model does, from its ``f`` and ``g``
-    (symbolic when they trace).
+    Context); another truth as the model does, from its ``f`` and ``g``, as
+    ``simulation.blocks`` says (:func:`symbolic_blocks`).
     """
     s = parts.scenario
     truth = parts.truth
@@ -155,11 +182,7 @@ def plant(parts: ClosedLoopParts) -> System:
     if multibody_body_names(truth) is not None:
         scale = None if s.truth is None else s.truth.body_mass_scale
         return DrakePlant(truth, initial_state=s.x0, body_mass_scale=scale)
-    try:
-        truth.symbolic()
-    except ModelError:
-        return plant_block(truth, s.x0, symbolic=False)
-    return plant_block(truth, s.x0, symbolic=True)
+    return plant_block(truth, s.x0, symbolic_blocks(s, truth, "the truth's "))
 
 
 # ---------------------------------------------------------------- observer
@@ -362,9 +385,14 @@ def drake_luenberger(parts: ClosedLoopParts) -> System:
 def kalman(parts: ClosedLoopParts) -> System:
     """Drake's steady-state Kalman filter on the linearization at the target.
 
-    ``V = diag(noise_std^2)`` from ``measurement``, floored at ``(1e-3 w_j)^2``
-    with ``w_j`` the width of output ``j`` over the observer box (``V`` must be
-    positive definite; an exact sensor is trusted a thousand times its range).
+    The measurement noise intensity is ``V = diag(noise_std^2) * period``
+    from ``measurement``: noise drawn once per sample and held for ``period``
+    has the spectral density of continuous white noise of that intensity below
+    the sampling rate, so a faster sensor with the same ``noise_std`` is
+    trusted more. Each ``noise_std_j`` is floored at ``1e-3 w_j`` with ``w_j``
+    the width of output ``j`` over the observer box (``V`` must be positive
+    definite; an exact sensor is trusted a thousand times its range), and a
+    continuous sensor (``period`` 0, no noise) counts as ``period = 1 s``.
     The process noise is what the linear model misses on the observer box,
     ``W = mean_i r_i r_i^T`` with ``r_i = f(x_i) - A x_i`` at 200 states drawn
     in it (seed 0), plus ``B diag(d^2) B^T`` for ``actuation.disturbance``.
@@ -386,9 +414,13 @@ def kalman(parts: ClosedLoopParts) -> System:
         W = W + B @ np.diag(d**2) @ B.T
     widths = np.abs(C) @ (upper - lower)
     noise = np.zeros(C.shape[0])
-    if s.measurement is not None and s.measurement.noise_std:
-        noise = np.asarray(s.measurement.noise_std, dtype=float)
-    V = np.diag(np.maximum(noise, 1e-3 * widths) ** 2)
+    period = 1.0
+    if s.measurement is not None:
+        if s.measurement.noise_std:
+            noise = np.asarray(s.measurement.noise_std, dtype=float)
+        if s.measurement.period > 0:
+            period = float(s.measurement.period)
+    V = np.diag(np.maximum(noise, 1e-3 * widths) ** 2 * period)
     gain: DrakeArray = SteadyStateKalmanFilter(A, C, W, V)
     return LinearizedLuenbergerObserver(linearization, gain)
 

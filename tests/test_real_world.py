@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -203,6 +204,45 @@ class _PlantSource:
 
     def __init__(self, plant):
         self.multibody_plant = plant
+
+
+def _multibody_truth(loop):
+    # MeasuredPlant around DrakePlant around the MultibodyPlant, by Drake's names.
+    plant = loop.plant.GetSubsystemByName("plant").GetSubsystemByName("multibody_plant")
+    assert isinstance(plant, MultibodyPlant)
+    return plant
+
+
+def test_a_mass_set_in_parameters_is_the_mass_simulated(real):
+    """Before: a body named in body_mass_scale got the scaled mass whatever the
+    parameters= context held (a pole of 5 kg ran as 1.3 kg, bit for bit); and a
+    context prepared by set_initial_values, as by hand for a Simulator, ran the
+    model's masses."""
+    short = dataclasses.replace(real, simulation=dataclasses.replace(real.simulation, duration=0.3))
+    loop = build_closed_loop(short)
+    plant = _multibody_truth(loop)
+    pole = plant.GetBodyByName("Pole")
+    context = loop.diagram.CreateDefaultContext()
+    assert pole.get_mass(plant.GetMyContextFromRoot(context)) == pole.default_mass() == 1.0
+    loop.set_initial_values(context, short)  # a Simulator by hand: the truth's masses
+    assert pole.get_mass(plant.GetMyContextFromRoot(context)) == pytest.approx(1.3, rel=1e-15)
+    loop.set_initial_values(context, short)  # not scaled twice
+    assert pole.get_mass(plant.GetMyContextFromRoot(context)) == pytest.approx(1.3, rel=1e-15)
+
+    parameters = loop.diagram.CreateDefaultContext()
+    pole.SetMass(plant.GetMyMutableContextFromRoot(parameters), 5.0)
+    heavy = simulate(short, loop=loop, parameters=parameters, progress=False)
+    scaled = dataclasses.replace(
+        short, truth=dataclasses.replace(short.truth, body_mass_scale={"Pole": 5.0, "Cart": 0.8})
+    )
+    expected = simulate(scaled, progress=False)
+    np.testing.assert_array_equal(heavy.x, expected.x)
+    # An untouched parameters context keeps the scenario's truth.
+    plain = simulate(
+        short, loop=loop, parameters=loop.diagram.CreateDefaultContext(), progress=False
+    )
+    np.testing.assert_array_equal(plain.x, simulate(short, progress=False).x)
+    assert not np.array_equal(plain.x, heavy.x)
 
 
 def test_the_model_error_of_a_mass_scaled_truth_asks_the_truth_for_its_plant():
@@ -716,6 +756,29 @@ def test_montecarlo_md_names_the_component_that_failed_regulation(paper_scenario
         f"{error[worst]:.3g} > {bound[worst]:.3g}\n"
     )
     assert line in text, text
+
+
+def test_a_run_the_guard_stopped_has_no_cost_or_final_state(paper_scenario, tmp_path):
+    """Before: a run stopped at t = 0.6 s kept J(0.6), |x(0.6)| and J/J*, and
+    montecarlo.md averaged them with whole runs' J(T) (a cheaper-looking sweep)."""
+    from ofrl_drake.monte_carlo import montecarlo, write_montecarlo_report
+    from ofrl_drake.scenario import BoxConfig
+
+    # xhat rises from 1.5 to about 3 in the first second: it leaves this box.
+    box = BoxConfig(lower=[-2.0, -2.0], upper=[2.5, 2.0])
+    short = dataclasses.replace(
+        paper_scenario,
+        simulation=dataclasses.replace(paper_scenario.simulation, duration=3.0, abort_box=box),
+    )
+    rows = montecarlo(short, 1, out=tmp_path, progress=False, optimal_cost=1.0)
+    assert rows[0]["status"].startswith("diverged: xhat_1 = "), rows[0]["status"]
+    for key in ("final_state_norm", "rms_estimation_error", "cost", "optimality_ratio"):
+        assert math.isnan(rows[0][key]), (key, rows[0][key])
+    with np.load(tmp_path / "runs" / "seed_0.npz") as arrays:  # its logs are kept
+        assert 0 < arrays["t"][-1] < 3.0
+    write_montecarlo_report(tmp_path, rows, "short")
+    table = (tmp_path / "montecarlo.md").read_text()
+    assert "| 1 | 0 | 0 | 0% | n/a | n/a | n/a | n/a |" in table, table
 
 
 def test_montecarlo_md_says_why_j_star_is_not_available(tmp_path):

@@ -285,6 +285,27 @@ def test_blocks_setting_picks_the_blocks(paper_scenario, paper_design):
         diagram.symbolic_blocks(_with_blocks(paper_scenario, "symbolic"), _branching_system())
 
 
+def test_blocks_setting_picks_the_truths_block_too(paper_scenario, paper_design):
+    """Before: a truth other than the model ran as a C++ block under blocks: python
+    (whenever it traced), and silently as Python under blocks: symbolic when it
+    did not."""
+    from ofrl_drake.scenario import TruthConfig
+    from ofrl_drake.variants import symbolic_blocks
+
+    with_truth = dataclasses.replace(paper_scenario, truth=TruthConfig(system="two_state"))
+    python = build_closed_loop(_with_blocks(with_truth, "python"), design=paper_design)
+    assert python.parts.truth is not None
+    assert not _is_cpp(python.plant) and not _is_cpp(python.controller)
+    symbolic = build_closed_loop(_with_blocks(with_truth, "symbolic"), design=paper_design)
+    assert _is_cpp(symbolic.plant)
+    with pytest.raises(
+        ScenarioError, match=r"simulation\.blocks: symbolic needs the truth's f and g"
+    ):
+        symbolic_blocks(
+            _with_blocks(paper_scenario, "symbolic"), _branching_system(), "the truth's "
+        )
+
+
 def test_unknown_blocks_setting_is_refused(paper_scenario):
     from ofrl_drake.scenario import validate_scenario
 

@@ -339,6 +339,28 @@ def test_every_choice_builds_and_simulates_with_the_same_logs(paper_scenario, sl
     assert np.linalg.norm(r.x[-1]) < factor * np.linalg.norm(r.x[0])
 
 
+def _kalman_gain(scenario, noise_std, period):
+    from ofrl_drake.scenario import MeasurementConfig
+
+    measured = dataclasses.replace(
+        _short(scenario, observer="kalman"),
+        measurement=MeasurementConfig(noise_std=[noise_std], period=period, seed=0),
+    )
+    return np.asarray(build_closed_loop(measured).observer.gain)
+
+
+def test_the_kalman_gain_sees_the_noise_intensity_of_the_sampling_period(paper_scenario):
+    """Noise drawn once per sample and held for h is white noise of intensity
+    noise_std^2 h below the sampling rate. Before, the filter took noise_std^2 as
+    the intensity: a 1 kHz and a 100 Hz sensor got the same gain."""
+    fast = _kalman_gain(paper_scenario, 0.02, 0.001)
+    slow = _kalman_gain(paper_scenario, 0.02, 0.01)
+    assert np.linalg.norm(fast) > 2.0 * np.linalg.norm(slow)  # the fast sensor is trusted more
+    # The same intensity, 0.02^2 * 0.001 = (0.02 sqrt(0.1))^2 * 0.01, gives the same gain.
+    same = _kalman_gain(paper_scenario, 0.02 * np.sqrt(0.1), 0.01)
+    np.testing.assert_allclose(fast, same, rtol=1e-8)
+
+
 def test_true_state_feeds_the_state_through(paper_scenario):
     r = simulate(_short(paper_scenario, observer="true_state"), progress=False)
     np.testing.assert_array_equal(r.xhat, r.x)

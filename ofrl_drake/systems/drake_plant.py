@@ -59,7 +59,11 @@ class DrakePlant(Diagram):
     body_mass_scale : mapping of str to float, optional
         Factors on the masses of named bodies, set as Drake parameters in the
         context by :meth:`initialize_context` (the center of mass and unit
-        inertia kept): a truth that differs from the model.
+        inertia kept): a truth that differs from the model. A default context
+        holds the unscaled masses (Drake offers no way to change a finalized
+        plant's defaults), so a context simulated by hand needs
+        :meth:`initialize_context`, which
+        :meth:`~ofrl_drake.diagram.ClosedLoop.set_initial_values` calls.
 
     Raises
     ------
@@ -124,13 +128,20 @@ class DrakePlant(Diagram):
         builder.BuildInto(self)
 
     def initialize_context(self, context: Context) -> None:
-        """Set the default positions and velocities, and the scaled masses, in ``context``."""
+        """Set the default positions and velocities, and the scaled masses, in ``context``.
+
+        A body of ``body_mass_scale`` whose mass in ``context`` is not its
+        default mass keeps it: that mass was set on purpose (e.g. copied from
+        ``simulate``'s ``parameters``), and a context already initialized is
+        not scaled twice.
+        """
         plant = self._plant
         plant_context = self.GetMutableSubsystemContext(plant, context)
         plant.SetPositionsAndVelocities(plant_context, self._x0)
         for body, scale in (self.body_mass_scale or {}).items():
             rigid = plant.GetBodyByName(body)
-            rigid.SetMass(plant_context, rigid.default_mass() * float(scale))
+            if rigid.get_mass(plant_context) == rigid.default_mass():
+                rigid.SetMass(plant_context, rigid.default_mass() * float(scale))
 
     def set_state(self, context: Context, x: ArrayLike) -> None:
         """Set the state to ``x`` (in the coordinates of ``system``) in ``context``, this
