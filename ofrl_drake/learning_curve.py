@@ -385,7 +385,11 @@ def learning_curve(
     -------
     list of dict
         One entry per checkpoint: ``t`` (the logged sample nearest ``t_k``;
-        a stopped run has none after its stop), ``policy_cost``,
+        for a policy held as discrete state, such as the policy gate's,
+        ``t_k`` itself, evaluated at the first sample after it: Drake logs
+        before the gate's decision at ``t_k``, so that sample holds the policy
+        in force from ``t_k`` on; a stopped run has none after its stop),
+        ``policy_cost``,
         ``optimality_ratio`` (None without ``J*``), ``final_state_norm`` and
         ``status`` of the evaluation.
 
@@ -434,14 +438,23 @@ def _curve(
     entries = []
     seen: set[int] = set()
     times = np.linspace(0.0, horizon, checkpoints + 1)
+    # A policy held as discrete state (the policy gate) is logged before its update at
+    # t_k: what is in force from t_k on is at the next sample.
+    held = loop.policy.num_discrete_state_groups() > 0
     for k, t_k in enumerate(times, start=1):
         if t_k > result.t[-1] + 1e-9:
             break
-        i = int(np.argmin(np.abs(result.t - t_k)))
+        if held:
+            after = int(np.searchsorted(result.t, t_k + 1e-9 * max(1.0, horizon), side="right"))
+            i = min(after, result.t.size - 1)
+            t_entry = float(t_k)
+        else:
+            i = int(np.argmin(np.abs(result.t - t_k)))
+            t_entry = float(result.t[i])
         if i in seen:
             continue
         seen.add(i)
-        where = f"checkpoint {k} of {times.size} (t = {result.t[i]:.6g} s)"
+        where = f"checkpoint {k} of {times.size} (t = {t_entry:.6g} s)"
         run = _within(budget, evaluate, result.W_policy[i], where)
         ratio = (
             run.cost / optimal_cost
@@ -450,7 +463,7 @@ def _curve(
         )
         entries.append(
             {
-                "t": float(result.t[i]),
+                "t": t_entry,
                 "policy_cost": number_to_json(run.cost),
                 "optimality_ratio": number_to_json(ratio),
                 "final_state_norm": number_to_json(run.final_state_norm),

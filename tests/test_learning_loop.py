@@ -396,6 +396,32 @@ def test_each_checkpoint_evaluates_the_policy_in_force_at_its_time(short_paper_r
     assert len(set(costs)) == len(costs), costs
 
 
+def test_a_checkpoint_at_a_gate_decision_takes_the_policy_it_decided():
+    """Drake logs before the gate's update at t = 1 s: the sample at 1 s still holds the
+    previous policy. Before, the curve evaluated that one, one improvement late
+    (its entry at t = 1 s equalled the one at t = 0 from a 3x LQR start)."""
+    from ofrl_drake.learning_curve import learning_curve, learning_health
+
+    base = load_scenario(PENDULUM)
+    base = dataclasses.replace(base, simulation=dataclasses.replace(base.simulation, duration=2.0))
+    scenario, _ = _with_lqr_start(base, 3.0)
+    loop = build_closed_loop(scenario)
+    assert loop.resolved_scenario().critic.policy_period == pytest.approx(0.2)
+    result = simulate(scenario, loop=loop, progress=False)
+    log_period = scenario.simulation.log_period
+    assert 1.0 + log_period == pytest.approx(learning_health(loop, result).accepted_times[4])
+    at, after = np.searchsorted(result.t, [1.0 - 1e-9, 1.0 + 1e-9])
+    assert result.t[after] == pytest.approx(1.0 + log_period)
+    assert not np.array_equal(result.W_policy[at], result.W_policy[after])  # decided at 1 s
+    curve = learning_curve(loop, result, checkpoints=2)
+    assert [entry["t"] for entry in curve] == pytest.approx([0.0, 1.0, 2.0])
+    evaluate = PolicyEvaluator(loop)
+    assert curve[1]["policy_cost"] == pytest.approx(
+        evaluate(result.W_policy[after]).cost, rel=1e-12
+    )
+    assert curve[1]["policy_cost"] < 0.99 * curve[0]["policy_cost"]
+
+
 def test_a_learning_report_out_of_wall_time_names_where_it_stopped_the_budget_and_the_fix(
     short_paper_run, monkeypatch
 ):
