@@ -126,8 +126,9 @@ def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
     AblationError
         If the file is missing, unreadable or not UTF-8 text, not a mapping,
         repeats a key in one mapping (e.g. a variant's name: Drake's loader
-        would keep the last silently; the key and both lines named), or names
-        an unknown slot or choice.
+        would keep the last silently; the key and both lines named), has a
+        name that YAML reads as a number, boolean or null (quote it) or that
+        holds ``|`` or a control character, or names an unknown slot or choice.
     """
     from pydrake.common.yaml import yaml_load
 
@@ -141,6 +142,7 @@ def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
     except OSError as err:
         raise AblationError(f"{path}: cannot be read ({err.strerror or err}).") from None
     check_yaml(path, text, error=AblationError, what="variants file")
+    _string_keys(path, text)
     try:
         data = yaml_load(filename=str(path))
     except Exception as err:
@@ -158,9 +160,45 @@ def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
 def _from_mapping(data: Mapping[Any, Any]) -> list[Variant]:
     """Variants from a mapping ``name -> {slot: choice}`` (None: no choice), checked."""
     return [
-        Variant(str(name), _check_choices(str(name), {} if c is None else c))
+        Variant(
+            _checked_name(str(name), "variants"), _check_choices(str(name), {} if c is None else c)
+        )
         for name, c in data.items()
     ]
+
+
+def _checked_name(name: Any, where: str) -> str:
+    """A variant's name: a non-empty string that fits a table cell and a line.
+
+    ``|`` would split its cell in ``ablation.md``'s tables, and a control
+    character (a newline, a tab) its row.
+    """
+    if not isinstance(name, str) or not name:
+        raise AblationError(f"{where}: a variant's name must be a non-empty string; got {name!r}.")
+    bad = [c for c in name if c == "|" or not c.isprintable()]
+    if bad:
+        raise AblationError(
+            f"{where}: the variant name {name!r} holds {bad[0]!r}, which would break the "
+            "tables of ablation.md; use letters, digits, spaces and _ . = - instead."
+        )
+    return name
+
+
+def _string_keys(path: Path, text: str) -> None:
+    """Refuse a top-level key that YAML reads as another type than a string (``1:``,
+    ``true:``, ``null:``): Drake's loader fails on it with an internal error."""
+    import yaml
+
+    root = yaml.compose(text)  # check_yaml has composed it once already
+    if not isinstance(root, yaml.MappingNode):
+        return
+    for key, _ in root.value:
+        if key.tag != "tag:yaml.org,2002:str":
+            kind = key.tag.rsplit(":", 1)[-1]
+            raise AblationError(
+                f"{path}: line {key.start_mark.line + 1}: the variant name {key.value!r} reads "
+                f"as a YAML {kind}, not a string; quote it ('{key.value}': ...)."
+            )
 
 
 def _checked_variant(index: int, variant: Any) -> Variant:
@@ -170,10 +208,7 @@ def _checked_variant(index: int, variant: Any) -> Variant:
             f"variants[{index}]: expected a Variant(name, {{slot: choice}}); got {variant!r}. "
             "Pass Variant objects, or a mapping name -> {slot: choice}."
         )
-    if not isinstance(variant.name, str) or not variant.name:
-        raise AblationError(
-            f"variants[{index}]: a variant's name must be a non-empty string; got {variant.name!r}."
-        )
+    _checked_name(variant.name, f"variants[{index}]")
     return replace(variant, choices=_check_choices(variant.name, variant.choices))
 
 

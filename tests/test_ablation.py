@@ -303,6 +303,11 @@ OBSERVERS = r"choose one of \['drake_luenberger', 'kalman', 'linear_luenberger',
         ({"b": "kalman"}, r"^variants\.b: expected a mapping of slot: choice; got 'kalman'"),
         ([Variant(3, {})], r"^variants\[0\]: a variant's name must be a non-empty string; got 3"),
         (
+            {"base|line": {}},
+            r"^variants: the variant name 'base\|line' holds '\|', which would break the tables",
+        ),
+        ([Variant("lqr\nnew", {})], r"^variants\[0\]: the variant name 'lqr\\nnew' holds '\\n'"),
+        (
             {"held": {"controller": "constant"}},
             r"^variants\.held: variant\.constant_input: expected 1 entries; got 0",
         ),
@@ -375,6 +380,23 @@ def test_a_variants_file_that_repeats_a_key_is_refused(tmp_path, text, match):
     path.write_text(text)
     with pytest.raises(AblationError, match=rf"^{re.escape(str(path))}: {match}; keep one\.$"):
         load_variants(path)
+
+
+@pytest.mark.parametrize(("key", "kind"), [("1", "int"), ("true", "bool"), ("null", "null")])
+def test_a_variants_file_whose_name_is_not_a_string_says_so(tmp_path, key, kind):
+    """Before: 'not valid YAML: 'int' object has no attribute 'startswith'' (Drake's loader)."""
+    from ofrl_drake.ablation_grid import load_variants
+
+    path = tmp_path / "variants.yaml"
+    path.write_text(f"baseline: {{}}\n{key}: {{controller: lqr}}\n")
+    with pytest.raises(
+        AblationError,
+        match=rf"variants\.yaml: line 2: the variant name '{key}' reads as a YAML {kind}, not a "
+        rf"string; quote it \('{key}': \.\.\.\)\.$",
+    ):
+        load_variants(path)
+    path.write_text(f"baseline: {{}}\n'{key}': {{controller: lqr}}\n")
+    assert [v.name for v in load_variants(path)] == ["baseline", key]
 
 
 def test_a_variants_file_nested_too_deep_is_refused_as_a_variants_file(tmp_path):
