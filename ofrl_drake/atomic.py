@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -28,6 +30,8 @@ __all__ = [
     "ensure_parent",
     "file_version",
     "output_lock",
+    "sigint_handled_here",
+    "sigint_held",
     "umask_mode",
 ]
 
@@ -249,3 +253,42 @@ def atomic_write_text(target: str | Path, text: str, *, what: str = "--out") -> 
     """Write ``text`` to ``target`` whole or not at all (see :func:`atomic_file`)."""
     with atomic_file(target, "w", what=what) as fh:
         fh.write(text)
+
+
+def sigint_handled_here() -> bool:
+    """True if a SIGINT would interrupt this thread: the main thread, SIGINT not ignored.
+
+    Signals are handled in the main thread only; and a process started with
+    SIGINT ignored (a shell script's background job, ``cmd &``) was told not
+    to stop on it. Elsewhere :func:`sigint_held` leaves the handler alone.
+    """
+    return (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+    )
+
+
+@contextlib.contextmanager
+def sigint_held() -> Iterator[None]:
+    """Hold a SIGINT until the block ends, then raise ``KeyboardInterrupt``.
+
+    For work a Ctrl-C must not cut in two: a clean-up that removes what an
+    interrupted command wrote (a terminal sends the interrupt to the whole
+    process group, and ``timeout`` sends it again to the child, so a second one
+    can land in the clean-up of the first), or an import during which pydrake's
+    C++ initialization would turn a ``KeyboardInterrupt`` into an
+    ``ImportError`` with a 30-line trace. Outside the main thread (where
+    signals cannot be handled), or with SIGINT ignored, the block runs as is
+    (:func:`sigint_handled_here`).
+    """
+    if not sigint_handled_here():
+        yield
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt

@@ -49,6 +49,8 @@ from ofrl_drake.atomic import (
     check_writable,
     ensure_parent,
     output_lock,
+    sigint_handled_here,
+    sigint_held,
     umask_mode,
 )
 from ofrl_drake.errors import OfrlError, OutputError, one_line
@@ -1065,13 +1067,13 @@ def _sigint_kept_from_children() -> Iterator[None]:
     mask, and the processes they start keep it across ``exec``, so the
     workers leave the interrupt to the command, which closes them. The
     command itself loses no SIGINT: one that comes in the block (the cluster's
-    start, seconds) is held (:func:`_sigint_held`) and raised as
+    start, seconds) is held (:func:`~ofrl_drake.atomic.sigint_held`) and raised as
     ``KeyboardInterrupt`` when the block ends. (Ignoring SIGINT in the block,
     which the workers would inherit as well, would drop that Ctrl-C: the sweep
     went on to its end.) Outside the main thread, or with SIGINT ignored (the
-    workers inherit that), the block runs as is (:func:`_sigint_handled_here`).
+    workers inherit that), the block runs as is (:func:`~ofrl_drake.atomic.sigint_handled_here`).
     """
-    if not _sigint_handled_here():
+    if not sigint_handled_here():
         yield
         return
     from multiprocessing import resource_tracker
@@ -1079,11 +1081,11 @@ def _sigint_kept_from_children() -> Iterator[None]:
     # Started now, not by the block's first process: starting it unblocks SIGINT in the
     # thread that starts it, and every thread that thread starts inherits its mask.
     resource_tracker.ensure_running()
-    with _sigint_held():
+    with sigint_held():
         mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             yield
-        finally:  # a SIGINT the mask kept pending is delivered here, to _sigint_held's handler
+        finally:  # a SIGINT the mask kept pending is delivered here, to sigint_held's handler
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
@@ -1157,7 +1159,7 @@ def _dask_client(
         try:
             # A Ctrl-C while the cluster closes is raised after it, not in the middle (a
             # cluster left half-closed for Python's exit to close, with a traceback).
-            with _sigint_held():
+            with sigint_held():
                 cluster.close()
         finally:
             logging.disable(logging_was)
@@ -1597,7 +1599,7 @@ def _figure_choice(choices: str) -> Callable[[str], str]:
     return parse
 
 
-#: Modules each command needs, imported with SIGINT held (:func:`_sigint_held`).
+#: Modules each command needs, imported with SIGINT held (:func:`~ofrl_drake.atomic.sigint_held`).
 _COMMAND_MODULES = {
     "run": (
         "ofrl_drake.diagram",
@@ -1627,43 +1629,6 @@ class Terminated(KeyboardInterrupt):
 
 def _raise_terminated(signum: int, frame: Any) -> None:
     raise Terminated
-
-
-def _sigint_handled_here() -> bool:
-    """True if a SIGINT would interrupt this thread: the main thread, SIGINT not ignored.
-
-    Signals are handled in the main thread only; and a process started with
-    SIGINT ignored (a shell script's background job, ``cmd &``) was told not
-    to stop on it. Elsewhere :func:`_sigint_held` and
-    :func:`_sigint_kept_from_children` leave the handler and the mask alone.
-    """
-    return (
-        threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
-    )
-
-
-@contextlib.contextmanager
-def _sigint_held() -> Iterator[None]:
-    """Hold a SIGINT until the block ends, then raise ``KeyboardInterrupt``.
-
-    pydrake's C++ initialization catches a ``KeyboardInterrupt`` raised inside
-    it, logs a critical message with a 30-line trace and raises ``ImportError``;
-    importing with SIGINT held keeps that from happening. Outside the main
-    thread (where signals cannot be handled), or with SIGINT ignored, the block
-    runs as is (:func:`_sigint_handled_here`).
-    """
-    if not _sigint_handled_here():
-        yield
-        return
-    received: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if received:
-        raise KeyboardInterrupt
 
 
 def _user_code_frame(err: BaseException) -> Any:
@@ -1893,7 +1858,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.started = started
         if getattr(args, "out", None) == "":
             raise OutputError("--out: the path is empty; name an output file or folder.")
-        with _sigint_held():
+        with sigint_held():
             for module in _COMMAND_MODULES.get(args.command, _DEFAULT_MODULES):
                 importlib.import_module(module)
         with _drake_warnings_only(), _interrupts_not_swallowed():

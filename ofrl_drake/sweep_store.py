@@ -40,7 +40,13 @@ from typing import Any
 
 import numpy as np
 
-from ofrl_drake.atomic import atomic_file, atomic_write_text, check_output_folder, ensure_parent
+from ofrl_drake.atomic import (
+    atomic_file,
+    atomic_write_text,
+    check_output_folder,
+    ensure_parent,
+    sigint_held,
+)
 from ofrl_drake.errors import OfrlError, OutputError
 
 __all__ = [
@@ -616,7 +622,8 @@ class SweepStore:
         Yields the rows already done (:meth:`open`'s arguments and result). If
         :meth:`open` or the block raises, or is interrupted, before the first
         row is written, what the sweep created in the folder is removed
-        (:meth:`discard`) and the exception goes on.
+        (:meth:`discard`, with a SIGINT held until it is done) and the
+        exception goes on.
 
         Raises
         ------
@@ -628,7 +635,8 @@ class SweepStore:
             self.start()
             yield rows
         except BaseException:
-            self.discard()
+            with sigint_held():  # a second Ctrl-C must not cut the clean-up short
+                self.discard()
             raise
         finally:
             self.close()

@@ -1347,12 +1347,13 @@ def test_an_ignored_sigint_is_not_taken_by_the_command():
     # A script's background job (cmd &) starts with SIGINT ignored; the command recorded a
     # SIGINT while importing or starting workers and raised it: exit 130 on a signal it was
     # told to ignore.
-    from ofrl_drake.cli import _sigint_held, _sigint_kept_from_children
+    from ofrl_drake.atomic import sigint_held
+    from ofrl_drake.cli import _sigint_kept_from_children
 
     was = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
-        for block in (_sigint_held, _sigint_kept_from_children):
+        for block in (sigint_held, _sigint_kept_from_children):
             with block():
                 assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN, block
                 assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == mask, block

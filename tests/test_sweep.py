@@ -218,6 +218,28 @@ def test_a_sweep_stopped_before_its_first_row_leaves_its_folder_as_it_was_found(
     assert FILES.read(kept / "t.csv") == [{"name": "r0", "value": 1.0, "status": "ok"}]
 
 
+def test_a_second_interrupt_does_not_cut_the_clean_up_short(tmp_path, monkeypatch):
+    """A terminal's Ctrl-C (or `timeout`) can reach the command twice; before, the second
+    one landed in the clean-up of the first and left the plan alone in a new folder."""
+    import os
+    import signal
+
+    from ofrl_drake import sweep_store
+
+    remove = sweep_store._remove
+
+    def interrupted_remove(path):
+        os.kill(os.getpid(), signal.SIGINT)  # delivered at the next line of Python
+        remove(path)
+
+    monkeypatch.setattr(sweep_store, "_remove", interrupted_remove)
+    new = tmp_path / "new"
+    with pytest.raises(KeyboardInterrupt):
+        with SweepStore(FILES, new).recording({"seed": 1}, resume=False, mismatch=_seed_differs):
+            raise KeyboardInterrupt
+    assert not new.exists() and list(tmp_path.iterdir()) == []
+
+
 def test_a_sweep_that_ends_keeps_its_folder_even_without_a_new_row(tmp_path):
     out = _filled(tmp_path)
     before = _tree(out)
