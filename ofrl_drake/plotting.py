@@ -686,6 +686,35 @@ def _box_lines(ax: Axes, levels: Sequence[float]) -> None:
         )
 
 
+def _overview_box(ax: Axes, box: Box | None) -> list[float]:
+    """The observer box on the overview's panel of every state; returns its levels.
+
+    One gray pair of lines when every state has the same bounds; otherwise each
+    state's bounds in its own color (one band over all of them would put a
+    state outside its box inside the band drawn).
+    """
+    if box is None:
+        return []
+    lower, upper = (np.asarray(b, dtype=float) for b in box)
+    if np.all(lower == lower[0]) and np.all(upper == upper[0]):
+        _box_lines(ax, [lower[0], upper[0]])
+        return [float(lower[0]), float(upper[0])]
+    colors = [line.get_color() for line in ax.get_lines()[::2]]  # x_i, then xhat_i
+    for i, bounds in enumerate(zip(lower, upper, strict=True)):
+        for bound in bounds:
+            ax.axhline(bound, color=colors[i], lw=0.8, ls="-.", alpha=0.8, label="_box")
+    ax.plot(
+        [],
+        [],
+        color="0.35",
+        lw=0.9,
+        ls="-.",
+        label="observer box (each state's color)",
+        gid=_ANNOTATION,
+    )
+    return [float(lower.min()), float(upper.max())]
+
+
 def _stop(result: SimulationResult) -> StopReport | None:
     return getattr(result, "stop", None)
 
@@ -1341,8 +1370,7 @@ def plot_overview(
             color=line.get_color(),
             label=rf"$\hat{{x}}_{{{i + 1}}}$",
         )
-    levels = [] if box is None else [min(box[0]), max(box[1])]
-    _box_lines(ax, levels)
+    levels = _overview_box(ax, box)
     ax.set_ylabel(r"$x - x^*$, $\hat{x} - x^*$" if relative else r"$x$, $\hat{x}$")
     if zoom is not None:
         ax.set_xlim(0.0, zoom)

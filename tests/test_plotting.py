@@ -454,6 +454,26 @@ def test_the_overview_draws_states_about_the_equilibrium_and_says_so():
     plt.close("all")
 
 
+def test_the_overview_draws_each_states_own_box():
+    """Before: one band from the smallest lower to the largest upper bound (the cart's
+    +-2 m) over every state, so a pole angle 1.3 rad off looked inside its +-0.4 rad box."""
+    r = _cart_pole_like()
+    lower, upper = [-2.0, -0.4, -1.5, -1.5], [2.0, 0.4, 1.5, 1.5]
+    ax = plot_overview(r, 50.0, (lower, upper)).axes[0]
+    states = ax.get_lines()[:8:2]
+    for i, state in enumerate(states):
+        levels = sorted(
+            line.get_ydata()[0]
+            for line in ax.get_lines()[8:]
+            if line.get_label() == "_box" and line.get_color() == state.get_color()
+        )
+        assert levels == [lower[i], upper[i]], i
+    assert "observer box (each state's color)" in [
+        t.get_text() for t in ax.get_legend().get_texts()
+    ]
+    plt.close("all")
+
+
 def test_a_stop_mark_has_room_after_it_and_learning_health_marks_it():
     r = _result(T=2.0, samples=101)
     r.stop = StopReport("diverged", "x_1 left the abort box", 2.0, [30.0, 1.0], [0.0, 0.0], 0.1)
