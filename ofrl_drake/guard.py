@@ -230,6 +230,9 @@ class RunGuard:
         Seconds of wall time before the run stops; None for no limit.
     progress : ProgressBar, optional
         Updated after every step.
+    relative : bool, optional
+        The plant's ``state`` and the box are relative to an equilibrium
+        ``x*``: a stop names ``x_i - x*_i`` (default False: ``x_i``).
 
     Examples
     --------
@@ -248,6 +251,7 @@ class RunGuard:
         box: tuple[np.ndarray, np.ndarray],
         max_wall_time: float | None = None,
         progress: ProgressBar | None = None,
+        relative: bool = False,
     ) -> None:
         self.diagram = diagram
         self.plant = plant
@@ -255,6 +259,7 @@ class RunGuard:
         self.box = box
         self.max_wall_time = max_wall_time
         self.progress = progress
+        self.relative = relative
         self._state_port = plant.GetOutputPort("state")
         self._estimate_port = observer.GetOutputPort("estimated_state")
         self._lower = np.asarray(box[0], dtype=float)
@@ -322,8 +327,9 @@ class RunGuard:
             outside = (v < self._lower) | (v > self._upper) | ~np.isfinite(v)
             if np.any(outside):
                 i = int(np.flatnonzero(outside)[0])
+                shift = f" - x*_{i + 1}" if self.relative else ""
                 return STATUS_DIVERGED, (
-                    f"{name}_{i + 1} = {v[i]:.6g} left the abort box "
+                    f"{name}_{i + 1}{shift} = {v[i]:.6g} left the abort box "
                     f"[{self._lower[i]:g}, {self._upper[i]:g}] at t = {t:.6g} s"
                 )
         return self._check_progress(root_context)

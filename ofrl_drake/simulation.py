@@ -804,6 +804,7 @@ def simulate(
         abort_box(scenario),
         scenario.simulation.max_wall_time,
         ProgressBar(duration, sys.stderr) if show else None,
+        relative=scenario.equilibrium is not None,
     )
     # The guard is a monitor: it sees every step and changes none (see ofrl_drake.guard).
     simulator.set_monitor(guard)

@@ -70,6 +70,25 @@ def test_progress_on_and_off_give_identical_arrays(paper_scenario, paper_design,
     assert shown.status == quiet.status == STATUS_OK
 
 
+def test_a_stop_about_an_equilibrium_names_the_coordinates_of_the_box():
+    """Before: 'x_1 = 0.205 left the abort box' beside stop.x[0] = 3.35 (the plant's own
+    angle, near pi) in the same summary: the box and the reason are relative to x*."""
+    from ofrl_drake import load_scenario
+
+    from .conftest import ROOT
+
+    pendulum = load_scenario(ROOT / "diagrams" / "pendulum_upright.yaml")
+    box = BoxConfig([-0.205, -3.0], [0.205, 3.0])  # x0 = (0.2, 0.3): the angle leaves it
+    result = simulate(_with_simulation(pendulum, abort_box=box, duration=1.0), progress=False)
+    assert result.status == STATUS_DIVERGED
+    assert re.match(
+        r"x_1 - x\*_1 = 0\.205\d* left the abort box \[-0\.205, 0\.205\]", result.stop.reason
+    )
+    stop = result.summary()["stop"]
+    assert stop["reason"] == result.stop.reason
+    assert stop["x"][0] == pytest.approx(np.pi + result.stop.x[0], abs=1e-12)  # the plant's own
+
+
 def test_leaving_the_abort_box_stops_the_run_with_its_logs(paper_scenario, paper_design):
     box = BoxConfig([-2.5, -2.5], [2.5, 2.5])
     scenario = dataclasses.replace(
