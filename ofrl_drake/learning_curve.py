@@ -30,6 +30,7 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder, EventStatus
 from pydrake.systems.primitives import ConstantVectorSource
 
+from ofrl_drake.ablation_metrics import optimality_ratio
 from ofrl_drake.checks import (
     count_at_most,
     number_from_json,
@@ -456,11 +457,7 @@ def _curve(
         seen.add(i)
         where = f"checkpoint {k} of {times.size} (t = {t_entry:.6g} s)"
         run = _within(budget, evaluate, result.W_policy[i], where)
-        ratio = (
-            run.cost / optimal_cost
-            if optimal_cost is not None and np.isfinite(optimal_cost) and np.isfinite(run.cost)
-            else None
-        )
+        ratio = None if optimal_cost is None else optimality_ratio(run.cost, optimal_cost)
         entries.append(
             {
                 "t": t_entry,

@@ -1098,13 +1098,16 @@ def plot_learning_curve(
     cost = np.array(
         [np.nan if e["policy_cost"] is None else e["policy_cost"] for e in entries], dtype=float
     )
-    scale = optimal_cost if optimal_cost is not None and np.isfinite(optimal_cost) else 1.0
+    scale = 1.0
+    relative = optimal_cost is not None and bool(np.isfinite(optimal_cost)) and optimal_cost > 0
+    if optimal_cost is not None and relative:
+        scale = float(optimal_cost)
     finite = np.isfinite(cost)
     if np.any(finite):
         ax.plot(t, cost / scale, "o-", lw=1.4, color="C0", label=r"policy in force at $t$")
     if lqr_cost is not None and np.isfinite(lqr_cost):
         ax.axhline(lqr_cost / scale, color="C2", ls="--", lw=1.0, label="LQR policy")
-    if scale != 1.0:
+    if relative:
         ax.axhline(1.0, color="k", ls=":", lw=1.0, label=r"$J^*$")
         ax.set_ylabel(r"policy cost $J/J^*$ from $x_0$")
     else:

@@ -396,6 +396,17 @@ def test_each_checkpoint_evaluates_the_policy_in_force_at_its_time(short_paper_r
     assert len(set(costs)) == len(costs), costs
 
 
+def test_a_j_star_of_zero_gives_no_ratio(short_paper_run):
+    """x0 at the target has J* = 0; before, the curve divided by it (ZeroDivisionError:
+    run --optimal wrote nothing)."""
+    from ofrl_drake.learning_curve import learning_curve
+
+    loop, result = short_paper_run
+    curve = learning_curve(loop, result, checkpoints=1, optimal_cost=0.0)
+    assert [entry["optimality_ratio"] for entry in curve] == [None, None]
+    assert all(entry["policy_cost"] > 0 for entry in curve)
+
+
 def test_a_checkpoint_at_a_gate_decision_takes_the_policy_it_decided():
     """Drake logs before the gate's update at t = 1 s: the sample at 1 s still holds the
     previous policy. Before, the curve evaluated that one, one improvement late

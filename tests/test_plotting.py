@@ -397,6 +397,20 @@ def test_a_diverged_checkpoint_is_marked_by_time_not_at_an_invented_cost():
     plt.close("all")
 
 
+@pytest.mark.parametrize(
+    ("optimal_cost", "ratio"), [(1.0, True), (0.0, False), (math.nan, False), (None, False)]
+)
+def test_the_learning_curve_is_over_j_star_when_j_star_is_positive(optimal_cost, ratio):
+    """Before: a J* of exactly 1 was taken for 'no J*' (the axis said J, no J* line), and
+    a J* of 0 divided the costs by it."""
+    entries = [{"t": 0.0, "policy_cost": 4.0}, {"t": 1.0, "policy_cost": 2.0}]
+    (ax,) = plot_learning_curve(entries, optimal_cost=optimal_cost).axes
+    assert ("J/J^*" in ax.get_ylabel()) is ratio
+    assert (r"$J^*$" in [line.get_label() for line in ax.get_lines()]) is ratio
+    np.testing.assert_array_equal(ax.get_lines()[0].get_ydata(), [4.0, 2.0])
+    plt.close("all")
+
+
 def test_the_zoom_is_dropped_past_half_the_run_and_noise_is_no_transient():
     # x settles at about 13 s of 20: a "first 20 s" zoom was the whole run again.
     r = _result(T=20.0, samples=1001)
