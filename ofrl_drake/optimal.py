@@ -71,7 +71,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.planning import DirectCollocation
 from pydrake.solvers import IpoptSolver, SnoptSolver, SolverOptions
-from pydrake.symbolic import MakeVectorVariable, log
+from pydrake.symbolic import Expression, MakeVectorVariable, if_then_else, log
 from pydrake.systems.primitives import SymbolicVectorSystem
 from pydrake.trajectories import PiecewisePolynomial
 
@@ -96,6 +96,7 @@ from ofrl_drake.plants import resolve_system
 from ofrl_drake.scenario import Scenario, validate_scenario
 
 __all__ = [
+    "SERIES_BELOW",
     "SMALL_COST",
     "SOLVERS",
     "Mesh",
@@ -107,6 +108,7 @@ __all__ = [
     "optimal_control",
     "problem_key",
     "require_traceable",
+    "saturation_cost",
     "solve_optimal_control",
     "solver_name",
     "solving",
@@ -320,6 +322,34 @@ class OptimalControlResult:
         )
 
 
+#: Below this ``s^2``, :func:`saturation_cost` is its Taylor series: ``|s| < 0.088``.
+#: Drake differentiates the switch as NaN where ``s^2`` equals it exactly, which
+#: no double ``s`` near 2^-3.5 makes likely (0.01 would be ``u = lbar / 10``).
+SERIES_BELOW = 2.0**-7
+
+#: The series' coefficients ``1 / ((2k - 1) 2k)``, k = 1 ... 8.
+_SERIES = tuple(1.0 / ((2 * k - 1) * (2 * k)) for k in range(1, 9))
+
+
+def saturation_cost(s: Expression) -> Expression:
+    """``s atanh(s) + (1/2) ln(1 - s^2)``, accurate to round-off for every ``|s| < 1``.
+
+    It is ``U(u) / (2 r lbar^2)`` at ``s = u / lbar``, and equals
+    ``sum_k s^(2k) / ((2k - 1) 2k)``. The closed form cancels for small ``s``
+    (``ln(1 - s^2)`` loses ``s^2``'s low digits): with ``lbar = 1e6`` and
+    ``u`` near 1 it made ``U`` a staircase that SNOPT could not solve. Below
+    ``s^2 =`` :data:`SERIES_BELOW` the series' first eight terms are used
+    (the rest is below 1e-18 of the sum); Drake's expressions have no
+    ``log1p``.
+    """
+    s2 = s * s
+    series = Expression(_SERIES[-1])
+    for c in reversed(_SERIES[:-1]):
+        series = c + s2 * series
+    closed = 0.5 * s * log((1.0 + s) / (1.0 - s)) + 0.5 * log(1.0 - s2)
+    return if_then_else(s2 < SERIES_BELOW, s2 * series, closed)
+
+
 def cost_augmented_plant(
     system: ControlAffineSystem, Q: np.ndarray, r: np.ndarray, input_bound: float
 ) -> SymbolicVectorSystem:
@@ -331,7 +361,8 @@ def cost_augmented_plant(
         J' = x^T Q x + sum_k 2 r_k lbar (u_k atanh(u_k / lbar)
                                          + (lbar / 2) ln(1 - u_k^2 / lbar^2))
 
-    defined for ``|u_k| < lbar`` (``atanh(s) = (1/2) ln((1 + s) / (1 - s))``).
+    defined for ``|u_k| < lbar`` (``atanh(s) = (1/2) ln((1 + s) / (1 - s))``),
+    written as :func:`saturation_cost` of ``u_k / lbar``.
 
     Raises
     ------
@@ -351,9 +382,7 @@ def cost_augmented_plant(
         xdot = dynamics.f + dynamics.g @ u
         running = x @ Q @ x
     for k in range(m):
-        s = u[k] / input_bound
-        atanh = 0.5 * log((1.0 + s) / (1.0 - s))
-        running += 2.0 * r[k] * input_bound * (u[k] * atanh + 0.5 * input_bound * log(1.0 - s * s))
+        running += 2.0 * r[k] * input_bound**2 * saturation_cost(u[k] / input_bound)
     return SymbolicVectorSystem(
         state=np.concatenate([x, J]), input=u, dynamics=np.concatenate([xdot, [running]])
     )

@@ -21,6 +21,7 @@ from ofrl_drake.optimal import (
     cost_augmented_plant,
     optimal_control,
     problem_key,
+    saturation_cost,
     solve_optimal_control,
 )
 
@@ -28,6 +29,58 @@ from .conftest import edited_two_state
 
 Q = 5.0 * np.eye(2)
 R = np.array([1.0])
+
+
+EDGE = 2.0**-3.5  # where the series gives way to the closed form
+S_VALUES = [
+    1e-12,
+    1e-8,
+    1e-5,
+    1e-3,
+    0.05,
+    EDGE * (1 - 1e-9),
+    EDGE * (1 + 1e-9),
+    0.1,
+    0.3,
+    0.9,
+    0.999,
+]
+
+
+@pytest.mark.parametrize("s", S_VALUES + [-v for v in S_VALUES])
+def test_the_saturation_cost_is_accurate_for_small_and_large_inputs(s):
+    """Before: ln(1 - s^2) lost s^2's digits, so U(u) at lbar = 1e6 was a staircase
+    (0.99999992 at lbar = 1e5, 1.0000221 at 1e6, for U = 1) and SNOPT gave up."""
+    from pydrake.symbolic import Variable
+
+    v = Variable("s")
+    expression = saturation_cost(v)
+    # numpy's arctanh and log1p are accurate near 0; only a factor 2 cancels.
+    exact = s * np.arctanh(s) + 0.5 * np.log1p(-s * s)
+    assert expression.Evaluate({v: s}) == pytest.approx(exact, rel=2e-14)
+    # Its derivative is atanh(s), on either side of the series' edge (the closed form's
+    # 1 - s costs digits near s = 1, as atanh's own formula does).
+    assert expression.Differentiate(v).Evaluate({v: s}) == pytest.approx(np.arctanh(s), rel=1e-11)
+
+
+def test_j_star_with_a_bound_that_never_binds_is_solved():
+    """The pendulum with lbar = 1e6 to 1e8: its input stays below 10 N, so U(u) = r u^2
+    to 1e-10 and J* is that of the quadratic cost (0.98077, measured). Before: SNOPT
+    'not converged' (info 41) from 1e6 on."""
+    from ofrl_drake import load_scenario
+
+    from .conftest import ROOT
+
+    pendulum = load_scenario(ROOT / "diagrams" / "pendulum_upright.yaml")
+    costs = []
+    for bound in (1e6, 1e8):
+        result = optimal_control(dataclasses.replace(pendulum, input_bound=bound))
+        assert result.converged, result.status
+        costs.append(result.cost)
+    assert costs[0] == pytest.approx(costs[1], rel=1e-8)
+    assert costs[0] == pytest.approx(0.9807696, rel=1e-6)
+
+
 LBAR = 3.0
 
 
