@@ -217,13 +217,20 @@ def _split_side(
 
     With a ``spread``: the used variable with the largest share, relative to
     the ``slack``, of the width of the entries not settled (``out``, shape
-    (E, B)). Without: the used side widest relative to the whole box ``width``.
+    (E, B)); where some shares are not finite (an enclosure that could not be
+    formed, e.g. a mass matrix not proven invertible on the box), the widest
+    of those sides. Without: the used side widest relative to the whole box
+    ``width``.
     """
+    relative = (hi[used] - lo[used]) / width[used, None]  # (L, B)
     if spread is None:
-        return used[np.argmax((hi[used] - lo[used]) / width[used, None], axis=0)]
+        return used[np.argmax(relative, axis=0)]
     share = np.where(out[:, None], spread / slack[:, :, None], 0.0).sum(axis=0)  # (L, B)
-    share = np.where(np.isfinite(share), share, np.finfo(float).max)
-    return used[np.argmax(share, axis=0)]
+    unknown = ~np.isfinite(share)
+    finite_pick = np.argmax(np.where(unknown, 0.0, share), axis=0)
+    # A tie at infinity went to the first variable: the boxes were cut along it alone.
+    unknown_pick = np.argmax(np.where(unknown, relative, -1.0), axis=0)
+    return used[np.where(unknown.any(axis=0), unknown_pick, finite_pick)]
 
 
 @dataclass

@@ -49,6 +49,7 @@ enclosure, tight when the refinement converged.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 from itertools import combinations_with_replacement
 from typing import Any
@@ -56,7 +57,7 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression
 
-from ofrl_drake.errors import ModelError
+from ofrl_drake.errors import ModelError, WallTimeExceeded
 from ofrl_drake.interval import ExpressionEvaluator, Interval, as_expression
 from ofrl_drake.interval_linalg import IntervalLinearSystem, interval_matmul
 
@@ -376,10 +377,16 @@ class MultibodyJacobianEncloser:
     ----------
     structure : MultibodyStructure
         The plant.
+    deadline : float, optional
+        A ``time.monotonic()`` reading after which differentiating ``M`` and
+        ``tau`` to third order stops (seconds to minutes on a plant of three
+        links or more); None: no limit.
 
     Attributes
     ----------
     structure : MultibodyStructure
+        As given.
+    deadline : float or None
         As given.
     used : ndarray of int
         The state indices the Jacobians depend on (the others are not bisected).
@@ -390,8 +397,9 @@ class MultibodyJacobianEncloser:
         The most boxes enclosed in one evaluation (bounds the memory).
     """
 
-    def __init__(self, structure: MultibodyStructure) -> None:
+    def __init__(self, structure: MultibodyStructure, deadline: float | None = None) -> None:
         self.structure = structure
+        self.deadline = deadline
         s = structure
         x = s.x
         n, m, nq, k = s.n, s.m, len(s.q), len(s.v)
@@ -411,6 +419,7 @@ class MultibodyJacobianEncloser:
         self._row = {alpha: i for i, alpha in enumerate(self._alphas)}
         derivative: dict[tuple[int, ...], list[Expression]] = {(): base}
         for alpha in self._alphas[1:]:
+            self._check_deadline(alpha)
             derivative[alpha] = [e.Differentiate(x[U[alpha[-1]]]) for e in derivative[alpha[:-1]]]
         low = [alpha for alpha in self._alphas if len(alpha) <= 2]
         high = [alpha for alpha in self._alphas if len(alpha) == 3]
@@ -432,6 +441,23 @@ class MultibodyJacobianEncloser:
         for c in range(m):
             Bu = Bu + Interval(s.B[:, c], s.B[:, c]) * float(s.u_eq[c])
         self._Bu = Bu
+
+    def _check_deadline(self, alpha: tuple[int, ...]) -> None:
+        """Stop differentiating once :attr:`deadline` has passed.
+
+        Raises
+        ------
+        WallTimeExceeded
+            If it has, naming the derivative that was next.
+        """
+        if self.deadline is not None and time.monotonic() > self.deadline:
+            order = "".join(f" d/dx{self.used[a]}" for a in alpha)
+            raise WallTimeExceeded(
+                "the multibody Taylor derivatives of M(q) and the bias were not done by the "
+                f"deadline (max_wall_time, --max-wall):{order} was next; allow more wall time "
+                "or certify a smaller box.",
+                step="multibody Taylor derivatives",
+            )
 
     def _at(self, *alpha: int) -> int:
         return self._row[tuple(sorted(alpha))]

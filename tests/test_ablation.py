@@ -548,8 +548,14 @@ def test_a_design_out_of_wall_time_is_a_timeout_row(paper_scenario):
     simulation = dataclasses.replace(paper_scenario.simulation, max_wall_time=1e-3)
     scenario = dataclasses.replace(paper_scenario, simulation=simulation)
     outcome = run_variant(scenario, Variant("baseline"), [-1.0, 1.0])
-    assert outcome.status.startswith("timeout: the observer design's Jacobian bounds took ")
-    assert "max_wall_time (--max-wall) = 0.001 s" in outcome.status
+    # The budget runs out in the bounds or, on a loaded machine, already in the symbolic
+    # Jacobians before them (as in test_guard): either phase names --max-wall.
+    assert re.match(
+        r"timeout: (the observer design's Jacobian bounds took .* of max_wall_time "
+        r"\(--max-wall\) = 0\.001 s|the symbolic Jacobians of f and g were not done by the "
+        r"deadline \(max_wall_time, --max-wall\))",
+        outcome.status,
+    ), outcome.status
     assert all(math.isnan(v) for v in outcome.metrics.values())
     assert outcome.warm_start() is None
 
