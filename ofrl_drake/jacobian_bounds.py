@@ -547,30 +547,18 @@ def _sampled_bounds(
     return lo, hi
 
 
-def _too_large_to_differentiate(system: ControlAffineSystem, deadline: float | None) -> bool:
+def _too_large_to_differentiate(system: ControlAffineSystem) -> bool:
     """Whether some entry of the symbolic ``f`` or ``g`` exceeds :data:`SYMBOLIC_MAX_CHARS`.
 
     Tracing a multibody plant's ``f`` cannot be stopped part-way (Drake's
-    symbolic ``M(q)^-1``; most of a minute for three links with skew axes):
-    a ``deadline`` that passed during the trace stops the design right after.
-
-    Raises
-    ------
-    WallTimeExceeded
-        If ``deadline`` (a ``time.monotonic()`` reading) passed during the trace.
+    symbolic ``M(q)^-1``; most of a minute for three links with skew axes);
+    the steps after it check the deadline (the symbolic Jacobians, or the
+    samples and the Taylor derivatives of the structure).
     """
-    start = time.monotonic()
     try:
         model = system.symbolic()
     except ModelError:
         return False  # symbolic_jacobians reports it
-    now = time.monotonic()
-    if deadline is not None and now > deadline:
-        raise WallTimeExceeded(
-            f"tracing f and g symbolically took {now - start:.3g} s and went past the deadline "
-            "(max_wall_time, --max-wall); allow more wall time.",
-            step="symbolic f and g",
-        )
     return any(
         len(e.to_string()) > SYMBOLIC_MAX_CHARS for e in (*np.ravel(model.f), *np.ravel(model.g))
     )
@@ -1027,7 +1015,7 @@ def jacobian_bounds(
     names = _entry_names(n, m)
     structure = system.multibody_structure()
     entries: np.ndarray | None = None
-    if structure is not None and _too_large_to_differentiate(system, deadline):
+    if structure is not None and _too_large_to_differentiate(system):
         s_lo, s_hi = _structure_samples(structure, box, grid, int(n_random), seed, names, deadline)
     else:
         model, Jf, Jg = _traced_jacobians(system, deadline)
