@@ -141,8 +141,7 @@ def load_variants(path: str | os.PathLike[str]) -> list[Variant]:
         raise AblationError(f"{path}: not UTF-8 text ({err}); save it as UTF-8.") from None
     except OSError as err:
         raise AblationError(f"{path}: cannot be read ({err.strerror or err}).") from None
-    check_yaml(path, text, error=AblationError, what="variants file")
-    _string_keys(path, text)
+    _string_keys(path, check_yaml(path, text, error=AblationError, what="variants file"))
     try:
         data = yaml_load(filename=str(path))
     except Exception as err:
@@ -184,12 +183,13 @@ def _checked_name(name: Any, where: str) -> str:
     return name
 
 
-def _string_keys(path: Path, text: str) -> None:
-    """Refuse a top-level key that YAML reads as another type than a string (``1:``,
-    ``true:``, ``null:``): Drake's loader fails on it with an internal error."""
+def _string_keys(path: Path, root: Any) -> None:
+    """Refuse a top-level key of ``root`` (the file's composed YAML, as
+    :func:`~ofrl_drake.scenario.check_yaml` returns it) that YAML reads as
+    another type than a string (``1:``, ``true:``, ``null:``): Drake's loader
+    fails on it with an internal error."""
     import yaml
 
-    root = yaml.compose(text)  # check_yaml has composed it once already
     if not isinstance(root, yaml.MappingNode):
         return
     for key, _ in root.value:

@@ -1098,10 +1098,8 @@ def plot_learning_curve(
     cost = np.array(
         [np.nan if e["policy_cost"] is None else e["policy_cost"] for e in entries], dtype=float
     )
-    scale = 1.0
-    relative = optimal_cost is not None and bool(np.isfinite(optimal_cost)) and optimal_cost > 0
-    if optimal_cost is not None and relative:
-        scale = float(optimal_cost)
+    relative = optimal_cost is not None and math.isfinite(optimal_cost) and optimal_cost > 0
+    scale = float(optimal_cost) if relative and optimal_cost else 1.0
     finite = np.isfinite(cost)
     if np.any(finite):
         ax.plot(t, cost / scale, "o-", lw=1.4, color="C0", label=r"policy in force at $t$")

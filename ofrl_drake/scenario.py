@@ -1175,7 +1175,7 @@ def _raw_yaml(path: Path, text: str) -> Any:
 
 def check_yaml(
     path: Path, text: str, *, error: type[OfrlError] = ScenarioError, what: str = "scenario"
-) -> None:
+) -> Any:
     """Refuse alias bombs and duplicate keys before Drake's loader sees the file.
 
     For scenario files and the other YAML files a command reads (an
@@ -1187,6 +1187,12 @@ def check_yaml(
     graph is walked as an expanding loader would walk it, counting every node
     an alias repeats, up to :data:`MAX_YAML_NODES`. A mapping that repeats a
     key is refused with the key and both lines (Drake's loader keeps the last).
+
+    Returns
+    -------
+    yaml.Node or None
+        The composed root node (None for an empty file), for a caller's own
+        checks of the file's structure.
 
     Raises
     ------
@@ -1257,6 +1263,7 @@ def check_yaml(
             if longest is None or len(node.value) > len(longest.value):
                 longest = node
             stack.extend(node.value)
+    return root
 
 
 #: What a path that is not a regular file is, by its ``stat`` mode test.
