@@ -135,18 +135,28 @@ def table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def table_command(argv: list[str] | None, description: str, make_table) -> int:
+    """Print the Markdown table ``make_table()`` returns (and write it to ``--out``)."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--out", type=Path, help="write the Markdown table here too")
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    rows = [row for label, scenario in cases().items() for row in measure(label, scenario)]
-    text = table(rows)
+    text = make_table()
     print(text)
     print(f"measured in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     if args.out:
         args.out.write_text(text)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return table_command(
+        argv,
+        __doc__.splitlines()[0],
+        lambda: table(
+            [row for label, scenario in cases().items() for row in measure(label, scenario)]
+        ),
+    )
 
 
 if __name__ == "__main__":

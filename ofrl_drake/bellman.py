@@ -766,6 +766,57 @@ class Extrapolator:
             rho=per_point[rows.rho],
         )
 
+    def policy_evaluation(self, W_policy: np.ndarray) -> np.ndarray:
+        """The critic weights at which ``critic_sum`` vanishes while ``W_policy`` is in force.
+
+        Under ``critic.law: policy_iteration`` the Bellman errors follow the
+        policy in force, so ``critic_sum(W) = (1/N) sum_i omega_i (W^T
+        omega_i + r_i) / rho_i``, with ``r_i = Q(x_i) + U(u_i)``, is affine in
+        ``W``: the critic law ``W' = -k_c Gamma critic_sum(W)`` (``Gamma > 0``)
+        has this one rest point, the weighted least-squares fit
+
+            min_W sum_i (W^T omega_i + r_i)^2 / rho_i
+
+        of the policy's Bellman errors over the points. It is what the critic
+        converges to between two policy updates (policy evaluation), so it
+        shows, without a simulation, whether the basis holds the value of a
+        policy on the points: the fit's quadratic part can be indefinite where
+        the policy saturates (``docs/learning.md``).
+
+        Parameters
+        ----------
+        W_policy : ndarray, shape (L,)
+            The weights of the policy the Bellman errors follow.
+
+        Returns
+        -------
+        ndarray, shape (L,)
+
+        Raises
+        ------
+        ModelError
+            If ``W_policy`` is not ``L`` finite numbers, or the regressors
+            ``omega_i`` do not span the ``L`` weights (the learning condition
+            is zero), so that the fit is not unique.
+        """
+        L = self._layout.num_weights
+        policy = np.asarray(W_policy, dtype=float)
+        if policy.shape != (L,) or not np.all(np.isfinite(policy)):
+            raise ModelError(
+                f"policy_evaluation: W_policy must hold {L} finite weights; got {W_policy!r}."
+            )
+        at = self(np.zeros(L), policy)  # with W = 0, delta_i = r_i
+        scale = 1.0 / np.sqrt(at.rho)
+        rows = (at.omega * scale).T
+        weights, _, rank, _ = np.linalg.lstsq(rows, -at.delta * scale, rcond=None)
+        if rank < L:
+            raise ModelError(
+                f"policy_evaluation: the regressors omega_i at the {rows.shape[0]} points span "
+                f"only {rank} of the {L} weights (the learning condition is zero), so the fit "
+                "is not unique; spread the points over a box where every basis function varies."
+            )
+        return weights
+
 
 def extrapolate(
     features: PointFeatures,

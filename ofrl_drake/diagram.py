@@ -495,7 +495,9 @@ def _warn_if_not_admissible(
         return
     A, B = linearization
     Q = np.asarray(scenario.cost.Q, dtype=float)
-    check = check_policy(A, B, Q, r, basis, W0, second_moment(features.points))
+    check = check_policy(
+        A, B, Q, r, basis, W0, second_moment(features.points), points=features.points
+    )
     if check.admissible:
         return
     failed = []
@@ -503,6 +505,11 @@ def _warn_if_not_admissible(
         failed.append(
             "the smallest eigenvalue of its value's quadratic part is "
             f"{check.value_min_eigenvalue:.3g} (must be > 0)"
+        )
+    if check.value_min_at_points <= 0.0:
+        failed.append(
+            "the smallest of its values W0^T sigma(x_i) at the extrapolation points is "
+            f"{check.value_min_at_points:.3g} (must be > 0)"
         )
     if not check.spectral_abscissa < 0.0:
         failed.append(

@@ -33,11 +33,13 @@ is linear least squares: it converges to the value of the policy in force on
 the points (policy evaluation). Every ``critic.policy_period`` seconds the
 critic's weights become the policy in force (policy improvement) if
 :func:`check_policy` accepts them: the quadratic part ``P`` of ``V = W^T
-sigma`` must be positive definite, the linearized loop ``A + B K`` of its
-policy ``K = -R^{-1} B^T P`` (the linearization of ``u = -lbar tanh(D)``) must
-be Hurwitz, and its local cost ``tr(P_K M)``, the linearized loop's cost
-``x^T P_K x`` averaged over the points (``M`` their second moment), must not
-exceed that of the policy in force. So an update never puts in force a
+sigma`` must be positive definite, ``V`` itself positive at every point but
+the origin (which ``P > 0`` implies only for a quadratic basis), the
+linearized loop ``A + B K`` of its policy ``K = -R^{-1} B^T P`` (the
+linearization of ``u = -lbar tanh(D)``) must be Hurwitz, and its local cost
+``tr(P_K M)``, the linearized loop's cost ``x^T P_K x`` averaged over the
+points (``M`` their second moment), must not exceed that of the policy in
+force. So an update never puts in force a
 policy whose linearization at the target is unstable, and never makes the
 local performance worse; every rejection is logged. With exact evaluation of
 a linear plant this is Kleinman's iteration (Kleinman, IEEE TAC 13(1), 1968),
@@ -242,7 +244,8 @@ class PolicyCheck:
     Attributes
     ----------
     admissible : bool
-        ``P > 0`` and ``A + B K`` Hurwitz.
+        ``P > 0``, ``A + B K`` Hurwitz and, when the points were given, ``V =
+        W^T sigma`` positive at every point but the origin.
     local_cost : float
         ``tr(P_K M)``: the cost of the policy's linearized loop averaged over
         the points, with ``P_K`` from ``(A + B K)^T P_K + P_K (A + B K) + Q +
@@ -255,6 +258,9 @@ class PolicyCheck:
         also a Lyapunov function of the linearized loop (reported, not required).
     spectral_abscissa : float
         Of the linearized loop ``A + B K``.
+    value_min_at_points : float
+        The smallest ``V(x_i) = W^T sigma(x_i)`` over the points other than
+        the origin; NaN when no points were given (or all are the origin).
     """
 
     admissible: bool
@@ -262,6 +268,7 @@ class PolicyCheck:
     value_min_eigenvalue: float
     lyapunov_max_eigenvalue: float
     spectral_abscissa: float
+    value_min_at_points: float = float("nan")
 
     def improves_on(self, current: PolicyCheck) -> bool:
         """Whether this policy may replace ``current``: admissible, and no larger local cost.
@@ -286,8 +293,18 @@ def check_policy(
     basis: PolynomialBasis,
     W: np.ndarray,
     moment: np.ndarray,
+    *,
+    points: np.ndarray | None = None,
 ) -> PolicyCheck:
     """The acceptance test's view of the policy of ``V = W^T sigma`` at the target.
+
+    ``P``, ``K`` and the local cost read only the quadratic part of ``V``.
+    With a basis of higher degree that is not enough: a fit whose quadratic
+    part is positive definite can still be negative on the points, and its
+    greedy policy then drives the plant away (``docs/learning.md``). The value
+    of a policy is positive wherever the running cost is, so with ``points``
+    the test also requires ``V(x_i) > 0`` at every point but the origin; for
+    a basis of degree 2 only, that already follows from ``P > 0``.
 
     Parameters
     ----------
@@ -301,6 +318,8 @@ def check_policy(
     W : ndarray, shape (L,)
     moment : ndarray, shape (n, n)
         ``M``, the second moment of the extrapolation points.
+    points : ndarray, shape (n, N), optional
+        The extrapolation points, where ``V`` must be positive.
 
     Returns
     -------
@@ -309,16 +328,23 @@ def check_policy(
     from scipy.linalg import solve_continuous_lyapunov
 
     P = value_matrix(basis, W)
+    nan = float("nan")
     if not np.all(np.isfinite(P)):
-        nan = float("nan")
         return PolicyCheck(False, float("inf"), nan, nan, nan)
+    value_min_at_points, positive_at_points = nan, True
+    if points is not None:
+        X = np.asarray(points, dtype=float)
+        away = X[:, np.any(X != 0.0, axis=0)]
+        if away.shape[1]:
+            value_min_at_points = float(np.min(np.asarray(W, dtype=float) @ basis(away)))
+            positive_at_points = value_min_at_points > 0.0  # False for NaN too
     K = linear_policy_gain(B, r, P)
     Acl = np.asarray(A, dtype=float) + np.asarray(B, dtype=float) @ K
     lyapunov = Acl.T @ P + P @ Acl
     value_min = float(np.linalg.eigvalsh(P)[0])
     lyapunov_max = float(np.linalg.eigvalsh(0.5 * (lyapunov + lyapunov.T))[-1])
     abscissa = float(spectral_abscissa(Acl))
-    admissible = bool(value_min > 0.0 and abscissa < 0.0)
+    admissible = bool(value_min > 0.0 and abscissa < 0.0 and positive_at_points)
     local_cost = float("inf")
     if admissible:
         stage = np.asarray(Q, dtype=float) + K.T @ (np.asarray(r, dtype=float)[:, None] * K)
@@ -330,6 +356,7 @@ def check_policy(
         value_min_eigenvalue=value_min,
         lyapunov_max_eigenvalue=lyapunov_max,
         spectral_abscissa=abscissa,
+        value_min_at_points=value_min_at_points,
     )
 
 

@@ -116,6 +116,47 @@ def test_kleinman_steps_pass_the_acceptance_test():
     np.testing.assert_allclose(P, _lqr_value(Q), rtol=1e-6)
 
 
+def _quartic_dip(weight):
+    """The LQR value of the double integrator plus ``weight * x1^4`` in the basis (2, 4)."""
+    basis = PolynomialBasis(2, (2, 4))
+    W = value_weights(basis, _lqr_value(np.eye(2)))
+    W[[tuple(e) for e in basis.exponents].index((4, 0))] = weight
+    return basis, W
+
+
+def test_a_value_negative_at_the_points_is_not_admissible_whatever_its_quadratic_part():
+    points = grid_points([-1, -1], [1, 1], [5, 5])  # holds the origin, where V = 0
+    P = _lqr_value(np.eye(2))
+    basis, W = _quartic_dip(-50.0)
+    quadratic_only = check_policy(A, B, np.eye(2), R, basis, W, MOMENT)
+    assert quadratic_only.admissible and np.isnan(quadratic_only.value_min_at_points)
+    check = check_policy(A, B, np.eye(2), R, basis, W, MOMENT, points=points)
+    assert not check.admissible and check.local_cost == np.inf
+    assert check.value_min_eigenvalue > 0 > check.spectral_abscissa  # the rest passes
+    # The smallest V = x^T P x - 50 x1^4 over the points but the origin.
+    expected = min(x @ P @ x - 50.0 * x[0] ** 4 for x in points.T if np.any(x))
+    assert check.value_min_at_points == pytest.approx(expected, rel=1e-12)
+    # A positive quartic term, and the quadratic value itself, pass with the same numbers.
+    for weight in (0.0, 50.0):
+        passed = check_policy(A, B, np.eye(2), R, *_quartic_dip(weight), MOMENT, points=points)
+        assert passed.admissible
+        assert passed.local_cost == pytest.approx(quadratic_only.local_cost, rel=1e-12)
+    lqr = check_policy(
+        A,
+        B,
+        np.eye(2),
+        R,
+        PolynomialBasis(2),
+        value_weights(PolynomialBasis(2), P),
+        MOMENT,
+        points=points,
+    )
+    assert lqr.admissible
+    assert lqr.value_min_at_points == pytest.approx(
+        min(x @ P @ x for x in points.T if np.any(x)), rel=1e-12
+    )
+
+
 def test_an_indefinite_or_destabilising_value_is_rejected():
     indefinite = _check(np.diag([1.0, -1.0]))
     assert not indefinite.admissible and indefinite.value_min_eigenvalue == pytest.approx(-1.0)
@@ -129,6 +170,66 @@ def test_an_indefinite_or_destabilising_value_is_rejected():
     assert not nan.admissible and np.isnan(nan.spectral_abscissa)
     # Anything admissible replaces a policy in force that is not.
     assert _check(_lqr_value(np.eye(2))).improves_on(weak)
+
+
+def _double_integrator():
+    from ofrl_drake.model import ControlAffineSystem
+
+    return ControlAffineSystem(
+        lambda x: np.array([x[1], 0 * x[0]]),
+        lambda x: np.array([[0 * x[0]], [1 + 0 * x[0]]]),
+        C=[[1.0, 0.0]],
+    )
+
+
+@pytest.mark.parametrize("degrees", [(2,), (2, 4)])
+def test_policy_evaluation_of_a_linear_policy_is_its_lyapunov_value(degrees):
+    """With a bound too far to bind, the fit is the policy's own value ``x^T P_K x``."""
+    from scipy.linalg import solve_continuous_lyapunov
+
+    basis = PolynomialBasis(2, degrees)
+    points = grid_points([-1, -1], [1, 1], [6, 5])
+    Q = np.diag([2.0, 0.5])
+    features = point_features(_double_integrator(), basis, points, Q)
+    P_pi = 3.0 * _lqr_value(Q)
+    K = -(B.T @ P_pi) / R[0]
+    Acl = A + B @ K
+    P_K = solve_continuous_lyapunov(Acl.T, -(Q + K.T @ K * R[0]))
+    extrapolator = Extrapolator(features, R, 1e6, 0.7, rho_metric(basis_scales(basis, points)))
+    fit = extrapolator.policy_evaluation(value_weights(basis, P_pi))
+    np.testing.assert_allclose(fit, value_weights(basis, P_K), rtol=1e-8, atol=1e-8)
+
+
+def test_policy_evaluation_is_the_rest_point_of_the_critic_law():
+    """Where the policy saturates the fit is no value of it, but critic_sum vanishes there."""
+    system = make_system("two_state")
+    basis = PolynomialBasis(2)
+    points = grid_points([-2, -2], [2, 2], [7, 7])
+    extrapolator = Extrapolator(point_features(system, basis, points, np.eye(2)), R, 0.5, 0.3)
+    W_pi = np.array([2.0, 0.5, 3.0])
+    assert np.mean(np.abs(extrapolator(W_pi).u) > 0.25) > 0.3  # the bound binds
+    fit = extrapolator.policy_evaluation(W_pi)
+    scale = np.abs(extrapolator.sums(np.zeros(3), W_pi).critic_sum).max()
+    rest = extrapolator.sums(fit, W_pi).critic_sum
+    np.testing.assert_allclose(rest, 0.0, atol=1e-12 * scale)
+    # ... and only there: critic_sum is affine in W with an invertible slope.
+    moved = extrapolator.sums(fit + np.array([0.0, 1e-3, 0.0]), W_pi).critic_sum
+    assert np.abs(moved).max() > 1e-6 * scale
+
+
+def test_policy_evaluation_refuses_a_fit_that_is_not_unique_or_a_bad_policy():
+    basis = PolynomialBasis(2)
+    at_origin = np.zeros((2, 4))  # every omega_i is zero there
+    features = point_features(_double_integrator(), basis, at_origin, np.eye(2))
+    with pytest.raises(ModelError, match=r"span only 0 of the 3 weights \(the learning"):
+        Extrapolator(features, R, 1.0, 1.0).policy_evaluation(np.ones(3))
+    points = grid_points([-1, -1], [1, 1], [3, 3])
+    extrapolator = Extrapolator(
+        point_features(_double_integrator(), basis, points, np.eye(2)), R, 1.0, 1.0
+    )
+    for bad in (np.ones(2), np.array([1.0, np.nan, 1.0])):
+        with pytest.raises(ModelError, match=r"W_policy must hold 3 finite weights; got"):
+            extrapolator.policy_evaluation(bad)
 
 
 def test_spectral_abscissa_of_a_batch():

@@ -40,8 +40,9 @@ class PolicyGate(LeafSystem):
     seconds (first at ``t = period``) it reads the critic's weights and puts
     them in force if they pass the acceptance test of
     :mod:`ofrl_drake.learning` (the value's quadratic part is positive
-    definite, the linearized loop of its policy is Hurwitz, and its local cost
-    over the points is no larger than the policy in force's:
+    definite, the value is positive at every point but the origin, the
+    linearized loop of its policy is Hurwitz, and its local cost over the
+    points is no larger than the policy in force's:
     :meth:`~ofrl_drake.learning.PolicyCheck.improves_on`); otherwise ``W_pi``
     is kept and the rejection counted.
 
@@ -72,7 +73,8 @@ class PolicyGate(LeafSystem):
     basis : PolynomialBasis
         The critic's basis, over n = ``basis.n`` states.
     points : array_like, shape (n, N)
-        The extrapolation points, whose second moment weighs the local cost.
+        The extrapolation points, whose second moment weighs the local cost
+        and where the value must be positive.
 
     Raises
     ------
@@ -115,9 +117,8 @@ class PolicyGate(LeafSystem):
         self._A = array_of_shape("PolicyGate: A", A, (n, n), meaning="(n, n)")
         self._B = array_of_shape("PolicyGate: B", B, (n, m), meaning="(n, m)")
         self._Q = nonnegative_matrix("PolicyGate: Q", Q, n)
-        self._moment = second_moment(
-            array_of_shape("PolicyGate: points", points, (n, None), meaning="(n, N)")
-        )
+        self._points = array_of_shape("PolicyGate: points", points, (n, None), meaning="(n, N)")
+        self._moment = second_moment(self._points)
         size = basis.size
         self._policy_index = self.DeclareDiscreteState(BasicVector(W0))
         self._updates_index = self.DeclareDiscreteState(BasicVector(drake_array([0.0, 0.0])))
@@ -147,7 +148,9 @@ class PolicyGate(LeafSystem):
 
     def check(self, W: np.ndarray) -> PolicyCheck:
         """What the acceptance test reads off weights ``W``."""
-        return check_policy(self._A, self._B, self._Q, self._r, self.basis, W, self._moment)
+        return check_policy(
+            self._A, self._B, self._Q, self._r, self.basis, W, self._moment, points=self._points
+        )
 
     def _improve(self, context: Context, discrete_state: DiscreteValues) -> None:
         W: DrakeArray = np.array(vector_value(self._weights_port, context), dtype=float)
