@@ -533,19 +533,28 @@ def _refine(
     z0: np.ndarray,
     lower: np.ndarray,
     upper: np.ndarray,
+    *,
+    smooth: Callable[[np.ndarray], np.ndarray] | None = None,
+    inequalities: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Maximize a batched objective from ``z0`` with L-BFGS-B in the bounds.
+    """Maximize a batched objective from ``z0`` in the bounds; returns ``(z, objective(z))``.
 
     ``objective(Z)`` takes columns ``Z (d, K)``; the gradient is by central
-    differences, all ``2 d + 1`` points in one call.
+    differences, all ``2 d + 1`` points in one call. Without
+    ``inequalities``: L-BFGS-B on ``objective``. With ``inequalities = (G,
+    b)``, the linear region ``G z <= b`` where ``objective`` is defined
+    (finite) in the bounds: SLSQP on ``smooth``, the same objective without
+    that region's mask. L-BFGS-B cannot search there: a step that leaves the
+    region sees ``-inf`` and ends the search at its start.
     """
     d = z0.size
     h = 1e-7 * np.maximum(1.0, upper - lower)
+    searched = objective if smooth is None else smooth
 
     def fun(z: np.ndarray) -> tuple[float, np.ndarray]:
         plus = np.minimum(z[:, None] + np.diag(h), upper[:, None])
         minus = np.maximum(z[:, None] - np.diag(h), lower[:, None])
-        vals = objective(np.concatenate([z[:, None], plus, minus], axis=1))
+        vals = searched(np.concatenate([z[:, None], plus, minus], axis=1))
         if not np.all(np.isfinite(vals)):
             return math.inf, np.zeros(d)
         grad = (vals[1 : d + 1] - vals[d + 1 :]) / np.maximum(
@@ -553,16 +562,48 @@ def _refine(
         )
         return -float(vals[0]), -grad
 
-    res = minimize(
-        fun,
-        z0,
-        jac=True,
-        method="L-BFGS-B",
-        bounds=list(zip(lower, upper, strict=True)),
-        options={"maxiter": 200},
-    )
+    bounds = list(zip(lower, upper, strict=True))
+    if inequalities is None:
+        res = minimize(
+            fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": 200}
+        )
+    else:
+        G, b = inequalities
+        inside = {"type": "ineq", "fun": lambda z: b - G @ z, "jac": lambda z: -G}
+        res = minimize(
+            fun,
+            z0,
+            jac=True,
+            method="SLSQP",
+            bounds=bounds,
+            constraints=[inside],
+            options={"maxiter": 200},
+        )
     z = np.clip(res.x, lower, upper)
-    return z, float(objective(z[:, None])[0])
+    value = float(objective(z[:, None])[0])
+    start = float(objective(z0[:, None])[0])
+    if not value >= start:  # the search ended worse, or outside the region: keep the start
+        return z0, start
+    return z, value
+
+
+def _injection_region(
+    gains: ObserverGains, C: np.ndarray, box: Box
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(G, b)`` with ``G [x; xhat] <= b`` iff both injection points lie in ``box``.
+
+    ``xhat + M C (x - xhat) = M C x + (I - M C) xhat`` for ``M`` = ``H``, ``K``
+    is linear in ``[x; xhat]``, so the region of :func:`_injections_inside` is
+    a polytope.
+    """
+    n = box.lower.size
+    rows, rhs = [], []
+    for M in (gains.H, gains.K):
+        MC = np.asarray(M, dtype=float) @ np.asarray(C, dtype=float)
+        A = np.hstack([MC, np.eye(n) - MC])
+        rows += [A, -A]
+        rhs += [np.asarray(box.upper, dtype=float), -np.asarray(box.lower, dtype=float)]
+    return np.vstack(rows), np.concatenate(rhs)
 
 
 # ---------------------------------------------------------------- verifier
@@ -732,6 +773,7 @@ def verify_observer(
                 limit = _Best(value, z, z.copy(), u, d[0])
         finite_starts.sort(key=lambda s: -s[0])
         floor = _MIN_FINITE_ERROR * float(np.max(width))
+        region = _injection_region(gains, system.output_matrix, box)
         for k, (_, x0, xh0, u0) in enumerate(finite_starts[:starts]):
             on_time(f"refinement {k + 1} of the finite errors")
 
@@ -742,8 +784,17 @@ def verify_observer(
                 covered = _injections_inside(gains, system.output_matrix, Z[:n], Z[n:], box)
                 return np.where(small | ~covered | ~np.isfinite(r), -math.inf, r)
 
+            def finite_rate(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
+                U = np.repeat(u0[:, None], Z.shape[1], axis=1)
+                return _rates(system, gains, P, Z[:n], Z[n:], U)
+
             z, value = _refine(
-                finite_objective, np.concatenate([x0, xh0]), np.tile(lo, 2), np.tile(hi, 2)
+                finite_objective,
+                np.concatenate([x0, xh0]),
+                np.tile(lo, 2),
+                np.tile(hi, 2),
+                smooth=finite_rate,
+                inequalities=region,
             )
             if np.isfinite(value) and value > finite.rate:
                 finite = _Best(value, z[:n], z[n:], u0.copy())

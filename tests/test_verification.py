@@ -149,6 +149,30 @@ def test_paper_design_is_falsified_within_the_default_budget(two_state, paper_de
     assert "falsified: r = +" in report.summary_line()
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_refinement_reaches_the_finite_error_counterexample(two_state, paper_design, seed):
+    """docs/theory.md: worst r = +78.8 at x = (0.677, -2), xhat = (0.615, -1.995), or its
+    mirror image. The finite errors' region (both injection points in the box) is left by
+    L-BFGS-B's first trial step, which ended the search at its start (58.6 at seed 0)."""
+    sampled = verify_observer(paper_design, two_state, seed=seed, refine=False)
+    report = verify_observer(paper_design, two_state, seed=seed)
+    assert sampled.worst_finite_rate < 61.0
+    assert report.kind == "finite_error"
+    assert report.worst_rate == pytest.approx(78.814, abs=2e-3)
+    assert report.worst_rate > report.worst_small_error_rate
+    sign = np.sign(report.x[0])
+    np.testing.assert_allclose(report.x, sign * np.array([0.677, -2.0]), atol=1e-3)
+    np.testing.assert_allclose(report.xhat, sign * np.array([0.6149, -1.995]), atol=1e-3)
+    # A point of the region, whose rate the dynamics reproduce.
+    box = paper_design.box
+    for point in (report.x, report.xhat):
+        assert np.all(box.lower <= point) and np.all(point <= box.upper)
+    again = error_rates(
+        paper_design, two_state, report.x[:, None], report.xhat[:, None], report.u[:, None]
+    )
+    assert again[0] == pytest.approx(report.worst_rate, rel=1e-9)
+
+
 def test_sampling_alone_finds_the_paper_counterexample(two_state, paper_design):
     report = verify_observer(paper_design, two_state, samples=2000, seed=5, refine=False)
     assert report.falsified and not report.refined
