@@ -739,7 +739,10 @@ def _log_limits(ax: Axes, magnitudes: np.ndarray) -> None:
     low, high = float(np.percentile(values, 1)), float(values.max())
     if high <= low:
         low, high = high / 10.0, high * 10.0
-    ax.set_ylim(low / 2.0, high * 2.0)
+    # A run stopped near 1e308 would ask for an infinite limit, and matplotlib's log
+    # ticks overflow a little below the largest float: keep the axis within 1e+-300.
+    top = min(high * 2.0, 1e300)
+    ax.set_ylim(min(max(low / 2.0, 1e-300), top / 10.0), top)
 
 
 def _log_tick(value: float, _position: Any = None) -> str:

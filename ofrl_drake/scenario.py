@@ -17,6 +17,7 @@ is required.
 # No "from __future__ import annotations": Drake reads the field types at run time.
 
 import dataclasses
+import math
 import re
 import stat
 import types
@@ -402,6 +403,12 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         kind = "a number"
         if isinstance(value, str) and _is_float_text(value):
             fix = " (a quoted string); write the number without quotes"
+        if ok and isinstance(value, int) and not math.isfinite(_as_float(value)):
+            # Drake's typed loader would raise OverflowError: name the key instead.
+            raise ScenarioError(
+                f"{path}: the integer {_shown(value)} is beyond the largest float (about "
+                "1.8e308); write a finite number."
+            )
     elif tp is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
         kind = "an integer"
@@ -413,6 +420,14 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         ok, kind = True, str(tp)
     if not ok:
         raise ScenarioError(f"{path}: expected {kind}; got {_shown(value)}{fix}.")
+
+
+def _as_float(value: int) -> float:
+    """``float(value)``, or inf where the integer is beyond the largest float."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
 
 
 def _is_float_text(text: str) -> bool:
@@ -450,7 +465,8 @@ def _shown(value: Any) -> str:
 def _check_mapping(path: str, schema: type, data: Any) -> None:
     where = path or "scenario"
     if not isinstance(data, dict):
-        raise ScenarioError(f"{where}: expected a mapping of keys; got {data!r}.")
+        what = "nothing (the file or section is empty)" if data is None else _shown(data)
+        raise ScenarioError(f"{where}: expected a mapping of keys; got {what}.")
     hints = typing.get_type_hints(schema)
     fields = {f.name: f for f in dataclasses.fields(schema)}
     prefix = f"{path}." if path else ""
@@ -502,27 +518,37 @@ def _vector(path: str, value: list[float], size: int) -> np.ndarray:
 
 def _matrix(path: str, value: list[list[float]], shape: tuple[int, int]) -> np.ndarray:
     if any(len(row) != len(value[0]) for row in value) if value else True:
-        raise ScenarioError(f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {value}.")
+        raise ScenarioError(
+            f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {_shown(value)}."
+        )
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape:
         raise ScenarioError(
             f"{path}: expected a {shape[0]}x{shape[1]} matrix; got {arr.shape[0]}x{arr.shape[1]}."
         )
     if not np.all(np.isfinite(arr)):
-        raise ScenarioError(f"{path}: entries must be finite; got {value}.")
+        i, j = (int(k) for k in np.argwhere(~np.isfinite(arr))[0])
+        raise ScenarioError(f"{path}: entries must be finite; entry [{i}][{j}] is {arr[i, j]}.")
     return arr
 
 
 def _positive(path: str, value: float, *, allow_zero: bool = False) -> None:
     bad = value < 0 if allow_zero else value <= 0
-    if bad or not np.isfinite(value):
+    if bad or np.isnan(value):
         need = ">= 0" if allow_zero else "> 0"
         raise ScenarioError(f"{path}: must be {need}; got {value}.")
+    if not np.isfinite(value):
+        raise ScenarioError(f"{path}: must be a finite number; got {value}.")
 
 
 def _spd(path: str, M: np.ndarray, *, semi: bool = False) -> None:
-    if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, np.abs(M).max())):
-        raise ScenarioError(f"{path}: must be symmetric; got {M.tolist()}.")
+    atol = 1e-12 * max(1.0, np.abs(M).max())
+    if not np.allclose(M, M.T, rtol=0, atol=atol):
+        i, j = (int(k) for k in np.argwhere(np.abs(M - M.T) > atol)[0])
+        raise ScenarioError(
+            f"{path}: must be symmetric; entry [{i}][{j}] is {M[i, j]:.17g} but [{j}][{i}] is "
+            f"{M[j, i]:.17g}."
+        )
     lam = np.linalg.eigvalsh(M)[0]
     if (lam < 0) if semi else (lam <= 0):
         kind = "positive semidefinite" if semi else "positive definite"
@@ -530,6 +556,12 @@ def _spd(path: str, M: np.ndarray, *, semi: bool = False) -> None:
             f"{path}: must be symmetric {kind}; its smallest eigenvalue is {lam:.6g}."
         )
 
+
+#: The tightest ``simulation.accuracy``: below it the error estimate is round-off.
+MIN_ACCURACY = 1e-12
+
+#: The loosest ``simulation.accuracy``: Drake's integrators clamp a looser target to it.
+MAX_ACCURACY = 0.1
 
 #: Drake schemes that cannot run the closed loop: ``cenic`` needs a discrete
 #: contact model, which no ofrl_drake plant has.
@@ -771,6 +803,18 @@ def validate_scenario(scenario: Scenario) -> None:
     s = scenario.simulation
     _positive("simulation.duration", s.duration)
     _positive("simulation.accuracy", s.accuracy)
+    if not MIN_ACCURACY <= s.accuracy <= MAX_ACCURACY:
+        why = (
+            "Drake's integrators use at most 0.1 (a looser target is clamped to it, so the run "
+            "would not be the one recorded)"
+            if s.accuracy > MAX_ACCURACY
+            else "below that the error estimate is at double-precision round-off and the step "
+            "shrinks without bound (1e-15 takes hours on the paper's scenario)"
+        )
+        raise ScenarioError(
+            f"simulation.accuracy: must be between {MIN_ACCURACY:g} and {MAX_ACCURACY:g}; got "
+            f"{s.accuracy:g}: {why}."
+        )
     _positive("simulation.max_step", s.max_step)
     _check_event_counts(scenario)
     _positive("simulation.log_period", s.log_period)

@@ -1231,18 +1231,23 @@ def test_save_png_warns_once_per_figure_naming_the_missing_characters(tmp_path):
     assert (tmp_path / "f.png").is_file()
 
 
-def test_a_state_that_overflows_is_reported_by_the_runs_status_alone(tmp_path):
+@pytest.mark.parametrize(
+    ("x0", "shown"), [([1e300, 1e300], "[1e+300, 1e+300]"), ([1e308, 1.0], "[1e+308, 1.0]")]
+)
+def test_a_state_that_overflows_is_reported_by_the_runs_status_alone(tmp_path, x0, shown):
     # x0 = [1e300, 1e300]: numpy's "RuntimeWarning: overflow encountered in dot" and its
-    # source line, beside the run's own line saying it diverged.
-    scenario = _short_scenario(tmp_path, duration=0.2, x0=[1e300, 1e300])
+    # source line, beside the run's own line saying it diverged. x0 = [1e308, 1]: "internal
+    # error: ValueError: Axis limits cannot be NaN or Inf" from the figures, nothing written.
+    scenario = _short_scenario(tmp_path, duration=0.2, x0=x0)
     proc = run_cli("run", scenario, "--out", tmp_path / "o", "--quiet", "--checkpoints", 0)
     assert proc.returncode == 3, proc.stderr
     assert "RuntimeWarning" not in proc.stderr, proc.stderr
     assert "overflow encountered" not in proc.stderr, proc.stderr
     lines = proc.stderr.splitlines()
-    assert lines[0].startswith("warning: x0 = [1e+300, 1e+300] outside the observer box")
-    assert lines[1].startswith("stopped: diverged: x_1 = 1e+300 left the abort box"), lines
+    assert lines[0].startswith(f"warning: x0 = {shown} outside the observer box")
+    assert lines[1].startswith(f"stopped: diverged: x_1 = {x0[0]:g} left the abort box"), lines
     assert len(lines) == 2, proc.stderr
+    assert (tmp_path / "o" / "figures" / "overview.png").is_file()
 
 
 def test_a_python_warning_is_one_line_without_its_source_line(tmp_path):

@@ -1,6 +1,7 @@
 """Scenario files: the paper's parameters, and every bad input named by its key."""
 
 import dataclasses
+import math
 import os
 import re
 import shutil
@@ -88,7 +89,22 @@ BAD = [
     ),
     (
         _set("critic", "Gamma0", value=[[1, 2, 0], [0, 1, 0], [0, 0, 1]]),
-        r"critic\.Gamma0: must be symmetric",
+        r"critic\.Gamma0: must be symmetric; entry \[0\]\[1\] is 2 but \[1\]\[0\] is 0\.$",
+    ),
+    (_set("input_bound", value=math.inf), r"input_bound: must be a finite number; got inf\.$"),
+    (
+        _set("simulation", "duration", value=10**400),
+        r"simulation\.duration: the integer 10000000000\d+\.\.\. is beyond the largest float",
+    ),
+    (
+        _set("simulation", "accuracy", value=1e-15),
+        r"simulation\.accuracy: must be between 1e-12 and 0\.1; got 1e-15: below that the "
+        r"error estimate is at double-precision round-off",
+    ),
+    (
+        _set("simulation", "accuracy", value=2.0),
+        r"simulation\.accuracy: must be between 1e-12 and 0\.1; got 2: Drake's integrators use "
+        r"at most 0\.1",
     ),
     (
         _set("critic", "Gamma0", value=[[1, 0], [0, 1]]),
@@ -148,6 +164,20 @@ def test_missing_file_and_bad_yaml(tmp_path):
     bad.write_text("system: [unclosed\n")
     with pytest.raises(ScenarioError, match="not valid YAML"):
         load_scenario(bad)
+
+
+def test_an_empty_file_or_a_long_list_is_named_in_a_short_line(tmp_path):
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# only a comment\n")
+    with pytest.raises(
+        ScenarioError, match=r"scenario: expected a mapping of keys; got nothing \(the file or"
+    ):
+        load_scenario(empty)
+    listed = tmp_path / "list.yaml"
+    listed.write_text(yaml_dump(list(range(50_000))))
+    with pytest.raises(ScenarioError, match=r"got \[0, 1, 2, .*\.\.\.\.$") as err:
+        load_scenario(listed)
+    assert len(str(err.value)) < 400  # was the whole list: 600 KB on one line
 
 
 def test_a_path_that_is_not_a_regular_file_says_what_it_is(tmp_path):
