@@ -98,6 +98,28 @@ def _vec(a: Any) -> np.ndarray:
     return arr
 
 
+def _exact(value: float) -> str:
+    """The shortest text that reads back as ``value``, without a trailing ``.0``.
+
+    ``:g`` printed alpha = 0.9999999 as 1, the rate the plant cannot be certified at.
+    """
+    text = repr(float(value))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def _rate_beside(rate: float, claimed: float) -> str:
+    """``rate`` to 4 significant digits, or as many more as keep it on its side of ``claimed``.
+
+    ``-2 <= -2`` hid a worst rate of -2 against a claim of -1.9999998.
+    """
+    side = np.sign(rate - claimed)
+    for digits in range(4, 18):
+        text = f"{rate:+.{digits}g}"
+        if np.sign(float(text) - claimed) == side:
+            return text
+    return repr(rate)
+
+
 @dataclass(frozen=True, eq=False)
 class VerificationReport:
     """What a falsification attempt found.
@@ -194,17 +216,19 @@ class VerificationReport:
 
     def summary_line(self) -> str:
         """One line: "decay-certified..." or "claims alpha = ...; falsified: ..."."""
+        claim = f"claims alpha = {_exact(self.alpha)} (r <= {_exact(self.claimed_rate)})"
         if not self.falsified:
             return (
-                f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); not falsified: "
-                f"worst r = {self.worst_rate:+.4g} over {self.samples} samples "
+                f"{claim}; not falsified: "
+                f"worst r = {_rate_beside(self.worst_rate, self.claimed_rate)} over "
+                f"{self.samples} samples "
                 f"(seed {self.seed}{', refined' if self.refined else ''})"
             )
         where = f"x = {point_text(self.x)}, u = {point_text(self.u)}"
         if not math.isfinite(self.worst_rate):
             state = "" if self.direction is not None else f", xhat = {point_text(self.xhat)}"
             return (
-                f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); falsified: the "
+                f"{claim}; falsified: the "
                 f"error dynamics are not finite at {where}{state} (f or g is undefined or "
                 "overflows there, inside the box)"
             )
@@ -212,10 +236,7 @@ class VerificationReport:
             where += f", e -> 0 along {point_text(self.direction)}"
         else:
             where += f", xhat = {point_text(self.xhat)}"
-        return (
-            f"claims alpha = {self.alpha:g} (r <= {self.claimed_rate:g}); falsified: "
-            f"r = {self.worst_rate:+.4g} at {where}"
-        )
+        return f"{claim}; falsified: r = {self.worst_rate:+.4g} at {where}"
 
     def verdict(self, decay_certified: bool, bounds_guaranteed: bool = True) -> str:
         """One line for a design with or without a sound decay certificate.
@@ -229,9 +250,11 @@ class VerificationReport:
         """
         if decay_certified and not self.falsified:
             on = "" if bounds_guaranteed else " on sampled Jacobian bounds (not a proof)"
+            relation = "<=" if self.worst_rate <= self.claimed_rate else "within tolerance of"
             return (
-                f"decay-certified{on} and not falsified (alpha = {self.alpha:g}: worst r = "
-                f"{self.worst_rate:+.4g} <= {self.claimed_rate:g} over {self.samples} samples)"
+                f"decay-certified{on} and not falsified (alpha = {_exact(self.alpha)}: worst r = "
+                f"{_rate_beside(self.worst_rate, self.claimed_rate)} {relation} "
+                f"{_exact(self.claimed_rate)} over {self.samples} samples)"
             )
         prefix = "" if self.falsified or decay_certified else "not decay-certified; "
         return prefix + self.summary_line()

@@ -178,6 +178,25 @@ def test_sampling_alone_finds_the_paper_counterexample(two_state, paper_design):
     assert report.falsified and not report.refined
 
 
+def test_the_verdict_prints_alpha_and_the_margin_as_they_are(two_state, sound_design):
+    """alpha = 0.9999999 read "alpha = 1: worst r = -2 <= -2": the rate no design reaches."""
+    import dataclasses
+
+    report = verify_observer(sound_design, two_state, samples=200)
+    edge = dataclasses.replace(report, alpha=0.9999999, worst_rate=-2.0)
+    assert edge.verdict(True).startswith(
+        "decay-certified and not falsified (alpha = 0.9999999: worst r = -2 <= -1.9999998 over"
+    )
+    # Above the claim by less than the tolerance: printed on its side of it, and said so.
+    close = dataclasses.replace(edge, worst_rate=-1.99999975)
+    assert "worst r = -1.9999997 within tolerance of -1.9999998 over" in close.verdict(True)
+    assert "claims alpha = 0.9999999 (r <= -1.9999998); not falsified: worst r = -1.9999997" in (
+        close.verdict(False)
+    )
+    # Round numbers read as before.
+    assert f"(alpha = 0.9: worst r = {report.worst_rate:+.4g} <= -1.8 over" in report.verdict(True)
+
+
 def test_report_is_json_ready(two_state, sound_design):
     data = json.loads(json.dumps(verify_observer(sound_design, two_state, samples=200).to_dict()))
     assert data["falsified"] is False
