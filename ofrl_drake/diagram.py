@@ -43,7 +43,13 @@ from ofrl_drake.contracts import (
     WeightsSetter,
 )
 from ofrl_drake.drake_typing import DrakeArray, input_port_names, output_port_names
-from ofrl_drake.errors import InitialPolicyWarning, ModelError, ScenarioError, SwapError
+from ofrl_drake.errors import (
+    InitialPolicyWarning,
+    ModelError,
+    ScenarioError,
+    SwapError,
+    TargetWarning,
+)
 from ofrl_drake.learning import (
     DEFAULT_GAMMA_BOUND,
     POLICY_PERIOD_FRACTION,
@@ -430,13 +436,27 @@ def critic_settings(
     c = scenario.critic
     linearization = _linearization(system)
     metric = None
-    if c.law == "policy_iteration":
-        if linearization is None:
+    if linearization is None:
+        # The greedy policy is zero where dV/dx is (at the origin, for a basis of degree
+        # >= 2), so f(0) != 0 keeps the loop from ever resting at the target.
+        f0 = np.asarray(system.f(np.zeros(system.n)), dtype=float).tolist()
+        fix = (
+            "give the target as an equilibrium, equilibrium: {x: x*, u: u*} with "
+            "f(x*) + g(x*) u* = 0 (docs/own_plant.md)"
+        )
+        if c.law == "policy_iteration":
             raise ScenarioError(
-                "critic.law: policy_iteration accepts a policy by its linearization at the "
-                "target, but the origin is not an equilibrium of f; give an equilibrium "
-                "(the equilibrium key) or use critic.law: paper."
+                f"the origin is not an equilibrium of f (f(0) = {f0}): the policy is zero "
+                "there, so no law can hold the plant at the target, and critic.law: "
+                f"policy_iteration needs its linearization there; {fix}."
             )
+        warnings.warn(
+            f"the origin is not an equilibrium of f (f(0) = {f0}): the policy is zero there, "
+            f"so the loop cannot come to rest at the target; {fix}.",
+            TargetWarning,
+            stacklevel=_stacklevel_outside_the_package(),
+        )
+    if c.law == "policy_iteration":
         try:
             metric = rho_metric(basis_scales(basis, features.points))
         except ModelError as err:

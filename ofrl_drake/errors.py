@@ -18,6 +18,7 @@ __all__ = [
     "ScenarioError",
     "ScenarioTypeError",
     "SwapError",
+    "TargetWarning",
     "WallTimeExceeded",
     "is_domain_error",
     "lmi_time_left",
@@ -139,3 +140,7 @@ def status_line(err: BaseException) -> str:
 
 class InitialPolicyWarning(UserWarning):
     """Policy iteration starts from a policy its acceptance test would refuse (``critic.W0``)."""
+
+
+class TargetWarning(UserWarning):
+    """The target (the origin of the model's coordinates) is not an equilibrium of ``f``."""

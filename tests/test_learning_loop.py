@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from benchmarks.learning_table import with_critic, with_policy_iteration
 from ofrl_drake import build_closed_loop, load_scenario, simulate
-from ofrl_drake.errors import InitialPolicyWarning
+from ofrl_drake.errors import InitialPolicyWarning, ScenarioError, TargetWarning
 from ofrl_drake.examples import EXAMPLES, register
 from ofrl_drake.learning import value_matrix
 from ofrl_drake.learning_curve import (
@@ -600,6 +600,38 @@ def test_exact_policy_iteration_learns_on_the_pendulum_as_the_loop_does():
     assert lqr <= learned <= 1.01 * lqr
     # Without the local-cost condition nothing changes on this plant.
     np.testing.assert_allclose(iterate(loop, 3.0 * W_lqr, local_cost=False)["W"], out["W"])
+
+
+def test_a_target_that_is_no_equilibrium_is_named_under_either_law():
+    """f(0) != 0: the greedy policy is zero at the origin, so no law can rest there.
+
+    policy_iteration suggested critic.law: paper as the fix, which then ran to |x(T)| = 3.3
+    with no word about the target."""
+
+    def offset():
+        return ControlAffineSystem(
+            lambda x: np.array([x[1], -x[0] - 0.3 * x[1] + 1.0]),
+            lambda x: np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]]),
+            C=[[1.0, 0.0]],
+            name="offset",
+        )
+
+    register("offset_plant", offset)
+    try:
+        scenario = _user_scenario("offset_plant", 2, duration=1.0)
+        message = (
+            r"the origin is not an equilibrium of f \(f\(0\) = \[0\.0, 1\.0\]\): the policy is "
+            r"zero there, .*give the target as an equilibrium, equilibrium: \{x: x\*, u: u\*\} "
+            r"with f\(x\*\) \+ g\(x\*\) u\* = 0"
+        )
+        with pytest.raises(ScenarioError, match=message) as err:
+            build_closed_loop(scenario)
+        assert "critic.law: paper" not in str(err.value)
+        paper = with_critic(scenario, law="paper")
+        with pytest.warns(TargetWarning, match=message):
+            build_closed_loop(paper)
+    finally:
+        EXAMPLES.pop("offset_plant")
 
 
 def _domain_plant() -> ControlAffineSystem:
