@@ -300,6 +300,11 @@ def extract_drake_system(
         rows, the tolerance and the number of points).
     """
     if not isinstance(system, System):
+        if isinstance(system, type) and issubclass(system, System):
+            raise ModelError(
+                f"from_drake needs a Drake System; got the class {system.__name__}: pass an "
+                f"instance, {system.__name__}(...)."
+            )
         raise ModelError(f"from_drake needs a Drake System; got {type(system).__name__}.")
     label = name or _system_label(system)
     _check_points(label, check_points)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 __all__ = [
+    "SMOOTH_FORMS",
     "InitialPolicyWarning",
     "ModelError",
     "OfrlError",
@@ -136,6 +137,14 @@ def status_line(err: BaseException) -> str:
     head = "timeout" if isinstance(err, WallTimeExceeded) else type(err).__name__
     text = one_line(err)
     return f"{head}: {text}" if text else head
+
+
+#: How to write a branch of ``f`` or ``g`` (``|x|``, ``sign``, ``max``) in the smooth form
+#: the symbolic Jacobians and the certified bounds need.
+SMOOTH_FORMS = (
+    "Write them in a smooth form, with a small eps > 0: np.sqrt(x**2 + eps) for |x|, "
+    "np.tanh(x / eps) for sign(x), (a + b + np.sqrt((a - b)**2 + eps)) / 2 for max(a, b)"
+)
 
 
 class InitialPolicyWarning(UserWarning):

@@ -91,7 +91,7 @@ from typing import Any
 import numpy as np
 from pydrake.symbolic import Expression, Variable
 
-from ofrl_drake.errors import ModelError, OfrlError
+from ofrl_drake.errors import SMOOTH_FORMS, ModelError, OfrlError
 
 __all__ = [
     "ExpressionEvaluator",
@@ -633,9 +633,7 @@ class ExpressionEvaluator:
                 "Jacobian of f or g, np.abs, np.maximum, np.minimum or np.sign inside f or g "
                 "create such branches (|x| is not differentiable at 0, so its derivative is a "
                 "branch), while f and g must be continuously differentiable on the box, for "
-                "jacobian_method 'sampled' and 'certified' alike. Write them in a smooth form, "
-                "with a small eps > 0: np.sqrt(x**2 + eps) for |x|, np.tanh(x / eps) for "
-                "sign(x), (a + b + np.sqrt((a - b)**2 + eps)) / 2 for max(a, b); or give "
+                f"jacobian_method 'sampled' and 'certified' alike. {SMOOTH_FORMS}; or give "
                 "Jacobian bounds found by hand (design_observer's bounds=JacobianBounds(...))."
             )
         if kind not in _POINT_KINDS:

@@ -33,7 +33,7 @@ from ofrl_drake.drake_models import (
     extract_drake_system,
     extract_multibody,
 )
-from ofrl_drake.errors import ModelError, OfrlError
+from ofrl_drake.errors import SMOOTH_FORMS, ModelError, OfrlError
 from ofrl_drake.interval import as_expression
 
 if TYPE_CHECKING:  # annotations only
@@ -436,6 +436,15 @@ class ControlAffineSystem:
         except ModelError:
             raise
         except Exception as err:
+            if "__bool__" in str(err) and "Formula" in str(err):
+                # A comparison of the state used as a truth value: np.maximum, np.minimum,
+                # np.sign, np.clip, np.where or an if. Drake's own text is about dict keys.
+                raise ModelError(
+                    f"{self.name}: f or g branches on the state (a comparison such as "
+                    "np.maximum, np.minimum, np.sign, np.clip, np.where or an if on x), which "
+                    "Drake's symbolic Jacobians and the certified bounds cannot follow; f and "
+                    f"g must be continuously differentiable on the box. {SMOOTH_FORMS}."
+                ) from err
             raise ModelError(
                 f"{self.name}: f and g must accept pydrake.symbolic.Expression states "
                 f"({type(err).__name__}: {err}); write them with numpy functions "

@@ -416,6 +416,12 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
     elif tp is str:
         ok = isinstance(value, str)
         kind = "a string"
+        if path == "system":
+            fix = (
+                "; a scenario names its plant: an example's name, or 'module.path:callable' "
+                "(a function of no arguments returning a ControlAffineSystem; "
+                "ofrl_drake.examples.register(name, factory) names one made in Python)"
+            )
     else:  # pragma: no cover - schema types are all listed above
         ok, kind = True, str(tp)
     if not ok:

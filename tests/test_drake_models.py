@@ -543,3 +543,16 @@ def test_from_multibody_position_limits_are_fine_effort_limits_are_refused(tmp_p
     clamped.write_text(_LIMITED_URDF.replace("EFFORT", 'effort="5"'))
     with pytest.raises(ModelError, match=r"clamped: the plant has finite effort limits"):
         ControlAffineSystem.from_multibody(clamped)
+
+
+def test_a_class_where_a_drake_system_is_wanted_says_to_make_an_instance():
+    from pydrake.examples import PendulumPlant
+
+    from ofrl_drake import ControlAffineSystem
+    from ofrl_drake.errors import ModelError
+
+    with pytest.raises(
+        ModelError,
+        match=r"got the class PendulumPlant: pass an instance, PendulumPlant\(\.\.\.\)\.$",
+    ):
+        ControlAffineSystem.from_drake(PendulumPlant, C=[[1.0, 0.0]])

@@ -231,3 +231,31 @@ def test_the_fingerprint_follows_the_dynamics_not_the_object():
     with pytest.warns(UserWarning, match="do not accept a batch"):
         partial = ControlAffineSystem(f, g, C=[[1.0, 0.0]])
     assert len(partial.fingerprint()) == 24
+
+
+@pytest.mark.parametrize(
+    "branch",
+    [
+        lambda x: np.maximum(x[0], 0.0 * x[0]),
+        lambda x: np.clip(x[0], -1.0, 1.0),
+        lambda x: np.where(x[0] > 0, x[0], 0.0 * x[0]),
+        lambda x: np.sign(x[0]),
+    ],
+    ids=["maximum", "clip", "where", "sign"],
+)
+def test_a_branch_on_the_state_is_named_with_its_smooth_form(branch):
+    """Drake's own text ("__bool__ on Formula ... make a map with Variable") said nothing
+    of the branch, and "write them with numpy functions" contradicted np.maximum."""
+    system = ControlAffineSystem(
+        lambda x: np.array([x[1], -branch(x)]),
+        lambda x: np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]]),
+        C=[[1.0, 0.0]],
+        name="kinked",
+    )
+    with pytest.raises(
+        ModelError,
+        match=r"^kinked: f or g branches on the state \(a comparison such as np\.maximum.*"
+        r"np\.sqrt\(x\*\*2 \+ eps\) for \|x\|.*for max\(a, b\)\.$",
+    ) as err:
+        system.symbolic()
+    assert "EqualToDict" not in str(err.value)

@@ -166,6 +166,19 @@ def test_missing_file_and_bad_yaml(tmp_path):
         load_scenario(bad)
 
 
+def test_a_plant_object_as_the_system_says_how_to_name_it():
+    from ofrl_drake.examples import make_system
+    from ofrl_drake.scenario import validate_scenario
+
+    scenario = dataclasses.replace(load_scenario(PAPER_SCENARIO), system=make_system("two_state"))
+    with pytest.raises(
+        ScenarioError,
+        match=r"^system: expected a string; got .*; a scenario names its plant: an example's "
+        r"name, or 'module\.path:callable' .*ofrl_drake\.examples\.register\(name, factory\)",
+    ):
+        validate_scenario(scenario)
+
+
 def test_an_empty_file_or_a_long_list_is_named_in_a_short_line(tmp_path):
     empty = tmp_path / "empty.yaml"
     empty.write_text("# only a comment\n")
