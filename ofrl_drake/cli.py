@@ -652,8 +652,12 @@ class FigureInputs:
         n, m, L = result.x.shape[1], result.u.shape[1], result.W.shape[1]
         try:
             size = PolynomialBasis(n, list(inputs.basis_degrees)).size
-        except ModelError:
-            size = None
+        except ModelError as err:
+            raise RunFolderError(
+                f"{source}: the critic basis of degrees {list(inputs.basis_degrees)} is not one "
+                f"a run could have used ({err}); the file was edited or comes from another "
+                "run: run the scenario again."
+            ) from None
         basis = f"the critic basis of degrees {list(inputs.basis_degrees)} has {size} terms"
         for theirs, ours, columns, said in (
             (

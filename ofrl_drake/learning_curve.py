@@ -735,7 +735,9 @@ class LearningReport:
 
         saved = entry("learning_health", _saved_health)
         return cls(
-            curve=entry("learning_curve", _saved_curve),
+            curve=entry(
+                "learning_curve", lambda value: _saved_curve(value, result.t[0], result.t[-1])
+            ),
             health=LearningHealth.load(
                 directory / LEARNING_HEALTH_FILE,
                 result,
@@ -768,12 +770,21 @@ def _saved_health(value: Any) -> dict[str, Any]:
     }
 
 
-def _saved_curve(value: Any) -> list[dict[str, Any]]:
-    """``summary.json`` -> ``learning_curve``, each checkpoint's time and cost checked."""
+def _saved_curve(value: Any, start: float, end: float) -> list[dict[str, Any]]:
+    """``summary.json`` -> ``learning_curve``, each checkpoint's time and cost checked.
+
+    A checkpoint's time is one of the run's, within ``[start, end]`` (the logs' first and
+    last times), as :func:`learning_curve` labels them.
+    """
     if not isinstance(value, list):
         raise TypeError(f"expected a list of checkpoints, got {type(value).__name__}")
-    for checkpoint in value:
-        number_from_json(checkpoint["t"])
+    slack = 1e-9 * max(1.0, abs(end))
+    for k, checkpoint in enumerate(value):
+        t = number_from_json(checkpoint["t"])
+        if not start - slack <= t <= end + slack:
+            raise ValueError(
+                f"checkpoint {k} is at t = {t!r}, outside the run's times [{start:g}, {end:g}]"
+            )
         optional_number_from_json(checkpoint["policy_cost"])
     return value
 

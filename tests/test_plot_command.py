@@ -1,6 +1,7 @@
 """``ofrl-drake plot``: a run's figures redrawn from its folder, as ``run`` drew them."""
 
 import json
+import math
 import re
 import shutil
 
@@ -223,6 +224,20 @@ DAMAGE = {
         lambda d: (d / "learning_health.npz").unlink(),
         r"^error: .*/learning_health\.npz: no such file, though the run folder needs it "
         r"\(removed\?\); write the run again",
+    ),
+    "a checkpoint after the run": (  # was drawn, with a time axis to 1e9 s
+        lambda d: _edit_summary(d, lambda data: data["learning_curve"][-1].update(t=1e9)),
+        r"^error: .*/summary\.json: learning_curve = .* cannot be read back \(checkpoint \d+ "
+        r"is at t = 1000000000\.0, outside the run's times \[0, [\d.]+\]\)",
+    ),
+    "a checkpoint at NaN": (
+        lambda d: _edit_summary(d, lambda data: data["learning_curve"][0].update(t=math.nan)),
+        r"cannot be read back \(checkpoint 0 is at t = nan, outside the run's times",
+    ),
+    "a basis no run can have": (  # said "has None terms"
+        lambda d: _edit_summary(d, lambda data: data["figure_inputs"].update(basis_degrees=[1])),
+        r"^error: .*/summary\.json: the critic basis of degrees \[1\] is not one a run could "
+        r"have used \(PolynomialBasis: degree 1 is not allowed; .*\); the file was edited",
     ),
     "a curve without costs": (
         lambda d: _bad_curve(d / "summary.json"),
