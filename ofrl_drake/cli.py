@@ -463,6 +463,7 @@ def _run(args: argparse.Namespace) -> int:
             (tmp / "observer_design.json").write_text(_strict_json(design))
         graph = render_diagram(loop.diagram, tmp)
         animation_note = _write_animation(scenario, result, tmp)
+    args.written = out
     if animation_note:
         print(animation_note, file=sys.stderr)
     stop = result.stop
@@ -903,6 +904,7 @@ def _cmd_design_observer(args: argparse.Namespace) -> int:
     data = design.to_dict()
     data["verification"] = verification.to_dict()
     atomic_write_text(Path(args.out), _strict_json(data))
+    args.written = args.out
     print(
         f"wrote {args.out}: alpha = {design.alpha}, ||L|| = {design.gain_norm:.4g}, "
         f"max certificate eigenvalue = {design.max_eigenvalue:.3g}"
@@ -952,6 +954,7 @@ def _cmd_verify_observer(args: argparse.Namespace) -> int:
             "observer_design": design.to_dict(),
         }
         atomic_write_text(Path(args.out), _strict_json(data))
+        args.written = args.out
     print(
         f"{scenario.name}: "
         f"{report.verdict(design.is_decay_certified, design.bounds_are_guaranteed)}"
@@ -1838,6 +1841,19 @@ def _interrupts_not_swallowed() -> Iterator[None]:
             raise Terminated() if isinstance(recorded, Terminated) else KeyboardInterrupt()
 
 
+def _written_before(args: argparse.Namespace | None) -> str:
+    """What an interrupted command leaves: nothing, or the output it wrote in full first.
+
+    A command sets ``args.written`` once its output is in place (the rename of
+    its atomic write); an interrupt after that, in what it prints, said "no
+    output written" beside the file it had just replaced.
+    """
+    written = getattr(args, "written", None)
+    if written is None:
+        return "no output written"
+    return f"{written} was written in full before it"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ofrl-drake``; returns the exit code.
 
@@ -1857,6 +1873,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines = _WarningLines()
     showwarning = warnings.showwarning
     warnings.showwarning = lines
+    args: argparse.Namespace | None = None
     try:
         args = _parser().parse_args(argv)
         args.started = started
@@ -1876,10 +1893,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _print_error(f"error: {one_line(err)}{where}")
         return EXIT_BAD_INPUT
     except Terminated:
-        _print_error("error: terminated (SIGTERM); no output written")
+        _print_error(f"error: terminated (SIGTERM); {_written_before(args)}")
         return EXIT_TERMINATED
     except KeyboardInterrupt:
-        _print_error("error: interrupted; no output written")
+        _print_error(f"error: interrupted; {_written_before(args)}")
         return EXIT_INTERRUPTED
     except Exception as err:
         msg = one_line(err, 500)

@@ -114,3 +114,35 @@ def test_reports_with_an_infinite_rate_are_written_as_strict_json(tmp_path, monk
     design = tmp_path / "design.json"
     assert main(["design-observer", str(SOUND_SCENARIO), "--out", str(design)]) == 0
     json.loads(design.read_text(), parse_constant=refuse)
+
+
+def test_an_interrupt_after_the_design_is_written_says_it_was_written(tmp_path, capsys):
+    """A Ctrl-C while the verdict was printed said "no output written" beside the new file."""
+    from unittest import mock
+
+    from ofrl_drake.cli import main
+
+    out = tmp_path / "d.json"
+    with mock.patch(
+        "ofrl_drake.verification.VerificationReport.verdict", side_effect=KeyboardInterrupt
+    ):
+        assert main(["design-observer", str(SOUND_SCENARIO), "--out", str(out)]) == 130
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == [f"error: interrupted; {out} was written in full before it"], lines
+    assert json.loads(out.read_text())["alpha"] == 0.9
+
+
+def test_the_console_ignores_sigint_once_the_command_has_returned():
+    """The exit code stands while Python shuts down (a Ctrl-C there printed a traceback)."""
+    import signal
+    from unittest import mock
+
+    from ofrl_drake.__main__ import console
+
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        with mock.patch("ofrl_drake.cli.main", return_value=4):
+            assert console() == 4
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
