@@ -33,7 +33,12 @@ from ofrl_drake.jacobian_bounds import Box
 from ofrl_drake.model import ControlAffineSystem
 from ofrl_drake.verification import plant_jacobians
 
-__all__ = ["UnobservableEquilibrium", "linearization", "unobservable_equilibria"]
+__all__ = [
+    "UnobservableEquilibrium",
+    "linearization",
+    "unobservable_equilibria",
+    "unobservable_modes",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,7 +81,11 @@ def _observability(A: np.ndarray, C: np.ndarray) -> np.ndarray:
     return np.vstack(blocks)
 
 
-def _unobservable_modes(A: np.ndarray, C: np.ndarray, tol: float) -> np.ndarray:
+def unobservable_modes(A: np.ndarray, C: np.ndarray, tol: float) -> np.ndarray:
+    """The eigenvalues ``lambda`` of ``A`` for which ``[A - lambda I; C]`` loses rank (PBH).
+
+    Rank is lost when its smallest singular value is at most ``tol max(1, max |A_ij|)``.
+    """
     n = A.shape[0]
     modes = []
     for lam in np.linalg.eigvals(A):
@@ -155,7 +164,7 @@ def unobservable_equilibria(
         if any(np.max(np.abs(np.append(e.x, e.u) - z)) < 1e3 * tol * scale for e in found):
             continue
         A = linearization(system, x, u)
-        modes = _unobservable_modes(A, C, 1e-6)
+        modes = unobservable_modes(A, C, 1e-6)
         if modes.size:
             found.append(UnobservableEquilibrium(x.copy(), u.copy(), A, modes, residual))
     return sorted(found, key=lambda e: tuple(e.x))

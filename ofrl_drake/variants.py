@@ -47,7 +47,7 @@ The plant, observer, controller and running cost are C++ symbolic blocks when
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -60,6 +60,7 @@ from ofrl_drake.baselines import (
     point_offsets,
 )
 from ofrl_drake.bellman import PointFeatures, point_features
+from ofrl_drake.checks import point_text
 from ofrl_drake.drake_typing import DrakeArray
 from ofrl_drake.errors import ModelError, ScenarioError, lmi_time_left
 from ofrl_drake.observer import ObserverGains
@@ -240,7 +241,7 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
     ObserverDesignInfeasible
         If no certified gains exist (or the pinned ones are not certified).
     """
-    from ofrl_drake.design import ObserverDesign, design_observer
+    from ofrl_drake.design import ObserverDesign
 
     start = time.monotonic()
     system = system or resolve_system(scenario)
@@ -261,16 +262,96 @@ def design_for(scenario: Scenario, system: ControlAffineSystem | None = None) ->
             formulation=o.formulation,
             time_limit=time_limit,
         )
-    return design_observer(
-        system,
-        box,
-        scenario.input_bound,
-        o.alpha,
-        bounds=bounds,
-        solver=o.solver,
-        formulation=o.formulation,
-        time_limit=time_limit,
-    )
+    return _solved_design(scenario, system, bounds, time_limit)
+
+
+def _solved_design(
+    scenario: Scenario,
+    system: ControlAffineSystem,
+    bounds: JacobianBounds,
+    time_limit: float | None,
+    **options: Any,
+) -> ObserverDesign:
+    """The scenario's LMI design (``options`` for :func:`~ofrl_drake.design.design_observer`).
+
+    When it is infeasible because the output cannot see a mode that decays slower
+    than alpha, the error says so in place of the usual hint (:func:`_undetectable_note`).
+    """
+    from ofrl_drake.design import ObserverDesignInfeasible, design_observer
+
+    o = scenario.observer
+    box = (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float))
+    try:
+        return design_observer(
+            system,
+            box,
+            scenario.input_bound,
+            o.alpha,
+            bounds=bounds,
+            solver=o.solver,
+            formulation=o.formulation,
+            time_limit=time_limit,
+            **options,
+        )
+    except ObserverDesignInfeasible as err:
+        note = _undetectable_note(system, box, scenario.input_bound, float(o.alpha))
+        if note is None:
+            raise
+        # The usual hint (a smaller alpha, box or input bound) cannot help here.
+        head = str(err).split("; try ", 1)[0]
+        raise ObserverDesignInfeasible(
+            f"{head}. {note}",
+            alpha=err.alpha,
+            box=err.box,
+            input_bound=err.input_bound,
+            status=err.status,
+            solver=err.solver,
+            formulation=err.formulation,
+        ) from None
+
+
+def _undetectable_note(
+    system: ControlAffineSystem,
+    box: tuple[np.ndarray, np.ndarray],
+    input_bound: float,
+    alpha: float,
+) -> str | None:
+    """Why no gains can exist, when a mode the output does not see decays slower than alpha.
+
+    At any ``(x, u)`` an eigenvalue of ``A = d(f + g u)/dx`` that ``y = C x`` does not
+    see (:func:`~ofrl_drake.unobservable.unobservable_modes`) is an eigenvalue of the
+    error's linearization whatever the gains, so no design certifies a rate above
+    ``-Re(lambda)``. Checked at the box's center, with ``u`` at 0 and at each input
+    bound; None when every such mode there decays faster than ``alpha``.
+    """
+    from ofrl_drake.unobservable import linearization, unobservable_modes
+
+    center = 0.5 * (np.asarray(box[0], float) + np.asarray(box[1], float))
+    inputs = [np.zeros(system.m)]
+    for k in range(system.m):
+        for sign in (1.0, -1.0):
+            inputs.append(sign * input_bound * np.eye(system.m)[k])
+    for u in inputs:
+        try:
+            A = linearization(system, center, u)
+        except (ModelError, ValueError, ArithmeticError):
+            return None
+        if not np.all(np.isfinite(A)):
+            return None
+        slow = [
+            lam for lam in unobservable_modes(A, system.output_matrix, 1e-9) if lam.real > -alpha
+        ]
+        if slow:
+            lam = max(slow, key=lambda mode: mode.real)
+            shown = f"{lam.real:.4g}" if abs(lam.imag) < 1e-12 else f"{lam:.4g}"
+            return (
+                f"No gains can reach it: at x = {point_text(center)}, u = {point_text(u)} the "
+                f"mode lambda = {shown} of the linearization d(f + g u)/dx is not seen in "
+                "y = C x (PBH test), so the error decays there no faster than "
+                f"exp({lam.real:.4g} t) whatever L, H, K, and no design certifies alpha > "
+                f"{-lam.real:.4g}; measure a state that sees this mode (plant C)."
+            )
+    return None
 
 
 def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> ObserverDesign:
@@ -293,21 +374,10 @@ def linear_observer_design(scenario: Scenario, system: ControlAffineSystem) -> O
     WallTimeExceeded
         If the design does not finish within ``simulation.max_wall_time``.
     """
-    from ofrl_drake.design import design_observer
-
     start = time.monotonic()
-    o = scenario.observer
     bounds = scenario_bounds(scenario, system)
-    return design_observer(
-        system,
-        (np.asarray(o.box.lower, float), np.asarray(o.box.upper, float)),
-        scenario.input_bound,
-        o.alpha,
-        bounds=bounds,
-        solver=o.solver,
-        formulation=o.formulation,
-        injection_gains=False,
-        time_limit=_time_left(scenario, start),
+    return _solved_design(
+        scenario, system, bounds, _time_left(scenario, start), injection_gains=False
     )
 
 

@@ -713,3 +713,53 @@ def test_a_swapped_block_is_renamed_to_its_slot_and_fills_one_loop_only(
 
     for _ in range(2):
         assert build_closed_loop(paper_scenario, design=paper_design, critic=fresh).critic
+
+
+def _unseen_unstable_mode():
+    """x1' = x1 grows and y = x2 never sees it: no observer gain can help."""
+    return ControlAffineSystem(
+        lambda x: np.array([x[0], -x[1]]),
+        lambda x: np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]]),
+        C=[[0.0, 1.0]],
+        name="unseen",
+    )
+
+
+def test_an_infeasible_design_names_a_mode_the_output_cannot_see(tmp_path):
+    """The usual hint ("try a smaller alpha, a smaller box, a smaller input bound") could
+    not help: the error of x1 grows at e^t whatever the gains."""
+    from ofrl_drake.design import ObserverDesignInfeasible
+    from ofrl_drake.examples import EXAMPLES, register
+    from ofrl_drake.variants import design_for
+
+    register("unseen_mode", _unseen_unstable_mode)
+    try:
+        scenario = dataclasses.replace(
+            load_scenario(PAPER_SCENARIO),
+            system="unseen_mode",
+            observer=dataclasses.replace(
+                load_scenario(PAPER_SCENARIO).observer,
+                alpha=0.5,
+                formulation="polytopic",
+            ),
+        )
+        with pytest.raises(
+            ObserverDesignInfeasible,
+            match=r"\(PrimalInfeasible\)\)\. No gains can reach it: at x = \(0, 0\), u = \(0\) "
+            r"the mode lambda = 1 of the linearization d\(f \+ g u\)/dx is not seen in y = C x "
+            r"\(PBH test\).*no design certifies alpha > -1; measure a state",
+        ) as err:
+            design_for(scenario)
+        assert "try a smaller alpha" not in str(err.value)
+        # Where the output sees every mode, the usual hint: the paper's plant, certified
+        # by the sound formulation for alpha < 1 only.
+        seen = dataclasses.replace(
+            scenario,
+            system=load_scenario(PAPER_SCENARIO).system,
+            observer=dataclasses.replace(scenario.observer, alpha=1.5),
+        )
+        with pytest.raises(ObserverDesignInfeasible, match=r"try a smaller alpha") as err:
+            design_for(seen)
+        assert "No gains can reach it" not in str(err.value)
+    finally:
+        EXAMPLES.pop("unseen_mode")

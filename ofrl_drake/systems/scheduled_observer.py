@@ -145,9 +145,9 @@ class ScheduledThreeGainObserver(LeafSystem):
     number follows each re-solve's bounds), so its gains re-check with
     ``from_gains(..., P=None, formulation="structured")`` at the logged box,
     which solves for a certifying ``P`` and multipliers with the gains fixed
-    (and raises ``ObserverDesignInfeasible`` if there is none); ``solve_failed`` is 1 after a re-solve that
-    found no certified design (the previous gains and box stay
-    in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
+    (and raises ``ObserverDesignInfeasible`` if there is none);
+    ``solve_failed`` is 1 after a re-solve that found no certified design (the
+    previous gains and box stay in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
     failed]`` since the start; ``verification`` is ``[worst rate found, claimed
     rate -2 alpha, 1 if falsified else 0]`` of a falsification attempt
     (:func:`ofrl_drake.verification.verify_observer` with
