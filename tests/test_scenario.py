@@ -92,6 +92,12 @@ BAD = [
         r"critic\.Gamma0: must be symmetric; entry \[0\]\[1\] is 2 but \[1\]\[0\] is 0\.$",
     ),
     (_set("input_bound", value=math.inf), r"input_bound: must be a finite number; got inf\.$"),
+    (  # was let through (estimated 1.86 GiB) and took 3.6 GB
+        _set(
+            "points", value={"kind": "uniform", "lower": [-1, -1], "upper": [1, 1], "number": 10**7}
+        ),
+        r"points\.number: 1e\+07 points would need about 3\.73 GiB for the Bellman features",
+    ),
     (
         _set("simulation", "duration", value=10**400),
         r"simulation\.duration: the integer 10000000000\d+\.\.\. is beyond the largest float",
