@@ -835,6 +835,7 @@ def _plot(args: argparse.Namespace, run_dir: Path, target: Path) -> int:
     formats = list(dict.fromkeys(args.format or ["png"]))
     with atomic_directory(target, run_dir) as tmp:
         written = save_run_figures(result, inputs, learning, tmp, formats=formats, size=args.size)
+    args.written = target
     names = sorted({path.stem for path in written})
     print(
         f"wrote {target}: {len(names)} figures ({', '.join(formats)}, "

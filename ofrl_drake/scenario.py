@@ -390,7 +390,9 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         (item_tp,) = typing.get_args(tp)
         plain = _PLAIN_TYPES.get(item_tp)
         if plain is not None and all(type(item) in plain for item in value):
-            return  # the common case, fast for a large Gamma0
+            beyond = [type(i) is int and not math.isfinite(_as_float(i)) for i in value]
+            if not any(beyond):
+                return  # the common case, fast for a large Gamma0
         for i, item in enumerate(value):
             _check_value(f"{path}[{i}]", item_tp, item, typed=typed)
         return

@@ -236,7 +236,8 @@ class VerificationReport:
             where += f", e -> 0 along {point_text(self.direction)}"
         else:
             where += f", xhat = {point_text(self.xhat)}"
-        return f"{claim}; falsified: r = {self.worst_rate:+.4g} at {where}"
+        rate = _rate_beside(self.worst_rate, self.claimed_rate)
+        return f"{claim}; falsified: r = {rate} at {where}"
 
     def verdict(self, decay_certified: bool, bounds_guaranteed: bool = True) -> str:
         """One line for a design with or without a sound decay certificate.

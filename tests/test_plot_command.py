@@ -259,6 +259,26 @@ def test_a_damaged_run_folder_exits_2_in_one_line_and_leaves_the_figures(copied,
     assert not list(copied.glob(".figures.*"))
 
 
+def test_an_interrupt_after_the_figures_are_written_says_they_were(copied, tmp_path, capsys):
+    """It said "no output written" beside the figures folder it had just put in place."""
+    import builtins
+    from unittest import mock
+
+    import ofrl_drake.cli as cli
+
+    def interrupted(*args, **kwargs):
+        if args and str(args[0]).startswith("wrote "):
+            raise KeyboardInterrupt
+        builtins.print(*args, **kwargs)
+
+    out = tmp_path / "figures"
+    with mock.patch.object(cli, "print", interrupted, create=True):
+        assert main(["plot", str(copied), "--out", str(out)]) == 130
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == [f"error: interrupted; {out} was written in full before it"], lines
+    assert (out / "overview.png").is_file()
+
+
 def test_a_folder_that_is_not_a_run_exits_2_in_one_line(tmp_path):
     proc = run_cli("plot", tmp_path / "missing", timeout=300)
     assert_one_line(

@@ -92,6 +92,10 @@ BAD = [
         r"critic\.Gamma0: must be symmetric; entry \[0\]\[1\] is 2 but \[1\]\[0\] is 0\.$",
     ),
     (_set("input_bound", value=math.inf), r"input_bound: must be a finite number; got inf\.$"),
+    (  # in a list, the check was skipped: internal error: OverflowError
+        _set("x0", value=[10**400, 0.0]),
+        r"x0\[0\]: the integer 10000000000\d+\.\.\. is beyond the largest float",
+    ),
     (  # was let through (estimated 1.86 GiB) and took 3.6 GB
         _set(
             "points", value={"kind": "uniform", "lower": [-1, -1], "upper": [1, 1], "number": 10**7}

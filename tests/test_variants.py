@@ -761,5 +761,26 @@ def test_an_infeasible_design_names_a_mode_the_output_cannot_see(tmp_path):
         with pytest.raises(ObserverDesignInfeasible, match=r"try a smaller alpha") as err:
             design_for(seen)
         assert "No gains can reach it" not in str(err.value)
+        # The paper's (lmi2) reads no Jacobian at a point: a slow unseen mode at the center
+        # does not bound it (alpha = 3 certifies here), so the usual hint stays.
+        EXAMPLES["unseen_mode"] = lambda: ControlAffineSystem(
+            lambda x: np.array([-0.1 * x[0] - x[0] ** 3, -x[1]]),
+            lambda x: np.array([[0.0 * x[0]], [1.0 + 0.0 * x[0]]]),
+            C=[[0.0, 1.0]],
+            name="slow",
+        )
+        paper = dataclasses.replace(
+            scenario, observer=dataclasses.replace(scenario.observer, formulation="paper")
+        )
+        for alpha in (3.0, 10.0):
+            lmi2 = dataclasses.replace(
+                paper, observer=dataclasses.replace(paper.observer, alpha=alpha)
+            )
+            if alpha == 3.0:
+                assert design_for(lmi2).is_certified
+                continue
+            with pytest.raises(ObserverDesignInfeasible, match=r"try a smaller alpha") as err:
+                design_for(lmi2)
+            assert "No gains can reach it" not in str(err.value)
     finally:
         EXAMPLES.pop("unseen_mode")

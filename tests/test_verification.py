@@ -193,6 +193,9 @@ def test_the_verdict_prints_alpha_and_the_margin_as_they_are(two_state, sound_de
     assert "claims alpha = 0.9999999 (r <= -1.9999998); not falsified: worst r = -1.9999997" in (
         close.verdict(False)
     )
+    # Falsified, as near the claim: on its side of it too (read "r = -2" against r <= -2).
+    near = dataclasses.replace(report, alpha=1.0, worst_rate=-1.99999)
+    assert near.falsified and "(r <= -2); falsified: r = -1.99999 at" in near.summary_line()
     # Round numbers read as before.
     assert f"(alpha = 0.9: worst r = {report.worst_rate:+.4g} <= -1.8 over" in report.verdict(True)
 

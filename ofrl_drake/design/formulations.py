@@ -96,10 +96,17 @@ class Formulation(ABC):
     sign_correct_only : bool
         True if it always uses the sign-correct input sector (every
         formulation but ``"paper"``).
+    proves_decay : bool
+        True if a solution proves the decay claim for the true error
+        dynamics on the box (every formulation but ``"paper"``, whose (lmi2)
+        reads the Jacobians' lower bounds only). Then the LMI is infeasible
+        wherever the error's linearization has a mode slower than alpha that
+        no gain reaches.
     """
 
     name: ClassVar[str]
     sign_correct_only: ClassVar[bool] = True
+    proves_decay: ClassVar[bool] = True
 
     def check_sector(self, sector: str) -> None:
         """Raise :class:`DesignError` unless ``sector`` can be used with this formulation."""
@@ -275,6 +282,7 @@ class PaperFormulation(Formulation):
 
     name = "paper"
     sign_correct_only = False
+    proves_decay = False
 
     def problem(
         self,
