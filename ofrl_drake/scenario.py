@@ -17,7 +17,6 @@ is required.
 # No "from __future__ import annotations": Drake reads the field types at run time.
 
 import dataclasses
-import math
 import re
 import stat
 import types
@@ -390,8 +389,7 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         (item_tp,) = typing.get_args(tp)
         plain = _PLAIN_TYPES.get(item_tp)
         if plain is not None and all(type(item) in plain for item in value):
-            beyond = [type(i) is int and not math.isfinite(_as_float(i)) for i in value]
-            if not any(beyond):
+            if not any(type(item) is int and _beyond_float(item) for item in value):
                 return  # the common case, fast for a large Gamma0
         for i, item in enumerate(value):
             _check_value(f"{path}[{i}]", item_tp, item, typed=typed)
@@ -405,7 +403,7 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         kind = "a number"
         if isinstance(value, str) and _is_float_text(value):
             fix = " (a quoted string); write the number without quotes"
-        if ok and isinstance(value, int) and not math.isfinite(_as_float(value)):
+        if ok and isinstance(value, int) and _beyond_float(value):
             # Drake's typed loader would raise OverflowError: name the key instead.
             raise ScenarioError(
                 f"{path}: the integer {_shown(value)} is beyond the largest float (about "
@@ -430,12 +428,13 @@ def _check_value(path: str, tp: Any, value: Any, *, typed: bool = False) -> None
         raise ScenarioError(f"{path}: expected {kind}; got {_shown(value)}{fix}.")
 
 
-def _as_float(value: int) -> float:
-    """``float(value)``, or inf where the integer is beyond the largest float."""
+def _beyond_float(value: int) -> bool:
+    """Whether the integer ``value`` is beyond the largest float (``float()`` overflows)."""
     try:
-        return float(value)
+        float(value)
     except OverflowError:
-        return math.inf
+        return True
+    return False
 
 
 def _is_float_text(text: str) -> bool:

@@ -801,16 +801,15 @@ def verify_observer(
         for k, (_, x0, xh0, u0) in enumerate(finite_starts[:starts]):
             on_time(f"refinement {k + 1} of the finite errors")
 
-            def finite_objective(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
-                U = np.repeat(u0[:, None], Z.shape[1], axis=1)
-                r = _rates(system, gains, P, Z[:n], Z[n:], U)
-                small = np.linalg.norm(Z[:n] - Z[n:], axis=0) < floor
-                covered = _injections_inside(gains, system.output_matrix, Z[:n], Z[n:], box)
-                return np.where(small | ~covered | ~np.isfinite(r), -math.inf, r)
-
             def finite_rate(Z: np.ndarray, u0: np.ndarray = u0) -> np.ndarray:
                 U = np.repeat(u0[:, None], Z.shape[1], axis=1)
                 return _rates(system, gains, P, Z[:n], Z[n:], U)
+
+            def finite_objective(Z: np.ndarray) -> np.ndarray:
+                r = finite_rate(Z)
+                small = np.linalg.norm(Z[:n] - Z[n:], axis=0) < floor
+                covered = _injections_inside(gains, system.output_matrix, Z[:n], Z[n:], box)
+                return np.where(small | ~covered | ~np.isfinite(r), -math.inf, r)
 
             z, value = _refine(
                 finite_objective,

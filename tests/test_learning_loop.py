@@ -552,21 +552,18 @@ def test_every_gate_decision_is_counted_when_several_share_a_log_sample():
 def test_the_gate_keeps_its_policy_when_the_value_is_negative_at_the_points():
     """A quartic term can make V negative on the points with a positive-definite P."""
     from pydrake.systems.analysis import Simulator
-    from scipy.linalg import solve_continuous_are
 
-    from ofrl_drake.basis import PolynomialBasis
     from ofrl_drake.learning import value_weights
     from ofrl_drake.points import grid_points
     from ofrl_drake.systems import PolicyGate
 
-    A, B, r = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), np.array([1.0])
-    basis = PolynomialBasis(2, (2, 4))
-    P = solve_continuous_are(A, B, np.eye(2), np.diag(r))
-    in_force = value_weights(basis, 3.0 * P)
-    candidate = value_weights(basis, P)  # the LQR value: a smaller local cost ...
-    candidate[[tuple(e) for e in basis.exponents].index((4, 0))] = -50.0  # ... but V < 0
+    from .test_learning import A, B, R, _lqr_value, _quartic_dip
+
+    # The double integrator's LQR value (a smaller local cost) minus 50 x1^4 (V < 0).
+    basis, candidate = _quartic_dip(-50.0)
+    in_force = value_weights(basis, 3.0 * _lqr_value(np.eye(2)))
     points = grid_points([-1, -1], [1, 1], [5, 5])
-    gate = PolicyGate(in_force, 1.0, A, B, np.eye(2), r, basis, points)
+    gate = PolicyGate(in_force, 1.0, A, B, np.eye(2), R, basis, points)
     context = gate.CreateDefaultContext()
     gate.get_weights_input_port().FixValue(context, candidate)
     simulator = Simulator(gate, context)
@@ -575,7 +572,7 @@ def test_the_gate_keeps_its_policy_when_the_value_is_negative_at_the_points():
     np.testing.assert_array_equal(gate.get_policy_weights_output_port().Eval(context), in_force)
     # Without the minus sign the same candidate is put in force (and kept: the second
     # decision finds the same local cost).
-    candidate[[tuple(e) for e in basis.exponents].index((4, 0))] = 50.0
+    candidate = _quartic_dip(50.0)[1]
     context = gate.CreateDefaultContext()
     gate.get_weights_input_port().FixValue(context, candidate)
     Simulator(gate, context).AdvanceTo(2.5)

@@ -141,15 +141,16 @@ class ScheduledThreeGainObserver(LeafSystem):
     vertices (negative when certified), so every gain in force can be
     re-checked from the logs: in numpy for the ``polytopic`` and ``paper``
     formulations (:meth:`ObserverDesign.from_gains` with ``P`` and the logged
-    box); a ``structured`` design's S-procedure multipliers are not logged (their
-    number follows each re-solve's bounds), so its gains re-check with
+    box); a ``structured`` design's S-procedure multipliers are not logged
+    (their number follows each re-solve's bounds), so its gains re-check with
     ``from_gains(..., P=None, formulation="structured")`` at the logged box,
     which solves for a certifying ``P`` and multipliers with the gains fixed
     (and raises ``ObserverDesignInfeasible`` if there is none);
     ``solve_failed`` is 1 after a re-solve that found no certified design (the
-    previous gains and box stay in force), else 0; ``solve_counts`` is ``[re-solves run, re-solves
-    failed]`` since the start; ``verification`` is ``[worst rate found, claimed
-    rate -2 alpha, 1 if falsified else 0]`` of a falsification attempt
+    previous gains and box stay in force), else 0; ``solve_counts`` is
+    ``[re-solves run, re-solves failed]`` since the start; ``verification``
+    is ``[worst rate found, claimed rate -2 alpha, 1 if falsified else 0]``
+    of a falsification attempt
     (:func:`ofrl_drake.verification.verify_observer` with
     :data:`VERIFY_SAMPLES` samples, no refinement, seeded by the re-solve
     count) on each design put in force, the initial one included. All are
